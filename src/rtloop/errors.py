@@ -1,0 +1,83 @@
+"""Exceptions raised by rtloop.
+
+Every rtloop error derives from :class:`RtloopError` and also from the built-in
+exception it resembles, so ``except ValueError`` keeps working for callers that do
+not know rtloop.
+"""
+
+from __future__ import annotations
+
+
+class RtloopError(Exception):
+    """Base class of every error raised by rtloop."""
+
+
+class AppError(RtloopError, ValueError):
+    """An application is wired or configured wrongly (detected before anything runs)."""
+
+
+class AppFileError(AppError):
+    """An app file (TOML) is malformed: names the file, the key and what was expected."""
+
+    def __init__(self, path: str, key: str, problem: str) -> None:
+        self.path = path
+        self.key = key
+        self.problem = problem
+        where = f"{path}: {key}" if key else str(path)
+        super().__init__(f"{where}: {problem}")
+
+
+class ConnectionSizeError(AppError):
+    """The two ends of a connection or port have different sizes."""
+
+
+class LibcError(RtloopError, OSError):
+    """A libc call failed; names the call and its errno."""
+
+    def __init__(self, call: str, errno_value: int, hint: str = "") -> None:
+        import os
+
+        self.call = call
+        message = f"{call} failed: {os.strerror(errno_value)} (errno {errno_value})"
+        if hint:
+            message += f" — {hint}"
+        super().__init__(errno_value, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+class TaskFailed(RtloopError, RuntimeError):
+    """A task stopped because its runnable raised or its process died.
+
+    Attributes:
+        task: name of the task.
+        cycle: cycle number at which it failed (``None`` if before the first cycle).
+        phase: ``"prerun"``, ``"step"``, ``"postrun"`` or ``"process"``.
+        traceback_text: the original traceback, formatted in the task process.
+    """
+
+    def __init__(
+        self, task: str, cycle: int | None, phase: str, reason: str, traceback_text: str = ""
+    ) -> None:
+        self.task = task
+        self.cycle = cycle
+        self.phase = phase
+        self.reason = reason
+        self.traceback_text = traceback_text
+        at = f" at cycle {cycle}" if cycle is not None else ""
+        super().__init__(f"task {task!r} failed in {phase}{at}: {reason}")
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "task": self.task,
+            "cycle": self.cycle,
+            "phase": self.phase,
+            "reason": self.reason,
+            "traceback": self.traceback_text,
+        }
+
+
+class PortValueError(RtloopError, ValueError):
+    """A value written to a port was rejected (wrong length, NaN/inf)."""

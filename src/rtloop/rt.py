@@ -1,0 +1,317 @@
+"""Operating-system primitives for real-time tasks, through ctypes.
+
+One thin layer mirrors the libc calls; every call goes through :func:`_check`, which
+turns a failure into :class:`~rtloop.errors.LibcError` naming the call and errno.
+Everything here is Linux-only.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import platform
+import resource
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from time import monotonic_ns as now_ns  # clock_gettime(CLOCK_MONOTONIC), no ctypes hop
+
+from .errors import LibcError
+
+_libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+CLOCK_MONOTONIC = 1
+TIMER_ABSTIME = 1
+MCL_CURRENT = 1
+MCL_FUTURE = 2
+EINTR = 4
+
+POLICIES: dict[str, int] = {
+    "fifo": os.SCHED_FIFO,
+    "rr": os.SCHED_RR,
+    "other": os.SCHED_OTHER,
+    "deadline": 6,  # SCHED_DEADLINE, set through sched_setattr(2)
+}
+POLICY_NAMES = {number: name for name, number in POLICIES.items()}
+
+
+class Timespec(ctypes.Structure):
+    _fields_ = (("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long))
+
+
+_clock_nanosleep = _libc.clock_nanosleep
+_clock_nanosleep.argtypes = (
+    ctypes.c_int,
+    ctypes.c_int,
+    ctypes.POINTER(Timespec),
+    ctypes.POINTER(Timespec),
+)
+_clock_nanosleep.restype = ctypes.c_int
+_mlockall = _libc.mlockall
+_mlockall.argtypes = (ctypes.c_int,)
+_mlockall.restype = ctypes.c_int
+
+
+def _check(call: str, result: int, hint: str = "", *, returns_errno: bool = False) -> int:
+    """Raise LibcError if a libc call failed. ``returns_errno``: the call returns the errno."""
+    if returns_errno:
+        if result != 0:
+            raise LibcError(call, result, hint)
+        return result
+    if result == -1:
+        raise LibcError(call, ctypes.get_errno(), hint)
+    return result
+
+
+
+class AbsoluteSleeper:
+    """Sleeps until absolute CLOCK_MONOTONIC times, with a preallocated timespec.
+
+    ``sleep_until`` allocates nothing, so it is safe inside the real-time loop.
+    """
+
+    def __init__(self) -> None:
+        self._deadline = Timespec()
+        self._deadline_ref = ctypes.byref(self._deadline)
+
+    def sleep_until(self, deadline_ns: int) -> None:
+        deadline = self._deadline
+        deadline.tv_sec, deadline.tv_nsec = divmod(deadline_ns, 1_000_000_000)
+        while True:
+            result = _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, self._deadline_ref, None)
+            if result != EINTR:  # a signal handler ran: sleep again to the same deadline
+                break
+        _check("clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)", result, returns_errno=True)
+
+
+def set_affinity(cpu: int | None) -> None:
+    """Pin the calling process to one CPU (``None``: leave as is)."""
+    if cpu is None:
+        return
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError as error:
+        raise LibcError(
+            f"sched_setaffinity(cpu={cpu})",
+            error.errno or 0,
+            f"this machine has CPUs {sorted(os.sched_getaffinity(0))}",
+        ) from None
+
+
+class _SchedAttr(ctypes.Structure):
+    _fields_ = (
+        ("size", ctypes.c_uint32),
+        ("sched_policy", ctypes.c_uint32),
+        ("sched_flags", ctypes.c_uint64),
+        ("sched_nice", ctypes.c_int32),
+        ("sched_priority", ctypes.c_uint32),
+        ("sched_runtime", ctypes.c_uint64),
+        ("sched_deadline", ctypes.c_uint64),
+        ("sched_period", ctypes.c_uint64),
+    )
+
+
+_SYS_SCHED_SETATTR = {"x86_64": 314, "aarch64": 274, "armv7l": 380, "riscv64": 274}
+
+
+def set_scheduler(
+    policy: str, priority: int, *, runtime_ns: int = 0, period_ns: int = 0
+) -> None:
+    """Apply a scheduling policy to the calling process.
+
+    ``policy`` is ``fifo``, ``rr``, ``other`` or ``deadline`` (SCHED_DEADLINE needs
+    ``runtime_ns`` and ``period_ns``; deadline = period).
+    """
+    if policy == "deadline":
+        number = _SYS_SCHED_SETATTR.get(platform.machine())
+        if number is None:
+            raise LibcError("sched_setattr(SCHED_DEADLINE)", 38, f"unknown on {platform.machine()}")
+        attr = _SchedAttr(
+            size=ctypes.sizeof(_SchedAttr),
+            sched_policy=POLICIES["deadline"],
+            sched_runtime=runtime_ns,
+            sched_deadline=period_ns,
+            sched_period=period_ns,
+        )
+        result = _libc.syscall(number, 0, ctypes.byref(attr), 0)
+        _check(
+            f"sched_setattr(SCHED_DEADLINE, runtime={runtime_ns} ns, period={period_ns} ns)",
+            result,
+            "needs root (CAP_SYS_NICE), a runtime ≤ period, and a task not pinned to one CPU",
+        )
+        return
+    if policy not in POLICIES:
+        raise ValueError(f"unknown scheduling policy {policy!r}; expected one of {list(POLICIES)}")
+    try:
+        os.sched_setscheduler(0, POLICIES[policy], os.sched_param(priority))
+    except OSError as error:
+        raise LibcError(
+            f"sched_setscheduler(SCHED_{policy.upper()}, priority={priority})",
+            error.errno or 0,
+            "needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO ≥ the priority (see `rtloop doctor`)",
+        ) from None
+
+
+def lock_memory() -> None:
+    """mlockall(MCL_CURRENT | MCL_FUTURE): no page faults from swapping in the loop."""
+    _check(
+        "mlockall(MCL_CURRENT|MCL_FUTURE)",
+        _mlockall(MCL_CURRENT | MCL_FUTURE),
+        "needs root, CAP_IPC_LOCK or a large enough RLIMIT_MEMLOCK (see `rtloop doctor`)",
+    )
+
+
+def prefault_stack(size_bytes: int = 512 * 1024) -> None:
+    """Touch stack-sized scratch memory once, so the loop's first cycles do not fault."""
+    scratch = ctypes.create_string_buffer(size_bytes)
+    ctypes.memset(scratch, 0, size_bytes)
+
+
+@dataclass(frozen=True, slots=True)
+class AppliedSettings:
+    """What the task process really runs with, read back from the kernel."""
+
+    policy: str
+    """Scheduling policy now in force (``fifo``, ``rr``, ``other``, ``deadline``)."""
+    priority: int
+    """Real-time priority now in force (0 under ``other``)."""
+    cpus: tuple[int, ...]
+    """CPUs the process may run on."""
+    memory_locked: bool
+    """Whether mlockall succeeded."""
+    rt: bool
+    """True when a real-time policy is in force."""
+    reasons: tuple[str, ...] = field(default=())
+    """Why something asked for could not be applied (empty when everything was)."""
+
+
+def read_back_settings(memory_locked: bool, reasons: tuple[str, ...]) -> AppliedSettings:
+    policy_number = os.sched_getscheduler(0)
+    policy = POLICY_NAMES.get(policy_number, str(policy_number))
+    priority = os.sched_getparam(0).sched_priority
+    return AppliedSettings(
+        policy=policy,
+        priority=priority,
+        cpus=tuple(sorted(os.sched_getaffinity(0))),
+        memory_locked=memory_locked,
+        rt=policy in ("fifo", "rr", "deadline"),
+        reasons=reasons,
+    )
+
+
+def apply_realtime(
+    cpu: int | None, policy: str, priority: int, period_ns: int, runtime_ns: int = 0
+) -> AppliedSettings:
+    """Affinity, then priority, then memory locking; falls back instead of failing.
+
+    Affinity comes first so that the process never runs at RT priority on a core it
+    should not disturb. A refused policy leaves SCHED_OTHER in force and records why.
+    """
+    reasons: list[str] = []
+    set_affinity(cpu)
+    try:
+        set_scheduler(policy, priority, runtime_ns=runtime_ns or period_ns // 2, period_ns=period_ns)
+    except LibcError as error:
+        reasons.append(str(error))
+    memory_locked = True
+    try:
+        lock_memory()
+    except LibcError as error:
+        memory_locked = False
+        reasons.append(str(error))
+    prefault_stack()
+    return read_back_settings(memory_locked, tuple(reasons))
+
+
+@dataclass(frozen=True, slots=True)
+class Capabilities:
+    """Can this process run real-time tasks here, and how well? (a quick probe)"""
+
+    may_use_rt: bool
+    rt_reason: str
+    max_rt_priority: int
+    memlock_limit_bytes: int | None
+    preemption_model: str
+    isolated_cpus: tuple[int, ...]
+    cpus: tuple[int, ...]
+    kernel: str
+
+    def to_json(self) -> dict[str, object]:
+        return asdict(self)
+
+
+def _effective_capabilities() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("CapEff:"):
+            return int(line.split()[1], 16)
+    return 0
+
+
+CAP_IPC_LOCK = 14
+CAP_SYS_NICE = 23
+
+
+def preemption_model() -> str:
+    """``PREEMPT_RT``, ``PREEMPT_DYNAMIC (full|voluntary|none)``, ``PREEMPT`` or ``unknown``."""
+    if Path("/sys/kernel/realtime").exists() and Path("/sys/kernel/realtime").read_text().strip() == "1":
+        return "PREEMPT_RT"
+    version = platform.version()
+    if "PREEMPT_RT" in version:
+        return "PREEMPT_RT"
+    if "PREEMPT_DYNAMIC" in version:
+        for candidate in (Path("/sys/kernel/debug/sched/preempt"),):
+            try:
+                chosen = [w for w in candidate.read_text().split() if w.startswith("(")]
+                if chosen:
+                    return f"PREEMPT_DYNAMIC ({chosen[0].strip('()')})"
+            except OSError:
+                pass
+        return "PREEMPT_DYNAMIC"
+    if "PREEMPT" in version:
+        return "PREEMPT"
+    return "unknown"
+
+
+def parse_cpu_list(text: str) -> tuple[int, ...]:
+    """Parse a kernel CPU list such as ``1,3-5`` into ``(1, 3, 4, 5)``."""
+    cpus: list[int] = []
+    for part in text.strip().split(","):
+        if not part:
+            continue
+        if "-" in part:
+            low, high = part.split("-")
+            cpus.extend(range(int(low), int(high) + 1))
+        else:
+            cpus.append(int(part))
+    return tuple(cpus)
+
+
+def probe() -> Capabilities:
+    """Answer: may this process use SCHED_FIFO and mlockall, and what is the kernel like?"""
+    caps = _effective_capabilities()
+    rtprio_soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
+    memlock_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    has_nice = bool(caps & (1 << CAP_SYS_NICE))
+    if has_nice:
+        may, reason, max_prio = True, "CAP_SYS_NICE", 99
+    elif rtprio_soft > 0:
+        may, reason = True, f"RLIMIT_RTPRIO={rtprio_soft}"
+        max_prio = 99 if rtprio_soft == resource.RLIM_INFINITY else int(rtprio_soft)
+    else:
+        may, reason, max_prio = False, "no CAP_SYS_NICE and RLIMIT_RTPRIO is 0", 0
+    try:
+        isolated = parse_cpu_list(Path("/sys/devices/system/cpu/isolated").read_text())
+    except OSError:
+        isolated = ()
+    has_ipc_lock = bool(caps & (1 << CAP_IPC_LOCK))
+    memlock = None if has_ipc_lock or memlock_soft == resource.RLIM_INFINITY else int(memlock_soft)
+    return Capabilities(
+        may_use_rt=may,
+        rt_reason=reason,
+        max_rt_priority=max_prio,
+        memlock_limit_bytes=memlock,
+        preemption_model=preemption_model(),
+        isolated_cpus=isolated,
+        cpus=tuple(sorted(os.sched_getaffinity(0))),
+        kernel=platform.release(),
+    )

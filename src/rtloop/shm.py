@@ -1,0 +1,209 @@
+"""Shared memory between task processes and the supervisor: segments, fences, rings.
+
+Segments are files in ``/dev/shm`` created with mode 0600 and named
+``rtloop-<app>-<supervisor pid>-<run token>-<what>``, so a later run can recognise
+and remove what a dead run left behind (:func:`remove_stale_segments`).
+
+Memory ordering uses ``atomic_thread_fence`` from libatomic, so a reader on another
+core of an aarch64 machine never sees a counter before the data it announces. On
+x86-64 (total store order) a missing libatomic falls back to no fence; on other
+architectures it is an error.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import mmap
+import os
+import platform
+import re
+import secrets
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+SHM_DIR = Path("/dev/shm")
+SEGMENT_PREFIX = "rtloop-"
+_SEQ_CST = 5  # __ATOMIC_SEQ_CST
+
+
+def _load_fence() -> tuple[ctypes._CFuncPtr | None, str]:  # type: ignore[name-defined]
+    path = ctypes.util.find_library("atomic") or "libatomic.so.1"
+    try:
+        fence = ctypes.CDLL(path).atomic_thread_fence
+    except (OSError, AttributeError):
+        if platform.machine() in ("x86_64", "AMD64"):
+            return None, "libatomic not found: no fences (safe on x86-64, whose stores are ordered)"
+        raise RuntimeError(
+            "libatomic.so.1 is needed for memory fences on "
+            f"{platform.machine()}; install it (Debian: apt-get install libatomic1)"
+        ) from None
+    fence.argtypes = (ctypes.c_int,)
+    fence.restype = None
+    return fence, "atomic_thread_fence from libatomic"
+
+
+_fence_function, FENCE_KIND = _load_fence()
+
+
+def fence() -> None:
+    """A full memory barrier (sequentially consistent)."""
+    if _fence_function is not None:
+        _fence_function(_SEQ_CST)
+
+
+def _sanitize(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.]", "_", text)[:40]
+
+
+def new_run_token() -> str:
+    return secrets.token_hex(4)
+
+
+class Segment:
+    """A named shared-memory file mapped into this process."""
+
+    def __init__(self, name: str, size_bytes: int, *, create: bool) -> None:
+        self.name = name
+        self.path = SHM_DIR / name
+        flags = os.O_RDWR | (os.O_CREAT | os.O_EXCL if create else 0)
+        fd = os.open(self.path, flags, 0o600)
+        try:
+            if create:
+                os.ftruncate(fd, size_bytes)
+            else:
+                size_bytes = os.fstat(fd).st_size
+            self.size_bytes = size_bytes
+            self._map = mmap.mmap(fd, size_bytes)
+        finally:
+            os.close(fd)
+        self.buffer = memoryview(self._map)
+
+    @classmethod
+    def create(cls, app: str, owner_pid: int, token: str, what: str, size_bytes: int) -> Segment:
+        name = f"{SEGMENT_PREFIX}{_sanitize(app)}-{owner_pid}-{token}-{_sanitize(what)}"
+        return cls(name, max(size_bytes, 8), create=True)
+
+    @classmethod
+    def attach(cls, name: str) -> Segment:
+        return cls(name, 0, create=False)
+
+    def array(self, dtype: npt.DTypeLike, count: int, offset_bytes: int = 0) -> np.ndarray:
+        return np.frombuffer(self._map, dtype=dtype, count=count, offset=offset_bytes)
+
+    def close(self) -> None:
+        self.buffer.release()
+        try:
+            self._map.close()
+        except BufferError:
+            pass  # numpy views still alive; the mapping goes with the process
+
+    def unlink(self) -> None:
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_segments() -> list[str]:
+    """Remove segments whose owning supervisor process no longer exists."""
+    removed: list[str] = []
+    for path in SHM_DIR.glob(f"{SEGMENT_PREFIX}*"):
+        match = re.match(rf"{SEGMENT_PREFIX}.*?-(\d+)-[0-9a-f]{{8}}-", path.name)
+        if match and not _pid_alive(int(match.group(1))):
+            try:
+                path.unlink()
+                removed.append(path.name)
+            except FileNotFoundError:
+                pass
+    return removed
+
+
+class RecordRing:
+    """Bounded single-producer/single-consumer ring of fixed-width int64 records.
+
+    The producer (an RT task) never blocks: when the ring is full the record is
+    dropped and counted. The consumer drains all available records in one batch.
+
+    Layout (int64 words): ``[written, read, dropped, width, capacity] + records``.
+    """
+
+    HEADER_WORDS = 8
+
+    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
+        header = segment.array(np.int64, self.HEADER_WORDS, offset_bytes)
+        self._header = header
+        self.width = int(header[3])
+        self.capacity = int(header[4])
+        data_offset = offset_bytes + self.HEADER_WORDS * 8
+        self._data = segment.array(np.int64, self.capacity * self.width, data_offset).reshape(
+            self.capacity, self.width
+        )
+        # Scalar stores through a memoryview are single aligned 8-byte writes, and fast.
+        self._header_words = segment.buffer[offset_bytes : data_offset].cast("q")
+        self._data_words = segment.buffer[data_offset : data_offset + self.capacity * self.width * 8].cast("q")
+        self._written = int(header[0])
+
+    @staticmethod
+    def size_bytes(capacity: int, width: int) -> int:
+        return (RecordRing.HEADER_WORDS + capacity * width) * 8
+
+    @staticmethod
+    def initialise(segment: Segment, capacity: int, width: int, offset_bytes: int = 0) -> RecordRing:
+        header = segment.array(np.int64, RecordRing.HEADER_WORDS, offset_bytes)
+        header[:] = 0
+        header[3] = width
+        header[4] = capacity
+        return RecordRing(segment, offset_bytes)
+
+    # --- producer side (RT): allocation-free -------------------------------------------
+    def push4(self, a: int, b: int, c: int, d: int) -> bool:
+        """Append one 4-word record; returns False (and counts a drop) if full."""
+        words = self._header_words
+        written = self._written
+        if written - words[1] >= self.capacity:
+            words[2] += 1
+            return False
+        base = (written % self.capacity) * 4
+        data = self._data_words
+        data[base] = a
+        data[base + 1] = b
+        data[base + 2] = c
+        data[base + 3] = d
+        fence()  # the record must be visible before the count that announces it
+        self._written = written + 1
+        words[0] = written + 1
+        return True
+
+    # --- consumer side (non-RT) --------------------------------------------------------
+    @property
+    def dropped(self) -> int:
+        return int(self._header_words[2])
+
+    def drain(self) -> np.ndarray:
+        """Copy out every record written since the last drain (shape: n × width)."""
+        words = self._header_words
+        written = words[0]
+        fence()
+        read = words[1]
+        count = written - read
+        if count <= 0:
+            return np.empty((0, self.width), dtype=np.int64)
+        start = read % self.capacity
+        indices = (start + np.arange(count)) % self.capacity
+        records = self._data[indices].copy()
+        fence()  # finish copying before handing the slots back to the producer
+        words[1] = written
+        return records
