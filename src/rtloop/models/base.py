@@ -1,0 +1,179 @@
+"""What every model adapter shares: the :class:`Model` protocol and :class:`ModelRunnable`.
+
+A *model* is a block with a fixed step size and its own clock, the way 20-sim
+generated code is: ``initialize`` once, then ``calculate`` once per step. rtloop runs
+it inside a task through :class:`ModelRunnable`, which maps
+
+==========  ======================================================
+Runnable    Model
+==========  ======================================================
+prerun      ``initialize(u=0, y, t_s=0.0)`` — outputs from the initial states
+step        ``calculate(u, y)`` — one model step
+postrun     ``terminate(u, y)``
+==========  ======================================================
+
+This is the loop of 20-sim's generated ``main`` (``Initialize`` once, then
+``Calculate`` until finished) and of the thesis's ``wrapper20``. Timing consequence,
+which fits rtloop's logical execution time: the step of tick *k* (released at k·P)
+integrates the states to (k+1)·h and answers the outputs there; rtloop publishes them
+at (k+1)·P. With P = h the model and the task agree on time.
+
+Order inside one ``calculate`` (20-sim, Euler): copy ``u`` in; integrate the states
+with the rates of the *previous* evaluation (``s += h·R``); advance time by h;
+evaluate the equations with the new states and the *current* inputs (new outputs and
+rates); copy the outputs to ``y``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..errors import RtloopError
+from ..runnable import FloatVector, Runnable
+
+__all__ = [
+    "FmuError",
+    "Model",
+    "ModelBuildError",
+    "ModelError",
+    "ModelRunnable",
+    "StepSizeWarning",
+]
+
+
+class ModelError(RtloopError, RuntimeError):
+    """A model could not be found, read, loaded or run."""
+
+
+class ModelBuildError(ModelError):
+    """Generated model code did not compile.
+
+    Attributes:
+        path: the model folder.
+        command: the compiler command line that failed.
+        compiler_output: what the compiler printed, verbatim.
+    """
+
+    def __init__(self, path: str, command: list[str], compiler_output: str) -> None:
+        self.path = str(path)
+        self.command = list(command)
+        self.compiler_output = compiler_output
+        super().__init__(
+            f"20-sim model {self.path} did not compile:\n"
+            f"$ {' '.join(self.command)}\n{compiler_output}"
+        )
+
+
+class FmuError(ModelError, ValueError):
+    """An FMU cannot be used by rtloop (wrong kind, unknown variable, ...)."""
+
+
+class StepSizeWarning(UserWarning):
+    """The task period differs from the step size the model was generated for."""
+
+
+@runtime_checkable
+class Model(Protocol):
+    """A fixed-step block with its own clock (20-sim generated code, an FMU, a Python class).
+
+    ``u`` and ``y`` are float64 vectors of length ``n_inputs`` / ``n_outputs``.
+    """
+
+    n_inputs: int
+    n_outputs: int
+    input_names: tuple[str, ...] | None
+    output_names: tuple[str, ...] | None
+    step_size_s: float | None
+    """The step the model was generated for; ``None`` if it follows the task period."""
+    kind: str
+    """``"python"``, ``"20sim-cpp"``, ``"20sim-c"``, ``"fmu2-cs"`` or ``"fmu3-cs"``."""
+
+    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
+        """Set the initial states and time ``t_s``; write the initial outputs to ``y``."""
+
+    def calculate(self, u: FloatVector, y: FloatVector) -> None:
+        """Advance one step with inputs ``u``; write the outputs to ``y``."""
+
+    def terminate(self, u: FloatVector, y: FloatVector) -> None:
+        """Finish: release what ``initialize`` acquired."""
+
+
+def check_step_size(model: Model, period_ns: int) -> bool:
+    """Warn (:class:`StepSizeWarning`) if ``period_ns`` is not the model's step size.
+
+    Returns True when they agree (or the model has no fixed step).
+    """
+    step_s = model.step_size_s
+    if step_s is None:
+        return True
+    step_ns = round(step_s * 1e9)
+    if step_ns == int(period_ns):
+        return True
+    warnings.warn(
+        f"{model.kind} model {describe(model)} was generated for a step of "
+        f"{step_s * 1e3:g} ms but its task runs every {period_ns / 1e6:g} ms: each "
+        "calculate still advances the model by its own step, so the model runs "
+        f"{step_ns / period_ns:.4g}× real time and its dynamics change",
+        StepSizeWarning,
+        stacklevel=3,
+    )
+    return False
+
+
+def describe(model: object) -> str:
+    """Short name of a model for messages (its path if it has one)."""
+    path = getattr(model, "path", None)
+    return repr(str(path)) if path is not None else type(model).__name__
+
+
+class ModelRunnable(Runnable):
+    """Runs any :class:`Model` as a :class:`Runnable` in a task.
+
+    Picklable until :meth:`prerun`: adapters load shared libraries and FMUs in
+    ``initialize``, which runs in :meth:`prerun`, inside the task process.
+
+    The core calls :meth:`check_period` with the task period before spawning the task.
+    """
+
+    def __init__(self, model: Model | None = None) -> None:
+        self.model: Model = self if model is None else model  # type: ignore[assignment]
+        self.n_inputs = self.model.n_inputs
+        self.n_outputs = self.model.n_outputs
+        self.input_names = self.model.input_names
+        self.output_names = self.model.output_names
+        self.initial_outputs: FloatVector | None = None
+        """What ``initialize`` answered (outputs at t = 0), kept for inspection."""
+
+    def check_period(self, period_ns: int) -> bool:
+        """Tell the model its task period; warn if it is not the model's step size.
+
+        Called by the core once, before the task starts. Models whose step follows
+        the task (FMUs: communication step) take it from here through an optional
+        ``set_period_ns(period_ns)`` method. Returns False if a
+        :class:`StepSizeWarning` was issued.
+        """
+        agrees = check_step_size(self.model, period_ns)
+        set_period = getattr(self.model, "set_period_ns", None)
+        if set_period is not None:
+            set_period(period_ns)
+        return agrees
+
+    def prerun(self) -> None:
+        """Initialize the model with zero inputs at t = 0 (20-sim's ``Initialize``)."""
+        u0 = np.zeros(self.n_inputs)
+        y0 = np.zeros(self.n_outputs)
+        self.model.initialize(u0, y0, 0.0)
+        self.initial_outputs = y0.copy()
+        self._u_final = u0
+        self._y_final = y0
+
+    def step(self, u: FloatVector, y: FloatVector) -> None:
+        """One model step: ``calculate(u, y)``."""
+        self.model.calculate(u, y)
+
+    def postrun(self) -> None:
+        """``terminate`` the model (zero inputs; the outputs it writes are not published)."""
+        self.model.terminate(self._u_final, self._y_final)

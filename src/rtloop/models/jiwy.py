@@ -1,0 +1,199 @@
+"""JIWY, the thesis's 2-DOF pan/tilt camera gimbal, as plain-Python models.
+
+:class:`JiwyPlant` (2 in / 2 out) and :class:`JiwyController` (4 in / 2 out) follow the
+order of evaluation of 20-sim generated code with the Euler method, step 1 ms, so they
+match a 20-sim build of the same equations to rounding error. Use them directly as a
+task's runnable: ``runnable = "rtloop.models.jiwy:JiwyPlant"``.
+
+Plant, per axis (motor momentum ``p`` [N·m·s] on the motor side of gear ``g`` and belt
+``b``, camera angle ``theta`` [rad])::
+
+    Jeq = Jmot + (g·b)²·Jcam             (camera inertia reflected to the motor)
+    omega = p / Jeq                      motor speed [rad/s]
+    omega_cam = g·b·omega                camera speed [rad/s]
+    dp = r·u − Dmot·omega − g·b·(Dcam·omega_cam)
+    dtheta = omega_cam,   y = theta
+
+Controller, per axis, 20-sim's PID ``kp·(1 + τD·s)/(1 + β·τD·s)·(1 + 1/(τI·s))``::
+
+    e = setpoint − measured
+    pdout = pdstate + kp·e/β
+    dpdstate = (kp·e − pdout)/(β·τD),  dpistate = pdout/τI
+    y = pistate + pdout
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..runnable import FloatVector
+from .python import PythonModel
+
+__all__ = [
+    "PAN_AXIS",
+    "PAN_PID",
+    "TILT_AXIS",
+    "TILT_PID",
+    "AxisParameters",
+    "JiwyController",
+    "JiwyPlant",
+    "PidParameters",
+]
+
+STEP_SIZE_S = 0.001
+
+
+@dataclass(frozen=True)
+class AxisParameters:
+    """One gimbal axis: motor, gear and belt, camera side."""
+
+    r: float
+    """Motor constant [N·m per unit of steering]."""
+    j_mot: float
+    """Motor inertia [kg·m²]."""
+    d_mot: float
+    """Motor damping [N·m·s/rad]."""
+    g: float
+    """Gear ratio."""
+    b: float
+    """Belt ratio."""
+    j_cam: float
+    """Camera-side inertia [kg·m²]."""
+    d_cam: float
+    """Camera-side damping [N·m·s/rad]."""
+
+
+@dataclass(frozen=True)
+class PidParameters:
+    """20-sim PID: ``kp·(1 + τD·s)/(1 + β·τD·s)·(1 + 1/(τI·s))``."""
+
+    kp: float
+    tau_d_s: float
+    beta: float
+    tau_i_s: float
+
+
+PAN_AXIS = AxisParameters(r=0.018, j_mot=2.06e-7, d_mot=1.77e-6, g=1 / 19, b=1.0,
+                          j_cam=3e-4, d_cam=2e-4)
+TILT_AXIS = AxisParameters(r=0.00701, j_mot=5.28e-8, d_mot=4e-7, g=1 / 19, b=0.25,
+                           j_cam=4.5e-5, d_cam=1e-4)
+PAN_PID = PidParameters(kp=0.3, tau_d_s=0.1, beta=0.1, tau_i_s=1000.0)
+TILT_PID = PidParameters(kp=0.2, tau_d_s=0.2, beta=0.1, tau_i_s=1000.0)
+
+
+class JiwyPlant(PythonModel):
+    """JIWY plant: u = [SteeringPan, SteeringTilt] → y = [AnglePan, AngleTilt] [rad]."""
+
+    n_inputs = 2
+    n_outputs = 2
+    input_names = ("SteeringPan", "SteeringTilt")
+    output_names = ("AnglePan", "AngleTilt")
+
+    def __init__(
+        self,
+        step_size_s: float = STEP_SIZE_S,
+        pan: AxisParameters = PAN_AXIS,
+        tilt: AxisParameters = TILT_AXIS,
+    ) -> None:
+        super().__init__()
+        self.step_size_s = step_size_s
+        self.pan = pan
+        self.tilt = tilt
+        self.time_s = 0.0
+        # states [p_pan, theta_pan, p_tilt, theta_tilt] and their rates
+        self.states = [0.0, 0.0, 0.0, 0.0]
+        self.rates = [0.0, 0.0, 0.0, 0.0]
+
+    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
+        """Zero states at ``t_s``; outputs and rates from them (20-sim ``Initialize``)."""
+        self.time_s = t_s
+        self.states = [0.0, 0.0, 0.0, 0.0]
+        self._evaluate(float(u[0]), float(u[1]), y)
+
+    def calculate(self, u: FloatVector, y: FloatVector) -> None:
+        """One Euler step: integrate with the previous rates, then evaluate with ``u``."""
+        s = self.states
+        r = self.rates
+        h = self.step_size_s
+        s[0] += h * r[0]
+        s[1] += h * r[1]
+        s[2] += h * r[2]
+        s[3] += h * r[3]
+        self.time_s += h
+        self._evaluate(float(u[0]), float(u[1]), y)
+
+    def _evaluate(self, u_pan: float, u_tilt: float, y: FloatVector) -> None:
+        s = self.states
+        r = self.rates
+        r[0], r[1] = _axis_rates(self.pan, s[0], u_pan)
+        r[2], r[3] = _axis_rates(self.tilt, s[2], u_tilt)
+        y[0] = s[1]
+        y[1] = s[3]
+
+
+def _axis_rates(a: AxisParameters, p: float, u: float) -> tuple[float, float]:
+    """(dp, dtheta) of one axis; the same expressions, in the same order, as the C fixtures."""
+    gb = a.g * a.b
+    j_eq = a.j_mot + gb * gb * a.j_cam
+    omega = p / j_eq
+    omega_cam = gb * omega
+    tau_cam = a.d_cam * omega_cam
+    return a.r * u - a.d_mot * omega - gb * tau_cam, omega_cam
+
+
+class JiwyController(PythonModel):
+    """JIWY PID controller, one per axis.
+
+    u = [MeasuredPan, MeasuredTilt, SetPointPan, SetPointTilt] → y = [SteeringPan, SteeringTilt].
+    Direct feed-through: the output answers the current input at once.
+    """
+
+    n_inputs = 4
+    n_outputs = 2
+    input_names = ("MeasuredPan", "MeasuredTilt", "SetPointPan", "SetPointTilt")
+    output_names = ("SteeringPan", "SteeringTilt")
+
+    def __init__(
+        self,
+        step_size_s: float = STEP_SIZE_S,
+        pan: PidParameters = PAN_PID,
+        tilt: PidParameters = TILT_PID,
+    ) -> None:
+        super().__init__()
+        self.step_size_s = step_size_s
+        self.pan = pan
+        self.tilt = tilt
+        self.time_s = 0.0
+        # states [pdstate_pan, pistate_pan, pdstate_tilt, pistate_tilt] and their rates
+        self.states = [0.0, 0.0, 0.0, 0.0]
+        self.rates = [0.0, 0.0, 0.0, 0.0]
+
+    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
+        """Zero states at ``t_s``; outputs and rates from them and ``u``."""
+        self.time_s = t_s
+        self.states = [0.0, 0.0, 0.0, 0.0]
+        self._evaluate(u.tolist(), y)
+
+    def calculate(self, u: FloatVector, y: FloatVector) -> None:
+        """One Euler step: integrate with the previous rates, then evaluate with ``u``."""
+        s = self.states
+        r = self.rates
+        h = self.step_size_s
+        s[0] += h * r[0]
+        s[1] += h * r[1]
+        s[2] += h * r[2]
+        s[3] += h * r[3]
+        self.time_s += h
+        self._evaluate(u.tolist(), y)
+
+    def _evaluate(self, u: list[float], y: FloatVector) -> None:
+        s = self.states
+        r = self.rates
+        y[0], r[0], r[1] = _pid(self.pan, s[0], s[1], u[2] - u[0])
+        y[1], r[2], r[3] = _pid(self.tilt, s[2], s[3], u[3] - u[1])
+
+
+def _pid(c: PidParameters, pdstate: float, pistate: float, e: float) -> tuple[float, float, float]:
+    """(output, dpdstate, dpistate) of one axis; same expressions as the C fixtures."""
+    pdout = pdstate + c.kp * e / c.beta
+    return pistate + pdout, (c.kp * e - pdout) / (c.beta * c.tau_d_s), pdout / c.tau_i_s

@@ -1,0 +1,39 @@
+"""Plain-Python models: a :class:`PythonModel` is a :class:`~rtloop.models.base.Model`
+and a :class:`~rtloop.Runnable` at once.
+
+Subclass it, set the sizes, names and ``step_size_s``, and write ``initialize``,
+``calculate`` and (optionally) ``terminate`` in the order 20-sim uses (see
+:mod:`rtloop.models.base`). ``calculate`` runs every tick of a 1 kHz loop: use plain
+floats and locals, no numpy temporaries.
+"""
+
+from __future__ import annotations
+
+from ..runnable import FloatVector
+from .base import ModelRunnable
+
+
+class PythonModel(ModelRunnable):
+    """Base class of models written in Python; usable directly as a task's runnable."""
+
+    kind = "python"
+    step_size_s: float | None = None
+    input_names: tuple[str, ...] | None = None
+    output_names: tuple[str, ...] | None = None
+
+    def __init__(self) -> None:
+        super().__init__(model=None)
+
+    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
+        """Set initial states at time ``t_s`` and write the initial outputs."""
+
+    def calculate(self, u: FloatVector, y: FloatVector) -> None:  # pragma: no cover
+        """One model step (override)."""
+        raise NotImplementedError
+
+    def terminate(self, u: FloatVector, y: FloatVector) -> None:
+        """Release resources (nothing by default)."""
+
+    def step(self, u: FloatVector, y: FloatVector) -> None:
+        # Direct call, no adapter hop: this runs every tick.
+        self.calculate(u, y)

@@ -1,0 +1,433 @@
+"""20-sim generated C++ and ANSI-C code, compiled once and called through ctypes.
+
+A 20-sim export is a folder of sources without a Makefile. :class:`TwentySimModel`
+recognises the template (C++ class derived from ``Submodel20sim``, or the ANSI-C
+``XXInitializeSubmodel`` functions with an optional prefix), reads the signal names
+from the ``.info`` file, writes a small ``extern "C"`` shim, and compiles model + shim
+into one shared library per model::
+
+    g++ -O2 -fPIC -shared -include cstddef   (C++; some templates need <cstddef> for NULL)
+    gcc -O2 -fPIC -shared                    (ANSI-C)
+
+The library is cached under ``$RTLOOP_CACHE_DIR/models`` (default
+``~/.cache/rtloop/models``), named by a hash of the sources, the shim, the compiler and
+its flags, so a second run starts at once. It is loaded in the task process, in
+``initialize`` (prerun); the constructor only parses and builds, so the model pickles.
+
+The shim's C API (``rtloop_*``) takes an instance handle: C++ models may have several
+instances in one process. ANSI-C models keep their state in globals; a second live
+instance in the same process gets a private copy of the library.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..runnable import FloatVector
+from .base import ModelBuildError, ModelError
+
+__all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
+
+CXX_FLAGS = ("-O2", "-fPIC", "-shared", "-include", "cstddef")
+C_FLAGS = ("-O2", "-fPIC", "-shared")
+SOURCE_SUFFIXES = {".c", ".cpp", ".cc", ".cxx", ".h", ".hpp"}
+
+_CLASS_RE = re.compile(
+    r"class\s+(\w+)\s*:\s*(?:virtual\s+)?public\s+(?:virtual\s+)?Submodel20sim\b"
+)
+_C_INIT_RE = re.compile(r"\b(\w*?)XXInitializeSubmodel\s*\(")
+_MAIN_RE = re.compile(r"\bint\s+main\s*\(")
+# "m_V[0] = u[0]; /* SteeringPan */" and "y[0] = m_V[14]; /* AnglePan */"
+_SIGNAL_RE = re.compile(r"(?<![\w\]])([uy])\s*\[\s*(\d+)\s*\][^/\n]*/\*\s*(.*?)\s*\*/")
+_STEP_INFO_RE = re.compile(r"step\s*size\s*[:=]\s*([-+0-9.eE]+)", re.IGNORECASE)
+_STEP_SRC_RE = re.compile(r"(?:m_step_size|xx_step_size)\s*=\s*([-+0-9.eE]+)\s*;")
+
+
+@dataclass(frozen=True)
+class TwentySimInfo:
+    """What a 20-sim export folder contains, read without compiling it."""
+
+    path: Path
+    """The model folder."""
+    name: str
+    """Model name: C++ class name or folder name."""
+    template: str
+    """``"cpp"`` or ``"c"``."""
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    step_size_s: float | None
+    """From the ``.info`` file, else from ``m_step_size = …`` / ``xx_step_size = …``."""
+    sources: tuple[Path, ...]
+    """Files compiled into the library (files with ``main`` left out)."""
+    include_dirs: tuple[Path, ...]
+    header: Path | None = None
+    """C++: the header declaring the model class."""
+    prefix: str = ""
+    """ANSI-C: the function prefix (``%FUNCTIONPREFIX%``), may be empty."""
+
+    @property
+    def kind(self) -> str:
+        return "20sim-cpp" if self.template == "cpp" else "20sim-c"
+
+
+def default_cache_dir() -> Path:
+    """``$RTLOOP_CACHE_DIR/models``, or ``~/.cache/rtloop/models``."""
+    root = os.environ.get("RTLOOP_CACHE_DIR")
+    base = Path(root) if root else Path.home() / ".cache" / "rtloop"
+    return base / "models"
+
+
+def inspect(path: str | os.PathLike[str]) -> TwentySimInfo:
+    """Recognise a 20-sim export folder (or a file in it) and read its interface."""
+    folder = Path(path).expanduser().resolve()
+    if folder.is_file():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ModelError(f"20-sim model folder {str(folder)!r} does not exist")
+    files = sorted(p for p in folder.rglob("*") if p.suffix in SOURCE_SUFFIXES and p.is_file())
+    texts = {p: p.read_text(errors="replace") for p in files}
+
+    header, class_name = None, None
+    for p, text in texts.items():
+        m = _CLASS_RE.search(text) if p.suffix in {".h", ".hpp"} else None
+        if m:
+            header, class_name = p, m.group(1)
+            break
+    prefix = None
+    if header is None:
+        for text in texts.values():
+            m = _C_INIT_RE.search(text)
+            if m:
+                prefix = m.group(1)
+                break
+    if header is None and prefix is None:
+        raise ModelError(
+            f"{str(folder)!r} is not a 20-sim export: no class derived from Submodel20sim "
+            "(C++ template) and no XXInitializeSubmodel function (ANSI-C template)"
+        )
+    template = "cpp" if header is not None else "c"
+    compiled = {".cpp", ".cc", ".cxx"} if template == "cpp" else {".c"}
+    sources = tuple(
+        p for p, text in texts.items() if p.suffix in compiled and not _MAIN_RE.search(text)
+    )
+    include_dirs = tuple(sorted({p.parent for p in files if p.suffix in {".h", ".hpp"}}))
+
+    info_files = sorted(folder.glob("*.info"))
+    info_text = "\n".join(p.read_text(errors="replace") for p in info_files)
+    # Without a .info file, the copy-in/copy-out lines of the sources carry the names.
+    signal_text = info_text or "\n".join(texts.values())
+    inputs, outputs = _parse_signals(signal_text, folder)
+
+    step_size_s = None
+    m = _STEP_INFO_RE.search(info_text) or _STEP_SRC_RE.search("\n".join(texts.values()))
+    if m:
+        step_size_s = float(m.group(1))
+    return TwentySimInfo(
+        path=folder,
+        name=class_name or folder.name,
+        template=template,
+        input_names=inputs,
+        output_names=outputs,
+        step_size_s=step_size_s,
+        sources=sources,
+        include_dirs=include_dirs,
+        header=header,
+        prefix=prefix or "",
+    )
+
+
+def _parse_signals(text: str, folder: Path) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    names: dict[str, dict[int, str]] = {"u": {}, "y": {}}
+    for kind, index, name in _SIGNAL_RE.findall(text):
+        names[kind].setdefault(int(index), name or f"{kind}{index}")
+    result = []
+    for kind in ("u", "y"):
+        found = names[kind]
+        n = max(found) + 1 if found else 0
+        missing = [i for i in range(n) if i not in found]
+        if missing:
+            raise ModelError(f"{str(folder)!r}: no name for {kind}{missing} in the .info file")
+        result.append(tuple(found[i] for i in range(n)))
+    return result[0], result[1]
+
+
+def _shim_source(info: TwentySimInfo) -> str:
+    """The generated ``extern "C"`` entry points (``rtloop_*``) for one model."""
+    if info.template == "cpp":
+        assert info.header is not None
+        return f"""/* generated by rtloop: C entry points for the 20-sim model {info.name} */
+#include "{info.header.name}"
+
+namespace {{
+/* Derived only to read the protected step size. */
+struct RtloopModel : public {info.name} {{
+    XXDouble rtloop_step_size(void) {{ return m_step_size; }}
+}};
+inline RtloopModel *M(void *m) {{ return static_cast<RtloopModel *>(m); }}
+}}
+
+extern "C" {{
+void *rtloop_new(void) {{ return new RtloopModel(); }}
+void rtloop_delete(void *m) {{ delete M(m); }}
+void rtloop_initialize(void *m, XXDouble *u, XXDouble *y, XXDouble t)
+{{ M(m)->Initialize(u, y, t); }}
+void rtloop_calculate(void *m, XXDouble *u, XXDouble *y) {{ M(m)->Calculate(u, y); }}
+void rtloop_terminate(void *m, XXDouble *u, XXDouble *y) {{ M(m)->Terminate(u, y); }}
+int rtloop_set_finish_time(void *m, XXDouble t) {{ return M(m)->SetFinishTime(t) ? 1 : 0; }}
+int rtloop_is_finished(void *m) {{ return M(m)->IsFinished() ? 1 : 0; }}
+void rtloop_reset(void *m, XXDouble t) {{ M(m)->Reset(t); }}
+XXDouble rtloop_step_size(void *m) {{ return M(m)->rtloop_step_size(); }}
+}}
+"""
+    p = info.prefix
+    return f"""/* generated by rtloop: C entry points for the 20-sim ANSI-C model {info.name} */
+/* 20-sim's XXDouble is double; the state is global, the handle is a dummy. */
+extern double {p}xx_step_size;
+extern double {p}xx_time;
+extern double {p}xx_finish_time;
+void {p}XXInitializeSubmodel(double *u, double *y, double t);
+void {p}XXCalculateSubmodel(double *u, double *y, double t);
+void {p}XXTerminateSubmodel(double *u, double *y, double t);
+
+static int rtloop_instance;
+void *rtloop_new(void) {{ return &rtloop_instance; }}
+void rtloop_delete(void *m) {{ (void)m; }}
+void rtloop_initialize(void *m, double *u, double *y, double t)
+{{ (void)m; {p}XXInitializeSubmodel(u, y, t); }}
+void rtloop_calculate(void *m, double *u, double *y)
+{{ (void)m; {p}XXCalculateSubmodel(u, y, {p}xx_time); }}
+void rtloop_terminate(void *m, double *u, double *y)
+{{ (void)m; {p}XXTerminateSubmodel(u, y, {p}xx_time); }}
+int rtloop_set_finish_time(void *m, double t) {{ (void)m; {p}xx_finish_time = t; return 1; }}
+int rtloop_is_finished(void *m)
+{{
+    (void)m;
+    return {p}xx_finish_time > 0.0 && {p}xx_time >= {p}xx_finish_time - 0.5 * {p}xx_step_size;
+}}
+void rtloop_reset(void *m, double t) {{ (void)m; {p}xx_time = t; }}
+double rtloop_step_size(void *m) {{ (void)m; return {p}xx_step_size; }}
+"""
+
+
+def _compiler(info: TwentySimInfo) -> str:
+    name = os.environ.get("CXX", "g++") if info.template == "cpp" else os.environ.get("CC", "gcc")
+    found = shutil.which(name)
+    if found is None:
+        raise ModelError(
+            f"cannot build 20-sim model {str(info.path)!r}: compiler {name!r} not found "
+            "(Debian/Raspberry Pi OS: apt install build-essential)"
+        )
+    return found
+
+
+def _build_key(info: TwentySimInfo, compiler: str, flags: tuple[str, ...], shim: str) -> str:
+    digest = hashlib.sha256()
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
+    for part in (compiler, version, " ".join(flags), shim):
+        digest.update(part.encode() + b"\0")
+    for p in sorted(info.path.rglob("*")):
+        if p.suffix in SOURCE_SUFFIXES and p.is_file():
+            digest.update(str(p.relative_to(info.path)).encode() + b"\0")
+            digest.update(p.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
+def build_library(
+    info: TwentySimInfo,
+    cache_dir: str | os.PathLike[str] | None = None,
+    extra_flags: tuple[str, ...] = (),
+) -> Path:
+    """Compile the model and its shim into a shared library; return its path (cached).
+
+    Raises :class:`~rtloop.models.base.ModelBuildError` with the compiler's output.
+    """
+    compiler = _compiler(info)
+    base_flags = CXX_FLAGS if info.template == "cpp" else C_FLAGS
+    flags = (*base_flags, *extra_flags)
+    shim = _shim_source(info)
+    cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    library = cache / f"{info.name}-{info.template}-{_build_key(info, compiler, flags, shim)}.so"
+    if library.exists():
+        return library
+    cache.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=cache, prefix=".build-") as tmp:
+        shim_path = Path(tmp) / ("rtloop_shim.cpp" if info.template == "cpp" else "rtloop_shim.c")
+        shim_path.write_text(shim)
+        output = Path(tmp) / library.name
+        command = [
+            compiler,
+            *flags,
+            *(f"-I{d}" for d in info.include_dirs),
+            *(str(s) for s in info.sources),
+            str(shim_path),
+            "-o",
+            str(output),
+            "-lm",
+        ]
+        done = subprocess.run(command, capture_output=True, text=True, cwd=info.path)
+        if done.returncode != 0:
+            raise ModelBuildError(str(info.path), command, done.stdout + done.stderr)
+        os.replace(output, library)  # atomic: concurrent builds of one model are harmless
+    return library
+
+
+# ANSI-C libraries in use in this process (their globals are the model state).
+_C_LIBRARIES_IN_USE: set[str] = set()
+
+_VOIDP = ctypes.c_void_p
+_DOUBLE = ctypes.c_double
+_SIGNATURES = {
+    "rtloop_new": ([], _VOIDP),
+    "rtloop_delete": ([_VOIDP], None),
+    "rtloop_initialize": ([_VOIDP, _VOIDP, _VOIDP, _DOUBLE], None),
+    "rtloop_calculate": ([_VOIDP, _VOIDP, _VOIDP], None),
+    "rtloop_terminate": ([_VOIDP, _VOIDP, _VOIDP], None),
+    "rtloop_set_finish_time": ([_VOIDP, _DOUBLE], ctypes.c_int),
+    "rtloop_is_finished": ([_VOIDP], ctypes.c_int),
+    "rtloop_reset": ([_VOIDP, _DOUBLE], None),
+    "rtloop_step_size": ([_VOIDP], _DOUBLE),
+}
+
+
+class TwentySimModel:
+    """A 20-sim C++ or ANSI-C export as a :class:`~rtloop.models.base.Model`.
+
+    Args:
+        path: the model folder (``Plant/`` with ``Plant.h``, ``Plant.cpp``, ``Plant.info``).
+        finish_time_s: passed to ``SetFinishTime`` after ``Initialize``; 0.0 (default)
+            runs forever. The generated default of 100 s would freeze the outputs of a
+            real-time run after 100 s.
+        cache_dir: where compiled libraries are kept (default :func:`default_cache_dir`).
+        build: compile now (default), so compiler errors surface before any task starts.
+        extra_flags: more compiler flags (part of the cache key).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        finish_time_s: float = 0.0,
+        cache_dir: str | os.PathLike[str] | None = None,
+        build: bool = True,
+        extra_flags: tuple[str, ...] = (),
+    ) -> None:
+        self.info = inspect(path)
+        self.path = self.info.path
+        self.kind = self.info.kind
+        self.n_inputs = len(self.info.input_names)
+        self.n_outputs = len(self.info.output_names)
+        self.input_names: tuple[str, ...] | None = self.info.input_names
+        self.output_names: tuple[str, ...] | None = self.info.output_names
+        self.step_size_s: float | None = self.info.step_size_s
+        self.finish_time_s = finish_time_s
+        self.cache_dir = cache_dir
+        self.extra_flags = tuple(extra_flags)
+        self.library_path: Path | None = self.build() if build else None
+        self._unload()
+
+    def build(self) -> Path:
+        """Compile (or find in the cache) the shared library; return its path."""
+        self.library_path = build_library(self.info, self.cache_dir, self.extra_flags)
+        return self.library_path
+
+    # -- pickling: ctypes objects stay behind, the task process loads its own --------
+
+    def __getstate__(self) -> dict[str, object]:
+        state = self.__dict__.copy()
+        for key in ("_lib", "_handle", "_calculate", "_u_bound", "_y_bound", "_private_copy"):
+            state[key] = None
+        state["_u_ptr"] = state["_y_ptr"] = None
+        return state
+
+    def _unload(self) -> None:
+        self._lib: ctypes.CDLL | None = None
+        self._handle: int | None = None
+        self._calculate = None
+        self._u_bound: FloatVector | None = None
+        self._y_bound: FloatVector | None = None
+        self._u_ptr: int | None = None
+        self._y_ptr: int | None = None
+        self._private_copy: str | None = None
+
+    def _load(self) -> None:
+        library = str(self.library_path or self.build())
+        if self.info.template == "c":
+            if library in _C_LIBRARIES_IN_USE:
+                # dlopen would hand back the same globals: load a private copy instead.
+                fd, copy = tempfile.mkstemp(suffix=".so", prefix=f"rtloop-{self.info.name}-")
+                os.close(fd)
+                shutil.copyfile(library, copy)
+                self._private_copy = copy
+                library = copy
+            else:
+                _C_LIBRARIES_IN_USE.add(library)
+        lib = ctypes.CDLL(library)
+        for name, (argtypes, restype) in _SIGNATURES.items():
+            function = getattr(lib, name)
+            function.argtypes = argtypes
+            function.restype = restype
+        self._lib = lib
+        self._calculate = lib.rtloop_calculate
+        self._handle = lib.rtloop_new()
+
+    def _bind(self, u: FloatVector, y: FloatVector) -> None:
+        """Remember the data pointers of the task's (fixed) u and y arrays."""
+        for name, a, n in (("u", u, self.n_inputs), ("y", y, self.n_outputs)):
+            if a.dtype != np.float64 or not a.flags.c_contiguous or a.shape != (n,):
+                raise ModelError(
+                    f"{self.kind} model {str(self.path)!r}: {name} must be a contiguous "
+                    f"float64 vector of length {n}, got {a.dtype} {a.shape}"
+                )
+        if not y.flags.writeable:
+            raise ModelError(f"{self.kind} model {str(self.path)!r}: y is read-only")
+        self._u_bound, self._y_bound = u, y
+        self._u_ptr, self._y_ptr = u.ctypes.data, y.ctypes.data
+
+    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
+        """Load the library, create the instance, ``Initialize`` and ``SetFinishTime``."""
+        if self._lib is None:
+            self._load()
+        assert self._lib is not None
+        self._bind(u, y)
+        self._lib.rtloop_initialize(self._handle, self._u_ptr, self._y_ptr, t_s)
+        if not self._lib.rtloop_set_finish_time(self._handle, self.finish_time_s):
+            raise ModelError(
+                f"{str(self.path)!r}: SetFinishTime({self.finish_time_s}) refused "
+                "(a finish time must lie after the start time)"
+            )
+        built_step_s = self._lib.rtloop_step_size(self._handle)
+        if self.step_size_s is None or abs(built_step_s - self.step_size_s) > 1e-15:
+            self.step_size_s = built_step_s  # the compiled code is the authority
+
+    def calculate(self, u: FloatVector, y: FloatVector) -> None:
+        """One ``Calculate(u, y)`` call (pointers are cached per array)."""
+        if u is not self._u_bound or y is not self._y_bound:
+            self._bind(u, y)
+        self._calculate(self._handle, self._u_ptr, self._y_ptr)  # type: ignore[misc]
+
+    def is_finished(self) -> bool:
+        """``IsFinished()``: True once the finish time has passed (outputs then hold)."""
+        assert self._lib is not None, "initialize first"
+        return bool(self._lib.rtloop_is_finished(self._handle))
+
+    def terminate(self, u: FloatVector, y: FloatVector) -> None:
+        """``Terminate(u, y)``, delete the instance and release the library."""
+        if self._lib is None:
+            return
+        self._bind(u, y)
+        self._lib.rtloop_terminate(self._handle, self._u_ptr, self._y_ptr)
+        self._lib.rtloop_delete(self._handle)
+        if self._private_copy is not None:
+            os.unlink(self._private_copy)  # the mapping stays valid until exit
+        else:
+            _C_LIBRARIES_IN_USE.discard(str(self.library_path))
+        self._unload()
