@@ -14,7 +14,6 @@ import platform
 import resource
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from time import monotonic_ns as now_ns  # clock_gettime(CLOCK_MONOTONIC), no ctypes hop
 
 from .errors import LibcError
 

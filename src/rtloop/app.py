@@ -1,0 +1,374 @@
+"""The app builder: tasks, connections, ports and recordings, checked as they are added.
+
+    app = App("jiwy")
+    plant = app.add_task("plant", JiwyPlant(), period_ns=1_000_000, priority=80, cpu=1)
+    controller = app.add_task("controller", JiwyController(), period_ns=1_000_000, cpu=1)
+    app.connect(plant.y[0:2], controller.u[0:2])
+    app.connect(controller.y[0:2], plant.u[0:2])
+    app.port("setpoint", to=controller.u[2:4])
+    app.record(plant.y, controller.y)
+    summary = app.run(duration_s=10, out="runs/jiwy")
+
+Every mistake that can be found before a process starts is found here, with an
+:class:`~rtloop.errors.AppError` that names the culprit.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from .errors import AppError, ConnectionSizeError
+from .runnable import Runnable
+from .task import OVERRUN_POLICIES, TaskConfig
+
+if TYPE_CHECKING:
+    from .summary import RunSummary
+
+Side = Literal["u", "y"]
+NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+@dataclass(frozen=True, slots=True)
+class SignalRef:
+    """A contiguous slice of a task's input (``u``) or output (``y``) vector."""
+
+    task: str
+    side: Side
+    start: int
+    stop: int
+
+    @property
+    def size(self) -> int:
+        return self.stop - self.start
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.stop)
+
+    def names(self) -> list[str]:
+        return [f"{self.task}.{self.side}[{i}]" for i in range(self.start, self.stop)]
+
+    def overlaps(self, other: SignalRef) -> bool:
+        return (
+            self.task == other.task
+            and self.side == other.side
+            and self.start < other.stop
+            and other.start < self.stop
+        )
+
+    def __str__(self) -> str:
+        if self.size == 1:
+            return f"{self.task}.{self.side}[{self.start}]"
+        return f"{self.task}.{self.side}[{self.start}:{self.stop}]"
+
+
+class SignalVector:
+    """``task.u`` or ``task.y``: index or slice it to get a :class:`SignalRef`."""
+
+    def __init__(self, task: str, side: Side, length: int) -> None:
+        self.task, self.side, self.length = task, side, length
+
+    def __getitem__(self, index: int | slice) -> SignalRef:
+        kind = "input" if self.side == "u" else "output"
+        if isinstance(index, int):
+            if not 0 <= index < self.length:
+                raise AppError(
+                    f"{self.task}.{self.side}[{index}]: index out of range; "
+                    f"task {self.task!r} has {self.length} {kind}s"
+                )
+            return SignalRef(self.task, self.side, index, index + 1)
+        start, stop, step = index.indices(self.length)
+        if step != 1 or stop <= start or (index.stop is not None and index.stop > self.length):
+            raise AppError(
+                f"{self.task}.{self.side}[{index.start}:{index.stop}]: not a contiguous, non-empty "
+                f"slice of {self.length} {kind}s"
+            )
+        return SignalRef(self.task, self.side, start, stop)
+
+    @property
+    def all(self) -> SignalRef:
+        return SignalRef(self.task, self.side, 0, self.length)
+
+
+@dataclass(slots=True)
+class TaskSpec:
+    """A task as added to the app (config + its runnable, before it runs)."""
+
+    config: TaskConfig
+    runnable: Runnable
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def u(self) -> SignalVector:
+        return SignalVector(self.name, "u", self.runnable.n_inputs)
+
+    @property
+    def y(self) -> SignalVector:
+        return SignalVector(self.name, "y", self.runnable.n_outputs)
+
+
+@dataclass(frozen=True, slots=True)
+class Connection:
+    source: SignalRef
+    target: SignalRef
+
+
+@dataclass(frozen=True, slots=True)
+class PortSpec:
+    """A named endpoint between the app and non-real-time code."""
+
+    name: str
+    direction: Literal["in", "out"]
+    signal: SignalRef
+    initial: tuple[float, ...] | None = None
+    allow_nonfinite: bool = False
+    capacity: int = 4096
+    feed: Path | None = None
+
+
+@dataclass
+class App:
+    """A set of periodic tasks and their wiring. Build it, then ``run`` or ``simulate``."""
+
+    name: str
+    tasks: dict[str, TaskSpec] = field(default_factory=dict)
+    connections: list[Connection] = field(default_factory=list)
+    ports: dict[str, PortSpec] = field(default_factory=dict)
+    recorded: list[SignalRef] = field(default_factory=list)
+    source: str = "<python>"
+    """Where the app was described (an app file's path, for messages)."""
+
+    def __post_init__(self) -> None:
+        if not NAME_PATTERN.match(self.name):
+            raise AppError(f"app name {self.name!r}: use letters, digits and underscores")
+
+    # --- building ------------------------------------------------------------------------
+    def add_task(
+        self,
+        name: str,
+        runnable: Runnable,
+        *,
+        period_ns: int,
+        priority: int = 80,
+        cpu: int | None = None,
+        policy: str = "fifo",
+        overrun: str = "skip",
+    ) -> TaskSpec:
+        """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
+        where = f"task {name!r}"
+        if not NAME_PATTERN.match(name):
+            raise AppError(f"{where}: a task name uses letters, digits and underscores")
+        if name in self.tasks:
+            raise AppError(f"{where}: defined twice")
+        if not isinstance(runnable, Runnable):
+            raise AppError(f"{where}: {runnable!r} is not an rtloop.Runnable")
+        if not isinstance(period_ns, int) or period_ns < 10_000:
+            raise AppError(f"{where}: period_ns must be an integer ≥ 10000 (100 kHz), got {period_ns!r}")
+        if policy not in ("fifo", "rr", "other", "deadline"):
+            raise AppError(f"{where}: policy {policy!r}; expected fifo, rr, other or deadline")
+        low = 0 if policy in ("other", "deadline") else 1
+        if not isinstance(priority, int) or not low <= priority <= 99:
+            raise AppError(f"{where}: priority {priority!r}; expected an integer {low}–99 for {policy}")
+        if policy in ("other", "deadline"):
+            priority = 0
+        if cpu is not None:
+            import os
+
+            available = sorted(os.sched_getaffinity(0))
+            if not isinstance(cpu, int) or cpu not in available:
+                raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
+        if overrun not in OVERRUN_POLICIES:
+            raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
+        for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
+            if not isinstance(count, int) or count < 0:
+                raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer ≥ 0")
+        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun)
+        spec = TaskSpec(config, runnable)
+        self.tasks[name] = spec
+        return spec
+
+    def _resolve(self, signal: SignalRef | SignalVector, role: str) -> SignalRef:
+        ref = signal.all if isinstance(signal, SignalVector) else signal
+        if not isinstance(ref, SignalRef):
+            raise AppError(f"{role}: expected a signal such as plant.y[0:2], got {signal!r}")
+        if ref.task not in self.tasks:
+            raise AppError(f"{role} {ref}: unknown task {ref.task!r}; tasks are {sorted(self.tasks)}")
+        return ref
+
+    def _check_single_writer(self, target: SignalRef, what: str) -> None:
+        for existing in self.connections:
+            if existing.target.overlaps(target):
+                raise AppError(
+                    f"{what}: {target} already receives {existing.source} → {existing.target}; "
+                    "an input has at most one writer"
+                )
+        for port in self.ports.values():
+            if port.direction == "in" and port.signal.overlaps(target):
+                raise AppError(
+                    f"{what}: {target} is already fed by port {port.name!r} ({port.signal}); "
+                    "an input has at most one writer"
+                )
+
+    def connect(self, source: SignalRef | SignalVector, target: SignalRef | SignalVector) -> Connection:
+        """Wire a task output slice to a task input slice of the same size."""
+        src = self._resolve(source, "connect from")
+        dst = self._resolve(target, "connect to")
+        what = f"connect {src} → {dst}"
+        if src.side != "y":
+            raise AppError(f"{what}: the source must be an output (y), not {src.side}")
+        if dst.side != "u":
+            raise AppError(f"{what}: the target must be an input (u), not {dst.side}")
+        if src.size != dst.size:
+            raise ConnectionSizeError(f"{what}: {src} has {src.size} values but {dst} has {dst.size}")
+        self._check_single_writer(dst, what)
+        connection = Connection(src, dst)
+        self.connections.append(connection)
+        return connection
+
+    def port(
+        self,
+        name: str,
+        *,
+        to: SignalRef | SignalVector | None = None,
+        source: SignalRef | SignalVector | None = None,
+        initial: list[float] | None = None,
+        allow_nonfinite: bool = False,
+        capacity: int = 4096,
+        feed: str | Path | None = None,
+    ) -> PortSpec:
+        """A port into a task (``to=``, latest value) or out of one (``source=``, every tick)."""
+        what = f"port {name!r}"
+        if not NAME_PATTERN.match(name):
+            raise AppError(f"{what}: a port name uses letters, digits and underscores")
+        if name in self.ports:
+            raise AppError(f"{what}: defined twice")
+        if (to is None) == (source is None):
+            raise AppError(f"{what}: give exactly one of to= (into a task) or source= (out of a task)")
+        if to is not None:
+            ref = self._resolve(to, what)
+            if ref.side != "u":
+                raise AppError(f"{what}: to={ref} must be a task input (u)")
+            self._check_single_writer(ref, what)
+            initial_values = None
+            if initial is not None:
+                if len(initial) != ref.size:
+                    raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
+                initial_values = tuple(float(v) for v in initial)
+            spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
+                            Path(feed) if feed is not None else None)
+        else:
+            assert source is not None
+            ref = self._resolve(source, what)
+            if ref.side != "y":
+                raise AppError(f"{what}: source={ref} must be a task output (y)")
+            if feed is not None:
+                raise AppError(f"{what}: only ports into a task can be fed from a profile")
+            if not isinstance(capacity, int) or capacity < 2:
+                raise AppError(f"{what}: capacity must be an integer ≥ 2")
+            spec = PortSpec(name, "out", ref, capacity=capacity)
+        self.ports[name] = spec
+        return spec
+
+    def feed(self, port: str, csv_path: str | Path) -> None:
+        """Feed an input port from a CSV profile (``t_s`` then one column per value)."""
+        if port not in self.ports or self.ports[port].direction != "in":
+            inputs = sorted(n for n, p in self.ports.items() if p.direction == "in")
+            raise AppError(f"feed {port}={csv_path}: no input port {port!r}; input ports are {inputs}")
+        spec = self.ports[port]
+        self.ports[port] = PortSpec(spec.name, spec.direction, spec.signal, spec.initial,
+                                    spec.allow_nonfinite, spec.capacity, Path(csv_path))
+
+    def record(self, *signals: SignalRef | SignalVector) -> None:
+        """Record these signals every tick into ``signals.csv`` and ``run.mcap``."""
+        for signal in signals:
+            ref = self._resolve(signal, "record")
+            if ref not in self.recorded:
+                self.recorded.append(ref)
+
+    # --- running -------------------------------------------------------------------------
+    def validate(self) -> None:
+        """Checks that need the whole app (done again before running)."""
+        if not self.tasks:
+            raise AppError(f"app {self.name!r} ({self.source}) has no tasks")
+
+    def run(
+        self,
+        duration_s: float,
+        out: str | Path,
+        *,
+        progress: bool = False,
+        trim: int = 20,
+    ) -> RunSummary:
+        """Run in real time for ``duration_s``; write the artifacts into ``out``."""
+        from .supervisor import run_app
+
+        return run_app(self, duration_s, Path(out), progress=progress, trim=trim)
+
+    def simulate(self, duration_s: float, out: str | Path, *, trim: int = 20) -> RunSummary:
+        """Run lock-step in this process, as fast as possible; same artifacts as ``run``."""
+        from .simulate import simulate_app
+
+        return simulate_app(self, duration_s, Path(out), trim=trim)
+
+
+def parse_signal(text: str, app: App, where: str) -> SignalRef:
+    """Parse ``task.y[0:2]``, ``task.u[3]`` or ``task.y`` against an app's tasks."""
+    match = re.fullmatch(r"\s*([A-Za-z_]\w*)\.([uy])(?:\[(\d*)(?::(\d*))?\])?\s*", text)
+    if not match:
+        raise AppError(f"{where}: {text!r} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
+    task, side, start, stop = match.groups()
+    if task not in app.tasks:
+        raise AppError(f"{where}: {text!r} names unknown task {task!r}; tasks are {sorted(app.tasks)}")
+    vector = getattr(app.tasks[task], side)
+    if start is None:
+        return vector.all
+    if stop is None and ":" not in text:
+        return vector[int(start)]
+    return vector[slice(int(start) if start else None, int(stop) if stop else None)]
+
+
+def load_profile(path: Path, size: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Read a CSV profile: header ``t_s,...`` then rows; returns (t_ns, values)."""
+    import csv
+
+    try:
+        with open(path, newline="") as file:
+            rows = list(csv.reader(file))
+    except OSError as error:
+        raise AppError(f"{where}: cannot read profile {path}: {error.strerror}") from None
+    if not rows or not rows[0] or rows[0][0].strip() != "t_s":
+        raise AppError(f"{where}: {path}: the first column must be named t_s")
+    header = rows[0]
+    if len(header) - 1 != size:
+        raise ConnectionSizeError(
+            f"{where}: {path} has {len(header) - 1} value columns {header[1:]}, the port takes {size}"
+        )
+    times: list[int] = []
+    values: list[list[float]] = []
+    for line_number, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        try:
+            numbers = [float(cell) for cell in row]
+        except ValueError:
+            raise AppError(f"{where}: {path}:{line_number}: not a number in {row}") from None
+        if len(numbers) != len(header):
+            raise AppError(f"{where}: {path}:{line_number}: {len(numbers)} columns, header has {len(header)}")
+        if not all(np.isfinite(numbers)):
+            raise AppError(f"{where}: {path}:{line_number}: NaN or infinite value in {row}")
+        t_ns = round(numbers[0] * 1e9)
+        if times and t_ns <= times[-1]:
+            raise AppError(f"{where}: {path}:{line_number}: t_s must increase")
+        times.append(t_ns)
+        values.append(numbers[1:])
+    if not times:
+        raise AppError(f"{where}: {path}: no rows")
+    return np.array(times, dtype=np.int64), np.array(values, dtype=np.float64).reshape(len(times), size)

@@ -1,0 +1,185 @@
+"""App files (TOML) → :class:`~rtloop.app.App`. Every error names the file and the key.
+
+    name = "jiwy"
+
+    [tasks.plant]
+    runnable = "rtloop.models.jiwy:JiwyPlant"   # or model = "20sim:models/Plant", "fmu:plant.fmu"
+    args = {}                                  # keyword arguments of the constructor
+    period_ns = 1_000_000
+    priority = 80
+    cpu = 1
+    policy = "fifo"                            # fifo, rr, other, deadline
+    overrun = "skip"                           # skip or catch_up
+
+    [[connect]]
+    from = "plant.y[0:2]"
+    to = "controller.u[0:2]"
+
+    [ports.setpoint]
+    to = "controller.u[2:4]"                   # or source = "plant.y" for a port out of a task
+    feed = "step.csv"                          # optional profile, relative to this file
+
+    [record]
+    signals = ["plant.y", "controller.y"]
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from .app import App, parse_signal
+from .errors import AppError, AppFileError
+from .runnable import Runnable
+
+TOP_KEYS = {"name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict}
+TASK_KEYS = {
+    "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
+    "cpu": int, "policy": str, "overrun": str, "description": str,
+}
+PORT_KEYS = {
+    "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
+    "feed": str, "description": str,
+}
+CONNECT_KEYS = {"from": str, "to": str}
+RECORD_KEYS = {"signals": list}
+TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an array", bool: "true or false"}
+
+
+def _check_keys(path: str, where: str, table: dict[str, Any], allowed: dict[str, type]) -> None:
+    for key, value in table.items():
+        full = f"{where}.{key}" if where else key
+        if key not in allowed:
+            close = [k for k in allowed if _similar(k, key)]
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise AppFileError(path, full, f"unknown key{hint}; expected one of {sorted(allowed)}")
+        expected = allowed[key]
+        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {value!r}")
+
+
+def _similar(a: str, b: str) -> bool:
+    import difflib
+
+    return difflib.SequenceMatcher(None, a, b).ratio() >= 0.75
+
+
+def load_app(path: str | Path) -> App:
+    """Read and validate an app file; builds the runnables (in this process)."""
+    file = Path(path)
+    shown = str(path)
+    try:
+        data = tomllib.loads(file.read_text())
+    except FileNotFoundError:
+        raise AppFileError(shown, "", "no such file") from None
+    except tomllib.TOMLDecodeError as error:
+        raise AppFileError(shown, "", f"not valid TOML: {error}") from None
+    _check_keys(shown, "", data, TOP_KEYS)
+    if "name" not in data:
+        raise AppFileError(shown, "name", "missing; every app needs a name")
+    if not data.get("tasks"):
+        raise AppFileError(shown, "tasks", "missing; define at least one [tasks.NAME] table")
+    base_dir = file.resolve().parent
+    try:
+        app = App(data["name"], source=shown)
+    except AppError as error:
+        raise AppFileError(shown, "name", str(error)) from None
+
+    for task_name, table in data["tasks"].items():
+        where = f"tasks.{task_name}"
+        if not isinstance(table, dict):
+            raise AppFileError(shown, where, "expected a table [tasks.NAME]")
+        _check_keys(shown, where, table, TASK_KEYS)
+        runnable = _build_runnable(shown, where, table, base_dir)
+        if "period_ns" not in table:
+            raise AppFileError(shown, f"{where}.period_ns", "missing; e.g. period_ns = 1_000_000 for 1 kHz")
+        try:
+            app.add_task(
+                task_name, runnable, period_ns=table["period_ns"],
+                priority=table.get("priority", 80), cpu=table.get("cpu"),
+                policy=table.get("policy", "fifo"), overrun=table.get("overrun", "skip"),
+            )
+        except AppError as error:
+            raise AppFileError(shown, where, str(error)) from None
+
+    for index, table in enumerate(data.get("connect", [])):
+        where = f"connect[{index}]"
+        if not isinstance(table, dict):
+            raise AppFileError(shown, where, "expected a table [[connect]] with from and to")
+        _check_keys(shown, where, table, CONNECT_KEYS)
+        for key in CONNECT_KEYS:
+            if key not in table:
+                raise AppFileError(shown, f"{where}.{key}", "missing")
+        try:
+            app.connect(parse_signal(table["from"], app, "from"), parse_signal(table["to"], app, "to"))
+        except AppError as error:
+            raise AppFileError(shown, where, str(error)) from None
+
+    for port_name, table in data.get("ports", {}).items():
+        where = f"ports.{port_name}"
+        if not isinstance(table, dict):
+            raise AppFileError(shown, where, "expected a table [ports.NAME]")
+        _check_keys(shown, where, table, PORT_KEYS)
+        try:
+            app.port(
+                port_name,
+                to=parse_signal(table["to"], app, "to") if "to" in table else None,
+                source=parse_signal(table["source"], app, "source") if "source" in table else None,
+                initial=table.get("initial"),
+                allow_nonfinite=table.get("allow_nonfinite", False),
+                capacity=table.get("capacity", 4096),
+                feed=(base_dir / table["feed"]) if "feed" in table else None,
+            )
+        except (AppError, TypeError, ValueError) as error:
+            raise AppFileError(shown, where, str(error)) from None
+
+    record = data.get("record", {})
+    _check_keys(shown, "record", record, RECORD_KEYS)
+    for index, text in enumerate(record.get("signals", [])):
+        try:
+            app.record(parse_signal(str(text), app, "signal"))
+        except AppError as error:
+            raise AppFileError(shown, f"record.signals[{index}]", str(error)) from None
+    return app
+
+
+def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path) -> Runnable:
+    has_runnable, has_model = "runnable" in table, "model" in table
+    if has_runnable == has_model:
+        raise AppFileError(shown, where, 'give exactly one of runnable = "module:Class" or model = "kind:path"')
+    args = table.get("args", {})
+    if has_model:
+        try:
+            from .models import load_model
+        except ImportError as error:
+            raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
+        try:
+            return load_model(table["model"], base_dir, **args)
+        except (AppError, OSError, ValueError, TypeError) as error:
+            raise AppFileError(shown, f"{where}.model", str(error)) from None
+    target = table["runnable"]
+    module_name, _, class_name = target.partition(":")
+    if not module_name or not class_name:
+        raise AppFileError(shown, f"{where}.runnable", f'{target!r}: expected "module:Class"')
+    if str(base_dir) not in sys.path:
+        sys.path.insert(0, str(base_dir))  # task processes inherit sys.path (spawn)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise AppFileError(
+            shown, f"{where}.runnable",
+            f"cannot import module {module_name!r} (looked beside the app file and on sys.path): {error}",
+        ) from None
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        raise AppFileError(shown, f"{where}.runnable", f"module {module_name!r} has no {class_name!r}")
+    try:
+        runnable = cls(**args)
+    except TypeError as error:
+        raise AppFileError(shown, f"{where}.args", f"{target}({args}) failed: {error}") from None
+    if not isinstance(runnable, Runnable):
+        raise AppFileError(shown, f"{where}.runnable", f"{target} is not a subclass of rtloop.Runnable")
+    return runnable

@@ -1,0 +1,253 @@
+"""Lock-free shared-memory channels: seqlock slots and sample queues.
+
+``LetChannel``    one writer task → any reader tasks. A ring of seqlock slots, each
+                  stamped with the time its value becomes valid (logical execution time).
+``LatestValue``   non-RT writers → one RT reader: a single seqlock slot (input ports).
+``SampleQueue``   one RT writer → one non-RT reader: every tick's values, bounded;
+                  a full queue drops and counts, it never blocks the RT side.
+
+Every class takes a :class:`~rtloop.shm.Segment` and an offset, so the same code runs
+over ``/dev/shm`` between processes and over plain memory in the simulator. Word
+stores are single aligned 8-byte writes; ordering comes from :func:`~rtloop.shm.fence`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .shm import Segment, fence
+
+HEADER_WORDS = 8
+NO_STAMP = -(2**62)
+READ_RETRIES = 64
+
+
+class LetChannel:
+    """A ring of stamped seqlock slots holding one task's output vector.
+
+    Header words: ``[published, n_values, n_slots]``. Slot i: ``[seq, stamp_ns, values…]``.
+    A writer bumps ``seq`` to odd, writes, stamps, bumps it to even; a reader copies
+    and accepts the copy only if ``seq`` was even and unchanged around it.
+    """
+
+    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
+        self.words = segment.buffer[offset_bytes:].cast("q")
+        self.n_values = int(self.words[1])
+        self.n_slots = int(self.words[2])
+        self.slot_words = 2 + self.n_values
+        floats = segment.array(
+            np.float64, HEADER_WORDS + self.n_slots * self.slot_words, offset_bytes
+        )
+        self.values = [
+            floats[self._base(i) + 2 : self._base(i) + 2 + self.n_values]
+            for i in range(self.n_slots)
+        ]
+        self.published = int(self.words[0])
+
+    @staticmethod
+    def size_bytes(n_values: int, n_slots: int) -> int:
+        return (HEADER_WORDS + n_slots * (2 + n_values)) * 8
+
+    @classmethod
+    def initialise(cls, segment: Segment, n_values: int, n_slots: int, offset_bytes: int = 0) -> LetChannel:
+        words = segment.buffer[offset_bytes:].cast("q")
+        for i in range(HEADER_WORDS + n_slots * (2 + n_values)):
+            words[i] = 0
+        words[1], words[2] = n_values, n_slots
+        for i in range(n_slots):
+            words[HEADER_WORDS + i * (2 + n_values) + 1] = NO_STAMP
+        return cls(segment, offset_bytes)
+
+    def _base(self, slot: int) -> int:
+        return HEADER_WORDS + slot * self.slot_words
+
+    # --- writer (RT) ---------------------------------------------------------------------
+    def publish(self, stamp_ns: int, values: np.ndarray) -> None:
+        words = self.words
+        slot = self.published % self.n_slots
+        base = HEADER_WORDS + slot * self.slot_words
+        words[base] += 1  # odd: slot being written
+        fence()
+        self.values[slot][:] = values
+        words[base + 1] = stamp_ns
+        fence()
+        words[base] += 1  # even: slot complete
+        self.published += 1
+        words[0] = self.published
+
+    # --- reader (RT) ---------------------------------------------------------------------
+    def read_valid_at(self, time_ns: int, source: slice, out: np.ndarray) -> int:
+        """Copy ``values[source]`` of the newest slot stamped ≤ ``time_ns`` into ``out``.
+
+        Returns that slot's stamp, or NO_STAMP if no such slot exists (``out`` untouched).
+        """
+        words = self.words
+        published = words[0]
+        fence()
+        for back in range(1, min(published, self.n_slots) + 1):
+            slot = (published - back) % self.n_slots
+            base = HEADER_WORDS + slot * self.slot_words
+            for _ in range(READ_RETRIES):
+                seq = words[base]
+                if seq & 1:
+                    continue
+                fence()
+                stamp = words[base + 1]
+                if stamp <= time_ns:
+                    out[:] = self.values[slot][source]
+                fence()
+                if words[base] == seq:
+                    break
+            else:
+                continue  # this slot kept changing under us: the writer lapped it
+            if stamp <= time_ns:
+                return stamp
+        return NO_STAMP
+
+
+class LatestValue:
+    """One seqlock slot: non-RT writers post values, one RT reader takes the newest.
+
+    Header words: ``[seq, writes, reads, n_values, fed_by_profile]`` then the values.
+    Writers from several processes must serialise among themselves (the port client
+    holds an ``flock`` while writing); the RT reader never waits for them.
+    """
+
+    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
+        self.words = segment.buffer[offset_bytes:].cast("q")
+        self.n_values = int(self.words[3])
+        self.values = segment.array(np.float64, HEADER_WORDS + self.n_values, offset_bytes)[
+            HEADER_WORDS:
+        ]
+        self.last_seq_seen = 0
+
+    @staticmethod
+    def size_bytes(n_values: int) -> int:
+        return (HEADER_WORDS + n_values) * 8
+
+    @classmethod
+    def initialise(
+        cls, segment: Segment, initial: np.ndarray, offset_bytes: int = 0, *, fed_by_profile: bool = False
+    ) -> LatestValue:
+        words = segment.buffer[offset_bytes:].cast("q")
+        for i in range(HEADER_WORDS):
+            words[i] = 0
+        words[3] = len(initial)
+        words[4] = int(fed_by_profile)
+        channel = cls(segment, offset_bytes)
+        channel.values[:] = initial
+        return channel
+
+    @property
+    def fed_by_profile(self) -> bool:
+        return bool(self.words[4])
+
+    @property
+    def writes(self) -> int:
+        return int(self.words[1])
+
+    @property
+    def reads(self) -> int:
+        return int(self.words[2])
+
+    def write(self, values: np.ndarray) -> None:
+        words = self.words
+        words[0] += 1
+        fence()
+        self.values[:] = values
+        fence()
+        words[0] += 1
+        words[1] += 1
+
+    def read_into(self, out: np.ndarray) -> bool:
+        """Copy the newest complete value into ``out``; False if none could be read."""
+        words = self.words
+        for _ in range(READ_RETRIES):
+            seq = words[0]
+            if seq & 1:
+                continue
+            fence()
+            out[:] = self.values
+            fence()
+            if words[0] == seq:
+                if seq != self.last_seq_seen:
+                    self.last_seq_seen = seq
+                    words[2] += 1
+                return True
+        return False
+
+
+class SampleQueue:
+    """Bounded single-producer/single-consumer queue of (tick, values) records.
+
+    Header words: ``[written, read, dropped, n_values, capacity]``, then ``capacity``
+    ticks (int64), then ``capacity × n_values`` values (float64).
+    """
+
+    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
+        self.words = segment.buffer[offset_bytes:].cast("q")
+        self.n_values = int(self.words[3])
+        self.capacity = int(self.words[4])
+        ticks_at = offset_bytes + HEADER_WORDS * 8
+        self.ticks = segment.array(np.int64, self.capacity, ticks_at)
+        self.rows = segment.array(
+            np.float64, self.capacity * self.n_values, ticks_at + self.capacity * 8
+        ).reshape(self.capacity, self.n_values)
+        self.written = int(self.words[0])
+
+    @staticmethod
+    def size_bytes(n_values: int, capacity: int) -> int:
+        return (HEADER_WORDS + capacity * (1 + n_values)) * 8
+
+    @classmethod
+    def initialise(cls, segment: Segment, n_values: int, capacity: int, offset_bytes: int = 0) -> SampleQueue:
+        words = segment.buffer[offset_bytes:].cast("q")
+        for i in range(HEADER_WORDS):
+            words[i] = 0
+        words[3], words[4] = n_values, capacity
+        return cls(segment, offset_bytes)
+
+    # --- producer (RT) -------------------------------------------------------------------
+    def push(self, tick: int, values: np.ndarray) -> bool:
+        words = self.words
+        written = self.written
+        if written - words[1] >= self.capacity:
+            words[2] += 1
+            return False
+        index = written % self.capacity
+        self.ticks[index] = tick
+        self.rows[index] = values
+        fence()  # the row must be visible before the count that announces it
+        self.written = written + 1
+        words[0] = written + 1
+        return True
+
+    # --- consumer (non-RT) ---------------------------------------------------------------
+    @property
+    def sent(self) -> int:
+        return int(self.words[0])
+
+    @property
+    def received(self) -> int:
+        return int(self.words[1])
+
+    @property
+    def dropped(self) -> int:
+        return int(self.words[2])
+
+    def drain(self, max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Copy out the waiting records: (ticks, rows). Never blocks."""
+        words = self.words
+        written = words[0]
+        fence()
+        read = words[1]
+        count = written - read
+        if max_rows is not None:
+            count = min(count, max_rows)
+        if count <= 0:
+            return np.empty(0, np.int64), np.empty((0, self.n_values))
+        indices = (read + np.arange(count)) % self.capacity
+        ticks, rows = self.ticks[indices].copy(), self.rows[indices].copy()
+        fence()  # finish copying before handing the slots back
+        words[1] = read + count
+        return ticks, rows

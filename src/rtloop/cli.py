@@ -1,0 +1,150 @@
+"""The ``rtloop`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import AppError, RtloopError, TaskFailed
+from .summary import RunSummary
+
+EXIT_TASK_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+def _parse_feed(text: str) -> tuple[str, Path]:
+    port, sep, path = text.partition("=")
+    if not sep or not port or not path:
+        raise argparse.ArgumentTypeError(f"--feed {text!r}: expected PORT=FILE.csv")
+    return port, Path(path)
+
+
+def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("app", help="app file (TOML)")
+    parser.add_argument("--duration", type=float, required=True, metavar="S", help="seconds to run")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the artifacts")
+    parser.add_argument("--feed", type=_parse_feed, action="append", default=[], metavar="PORT=FILE.csv",
+                        help="feed an input port from a CSV profile (t_s, values...)")
+    parser.add_argument("--trim", type=int, default=20, metavar="N",
+                        help="cycles left out at each end of the statistics (default 20)")
+    parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary table")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = commands.add_parser("run", help="run an app in real time and record its timing")
+    _add_run_arguments(run)
+    simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
+    _add_run_arguments(simulate)
+
+    port = commands.add_parser("port", help="write to or read from a running app's port")
+    port_commands = port.add_subparsers(dest="port_command", required=True)
+    write = port_commands.add_parser("write", help="post values to an input port")
+    write.add_argument("app", help="app name (or app file)")
+    write.add_argument("port")
+    write.add_argument("values", nargs="+", type=float)
+    read = port_commands.add_parser("read", help="print what an output port sends")
+    read.add_argument("app", help="app name (or app file)")
+    read.add_argument("port")
+    read.add_argument("--count", type=int, default=10, help="rows to print, then exit (default 10)")
+    port_commands.add_parser("list", help="list running apps and their ports")
+
+    doctor = commands.add_parser("doctor", help="is this machine ready for real time? how to fix it")
+    doctor.add_argument("--json", action="store_true", help="machine-readable output")
+
+    model = commands.add_parser("model", help="inspect or build a 20-sim model or an FMU")
+    model_commands = model.add_subparsers(dest="model_command", required=True)
+    model_commands.add_parser("info", help="inputs, outputs, step size, kind").add_argument("path")
+    model_commands.add_parser("build", help="compile a 20-sim model into its cached library").add_argument("path")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except TaskFailed as failure:
+        print(f"rtloop: {failure}", file=sys.stderr)
+        if failure.traceback_text:
+            print(failure.traceback_text.rstrip(), file=sys.stderr)
+        out = getattr(args, "out", None)
+        if out is not None:
+            print(f"rtloop: everything recorded until then is in {out}/", file=sys.stderr)
+        return EXIT_TASK_FAILED
+    except AppError as error:
+        print(f"rtloop: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RtloopError as error:
+        print(f"rtloop: {error}", file=sys.stderr)
+        return EXIT_TASK_FAILED
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.command in ("run", "simulate"):
+        return _run(args)
+    if args.command == "port":
+        from .ports import cli_port
+
+        return cli_port(args)
+    if args.command == "doctor":
+        from .doctor import main as doctor_main
+
+        return doctor_main(["--json"] if args.json else [])
+    if args.command == "model":
+        from . import models
+
+        text = models.cli_model_info(args.path) if args.model_command == "info" else models.cli_model_build(args.path)
+        print(text)
+        return 0
+    raise AssertionError(args.command)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .appfile import load_app
+
+    app = load_app(args.app)
+    for port, path in args.feed:
+        app.feed(port, path)
+    interactive = not args.quiet and sys.stderr.isatty()
+    if args.command == "run":
+        summary = app.run(args.duration, args.out, progress=interactive, trim=args.trim)
+    else:
+        summary = app.simulate(args.duration, args.out, trim=args.trim)
+    if not args.quiet:
+        print(format_summary(summary, args.out))
+    return 0
+
+
+def format_summary(summary: RunSummary, out: Path) -> str:
+    """A short table of the run, with the non-real-time warning first."""
+    lines: list[str] = []
+    for name, task in summary.tasks.items():
+        if not task.rt and summary.mode == "run":
+            lines.append(f"WARNING: task {name!r} did NOT run real-time ({task.policy}): {task.rt_reason}")
+    header = f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}{'misses':>7}{'overruns':>9}{'stale':>6}"
+    lines.append(f"{summary.app}: {summary.mode} for {summary.duration_s:g} s, stopped by {summary.stopped_by}")
+    lines.append(header)
+    for name, task in summary.tasks.items():
+        t = task.timing
+        latency = "/".join(_us(v) for v in (t.latency_ns.p50, t.latency_ns.p99, t.latency_ns.max))
+        sched = f"{task.policy}:{task.priority}" if task.rt else task.policy
+        cpu = "-" if task.cpu is None else str(task.cpu)
+        lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{t.deadline_misses:>7}"
+                     f"{t.overruns:>9}{task.stale_reads:>6}")
+    for name, port in summary.ports.items():
+        lines.append(f"port {name} ({port.direction}, {port.signal}): sent {port.sent}, "
+                     f"received {port.received}, dropped {port.dropped}")
+    lines.append(f"artifacts: {out}/ (summary.json, timing.csv" + (", signals.csv" if any(
+        (out / "signals.csv").exists() for _ in [0]) else "") + ")")
+    return "\n".join(lines)
+
+
+def _us(value_ns: float) -> str:
+    return "nan" if value_ns != value_ns else f"{value_ns / 1000:.1f}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

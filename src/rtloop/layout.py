@@ -1,0 +1,184 @@
+"""Shared memory of one app run: created by the supervisor, described to each task.
+
+``AppLayout.create`` makes every segment the run needs (control block, a status block
+and timing ring per task, an output channel per connected task, port and record
+queues), and the :class:`~rtloop.wiring.TaskWiringPlan` each task process attaches to.
+``close`` removes them all; segments of a run that died are removed by the next run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .app import App, PortSpec, load_profile
+from .channels import LatestValue, LetChannel, SampleQueue
+from .shm import SHM_DIR, RecordRing, Segment, new_run_token, remove_stale_segments
+from .status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+from .task import TaskSegments, task_segment_size
+from .wiring import InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
+
+TIMING_RING_CAPACITY = 1 << 16
+RECORD_QUEUE_CAPACITY = 1 << 15
+LET_SLOTS = 8
+
+
+@dataclass
+class TaskHandles:
+    """The supervisor's side of one task's shared memory."""
+
+    segments: TaskSegments
+    status: WordBlock
+    timing: RecordRing
+    plan: TaskWiringPlan
+    record: SampleQueue | None = None
+
+
+@dataclass
+class AppLayout:
+    app: App
+    token: str
+    control: WordBlock
+    tasks: dict[str, TaskHandles]
+    input_ports: dict[str, LatestValue]
+    output_ports: dict[str, SampleQueue]
+    segments: list[Segment] = field(default_factory=list)
+    registry_path: Path | None = None
+
+    @classmethod
+    def create(cls, app: App) -> AppLayout:
+        remove_stale_segments()
+        token = new_run_token()
+        owner = os.getpid()
+        segments: list[Segment] = []
+
+        def segment(what: str, size_bytes: int) -> Segment:
+            created = Segment.create(app.name, owner, token, what, size_bytes)
+            segments.append(created)
+            return created
+
+        try:
+            return cls._build(app, token, segment, segments)
+        except BaseException:
+            for created in segments:
+                created.unlink()
+            raise
+
+    @classmethod
+    def _build(cls, app: App, token: str, segment, segments: list[Segment]) -> AppLayout:
+        control_segment = segment("control", CONTROL_WORDS * 8)
+        control = WordBlock(control_segment, 0, CONTROL_WORDS)
+
+        channels: dict[str, str] = {}
+        for connection in app.connections:
+            writer = connection.source.task
+            if writer not in channels:
+                n_values = app.tasks[writer].runnable.n_outputs
+                created = segment(f"{writer}.y", LetChannel.size_bytes(n_values, LET_SLOTS))
+                LetChannel.initialise(created, n_values, LET_SLOTS)
+                channels[writer] = created.name
+
+        input_ports: dict[str, LatestValue] = {}
+        output_ports: dict[str, SampleQueue] = {}
+        port_links: dict[str, list[InputPortLink | OutputPortLink]] = {name: [] for name in app.tasks}
+        for port in app.ports.values():
+            created, link = cls._port(app, port, segment)
+            if isinstance(link, InputPortLink):
+                input_ports[port.name] = LatestValue(created)
+            else:
+                output_ports[port.name] = SampleQueue(created)
+            port_links[port.signal.task].append(link)
+
+        recorded_tasks = {ref.task for ref in app.recorded}
+        tasks: dict[str, TaskHandles] = {}
+        for name, spec in app.tasks.items():
+            task_segment = segment(f"{name}.task", task_segment_size(TIMING_RING_CAPACITY))
+            status = WordBlock(task_segment, 0, STATUS_WORDS)
+            timing = RecordRing.initialise(task_segment, TIMING_RING_CAPACITY, 4, STATUS_WORDS * 8)
+            record = None
+            if name in recorded_tasks:
+                width = spec.runnable.n_outputs + spec.runnable.n_inputs
+                record_segment = segment(f"{name}.record", SampleQueue.size_bytes(width, RECORD_QUEUE_CAPACITY))
+                record = SampleQueue.initialise(record_segment, width, RECORD_QUEUE_CAPACITY)
+            inputs = tuple(
+                InputLink(
+                    channels[c.source.task], c.source.slice, c.target.slice,
+                    app.tasks[c.source.task].config.period_ns,
+                )
+                for c in app.connections
+                if c.target.task == name
+            )
+            links = port_links[name]
+            wanted = {channels.get(name)} | {link.channel_segment for link in inputs}
+            wanted |= {link.segment for link in links}
+            if record is not None:
+                wanted.add(record_segment.name)
+            plan = TaskWiringPlan(
+                output_channel=channels.get(name),
+                inputs=inputs,
+                input_ports=tuple(link for link in links if isinstance(link, InputPortLink)),
+                output_ports=tuple(link for link in links if isinstance(link, OutputPortLink)),
+                record_queue=record_segment.name if record is not None else None,
+                segments=tuple(sorted(w for w in wanted if w)),
+            )
+            tasks[name] = TaskHandles(TaskSegments(control_segment.name, task_segment.name), status, timing, plan, record)
+        layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
+        layout._write_registry()
+        return layout
+
+    @staticmethod
+    def _port(app: App, port: PortSpec, segment) -> tuple[Segment, InputPortLink | OutputPortLink]:
+        ref = port.signal
+        if port.direction == "out":
+            created = segment(f"port.{port.name}", SampleQueue.size_bytes(ref.size, port.capacity))
+            SampleQueue.initialise(created, ref.size, port.capacity)
+            return created, OutputPortLink(port.name, created.name, ref.slice)
+        profile = None
+        if port.feed is not None:
+            t_ns, values = load_profile(port.feed, ref.size, f"port {port.name!r}")
+            profile = Profile(t_ns, values)
+        initial = np.array(port.initial if port.initial is not None else [0.0] * ref.size)
+        created = segment(f"port.{port.name}", LatestValue.size_bytes(ref.size))
+        LatestValue.initialise(created, initial, fed_by_profile=profile is not None)
+        return created, InputPortLink(port.name, created.name, ref.slice, profile)
+
+    # --- registry: how `rtloop port` and bridges find a running app's ports -------------
+    def _write_registry(self) -> None:
+        ports = {
+            name: {
+                "direction": spec.direction,
+                "segment": self._port_segment(name),
+                "signal": str(spec.signal),
+                "size": spec.signal.size,
+                "allow_nonfinite": spec.allow_nonfinite,
+                "period_ns": self.app.tasks[spec.signal.task].config.period_ns,
+            }
+            for name, spec in self.app.ports.items()
+        }
+        registry = {
+            "app": self.app.name,
+            "pid": os.getpid(),
+            "ports": ports,
+            "tasks": {name: handles.segments.task for name, handles in self.tasks.items()},
+            "control": next(iter(self.tasks.values())).segments.control if self.tasks else None,
+        }
+        path = SHM_DIR / f"rtloop-{self.app.name}-{os.getpid()}-{self.token}-registry.json"
+        fd = os.open(path, os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as file:
+            json.dump(registry, file, indent=1)
+        self.registry_path = path
+
+    def _port_segment(self, port: str) -> str:
+        suffix = f"-port.{port}"
+        return next(s.name for s in self.segments if s.name.endswith(suffix))
+
+    def close(self) -> None:
+        """Remove every segment of this run (the mappings live on until the process ends)."""
+        for created in self.segments:
+            created.unlink()
+        if self.registry_path is not None:
+            self.registry_path.unlink(missing_ok=True)

@@ -1,0 +1,62 @@
+"""Small shared-memory blocks: the app's control block and one status block per task.
+
+The control block carries the epoch T0, the end time and the stop flag from the
+supervisor to every task. A task's status block carries live counters the other way,
+for the supervisor, ``rtloop top`` and fault reports. Each word is written by one
+side only, as a single aligned 8-byte store, so no locks are needed.
+"""
+
+from __future__ import annotations
+
+import enum
+
+from .shm import Segment
+
+
+class TaskState(enum.IntEnum):
+    STARTING = 0
+    READY = 1
+    RUNNING = 2
+    STOPPED = 3
+    FAILED = 4
+
+
+class ControlWord(enum.IntEnum):
+    T0_NS = 0
+    END_NS = 1
+    STOP = 2
+
+
+class StatusWord(enum.IntEnum):
+    STATE = 0
+    PID = 1
+    CYCLE = 2
+    OVERRUNS = 3
+    DEADLINE_MISSES = 4
+    STALE_READS = 5
+    LATENCY_LAST_NS = 6
+    LATENCY_MAX_NS = 7
+    EXEC_LAST_NS = 8
+    EXEC_MAX_NS = 9
+    POLICY = 10
+    PRIORITY = 11
+    CPU = 12
+    RT = 13
+    TIMING_DROPPED = 14
+
+
+CONTROL_WORDS = 8
+STATUS_WORDS = 16
+
+
+class WordBlock:
+    """A few int64 words at an offset of a segment, indexed by an IntEnum."""
+
+    def __init__(self, segment: Segment, offset_bytes: int, count: int) -> None:
+        self.words = segment.buffer[offset_bytes : offset_bytes + 8 * count].cast("q")
+
+    def __getitem__(self, word: int) -> int:
+        return self.words[word]
+
+    def __setitem__(self, word: int, value: int) -> None:
+        self.words[word] = value

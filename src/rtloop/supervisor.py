@@ -1,0 +1,333 @@
+"""The supervisor: starts one process per task, drains what they record, stops them.
+
+It runs in the ``rtloop run`` process (non-real-time). The order of a run:
+create shared memory → spawn tasks → wait until every task has finished ``prerun`` →
+pick the common epoch T0 → drain timing and recordings until the tasks end → write
+the artifacts → remove shared memory. Ctrl-C, SIGTERM, a task that raises and a task
+process that dies all take the same way out, so nothing recorded is lost.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import multiprocessing
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import rt
+from .app import App
+from .errors import AppError, TaskFailed
+from .layout import AppLayout
+from .record.csvfiles import SignalsCsv, TimingCsv
+from .status import ControlWord, StatusWord, TaskState
+from .summary import PortSummary, RunSummary, TaskSummary
+from .task import task_process_main
+from .timing import TimingSamples, task_timing
+
+DRAIN_INTERVAL_S = 0.05
+START_MARGIN_NS = 100_000_000
+PRERUN_TIMEOUT_S = 300.0
+STOP_GRACE_S = 5.0
+
+
+@dataclass
+class _TaskRun:
+    name: str
+    process: Any
+    pipe: Any
+    records: list[np.ndarray] = field(default_factory=list)
+    settings: rt.AppliedSettings | None = None
+    failure: TaskFailed | None = None
+    finished: bool = False
+
+
+class Supervisor:
+    def __init__(self, app: App, duration_s: float, out: Path, *, progress: bool, trim: int) -> None:
+        app.validate()
+        if not duration_s > 0:
+            raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+        self.app, self.duration_s, self.out = app, duration_s, out
+        self.progress, self.trim = progress, trim
+        self.stop_reason = "duration"
+        self.failure: TaskFailed | None = None
+        self.t0_ns = 0
+        self.end_ns = 0
+
+    # --- lifecycle -------------------------------------------------------------------------
+    def run(self) -> RunSummary:
+        self.out.mkdir(parents=True, exist_ok=True)
+        capabilities = rt.probe()
+        layout = AppLayout.create(self.app)
+        timing_csv = TimingCsv(self.out / "timing.csv")
+        signals_csv = self._signals_writer()
+        runs: dict[str, _TaskRun] = {}
+        previous_handlers = self._install_signal_handlers()
+        try:
+            runs = self._spawn(layout)
+            self._wait_until_ready(layout, runs)
+            if self.failure is None and self.stop_reason == "duration":
+                self._start_epoch(layout)
+                self._drain_until_done(layout, runs, timing_csv, signals_csv)
+            else:
+                layout.control[ControlWord.STOP] = 1
+            self._join(layout, runs)
+            self._drain(layout, runs, timing_csv, signals_csv)
+        finally:
+            self._restore_signal_handlers(previous_handlers)
+            layout.control[ControlWord.STOP] = 1
+            for task_run in runs.values():
+                if task_run.process.is_alive():
+                    task_run.process.kill()
+            timing_csv.close()
+            if signals_csv is not None:
+                signals_csv.close()
+            summary = self._summary(layout, runs, capabilities)
+            summary.write(self.out / "summary.json")
+            layout.close()
+        if self.failure is not None:
+            raise self.failure
+        return summary
+
+    def _signals_writer(self) -> SignalsCsv | None:
+        if not self.app.recorded:
+            return None
+        return SignalsCsv(
+            self.out / "signals.csv",
+            self.app.recorded,
+            {n: t.config.period_ns for n, t in self.app.tasks.items()},
+            {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
+        )
+
+    def _spawn(self, layout: AppLayout) -> dict[str, _TaskRun]:
+        # spawn, not fork: a forked child of a threaded parent can inherit held locks.
+        context = multiprocessing.get_context("spawn")
+        runs: dict[str, _TaskRun] = {}
+        for name, spec in self.app.tasks.items():
+            reader, writer = context.Pipe(duplex=False)
+            handles = layout.tasks[name]
+            process = context.Process(
+                target=task_process_main,
+                args=(spec.config, spec.runnable, handles.plan, handles.segments, writer),
+                name=f"rtloop-{self.app.name}-{name}",
+            )
+            process.start()
+            writer.close()
+            runs[name] = _TaskRun(name, process, reader)
+        return runs
+
+    def _wait_until_ready(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
+        deadline = time.monotonic() + PRERUN_TIMEOUT_S
+        while self.failure is None and self.stop_reason == "duration":
+            self._poll(layout, runs)
+            states = [layout.tasks[name].status[StatusWord.STATE] for name in runs]
+            if all(state == TaskState.READY for state in states):
+                return
+            if time.monotonic() > deadline:
+                slow = [n for n, s in zip(runs, states, strict=True) if s != TaskState.READY]
+                self.failure = TaskFailed(slow[0], None, "prerun", f"not ready after {PRERUN_TIMEOUT_S:.0f} s")
+                self.stop_reason = "fault"
+                return
+            time.sleep(0.005)
+
+    def _start_epoch(self, layout: AppLayout) -> None:
+        self.t0_ns = rt.now_ns() + START_MARGIN_NS
+        self.end_ns = self.t0_ns + round(self.duration_s * 1e9)
+        self.wall_t0 = time.time() + START_MARGIN_NS / 1e9
+        layout.control[ControlWord.END_NS] = self.end_ns
+        layout.control[ControlWord.T0_NS] = self.t0_ns  # last: tasks start when they see it
+
+    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], timing_csv: TimingCsv,
+                          signals_csv: SignalsCsv | None) -> None:
+        give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
+        while not all(r.finished for r in runs.values()):
+            time.sleep(DRAIN_INTERVAL_S)
+            self._drain(layout, runs, timing_csv, signals_csv)
+            self._poll(layout, runs)
+            if self.failure is not None or self.stop_reason != "duration":
+                layout.control[ControlWord.STOP] = 1
+                return
+            if rt.now_ns() > give_up_ns:
+                layout.control[ControlWord.STOP] = 1
+                return
+            if self.progress:
+                self._show_progress(layout)
+        if self.progress:
+            sys.stderr.write("\n")
+
+    def _join(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
+        deadline = time.monotonic() + STOP_GRACE_S + max(
+            t.config.period_ns for t in self.app.tasks.values()
+        ) / 1e9
+        for task_run in runs.values():
+            task_run.process.join(max(0.0, deadline - time.monotonic()))
+            if task_run.process.is_alive():
+                task_run.process.kill()
+                task_run.process.join()
+                if self.failure is None:
+                    self.failure = TaskFailed(
+                        task_run.name, layout.tasks[task_run.name].status[StatusWord.CYCLE], "step",
+                        f"did not stop within {STOP_GRACE_S:.0f} s of the stop request; killed "
+                        "(is step() blocking or looping?)",
+                    )
+                    self.stop_reason = "fault"
+        self._poll(layout, runs)
+
+    # --- draining and watching ---------------------------------------------------------------
+    def _drain(self, layout: AppLayout, runs: dict[str, _TaskRun], timing_csv: TimingCsv,
+               signals_csv: SignalsCsv | None) -> None:
+        for name, task_run in runs.items():
+            handles = layout.tasks[name]
+            records = handles.timing.drain()
+            if len(records):
+                task_run.records.append(records)
+                timing_csv.append(name, records)
+            if handles.record is not None and signals_csv is not None:
+                ticks, rows = handles.record.drain()
+                signals_csv.add(name, ticks, rows)
+        timing_csv.flush()
+        if signals_csv is not None:
+            signals_csv.flush()
+
+    def _poll(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
+        """Read task messages; notice failures and dead processes."""
+        for task_run in runs.values():
+            self._read_messages(task_run)
+            process = task_run.process
+            if process.exitcode is None or task_run.finished:
+                continue
+            task_run.finished = True
+            if task_run.failure is None and process.exitcode != 0:
+                status = layout.tasks[task_run.name].status
+                state = status[StatusWord.STATE]
+                cycle = status[StatusWord.CYCLE] if state == TaskState.RUNNING else None
+                phase = "step" if state == TaskState.RUNNING else "prerun"
+                task_run.failure = TaskFailed(
+                    task_run.name, cycle, phase, f"task process died: {_describe_exit(process.exitcode)}"
+                )
+            if task_run.failure is not None and self.failure is None:
+                self.failure = task_run.failure
+                self.stop_reason = "fault"
+                layout.control[ControlWord.STOP] = 1
+
+    @staticmethod
+    def _read_messages(task_run: _TaskRun) -> None:
+        try:
+            while task_run.pipe.poll():
+                message = task_run.pipe.recv()
+                kind = message.get("kind")
+                if kind == "settings":
+                    task_run.settings = message["settings"]
+                elif kind == "failed":
+                    task_run.failure = TaskFailed(
+                        task_run.name, message["cycle"], message["phase"], message["reason"],
+                        message["traceback"],
+                    )
+        except (EOFError, OSError):
+            pass
+
+    def _show_progress(self, layout: AppLayout) -> None:
+        elapsed_s = max(0.0, (rt.now_ns() - self.t0_ns) / 1e9)
+        misses = sum(h.status[StatusWord.DEADLINE_MISSES] for h in layout.tasks.values())
+        worst_us = max(h.status[StatusWord.LATENCY_LAST_NS] for h in layout.tasks.values()) / 1e3
+        sys.stderr.write(
+            f"\r  {min(elapsed_s, self.duration_s):7.1f} / {self.duration_s:.1f} s   "
+            f"deadline misses {misses}   latency now {worst_us:7.1f} µs  "
+        )
+        sys.stderr.flush()
+
+    # --- signals ------------------------------------------------------------------------------
+    def _install_signal_handlers(self) -> dict[int, Any]:
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+
+        def request_stop(signum: int, _frame: object) -> None:
+            self.stop_reason = "signal"
+
+        return {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    @staticmethod
+    def _restore_signal_handlers(previous: dict[int, Any]) -> None:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+    # --- results --------------------------------------------------------------------------------
+    def _summary(self, layout: AppLayout, runs: dict[str, _TaskRun], capabilities: rt.Capabilities) -> RunSummary:
+        tasks: dict[str, TaskSummary] = {}
+        for name, spec in self.app.tasks.items():
+            task_run = runs.get(name)
+            status = layout.tasks[name].status
+            records = np.concatenate(task_run.records) if task_run and task_run.records else np.empty((0, 4), np.int64)
+            samples = TimingSamples.from_records(records)
+            settings = task_run.settings if task_run else None
+            tasks[name] = TaskSummary(
+                period_ns=spec.config.period_ns,
+                priority=settings.priority if settings else 0,
+                cpu=spec.config.cpu,
+                policy=settings.policy if settings else "not started",
+                rt=settings.rt if settings else False,
+                rt_reason="; ".join(settings.reasons) if settings else "the task never started",
+                memory_locked=settings.memory_locked if settings else False,
+                timing=task_timing(samples, spec.config.period_ns, trim=self.trim, overrun_policy=spec.config.overrun),
+                stale_reads=status[StatusWord.STALE_READS],
+                timing_samples_dropped=layout.tasks[name].timing.dropped,
+            )
+        return RunSummary(
+            app=self.app.name,
+            mode="run",
+            started=_iso(getattr(self, "wall_t0", time.time())),
+            duration_s=self.duration_s,
+            rt_capable=capabilities.may_use_rt,
+            tasks=tasks,
+            ports=port_summaries(layout),
+            stopped_by=self.stop_reason,
+            failure=self.failure.to_json() if self.failure else None,
+            machine=machine_facts(capabilities),
+        )
+
+
+def port_summaries(layout: AppLayout) -> dict[str, PortSummary]:
+    ports: dict[str, PortSummary] = {}
+    for name, spec in layout.app.ports.items():
+        if spec.direction == "in":
+            value = layout.input_ports[name]
+            ports[name] = PortSummary("in", str(spec.signal), value.writes, value.reads,
+                                      max(0, value.writes - value.reads))
+        else:
+            queue = layout.output_ports[name]
+            ports[name] = PortSummary("out", str(spec.signal), queue.sent + queue.dropped,
+                                      queue.received, queue.dropped)
+    return ports
+
+
+def machine_facts(capabilities: rt.Capabilities) -> dict[str, Any]:
+    return {
+        "kernel": capabilities.kernel,
+        "preemption": capabilities.preemption_model,
+        "cpus": list(capabilities.cpus),
+        "isolated_cpus": list(capabilities.isolated_cpus),
+        "rt_permission": capabilities.rt_reason,
+    }
+
+
+def _iso(wall_s: float) -> str:
+    return dt.datetime.fromtimestamp(wall_s, tz=dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _describe_exit(exitcode: int) -> str:
+    if exitcode < 0:
+        try:
+            return f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+def run_app(app: App, duration_s: float, out: Path, *, progress: bool = False, trim: int = 20) -> RunSummary:
+    return Supervisor(app, duration_s, out, progress=progress, trim=trim).run()

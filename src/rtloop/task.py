@@ -1,0 +1,207 @@
+"""The real-time task: one process, one runnable, one absolute timeline.
+
+This is the file to read first. ``run_loop`` is the whole real-time part: everything
+else in this module prepares it (scheduling, memory, the wait for the common epoch T0)
+or cleans up after it.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import signal
+import traceback
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from . import rt
+from .runnable import Runnable, TickInfo
+from .shm import RecordRing, Segment
+from .status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
+from .wiring import TaskWiring, TaskWiringPlan
+
+OVERRUN_POLICIES = ("skip", "catch_up")
+T0_POLL_S = 0.001
+
+
+@dataclass(frozen=True, slots=True)
+class TaskConfig:
+    """How a task runs: its timing and its place on the machine."""
+
+    name: str
+    """Unique name within the app (used in signal names, e.g. ``plant.y[0]``)."""
+    period_ns: int
+    """Period P; releases happen at T0 + k·P."""
+    priority: int = 80
+    """Real-time priority (1–99 for fifo/rr; ignored for other)."""
+    cpu: int | None = None
+    """CPU to pin the task to (None: any)."""
+    policy: str = "fifo"
+    """Scheduling policy: fifo, rr, other or deadline."""
+    overrun: str = "skip"
+    """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
+
+
+@dataclass(frozen=True, slots=True)
+class TaskSegments:
+    """Names of the shared memory a task process attaches to."""
+
+    control: str
+    """The app's control block (T0, end time, stop flag)."""
+    task: str
+    """This task's status block followed by its timing ring."""
+
+
+def task_segment_size(timing_capacity: int) -> int:
+    return STATUS_WORDS * 8 + RecordRing.size_bytes(timing_capacity, 4)
+
+
+class RealtimeTask:
+    """The task as seen from inside its own process."""
+
+    def __init__(
+        self,
+        config: TaskConfig,
+        runnable: Runnable,
+        control: WordBlock,
+        status: WordBlock,
+        timing: RecordRing,
+    ) -> None:
+        self.config = config
+        self.runnable = runnable
+        self.wiring: TaskWiring
+        self.control = control
+        self.status = status
+        self.timing = timing
+        self.u = np.zeros(runnable.n_inputs)
+        self.y = np.zeros(runnable.n_outputs)
+        self.tick = TickInfo(period_ns=config.period_ns)
+        runnable.tick = self.tick
+        self.sleeper = rt.AbsoluteSleeper()
+        self.cycle = -1  # the cycle being computed, for fault reports
+
+    def run_loop(self, t0_ns: int, end_ns: int) -> None:
+        """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
+        period_ns = self.config.period_ns
+        runnable, wiring, tick, status = self.runnable, self.wiring, self.tick, self.status
+        u, y = self.u, self.y
+        cycle, release_ns = 0, t0_ns
+        while release_ns < end_ns and not self.control[ControlWord.STOP]:
+            self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
+            start_ns = rt.now_ns()
+            self.cycle = tick.cycle = cycle
+            tick.release_ns, tick.start_ns = release_ns, start_ns
+            # Read → step → publish: inputs are those valid at the release, and outputs
+            # become visible at release + P (logical execution time), so the result does
+            # not depend on how fast this cycle ran.
+            wiring.read_inputs(release_ns, u)
+            runnable.step(u, y)
+            wiring.publish_outputs(cycle, release_ns + period_ns, y)
+            end_cycle_ns = rt.now_ns()
+            self.timing.push4(cycle, release_ns, start_ns, end_cycle_ns)
+            status[StatusWord.CYCLE] = cycle
+            status[StatusWord.LATENCY_LAST_NS] = start_ns - release_ns
+            status[StatusWord.EXEC_LAST_NS] = end_cycle_ns - start_ns
+            cycle += 1
+            release_ns += period_ns
+            if end_cycle_ns > release_ns:  # overran into the next period
+                cycle, release_ns = self._after_overrun(cycle, release_ns, end_cycle_ns, t0_ns)
+
+    def _after_overrun(self, cycle: int, release_ns: int, now_ns: int, t0_ns: int) -> tuple[int, int]:
+        status, period_ns = self.status, self.config.period_ns
+        status[StatusWord.DEADLINE_MISSES] += 1
+        if self.config.overrun == "catch_up":
+            status[StatusWord.OVERRUNS] += 1
+            return cycle, release_ns
+        next_cycle = (now_ns - t0_ns) // period_ns + 1
+        status[StatusWord.OVERRUNS] += next_cycle - cycle
+        return next_cycle, t0_ns + next_cycle * period_ns
+
+
+def _report(pipe: Any, **message: Any) -> None:
+    try:
+        pipe.send(message)
+    except (BrokenPipeError, OSError):
+        pass  # the supervisor is gone; nothing to tell
+
+
+def _wait_for_epoch(control: WordBlock) -> tuple[int, int]:
+    import time
+
+    while not control[ControlWord.T0_NS]:
+        if control[ControlWord.STOP]:
+            return 0, 0
+        time.sleep(T0_POLL_S)
+    return control[ControlWord.T0_NS], control[ControlWord.END_NS]
+
+
+def task_process_main(
+    config: TaskConfig,
+    runnable: Runnable,
+    plan: TaskWiringPlan,
+    segments: TaskSegments,
+    pipe: Any,
+) -> None:
+    """Entry point of a task process (spawned by the supervisor)."""
+    # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    control_segment = Segment.attach(segments.control)
+    task_segment = Segment.attach(segments.task)
+    control = WordBlock(control_segment, 0, CONTROL_WORDS)
+    status = WordBlock(task_segment, 0, STATUS_WORDS)
+    timing = RecordRing(task_segment, STATUS_WORDS * 8)
+    status[StatusWord.PID] = os.getpid()
+
+    settings = rt.apply_realtime(config.cpu, config.policy, config.priority, config.period_ns)
+    status[StatusWord.POLICY] = rt.POLICIES.get(settings.policy, -1)
+    status[StatusWord.PRIORITY] = settings.priority
+    status[StatusWord.CPU] = config.cpu if config.cpu is not None else -1
+    status[StatusWord.RT] = int(settings.rt)
+    _report(pipe, kind="settings", settings=settings)
+
+    task = RealtimeTask(config, runnable, control, status, timing)
+    wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
+    phase = "prerun"
+    try:
+        runnable.prerun()
+        wiring.publish_initial(task.y)
+        status[StatusWord.STATE] = TaskState.READY
+        t0_ns, end_ns = _wait_for_epoch(control)
+        phase = "step"
+        wiring.stamp_initial(t0_ns)
+        gc.collect()
+        gc.freeze()  # everything alive now is never scanned again
+        gc.disable()  # and no collection pauses inside the loop
+        status[StatusWord.STATE] = TaskState.RUNNING
+        if t0_ns:
+            task.run_loop(t0_ns, end_ns)
+        gc.enable()
+        phase = "postrun"
+        runnable.postrun()
+    except BaseException as error:
+        status[StatusWord.STATE] = TaskState.FAILED
+        _report(
+            pipe,
+            kind="failed",
+            phase=phase,
+            cycle=task.cycle if phase == "step" else None,
+            reason=f"{type(error).__name__}: {error}",
+            traceback=traceback.format_exc(),
+        )
+        if phase != "postrun":
+            _postrun_after_failure(runnable, pipe)
+        status[StatusWord.TIMING_DROPPED] = timing.dropped
+        raise SystemExit(1) from None
+    status[StatusWord.TIMING_DROPPED] = timing.dropped
+    status[StatusWord.STATE] = TaskState.STOPPED
+    _report(pipe, kind="stopped", cycles=task.cycle + 1)
+
+
+def _postrun_after_failure(runnable: Runnable, pipe: Any) -> None:
+    """Give the runnable its chance to put hardware in a safe state, even after a fault."""
+    try:
+        runnable.postrun()
+    except BaseException:
+        _report(pipe, kind="postrun_failed", traceback=traceback.format_exc())

@@ -1,0 +1,159 @@
+"""A task's view of the app's wiring: what it reads before ``step`` and publishes after.
+
+The supervisor decides the wiring and hands each task a :class:`TaskWiringPlan`
+(names of shared-memory segments and slices, picklable). Inside the task process,
+:meth:`TaskWiring.attach` maps them once; ``read_inputs`` and ``publish_outputs`` then
+run every cycle without allocating.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
+from .shm import Segment
+from .status import StatusWord, WordBlock
+
+
+@dataclass(frozen=True, slots=True)
+class InputLink:
+    """A connection into this task: another task's ``y[source]`` → this task's ``u[target]``."""
+
+    channel_segment: str
+    source: slice
+    target: slice
+    writer_period_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """A setpoint profile, piecewise constant, evaluated at each release time."""
+
+    t_ns: np.ndarray
+    """Times since T0 at which a row starts to hold (int64, increasing)."""
+    values: np.ndarray
+    """One row per time (float64)."""
+
+
+@dataclass(frozen=True, slots=True)
+class InputPortLink:
+    """A port feeding this task's ``u[target]``: live values, or a profile."""
+
+    name: str
+    segment: str
+    target: slice
+    profile: Profile | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class OutputPortLink:
+    """A port receiving this task's ``y[source]`` every tick."""
+
+    name: str
+    segment: str
+    source: slice
+
+
+@dataclass(frozen=True, slots=True)
+class TaskWiringPlan:
+    output_channel: str | None = None
+    inputs: tuple[InputLink, ...] = ()
+    input_ports: tuple[InputPortLink, ...] = ()
+    output_ports: tuple[OutputPortLink, ...] = ()
+    record_queue: str | None = None
+    """Segment of the queue carrying ``[y…, u…]`` of every tick to the recorder."""
+    segments: tuple[str, ...] = field(default=())
+
+
+class _Link:
+    __slots__ = ("channel", "period_ns", "source", "target")
+
+    def __init__(self, channel: LetChannel, source: slice, target: np.ndarray, period_ns: int) -> None:
+        self.channel, self.source, self.target, self.period_ns = channel, source, target, period_ns
+
+
+class _ProfileReader:
+    __slots__ = ("index", "t_ns", "target", "values")
+
+    def __init__(self, profile: Profile, target: np.ndarray) -> None:
+        self.t_ns = [int(t) for t in profile.t_ns]
+        self.values = [np.array(row, dtype=np.float64) for row in profile.values]
+        self.target = target
+        self.index = -1
+
+    def read(self, since_t0_ns: int) -> None:
+        index = self.index
+        while index + 1 < len(self.t_ns) and self.t_ns[index + 1] <= since_t0_ns:
+            index += 1
+        if index != self.index and index >= 0:
+            self.target[:] = self.values[index]
+            self.index = index
+
+
+class TaskWiring:
+    """The wiring of one task, attached inside its process."""
+
+    def __init__(self, plan: TaskWiringPlan, u: np.ndarray, y: np.ndarray, status: WordBlock | None) -> None:
+        self._segments = {name: Segment.attach(name) for name in plan.segments}
+        self.status = status
+        self.stale_reads = 0
+        self.t0_ns = 0
+        self.u, self.y = u, y
+        self.output = LetChannel(self._segments[plan.output_channel]) if plan.output_channel else None
+        self.links = [
+            _Link(LetChannel(self._segments[link.channel_segment]), link.source, u[link.target], link.writer_period_ns)
+            for link in plan.inputs
+        ]
+        self.live_ports = [
+            (LatestValue(self._segments[port.segment]), u[port.target])
+            for port in plan.input_ports
+            if port.profile is None
+        ]
+        self.profiles = [
+            _ProfileReader(port.profile, u[port.target]) for port in plan.input_ports if port.profile is not None
+        ]
+        self.output_ports = [
+            (SampleQueue(self._segments[port.segment]), y[port.source]) for port in plan.output_ports
+        ]
+        self.record = SampleQueue(self._segments[plan.record_queue]) if plan.record_queue else None
+        self.record_row = np.zeros(len(y) + len(u))
+        self.initial_y = y.copy()
+
+    def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
+        t0_ns = self.t0_ns
+        for link in self.links:
+            stamp = link.channel.read_valid_at(release_ns, link.source, link.target)
+            entitled = t0_ns + (release_ns - t0_ns) // link.period_ns * link.period_ns
+            if stamp < entitled:  # the writer has not published what we are entitled to
+                self.stale_reads += 1
+                if self.status is not None:
+                    self.status[StatusWord.STALE_READS] = self.stale_reads
+        for port, target in self.live_ports:
+            port.read_into(target)
+        for profile in self.profiles:
+            profile.read(release_ns - t0_ns)
+
+    def publish_outputs(self, cycle: int, publish_ns: int, y: np.ndarray) -> None:
+        if self.output is not None:
+            self.output.publish(publish_ns, y)
+        for queue, source in self.output_ports:
+            queue.push(cycle, source)
+        if self.record is not None:
+            row = self.record_row
+            row[: len(y)] = y
+            row[len(y) :] = self.u
+            self.record.push(cycle, row)
+
+    def publish_initial(self, y: np.ndarray) -> None:
+        """Remember the outputs left by ``prerun`` (initial conditions), published at T0."""
+        self.initial_y[:] = y
+
+    def stamp_initial(self, t0_ns: int) -> None:
+        self.t0_ns = t0_ns
+        if self.output is not None:
+            self.output.publish(t0_ns, self.initial_y)
+
+
+__all__ = ["NO_STAMP", "InputLink", "InputPortLink", "OutputPortLink", "Profile", "TaskWiring", "TaskWiringPlan"]
