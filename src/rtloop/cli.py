@@ -11,6 +11,7 @@ from .summary import RunSummary
 
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
+ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
 
 
 def _parse_feed(text: str) -> tuple[str, Path]:
@@ -124,7 +125,8 @@ def format_summary(summary: RunSummary, out: Path) -> str:
     for name, task in summary.tasks.items():
         if not task.rt and summary.mode == "run":
             lines.append(f"WARNING: task {name!r} did NOT run real-time ({task.policy}): {task.rt_reason}")
-    header = f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}{'misses':>7}{'overruns':>9}{'stale':>6}"
+    header = (f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}"
+              f"{'misses':>7}{'overruns':>9}{'stale':>6}")
     lines.append(f"{summary.app}: {summary.mode} for {summary.duration_s:g} s, stopped by {summary.stopped_by}")
     lines.append(header)
     for name, task in summary.tasks.items():
@@ -137,8 +139,8 @@ def format_summary(summary: RunSummary, out: Path) -> str:
     for name, port in summary.ports.items():
         lines.append(f"port {name} ({port.direction}, {port.signal}): sent {port.sent}, "
                      f"received {port.received}, dropped {port.dropped}")
-    lines.append(f"artifacts: {out}/ (summary.json, timing.csv" + (", signals.csv" if any(
-        (out / "signals.csv").exists() for _ in [0]) else "") + ")")
+    written = [name for name in ARTIFACTS if (out / name).exists()]
+    lines.append(f"artifacts in {out}/: {', '.join(written)}")
     return "\n".join(lines)
 
 

@@ -125,7 +125,8 @@ class AppLayout:
                 record_queue=record_segment.name if record is not None else None,
                 segments=tuple(sorted(w for w in wanted if w)),
             )
-            tasks[name] = TaskHandles(TaskSegments(control_segment.name, task_segment.name), status, timing, plan, record)
+            segments_of_task = TaskSegments(control_segment.name, task_segment.name)
+            tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record)
         layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
         layout._write_registry()
         return layout
