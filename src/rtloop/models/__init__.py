@@ -1,0 +1,197 @@
+"""Models as runnables: 20-sim generated code, FMUs and plain Python classes.
+
+An app names a model by a spec string::
+
+    "20sim:models/Plant"        a 20-sim C++ or ANSI-C export folder
+    "fmu:models/JiwyPlant.fmu"  an FMI 2.0/3.0 co-simulation FMU
+    "python:pkg.module:Class"   a Python class (a Runnable, or a Model to wrap)
+
+:func:`load_model` turns a spec into a :class:`~rtloop.Runnable`;
+:func:`model_info` and :func:`build` back ``rtloop model info`` / ``rtloop model build``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from pathlib import Path
+from typing import Any
+
+from ..runnable import Runnable
+from .base import FmuError as FmuError
+from .base import Model as Model
+from .base import ModelBuildError as ModelBuildError
+from .base import ModelError as ModelError
+from .base import ModelRunnable as ModelRunnable
+from .base import StepSizeWarning as StepSizeWarning
+from .python import PythonModel as PythonModel
+
+__all__ = [
+    "FmuError",
+    "Model",
+    "ModelBuildError",
+    "ModelError",
+    "ModelRunnable",
+    "PythonModel",
+    "StepSizeWarning",
+    "build",
+    "cli_model_build",
+    "cli_model_info",
+    "load_model",
+    "model_info",
+    "open_model",
+]
+
+SCHEMES = ("20sim", "fmu", "python")
+
+
+def _split(spec: str | os.PathLike[str]) -> tuple[str, str]:
+    """("20sim" | "fmu" | "python", rest); a bare path is classified by what it is."""
+    text = os.fspath(spec)
+    scheme, sep, rest = text.partition(":")
+    if sep and scheme in SCHEMES:
+        return scheme, rest
+    path = Path(text)
+    if path.suffix == ".fmu" or (path / "modelDescription.xml").is_file():
+        return "fmu", text
+    return "20sim", text
+
+
+def _resolve(path: str, base_dir: str | os.PathLike[str] | None) -> Path:
+    p = Path(path).expanduser()
+    if not p.is_absolute() and base_dir is not None:
+        p = Path(base_dir) / p
+    return p
+
+
+def open_model(
+    spec: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None = None, **options: Any
+) -> Model:
+    """The :class:`Model` a spec names (not yet wrapped). ``options`` go to its constructor."""
+    scheme, rest = _split(spec)
+    if scheme == "python":
+        module_name, _, attribute = rest.partition(":")
+        if not attribute:
+            raise ModelError(f"model spec {spec!r}: expected python:package.module:Class")
+        cls = getattr(importlib.import_module(module_name), attribute)
+        return cls(**options)
+    path = _resolve(rest, base_dir)
+    if scheme == "fmu":
+        from .fmu import FmuModel
+
+        return FmuModel(path, **options)
+    from .twentysim import TwentySimModel
+
+    return TwentySimModel(path, **options)
+
+
+def load_model(
+    spec: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None = None, **options: Any
+) -> Runnable:
+    """A runnable for a model spec (``"20sim:…"``, ``"fmu:…"``, ``"python:mod:Class"``).
+
+    Relative paths are taken from ``base_dir`` (the app file's folder) or the current
+    directory. ``options`` go to the model's constructor (``finish_time_s=`` for 20-sim,
+    ``inputs=``/``outputs=`` for FMUs). 20-sim code is compiled here, so compiler errors
+    surface before any task starts. Call ``check_period(period_ns)`` on the result.
+    """
+    model = open_model(spec, base_dir, **options)
+    if isinstance(model, Runnable):
+        return model
+    return ModelRunnable(model)
+
+
+def model_info(
+    spec: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None = None
+) -> dict[str, Any]:
+    """Interface of a model without compiling or loading it.
+
+    Returns ``{"path", "kind", "name", "inputs", "outputs", "step_size_s"}`` plus
+    ``fmi_version`` for FMUs and ``template`` for 20-sim code.
+    """
+    scheme, rest = _split(spec)
+    if scheme == "python":
+        model = open_model(spec)
+        return {
+            "path": rest,
+            "kind": getattr(model, "kind", "python"),
+            "name": type(model).__name__,
+            "inputs": list(model.input_names or ()),
+            "outputs": list(model.output_names or ()),
+            "step_size_s": getattr(model, "step_size_s", None),
+        }
+    path = _resolve(rest, base_dir)
+    if scheme == "fmu":
+        from .fmu import FmuModel
+
+        fmu = FmuModel(path)
+        return {
+            "path": str(fmu.path),
+            "kind": fmu.kind,
+            "name": fmu.model_identifier,
+            "inputs": list(fmu.input_names or ()),
+            "outputs": list(fmu.output_names or ()),
+            "step_size_s": fmu.default_step_size_s,
+            "fmi_version": fmu.fmi_version,
+        }
+    from .twentysim import inspect
+
+    info = inspect(path)
+    return {
+        "path": str(info.path),
+        "kind": info.kind,
+        "name": info.name,
+        "inputs": list(info.input_names),
+        "outputs": list(info.output_names),
+        "step_size_s": info.step_size_s,
+        "template": info.template,
+        "sources": [str(s.relative_to(info.path)) for s in info.sources],
+    }
+
+
+def build(
+    spec: str | os.PathLike[str],
+    base_dir: str | os.PathLike[str] | None = None,
+    out_path: str | os.PathLike[str] | None = None,
+) -> Path:
+    """Compile a model; return what was built.
+
+    A 20-sim folder → its cached shared library. An FMU source folder
+    (``modelDescription.xml`` + ``sources/*.c``) → an ``.fmu`` at ``out_path``
+    (default ``<folder>.fmu`` next to it). A ready ``.fmu`` has nothing to build.
+    """
+    scheme, rest = _split(spec)
+    path = _resolve(rest, base_dir)
+    if scheme == "fmu":
+        if path.is_dir() and (path / "sources").is_dir():
+            from .fmu_build import build_fmu
+
+            target = Path(out_path) if out_path else path.parent / f"{path.name}.fmu"
+            return build_fmu(path, target)
+        raise ModelError(f"{str(path)!r} is an FMU: it is already built")
+    if scheme == "python":
+        raise ModelError(f"{spec!r} is a Python model: nothing to build")
+    from .twentysim import build_library, inspect
+
+    return build_library(inspect(path))
+
+
+def cli_model_info(spec: str | os.PathLike[str]) -> str:
+    """Text for ``rtloop model info PATH``."""
+    info = model_info(spec)
+    step = info["step_size_s"]
+    lines = [
+        f"{info['name']}  ({info['kind']})  {info['path']}",
+        f"step size: {step * 1e3:g} ms" if step else "step size: follows the task period",
+        f"inputs ({len(info['inputs'])}):",
+        *(f"  u[{i}]  {name}" for i, name in enumerate(info["inputs"])),
+        f"outputs ({len(info['outputs'])}):",
+        *(f"  y[{i}]  {name}" for i, name in enumerate(info["outputs"])),
+    ]
+    return "\n".join(lines)
+
+
+def cli_model_build(spec: str | os.PathLike[str]) -> str:
+    """Text for ``rtloop model build PATH`` (raises :class:`ModelBuildError` on failure)."""
+    built = build(spec)
+    return f"built {os.fspath(spec)} → {built}"
