@@ -185,7 +185,8 @@ def test_check_verdicts(
     assert (check.fix != "") == (status != "ok"), "a fix exactly when something is wrong"
 
 
-def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path) -> None:
+def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(doctor, "RTLOOP_HOLDS_CPU_DMA_LATENCY", False)
     check = check_named(run_checks(make_tree(tmp_path)), "cpu_dma_latency")
     assert check.status == "warn"
     assert "does not hold it" in check.detail

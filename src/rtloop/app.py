@@ -15,6 +15,7 @@ Every mistake that can be found before a process starts is found here, with an
 
 from __future__ import annotations
 
+import pickle
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -298,6 +299,14 @@ class App:
         """Checks that need the whole app (done again before running)."""
         if not self.tasks:
             raise AppError(f"app {self.name!r} ({self.source}) has no tasks")
+        for name, spec in self.tasks.items():
+            try:
+                pickle.dumps(spec.runnable)
+            except Exception as error:
+                raise AppError(
+                    f"task {name!r}: its runnable cannot be sent to the task process ({error}); "
+                    "define its class at module level and open devices/libraries in prerun(), not __init__"
+                ) from None
 
     def run(
         self,

@@ -94,11 +94,11 @@ class Segment:
         return np.frombuffer(self._map, dtype=dtype, count=count, offset=offset_bytes)
 
     def close(self) -> None:
-        self.buffer.release()
         try:
+            self.buffer.release()
             self._map.close()
         except BufferError:
-            pass  # numpy views still alive; the mapping goes with the process
+            pass  # views of it are still alive; the mapping goes when they do
 
     def unlink(self) -> None:
         try:

@@ -69,6 +69,7 @@ class Supervisor:
         signals_csv = self._signals_writer()
         runs: dict[str, _TaskRun] = {}
         previous_handlers = self._install_signal_handlers()
+        self.dma_latency = rt.CpuDmaLatency().__enter__()
         try:
             runs = self._spawn(layout)
             self._wait_until_ready(layout, runs)
@@ -80,6 +81,7 @@ class Supervisor:
             self._join(layout, runs)
             self._drain(layout, runs, timing_csv, signals_csv)
         finally:
+            self.dma_latency.__exit__()
             self._restore_signal_handlers(previous_handlers)
             layout.control[ControlWord.STOP] = 1
             for task_run in runs.values():
@@ -288,7 +290,7 @@ class Supervisor:
             ports=port_summaries(layout),
             stopped_by=self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
-            machine=machine_facts(capabilities),
+            machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency.held},
         )
 
 

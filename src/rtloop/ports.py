@@ -1,0 +1,181 @@
+"""Reaching a running app from non-real-time code: by app name, then by port name.
+
+    from rtloop.ports import connect_app
+    app = connect_app("jiwy")
+    app.write("setpoint", [0.5, 0.3])          # validated here; the task never sees a bad value
+    ticks, rows = app.read("log")              # every tick since the last read (one reader at a time)
+
+A running supervisor describes its ports in a registry file next to its shared memory;
+``rtloop port write/read/list`` are thin wrappers over this module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .channels import LatestValue, SampleQueue
+from .errors import PortValueError, RtloopError
+from .shm import SHM_DIR, Segment, _pid_alive
+from .status import STATUS_WORDS, WordBlock
+
+
+class AppNotRunning(RtloopError, LookupError):
+    """No running app of that name was found."""
+
+
+@dataclass(frozen=True)
+class RunningApp:
+    """A live app found through its registry file."""
+
+    name: str
+    pid: int
+    registry: dict[str, Any]
+    path: Path
+
+    @property
+    def ports(self) -> dict[str, dict[str, Any]]:
+        return self.registry["ports"]
+
+    def _port(self, name: str, direction: str) -> dict[str, Any]:
+        info = self.ports.get(name)
+        if info is None:
+            raise PortValueError(f"app {self.name!r} has no port {name!r}; its ports are {sorted(self.ports)}")
+        if info["direction"] != direction:
+            verb = "written" if direction == "in" else "read"
+            raise PortValueError(f"port {name!r} of app {self.name!r} goes {info['direction']}; it cannot be {verb}")
+        return info
+
+    def write(self, port: str, values: list[float] | np.ndarray) -> None:
+        """Post values to an input port; rejects wrong lengths and NaN/inf (unless allowed)."""
+        info = self._port(port, "in")
+        array = validate_values(values, info["size"], allow_nonfinite=info["allow_nonfinite"],
+                                where=f"port {port!r} ({info['signal']})")
+        segment = Segment.attach(info["segment"])
+        channel = LatestValue(segment)
+        if channel.fed_by_profile:
+            raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused")
+        with open(segment.path, "rb") as lock:  # writers serialise; the RT reader never waits
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            channel.write(array)
+
+    def reader(self, port: str) -> PortReader:
+        """The single reader of an output port (held until closed)."""
+        return PortReader(self, port, self._port(port, "out"))
+
+    def task_pids(self) -> dict[str, int]:
+        """PID of each task process (0 until it has started)."""
+        pids: dict[str, int] = {}
+        for task, segment_name in self.registry["tasks"].items():
+            segment = Segment.attach(segment_name)
+            pids[task] = WordBlock(segment, 0, STATUS_WORDS)[1]
+        return pids
+
+
+class PortReader:
+    """Reads every tick an output port sends. One reader per port at a time (flock)."""
+
+    def __init__(self, app: RunningApp, name: str, info: dict[str, Any]) -> None:
+        self.name = name
+        self.segment = Segment.attach(info["segment"])
+        self._lock = open(self.segment.path, "rb")  # noqa: SIM115
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._lock.close()
+            raise PortValueError(f"port {name!r} of app {app.name!r} already has a reader") from None
+        self.queue = SampleQueue(self.segment)
+        self.period_ns = int(info["period_ns"])
+
+    def read(self, max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(ticks, rows) sent since the last read; never blocks."""
+        return self.queue.drain(max_rows)
+
+    def close(self) -> None:
+        self._lock.close()
+
+    def __enter__(self) -> PortReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, where: str = "value") -> np.ndarray:
+    """Check a value for a port: right length, numbers, finite unless allowed."""
+    try:
+        array = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise PortValueError(f"{where}: {values!r} are not numbers") from None
+    if array.size != size:
+        raise PortValueError(f"{where}: takes {size} values, got {array.size}")
+    if not allow_nonfinite and not np.all(np.isfinite(array)):
+        bad = [i for i, v in enumerate(array) if not math.isfinite(v)]
+        raise PortValueError(f"{where}: NaN or infinite value at index {bad} of {array.tolist()}")
+    return array
+
+
+def running_apps() -> list[RunningApp]:
+    """Every app whose supervisor is alive, newest first."""
+    found: list[RunningApp] = []
+    for path in SHM_DIR.glob("rtloop-*-registry.json"):
+        try:
+            registry = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if _pid_alive(int(registry["pid"])):
+            found.append(RunningApp(registry["app"], int(registry["pid"]), registry, path))
+    found.sort(key=lambda app: app.path.stat().st_mtime if app.path.exists() else 0, reverse=True)
+    return found
+
+
+def connect_app(name: str, timeout_s: float = 0.0) -> RunningApp:
+    """The running app called ``name`` (an app file's path works too); waits up to ``timeout_s``."""
+    if name.endswith(".toml") and os.path.exists(name):
+        import tomllib
+
+        name = tomllib.loads(Path(name).read_text()).get("name", name)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        matches = [app for app in running_apps() if app.name == name]
+        if matches:
+            return matches[0]
+        if time.monotonic() >= deadline:
+            running = sorted({app.name for app in running_apps()})
+            raise AppNotRunning(f"no running app named {name!r}; running: {running or 'none'}")
+        time.sleep(0.05)
+
+
+def cli_port(args: argparse.Namespace) -> int:
+    if args.port_command == "list":
+        apps = running_apps()
+        if not apps:
+            print("no running apps")
+        for app in apps:
+            print(f"{app.name} (supervisor pid {app.pid})")
+            for name, info in app.ports.items():
+                print(f"  {name:<16} {info['direction']:<4} {info['signal']}  ({info['size']} values)")
+        return 0
+    app = connect_app(args.app)
+    if args.port_command == "write":
+        app.write(args.port, args.values)
+        return 0
+    printed = 0
+    with app.reader(args.port) as reader:
+        while printed < args.count:
+            ticks, rows = reader.read(args.count - printed)
+            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):
+                print(f"{tick * reader.period_ns / 1e9:.6f} " + " ".join(repr(v) for v in row), flush=True)
+            printed += len(ticks)
+            if not len(ticks):
+                time.sleep(0.02)
+    return 0

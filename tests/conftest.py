@@ -1,0 +1,35 @@
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from rtloop import rt
+
+TESTS_DIR = Path(__file__).parent
+sys.path.insert(0, str(TESTS_DIR))  # rt_test_runnables, for spawned task processes too
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    capabilities = rt.probe()
+    if capabilities.may_use_rt:
+        return
+    skip = pytest.mark.skip(reason=f"needs real-time scheduling: {capabilities.rt_reason}")
+    for item in items:
+        if "rt" in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture
+def rtloop_env() -> dict[str, str]:
+    """Environment for running the rtloop CLI in a subprocess that finds the test runnables."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return env
+
+
+def other_cpu() -> int:
+    """A CPU to pin test tasks to: the last one."""
+    return max(os.sched_getaffinity(0))

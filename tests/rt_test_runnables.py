@@ -1,0 +1,132 @@
+"""Runnables used by the tests (importable by spawned task processes)."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+from rtloop import Runnable
+
+
+class Noop(Runnable):
+    n_inputs = 0
+    n_outputs = 0
+
+    def step(self, u, y) -> None:
+        pass
+
+
+class Counter(Runnable):
+    """y[0] = number of steps so far; y[1] = the tick's logical time in seconds."""
+
+    n_inputs = 0
+    n_outputs = 2
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def step(self, u, y) -> None:
+        self.count += 1
+        y[0] = self.count
+        y[1] = self.tick.time_s
+
+
+class RaiseAt(Runnable):
+    """Raises ZeroDivisionError in step at a given cycle."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, cycle: int) -> None:
+        self.fail_cycle = cycle
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle == self.fail_cycle:
+            1 / 0  # noqa: B018
+
+
+class ReportSettings(Runnable):
+    """Outputs what the kernel says about this process: policy, priority, CPUs, locked kB."""
+
+    n_inputs = 0
+    n_outputs = 4
+
+    def prerun(self) -> None:
+        locked_kb = 0
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmLck:"):
+                locked_kb = int(line.split()[1])
+        cpus = sorted(os.sched_getaffinity(0))
+        self.values = (
+            float(os.sched_getscheduler(0)),
+            float(os.sched_getparam(0).sched_priority),
+            float(cpus[0] if len(cpus) == 1 else -1),
+            float(locked_kb),
+        )
+
+    def step(self, u, y) -> None:
+        y[:] = self.values
+
+
+class Gain(Runnable):
+    """y = gain · u + offset, over n values."""
+
+    def __init__(self, n: int = 2, gain: float = 1.0, offset: float = 0.0) -> None:
+        self.n_inputs = self.n_outputs = n
+        self.gain, self.offset = gain, offset
+
+    def step(self, u, y) -> None:
+        y[:] = self.gain * u + self.offset
+
+
+class Integrator(Runnable):
+    """Discrete plant: x += h·(u − x)·gain, y = x (per element); reacts one tick late."""
+
+    def __init__(self, n: int = 2, gain: float = 3.0) -> None:
+        self.n_inputs = self.n_outputs = n
+        self.gain = gain
+        self.x = [0.0] * n
+
+    def step(self, u, y) -> None:
+        h = self.tick.period_ns * 1e-9
+        for i in range(self.n_outputs):
+            self.x[i] += h * self.gain * (u[i] - self.x[i])
+            y[i] = self.x[i]
+
+
+class PiController(Runnable):
+    """u = [measured (n), setpoint (n)], y = kp·e + ki·∫e."""
+
+    def __init__(self, n: int = 2, kp: float = 2.0, ki: float = 5.0) -> None:
+        self.n_inputs, self.n_outputs = 2 * n, n
+        self.kp, self.ki = kp, ki
+        self.integral = [0.0] * n
+
+    def step(self, u, y) -> None:
+        h = self.tick.period_ns * 1e-9
+        n = self.n_outputs
+        for i in range(n):
+            error = u[n + i] - u[i]
+            self.integral[i] += h * error
+            y[i] = self.kp * error + self.ki * self.integral[i]
+
+
+class Sleepy(Runnable):
+    """Sleeps for a while in step (to provoke overruns)."""
+
+    n_inputs = 0
+    n_outputs = 0
+
+    def __init__(self, sleep_s: float, every: int = 1) -> None:
+        self.sleep_s, self.every = sleep_s, every
+
+    def step(self, u, y) -> None:
+        if self.tick.cycle % self.every == 0:
+            time.sleep(self.sleep_s)
+
+
+class BadPrerun(Noop):
+    def prerun(self) -> None:
+        raise RuntimeError("sensor not found on /dev/ttyUSB0")

@@ -1,0 +1,223 @@
+"""Running apps for real: artifacts, RT settings, faults, signals, the unprivileged fallback."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import other_cpu
+from rt_test_runnables import BadPrerun, Counter, Noop, RaiseAt, ReportSettings, Sleepy
+from rtloop import App, AppError, TaskFailed
+from rtloop.ports import connect_app
+
+P = 1_000_000
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+@pytest.mark.rt
+def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
+    app = App("two_counters")
+    a = app.add_task("a", Counter(), period_ns=P, priority=70, cpu=other_cpu())
+    app.add_task("b", Noop(), period_ns=2 * P, priority=60, cpu=other_cpu())
+    app.record(a.y)
+    summary = app.run(0.5, tmp_path)
+    data = json.loads((tmp_path / "summary.json").read_text())
+    assert data["app"] == "two_counters" and data["duration_s"] == 0.5 and data["rt_capable"] is True
+    task = data["tasks"]["a"]
+    assert (task["rt"], task["policy"], task["priority"], task["cpu"]) == (True, "fifo", 70, other_cpu())
+    for key in ("period_ns", "cycles", "trimmed", "latency_ns", "period_jitter_ns", "exec_ns",
+                "deadline_misses", "overruns", "stale_reads", "jitter_over_3pct"):
+        assert key in task, key
+    assert task["cycles"] + task["overruns"] == 500
+    assert data["tasks"]["b"]["cycles"] + data["tasks"]["b"]["overruns"] == 250
+    rows = read_csv(tmp_path / "timing.csv")
+    assert list(rows[0]) == ["task", "cycle", "release_ns", "start_ns", "end_ns"]
+    a_rows = [r for r in rows if r["task"] == "a"]
+    assert len(a_rows) == task["cycles"] == summary.tasks["a"].timing.cycles
+    for row in a_rows:
+        assert int(row["release_ns"]) <= int(row["start_ns"]) <= int(row["end_ns"])
+    # phase-aligned: both tasks share the epoch T0
+    first_b = next(r for r in rows if r["task"] == "b" and r["cycle"] == "0")
+    assert first_b["release_ns"] == next(r for r in a_rows if r["cycle"] == "0")["release_ns"]
+    signals = read_csv(tmp_path / "signals.csv")
+    assert list(signals[0]) == ["t_s", "a.y[0]", "a.y[1]"]
+    assert signals[3]["t_s"] == "0.003" and float(signals[3]["a.y[1]"]) == 0.003
+
+
+@pytest.mark.rt
+def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> None:
+    app = App("settings")
+    t = app.add_task("probe", ReportSettings(), period_ns=P, priority=42, cpu=other_cpu(), policy="rr")
+    app.record(t.y)
+    app.run(0.1, tmp_path)
+    row = read_csv(tmp_path / "signals.csv")[0]
+    assert float(row["probe.y[0]"]) == os.SCHED_RR
+    assert float(row["probe.y[1]"]) == 42
+    assert float(row["probe.y[2]"]) == other_cpu()
+    assert float(row["probe.y[3]"]) > 1000, "mlockall should lock the whole process (VmLck in kB)"
+
+
+@pytest.mark.rt
+def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(tmp_path: Path) -> None:
+    app = App("faulty")
+    bad = app.add_task("bad", RaiseAt(cycle=123), period_ns=P, cpu=other_cpu())
+    app.add_task("good", Counter(), period_ns=P, cpu=other_cpu(), priority=70)
+    app.record(bad.y)
+    with pytest.raises(TaskFailed) as caught:
+        app.run(5, tmp_path)
+    failure = caught.value
+    assert (failure.task, failure.cycle, failure.phase) == ("bad", 123, "step")
+    assert "ZeroDivisionError" in failure.reason and "rt_test_runnables.py" in failure.traceback_text
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["stopped_by"] == "fault"
+    assert summary["failure"]["cycle"] == 123 and summary["failure"]["task"] == "bad"
+    assert summary["tasks"]["bad"]["cycles"] == 123  # cycles 0..122 completed
+    assert summary["tasks"]["good"]["cycles"] < 5000  # the other task was stopped too
+    rows = [r for r in read_csv(tmp_path / "timing.csv") if r["task"] == "bad"]
+    assert len(rows) == 123
+    signals = read_csv(tmp_path / "signals.csv")
+    assert float(signals[-1]["bad.y[0]"]) == 122
+
+
+def test_exception_in_prerun_is_reported_before_the_loop(tmp_path: Path) -> None:
+    app = App("badprerun")
+    app.add_task("t", BadPrerun(), period_ns=P, policy="other")
+    with pytest.raises(TaskFailed, match="sensor not found") as caught:
+        app.run(1, tmp_path)
+    assert caught.value.phase == "prerun" and caught.value.cycle is None
+    assert (tmp_path / "summary.json").exists()
+
+
+def test_a_runnable_that_cannot_reach_its_process_is_refused_before_running(tmp_path: Path) -> None:
+    class Local(Noop):
+        pass
+
+    app = App("local")
+    app.add_task("t", Local(), period_ns=P)
+    with pytest.raises(AppError, match="task 't': its runnable cannot be sent"):
+        app.run(1, tmp_path)
+
+
+def _start_cli(app_file: Path, out: Path, env: dict[str, str], duration: float = 30) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration), "--out", str(out)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def _app_file(tmp_path: Path, name: str) -> Path:
+    path = tmp_path / f"{name}.toml"
+    path.write_text(
+        f'name = "{name}"\n'
+        "[tasks.counter]\n"
+        'runnable = "rt_test_runnables:Counter"\n'
+        f"period_ns = 1_000_000\npriority = 70\ncpu = {other_cpu()}\n"
+        "[tasks.idle]\n"
+        'runnable = "rt_test_runnables:Noop"\n'
+        f"period_ns = 1_000_000\npriority = 60\ncpu = {other_cpu()}\n"
+        "[record]\nsignals = ['counter.y']\n"
+    )
+    return path
+
+
+def _wait_running(name: str) -> dict[str, int]:
+    app = connect_app(name, timeout_s=20)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        pids = app.task_pids()
+        if all(pids.values()):
+            time.sleep(0.5)  # let it run a few hundred cycles
+            return pids
+        time.sleep(0.05)
+    raise AssertionError("tasks did not start")
+
+
+@pytest.mark.rt
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path, rtloop_env, signum) -> None:
+    name = f"stopme_{signum}"
+    process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
+    _wait_running(name)
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=20)
+    assert process.returncode == 0, stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["stopped_by"] == "signal" and summary["failure"] is None
+    cycles = summary["tasks"]["counter"]["cycles"]
+    assert 100 < cycles < 30_000
+    rows = [r for r in read_csv(tmp_path / "out" / "timing.csv") if r["task"] == "counter"]
+    assert len(rows) == cycles
+    assert len(read_csv(tmp_path / "out" / "signals.csv")) == cycles
+    assert not list(Path("/dev/shm").glob(f"rtloop-{name}-*")), "shared memory left behind"
+
+
+@pytest.mark.rt
+def test_killed_task_process_is_reported_and_the_rest_is_kept(tmp_path: Path, rtloop_env) -> None:
+    name = "killme"
+    process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
+    pids = _wait_running(name)
+    os.kill(pids["idle"], signal.SIGKILL)
+    _, stderr = process.communicate(timeout=20)
+    assert process.returncode == 1
+    assert "task 'idle' failed" in stderr and "SIGKILL" in stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["failure"]["task"] == "idle" and "SIGKILL" in summary["failure"]["reason"]
+    assert summary["tasks"]["counter"]["cycles"] > 100
+    assert len([r for r in read_csv(tmp_path / "out" / "timing.csv") if r["task"] == "counter"]) == (
+        summary["tasks"]["counter"]["cycles"]
+    )
+
+
+@pytest.mark.rt
+@pytest.mark.skipif(shutil.which("setpriv") is None, reason="setpriv (util-linux) is needed to drop privileges")
+def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: Path, rtloop_env) -> None:
+    app_file = _app_file(tmp_path, "unprivileged")
+    command = [
+        "setpriv", "--inh-caps=-all", "--bounding-set=-all", "--",
+        "prlimit", "--rtprio=0", "--memlock=65536", "--",
+        sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.3", "--out", str(tmp_path / "out"),
+    ]
+    result = subprocess.run(command, env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "did NOT run real-time" in result.stdout
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["rt_capable"] is False
+    task = summary["tasks"]["counter"]
+    assert task["rt"] is False and task["policy"] == "other"
+    assert "sched_setscheduler" in task["rt_reason"] and "Operation not permitted" in task["rt_reason"]
+    assert task["cycles"] > 200
+
+
+@pytest.mark.rt
+def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> None:
+    app = App("overrun")
+    app.add_task("slow", Sleepy(0.0035, every=50), period_ns=P, cpu=other_cpu())
+    summary = app.run(0.5, tmp_path)
+    timing = summary.tasks["slow"].timing
+    assert timing.overruns >= 3 * 9  # each sleep of 3.5 ms skips at least 3 releases
+    assert timing.cycles + timing.overruns == 500
+    assert timing.deadline_misses >= 9
+
+
+def test_cli_reports_a_malformed_app_file_with_the_key(tmp_path: Path, rtloop_env) -> None:
+    path = tmp_path / "typo.toml"
+    path.write_text('name = "typo"\n[tasks.t]\nrunnable = "rt_test_runnables:Noop"\nperiod_n = 1000000\n')
+    result = subprocess.run(
+        [sys.executable, "-m", "rtloop.cli", "run", str(path), "--duration", "1", "--out", str(tmp_path / "o")],
+        env=rtloop_env, capture_output=True, text=True,
+    )
+    assert result.returncode == 2
+    assert "tasks.t.period_n" in result.stderr and "did you mean 'period_ns'" in result.stderr
