@@ -33,9 +33,9 @@ NAMES = ["pan", "tilt"]
 IDLE_END_S = 1.0
 
 
-def run_subscriber(domain_id: int, qos: str, expected: int) -> None:
+def run_subscriber(domain_id: int, qos: str, depth: int | None, expected: int) -> None:
     """Receive until ``expected`` messages or ``IDLE_END_S`` without any; print JSON."""
-    sub = RosSubscriber(TOPIC, JointState, qos=qos, domain_id=domain_id)
+    sub = RosSubscriber(TOPIC, JointState, qos=qos, domain_id=domain_id, depth=depth)
     print("READY", flush=True)
     # Both sides must have discovered each other, or the first messages are discarded.
     print("MATCHED" if sub.wait_for_publishers(1, timeout_s=10) else "UNMATCHED", flush=True)
@@ -76,19 +76,20 @@ def publish_at_rate(pub: RosPublisher, rate_hz: float, count: int, spin_ns: int)
     return count / (elapsed_ns / 1e9)
 
 
-def measure(rate_hz: float, duration_s: float, qos: str, spin_ns: int) -> dict[str, float]:
+def measure(rate_hz: float, duration_s: float, qos: str, depth: int | None,
+            spin_ns: int) -> dict[str, float]:
     """One rate: start a subscriber process, publish, collect its measurements."""
     domain_id = random.randint(1, 101)
     count = max(1, round(rate_hz * duration_s))
     child = subprocess.Popen(
         [sys.executable, __file__, "--role", "sub", "--domain", str(domain_id),
-         "--qos", qos, "--expected", str(count)],
+         "--qos", qos, "--expected", str(count), *(["--depth", str(depth)] if depth else [])],
         stdout=subprocess.PIPE, text=True,
     )
     assert child.stdout is not None
     if child.stdout.readline().strip() != "READY":
         raise RuntimeError("subscriber process did not start")
-    with RosPublisher(TOPIC, JointState, qos=qos, domain_id=domain_id) as pub:
+    with RosPublisher(TOPIC, JointState, qos=qos, domain_id=domain_id, depth=depth) as pub:
         matched = child.stdout.readline().strip() == "MATCHED"
         if not (matched and pub.wait_for_subscribers(1, timeout_s=10)):
             raise RuntimeError("publisher and subscriber did not discover each other")
@@ -112,10 +113,10 @@ def measure(rate_hz: float, duration_s: float, qos: str, spin_ns: int) -> dict[s
     }
 
 
-def markdown(rows: list[dict[str, float]], qos: str) -> str:
+def markdown(rows: list[dict[str, float]], qos: str, depth: int | None) -> str:
     """Format results as a markdown table."""
     lines = [
-        f"QoS `{qos}`, JointState (2 joints), Python {sys.version.split()[0]}, "
+        f"QoS `{qos}` (depth {depth or 'preset'}), JointState (2 joints), Python {sys.version.split()[0]}, "
         f"{os.cpu_count()} CPUs, `{os.uname().release}`",
         "",
         "| rate (Hz) | achieved (Hz) | sent | received | drops | p50 (µs) | p99 (µs) | max (µs) |",
@@ -141,20 +142,21 @@ def main() -> None:
     parser.add_argument("--qos", choices=["sensor", "reliable"], default="sensor")
     parser.add_argument("--rates", default="1000,2000,3000,5000,10000,20000,50000")
     parser.add_argument("--spin-us", type=int, default=0)
+    parser.add_argument("--depth", type=int, default=None, help="history depth override")
     parser.add_argument("--duration-s", type=float, default=2.0)
     args = parser.parse_args()
     if args.role == "sub":
-        run_subscriber(args.domain, args.qos, args.expected)
+        run_subscriber(args.domain, args.qos, args.depth, args.expected)
         return
     rows = []
     for rate in [float(r) for r in args.rates.split(",")]:
-        row = measure(rate, args.duration_s, args.qos, args.spin_us * 1000)
+        row = measure(rate, args.duration_s, args.qos, args.depth, args.spin_us * 1000)
         rows.append(row)
         print(f"{rate:.0f} Hz: drops {row['drops']} (first {row['first_missing']}), "
               f"p50 {row['p50_us']:.0f} µs", file=sys.stderr)
         if sum(r["drops"] > 0 for r in rows) >= 2:
             break  # two rates with drops: found where it stops keeping up
-    print(markdown(rows, args.qos))
+    print(markdown(rows, args.qos, args.depth))
 
 
 if __name__ == "__main__":

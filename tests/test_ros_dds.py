@@ -299,3 +299,23 @@ def test_invalid_qos_and_type_are_rejected():
         RosPublisher("/x", "geometry_msgs/msg/Twist", domain_id=1)
     with pytest.raises(RosConfigError, match="backend"):
         RosPublisher("/x", JointState, domain_id=1, backend="zenoh")
+    with pytest.raises(RosConfigError, match="depth"):
+        RosSubscriber("/x", JointState, domain_id=1, depth=0)
+
+
+def test_history_depth_bounds_what_an_idle_subscriber_keeps():
+    domain = random_domain()
+    with (
+        RosSubscriber("/d", JointState, qos="reliable", depth=3, domain_id=domain) as sub,
+        RosPublisher("/d", JointState, qos="reliable", depth=50, domain_id=domain) as pub,
+    ):
+        assert sub.depth == 3 and pub.depth == 50
+        assert pub.wait_for_subscribers(1, 5) and sub.wait_for_publishers(1, 5)
+        for k in range(8):
+            pub.publish(joint_state(["a"], [k], 0))
+        deadline = time.monotonic() + 5
+        got = []
+        while time.monotonic() < deadline and (not got or got[-1] != 7.0):
+            time.sleep(0.05)  # let all 8 arrive before taking: only the newest 3 remain
+            got += [m.position[0] for m in sub.take()]
+        assert got == [5.0, 6.0, 7.0]

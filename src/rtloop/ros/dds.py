@@ -46,6 +46,14 @@ def dds_topic_name(topic: str) -> str:
     return "rt/" + "/".join(tokens)
 
 
+def _check_depth(qos: str, depth: int | None) -> int:
+    if depth is None:
+        return _HISTORY_DEPTH[qos]
+    if not isinstance(depth, int) or depth < 1:
+        raise RosConfigError(f"history depth must be a positive integer, got {depth!r}")
+    return depth
+
+
 def _check_qos(qos: str) -> str:
     if qos not in QOS_PRESETS:
         raise RosConfigError(f"unknown QoS preset {qos!r}: expected one of {QOS_PRESETS}")
@@ -62,6 +70,8 @@ class RosPublisher:
         qos: ``"sensor"`` (best effort) or ``"reliable"``; see :data:`QOS_PRESETS`.
         domain_id: DDS domain; ``None`` reads ``ROS_DOMAIN_ID`` (default 0).
         backend: ``"auto"`` (cyclonedds, else rclpy), ``"cyclonedds"`` or ``"rclpy"``.
+        depth: history depth instead of the preset's (5 or 10); a subscriber that may
+            stall longer than ``depth`` message periods loses messages.
 
     Raises:
         RosUnavailable: the backend cannot be imported (the message says how to fix it).
@@ -75,20 +85,23 @@ class RosPublisher:
         qos: str = "sensor",
         domain_id: int | None = None,
         backend: str = "auto",
+        depth: int | None = None,
     ) -> None:
         self.topic = topic
         self.dds_topic = dds_topic_name(topic)
         self.qos = _check_qos(qos)
+        self.depth = _check_depth(qos, depth)
         self.domain_id = domain_id_from_env(domain_id)
         self.backend = choose_backend(backend)
         self.published = 0
         """Messages handed to DDS so far."""
         if self.backend == "cyclonedds":
-            self._impl: Any = _CyclonePublisher(self.dds_topic, msg_type, qos, self.domain_id)
+            self._impl: Any = _CyclonePublisher(self.dds_topic, msg_type, qos, self.depth,
+                                                 self.domain_id)
         else:
             from .rclpy_backend import RclpyPublisher
 
-            self._impl = RclpyPublisher(topic, msg_type, qos, self.domain_id)
+            self._impl = RclpyPublisher(topic, msg_type, qos, self.depth, self.domain_id)
         self.msg_type = self._impl.msg_type
 
     def publish(self, msg: Any) -> None:
@@ -119,7 +132,7 @@ class RosSubscriber:
     """Receives messages of one type from one ROS 2 topic; polled with :meth:`take`.
 
     Arguments are those of :class:`RosPublisher`. Incoming messages queue up to the
-    QoS history depth (5 for ``"sensor"``, 10 for ``"reliable"``); older unread ones
+    history depth (5 for ``"sensor"``, 10 for ``"reliable"``, or ``depth``); older unread ones
     are dropped by DDS, so poll at least as often as that many messages arrive.
     """
 
@@ -130,18 +143,21 @@ class RosSubscriber:
         qos: str = "sensor",
         domain_id: int | None = None,
         backend: str = "auto",
+        depth: int | None = None,
     ) -> None:
         self.topic = topic
         self.dds_topic = dds_topic_name(topic)
         self.qos = _check_qos(qos)
+        self.depth = _check_depth(qos, depth)
         self.domain_id = domain_id_from_env(domain_id)
         self.backend = choose_backend(backend)
         if self.backend == "cyclonedds":
-            self._impl: Any = _CycloneSubscriber(self.dds_topic, msg_type, qos, self.domain_id)
+            self._impl: Any = _CycloneSubscriber(self.dds_topic, msg_type, qos, self.depth,
+                                                  self.domain_id)
         else:
             from .rclpy_backend import RclpySubscriber
 
-            self._impl = RclpySubscriber(topic, msg_type, qos, self.domain_id)
+            self._impl = RclpySubscriber(topic, msg_type, qos, self.depth, self.domain_id)
         self.msg_type = self._impl.msg_type
 
     def take(self, max_messages: int = 64) -> list[Any]:
@@ -214,7 +230,7 @@ def _resolve_idl_type(msg_type: Any) -> Any:
                          "IdlStruct class")
 
 
-def _cyclone_qos(qos: str) -> Any:
+def _cyclone_qos(qos: str, depth: int) -> Any:
     from cyclonedds.qos import Policy, Qos
     from cyclonedds.util import duration
 
@@ -224,20 +240,21 @@ def _cyclone_qos(qos: str) -> Any:
         reliability = Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100))
     return Qos(
         reliability,
-        Policy.History.KeepLast(_HISTORY_DEPTH[qos]),
+        Policy.History.KeepLast(depth),
         Policy.Durability.Volatile,
     )
 
 
 class _CyclonePublisher:
-    def __init__(self, dds_topic: str, msg_type: Any, qos: str, domain_id: int) -> None:
+    def __init__(self, dds_topic: str, msg_type: Any, qos: str, depth: int,
+                 domain_id: int) -> None:
         from cyclonedds.pub import DataWriter
         from cyclonedds.topic import Topic
 
         self.msg_type = _resolve_idl_type(msg_type)
         participant = _participant(domain_id)
         self._topic = Topic(participant, dds_topic, self.msg_type)
-        self._writer = DataWriter(participant, self._topic, qos=_cyclone_qos(qos))
+        self._writer = DataWriter(participant, self._topic, qos=_cyclone_qos(qos, depth))
 
     def publish(self, msg: Any) -> None:
         self._writer.write(msg)
@@ -251,7 +268,8 @@ class _CyclonePublisher:
 
 
 class _CycloneSubscriber:
-    def __init__(self, dds_topic: str, msg_type: Any, qos: str, domain_id: int) -> None:
+    def __init__(self, dds_topic: str, msg_type: Any, qos: str, depth: int,
+                 domain_id: int) -> None:
         from cyclonedds.core import ReadCondition, SampleState, WaitSet
         from cyclonedds.sub import DataReader
         from cyclonedds.topic import Topic
@@ -259,7 +277,7 @@ class _CycloneSubscriber:
         self.msg_type = _resolve_idl_type(msg_type)
         participant = _participant(domain_id)
         self._topic = Topic(participant, dds_topic, self.msg_type)
-        self._reader = DataReader(participant, self._topic, qos=_cyclone_qos(qos))
+        self._reader = DataReader(participant, self._topic, qos=_cyclone_qos(qos, depth))
         self._condition = ReadCondition(self._reader, SampleState.NotRead)
         self._waitset = WaitSet(participant)
         self._waitset.attach(self._condition)

@@ -18,7 +18,6 @@ from typing import Any
 
 from .errors import RosConfigError, require_rclpy
 
-_DEPTH = {"sensor": 5, "reliable": 10}
 _nodes: dict[int, tuple[Any, Any, Any]] = {}
 _nodes_lock = threading.Lock()
 
@@ -56,11 +55,11 @@ def _node(domain_id: int) -> tuple[Any, Any, Any]:
         return _nodes[domain_id]
 
 
-def _profile(qos: str) -> Any:
+def _profile(qos: str, depth: int) -> Any:
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     reliability = ReliabilityPolicy.BEST_EFFORT if qos == "sensor" else ReliabilityPolicy.RELIABLE
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=_DEPTH[qos],
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                       reliability=reliability, durability=DurabilityPolicy.VOLATILE)
 
 
@@ -77,12 +76,13 @@ def _to_ros(msg: Any, ros_class: Any) -> Any:
 class RclpyPublisher:
     """rclpy publisher behind :class:`~rtloop.ros.RosPublisher`."""
 
-    def __init__(self, topic: str, msg_type: Any, qos: str, domain_id: int) -> None:
+    def __init__(self, topic: str, msg_type: Any, qos: str, depth: int,
+                 domain_id: int) -> None:
         require_rclpy()
         self.msg_type = msg_type
         self._ros_class = ros_message_class(msg_type)
         _context, self._node, _executor = _node(domain_id)
-        self._pub = self._node.create_publisher(self._ros_class, topic, _profile(qos))
+        self._pub = self._node.create_publisher(self._ros_class, topic, _profile(qos, depth))
 
     def publish(self, msg: Any) -> None:
         self._pub.publish(_to_ros(msg, self._ros_class))
@@ -99,14 +99,15 @@ class RclpyPublisher:
 class RclpySubscriber:
     """rclpy subscription behind :class:`~rtloop.ros.RosSubscriber`."""
 
-    def __init__(self, topic: str, msg_type: Any, qos: str, domain_id: int) -> None:
+    def __init__(self, topic: str, msg_type: Any, qos: str, depth: int,
+                 domain_id: int) -> None:
         require_rclpy()
         self.msg_type = msg_type
         self._ros_class = ros_message_class(msg_type)
         _context, self._node, self._executor = _node(domain_id)
-        self._queue: deque[Any] = deque(maxlen=_DEPTH[qos])
+        self._queue: deque[Any] = deque(maxlen=depth)
         self._sub = self._node.create_subscription(
-            self._ros_class, topic, self._queue.append, _profile(qos))
+            self._ros_class, topic, self._queue.append, _profile(qos, depth))
 
     def take(self, max_messages: int) -> list[Any]:
         # Run callbacks that are ready without waiting; each appends one message.
