@@ -1,0 +1,102 @@
+"""``rtloop report DIR [DIR ...]``: figures and one self-contained HTML page."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import figures, html
+from .data import Histogram, ReportError, Run, load_run, run_labels, task_series
+
+FIGURES_DIR = "report-figures"
+
+
+@dataclass
+class Report:
+    """What :func:`build_report` produced."""
+
+    runs: list[Run]
+    """The runs, loaded."""
+    pngs: list[Path] = field(default_factory=list)
+    """Every figure written."""
+    html: Path | None = None
+    """The report page (None with ``html=False``)."""
+    histograms: dict[tuple[str, str], dict[str, Histogram]] = field(default_factory=dict)
+    """(run label, task) → the histograms drawn in that task's figure."""
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "run"
+
+
+def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool = True) -> Report:
+    """Load every run, draw its figures into ``out``/report-figures and write ``out``/report.html."""
+    if not paths:
+        raise ReportError("no run directory given")
+    runs = [load_run(p, label) for p, label in zip(paths, run_labels(paths), strict=True)]
+    out = Path(out) if out is not None else Path(paths[0])
+    fig_dir = out / FIGURES_DIR
+    report = Report(runs)
+    run_figures: dict[str, list[html.FigureRef]] = {}
+    for run in runs:
+        refs = run_figures.setdefault(run.label, [])
+        prefix = _slug(run.label) if len(runs) > 1 else "run"
+        series = {name: task_series(run, name) for name in run.tasks}
+        for name, s in series.items():
+            fig, hists = figures.task_figure(name, s, run.label)
+            report.histograms[(run.label, name)] = hists
+            path = figures.save(fig, fig_dir / f"{prefix}-{_slug(name)}-timing.png")
+            refs.append(html.FigureRef(path, f"Task {name}: wake-up latency, period jitter and execution time."))
+        if series:
+            path = figures.save(figures.latency_over_time_figure(run, series), fig_dir / f"{prefix}-latency-time.png")
+            refs.append(html.FigureRef(path, "Wake-up latency of every cycle over time (grey: trimmed ends)."))
+        if run.signals is not None:
+            path = figures.save(figures.signals_figure(run.label, run.signals), fig_dir / f"{prefix}-signals.png")
+            refs.append(html.FigureRef(path, "Recorded signals (signals.csv) over time."))
+        report.pngs.extend(ref.path for ref in refs)
+    comparison: list[html.FigureRef] = []
+    if len(runs) > 1:
+        for name in dict.fromkeys(n for run in runs for n in run.tasks):
+            having = [(run.label, task_series(run, name)) for run in runs if name in run.tasks]
+            fig, _ = figures.comparison_figure(name, having)
+            path = figures.save(fig, fig_dir / f"compare-{_slug(name)}.png")
+            comparison.append(html.FigureRef(path, f"Task {name} in each run, on common bins."))
+            report.pngs.append(path)
+    if write_html:
+        report.html = out / "report.html"
+        report.html.write_text(html.page(runs, run_figures, comparison))
+    return report
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rtloop report", description="Figures and an HTML report of runs.")
+    parser.add_argument("runs", nargs="+", type=Path, metavar="DIR", help="run directories (the --out of rtloop run)")
+    parser.add_argument("--out", type=Path, metavar="DIR", help="where to write (default: the first run directory)")
+    parser.add_argument("--no-html", action="store_true", help="write the PNG figures only")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``rtloop report``; returns the exit status (2: bad input)."""
+    args = build_parser().parse_args(argv)
+    try:
+        report = build_report(args.runs, args.out, write_html=not args.no_html)
+    except ReportError as error:
+        print(f"rtloop report: {error}", file=sys.stderr)
+        return 2
+    for run in report.runs:
+        if run.failure:
+            failure = run.failure
+            print(f"rtloop report: {run.label}: run FAILED in task {failure.get('task')} "
+                  f"({failure.get('phase')}, cycle {failure.get('cycle')}): {failure.get('reason')}", file=sys.stderr)
+        if run.non_rt_tasks:
+            print(f"rtloop report: {run.label}: not real-time: {', '.join(run.non_rt_tasks)}", file=sys.stderr)
+        for problem in run.problems:
+            print(f"rtloop report: {run.label}: {problem}", file=sys.stderr)
+    print(f"{len(report.pngs)} figures in {report.pngs[0].parent}/" if report.pngs else "no figures")
+    if report.html is not None:
+        print(f"report: {report.html}")
+    return 0

@@ -1,0 +1,235 @@
+"""Figures of a run, in the style of the thesis's chapter 6.
+
+Histograms have log counts, the maximum marked by a red line (or, when it lies beyond
+the plotted range, by an arrow and its value) and, for period jitter, the thesis's
+criterion as dashed lines at ±3 % of the period. Everything is drawn on
+:class:`matplotlib.figure.Figure` objects (Agg canvas, no pyplot state), so the
+functions can run in any thread and never open a window.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from ..timing import THESIS_JITTER_FRACTION
+from .data import Histogram, Run, Signals, TaskSeries, histogram
+
+US = 1e3  # ns per µs
+MAX_COLOR = "tab:red"
+CRITERION_COLOR = "tab:orange"
+RUN_COLORS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
+
+
+def fmt_us(value_ns: float) -> str:
+    """A duration in nanoseconds as readable microseconds (``1,234.5 µs``)."""
+    if value_ns != value_ns:  # NaN
+        return "–"
+    if 0 < abs(value_ns) < 100:
+        return f"{value_ns:g} ns"
+    return f"{value_ns / US:,.1f} µs"
+
+
+def period_text(period_ns: int) -> str:
+    """``P = 1 ms (1000 Hz)``."""
+    if not period_ns:
+        return "P = ?"
+    return f"P = {period_ns / 1e6:g} ms ({1e9 / period_ns:g} Hz)"
+
+
+def _bars(ax: Axes, hist: Histogram, color: str, label: str | None = None, step: bool = False) -> None:
+    edges_us = hist.edges_ns / US
+    centers = (edges_us[:-1] + edges_us[1:]) / 2
+    ax.hist(centers, bins=edges_us, weights=hist.counts, log=True, color=color, label=label,
+            histtype="step" if step else "bar", linewidth=1.5 if step else None, alpha=1.0 if step else 0.85)
+
+
+def _mark_extreme(ax: Axes, hist: Histogram, which: str, color: str = MAX_COLOR) -> None:
+    """Red line at the extreme if it is in range, else an arrow at the edge with its value."""
+    value = hist.max_ns if which == "max" else hist.min_ns
+    outside = hist.above if which == "max" else hist.below
+    if not outside:
+        ax.axvline(value / US, color=color, linewidth=1.2, label=f"{which} {fmt_us(value)}")
+        return
+    x, ha, arrow = (0.99, "right", "→") if which == "max" else (0.01, "left", "←")
+    text = f"{which} {fmt_us(value)} {arrow}\n({outside} beyond the axis)" if which == "max" else \
+        f"{arrow} {which} {fmt_us(value)}\n({outside} beyond the axis)"
+    ax.text(x, 0.97, text, transform=ax.transAxes, ha=ha, va="top", color=color, fontsize=8,
+            bbox={"facecolor": "white", "edgecolor": color, "alpha": 0.9, "boxstyle": "round,pad=0.3"})
+
+
+def _no_data(ax: Axes, title: str) -> None:
+    ax.set_title(title)
+    ax.text(0.5, 0.5, "no samples", transform=ax.transAxes, ha="center", va="center", color="gray")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def draw_histogram(
+    ax: Axes,
+    hist: Histogram,
+    *,
+    title: str,
+    xlabel: str,
+    period_ns: int = 0,
+    criterion: bool = False,
+    mark_min: bool = False,
+) -> None:
+    """One thesis-style histogram on ``ax``."""
+    if hist.n == 0:
+        _no_data(ax, title)
+        return
+    bin_ns = hist.edges_ns[1] - hist.edges_ns[0]
+    _bars(ax, hist, "tab:blue", label=f"cycles ({hist.counts.size} bins of {fmt_us(bin_ns)})")
+    if criterion and period_ns:
+        limit_us = THESIS_JITTER_FRACTION * period_ns / US
+        ax.axvline(limit_us, color=CRITERION_COLOR, linestyle="--", linewidth=1.2,
+                   label=f"±3 % of P (±{limit_us:g} µs)")
+        ax.axvline(-limit_us, color=CRITERION_COLOR, linestyle="--", linewidth=1.2)
+    _mark_extreme(ax, hist, "max")
+    if mark_min:
+        _mark_extreme(ax, hist, "min", color="tab:purple")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("cycles (log)")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left" if not hist.below else "center left")
+
+
+def task_histograms(series: TaskSeries) -> dict[str, Histogram]:
+    """The histograms of one task's figure: ``latency``, ``jitter`` and ``exec``."""
+    limit = THESIS_JITTER_FRACTION * series.period_ns
+    return {
+        "latency": histogram(series.latency_ns),
+        "jitter": histogram(series.period_jitter_ns, include_ns=(-limit, limit) if limit else ()),
+        "exec": histogram(series.exec_ns),
+    }
+
+
+def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, dict[str, Histogram]]:
+    """Wake-up latency, period jitter and execution time of one task, side by side."""
+    hists = task_histograms(series)
+    fig = Figure(figsize=(16, 4.4), layout="constrained")
+    axes = fig.subplots(1, 3)
+    jitter = series.period_jitter_ns
+    over = int(np.count_nonzero(np.abs(jitter) > THESIS_JITTER_FRACTION * series.period_ns)) if jitter.size else 0
+    draw_histogram(axes[0], hists["latency"], title=f"wake-up latency (start − release), n = {hists['latency'].n}",
+                   xlabel="latency [µs]")
+    draw_histogram(axes[1], hists["jitter"],
+                   title=f"period jitter (Δstart − P), n = {hists['jitter'].n}, {over} beyond ±3 %",
+                   xlabel="jitter [µs]", period_ns=series.period_ns, criterion=True, mark_min=True)
+    draw_histogram(axes[2], hists["exec"], title=f"execution time (end − start), n = {hists['exec'].n}",
+                   xlabel="execution time [µs]")
+    fig.suptitle(f"{run_label} — task {task}, {period_text(series.period_ns)}, "
+                 f"first and last {series.trim} cycles left out", fontsize=12)
+    return fig, hists
+
+
+def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
+    """Wake-up latency of every cycle against time: periodic disturbances show as stripes."""
+    names = list(series)
+    fig = Figure(figsize=(16, 2.6 + 2.2 * len(names)), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0])
+    for ax, name in zip(axes, names, strict=True):
+        s = series[name]
+        samples = s.all_samples
+        if not len(samples):
+            _no_data(ax, f"task {name}")
+            continue
+        t0 = samples.release_ns[0]
+        t_s = (samples.release_ns - t0) / 1e9
+        latency_us = (samples.start_ns - samples.release_ns) / US
+        ax.plot(t_s, latency_us, ".", markersize=2, color="tab:blue", label="wake-up latency")
+        if s.trim and len(samples) > 2 * s.trim:
+            ax.axvspan(t_s[0], t_s[s.trim - 1], color="gray", alpha=0.2, label="trimmed (not in statistics)")
+            ax.axvspan(t_s[-s.trim], t_s[-1], color="gray", alpha=0.2)
+        if latency_us.min() > 0:
+            ax.set_yscale("log")
+            ax.axhline(s.period_ns / US, color=MAX_COLOR, linestyle=":", linewidth=1,
+                       label=f"one period ({s.period_ns / US:g} µs)")
+        ax.set_ylabel("latency [µs]")
+        ax.set_title(f"task {name}, {period_text(s.period_ns)}", fontsize=10)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    axes[-1].set_xlabel("time since first release [s]")
+    fig.suptitle(f"{run.label} — wake-up latency over time", fontsize=12)
+    return fig
+
+
+def signals_figure(run_label: str, signals: Signals) -> Figure:
+    """Recorded signals against time, one panel per task (thesis figure 6.2)."""
+    groups: dict[str, list[str]] = {}
+    for name in signals.columns:
+        groups.setdefault(name.split(".", 1)[0], []).append(name)
+    fig = Figure(figsize=(16, 1.6 + 2.6 * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (task, names) in zip(axes, groups.items(), strict=True):
+        for name in names:
+            ax.plot(signals.t_s, signals.columns[name], linewidth=1.2, label=name)
+        ax.set_ylabel("value")
+        ax.set_title(f"task {task}", fontsize=10)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right", ncol=min(len(names), 4))
+    axes[-1].set_xlabel("release time t [s]")
+    fig.suptitle(f"{run_label} — recorded signals", fontsize=12)
+    return fig
+
+
+def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tuple[Figure, dict[str, list[Histogram]]]:
+    """One task across several runs: latency and jitter histograms on common bins, overlaid."""
+    period_ns = next((s.period_ns for _, s in runs if s.period_ns), 0)
+    limit = THESIS_JITTER_FRACTION * period_ns
+    fig = Figure(figsize=(16, 4.8), layout="constrained")
+    axes = fig.subplots(1, 2)
+    out: dict[str, list[Histogram]] = {"latency": [], "jitter": []}
+    for ax, key, attr, xlabel in (
+        (axes[0], "latency", "latency_ns", "wake-up latency [µs]"),
+        (axes[1], "jitter", "period_jitter_ns", "period jitter [µs]"),
+    ):
+        pooled = histogram(np.concatenate([getattr(s, attr) for _, s in runs]),
+                           include_ns=(-limit, limit) if key == "jitter" and limit else ())
+        for i, (label, s) in enumerate(runs):
+            values = getattr(s, attr).astype(np.float64)
+            hist = _on_edges(values, pooled.edges_ns)
+            out[key].append(hist)
+            if hist.n == 0:
+                continue
+            color = RUN_COLORS[i % len(RUN_COLORS)]
+            _bars(ax, hist, color, label=f"{label}: max {fmt_us(hist.max_ns)}", step=True)
+            if not hist.above:
+                ax.axvline(hist.max_ns / US, color=color, linestyle="-.", linewidth=1)
+        if key == "jitter" and limit:
+            ax.axvline(limit / US, color=CRITERION_COLOR, linestyle="--", label=f"±3 % of P (±{limit / US:g} µs)")
+            ax.axvline(-limit / US, color=CRITERION_COLOR, linestyle="--")
+        if pooled.n == 0:
+            _no_data(ax, key)
+            continue
+        beyond = [f"{label}: {h.above} above" for (label, _), h in zip(runs, out[key], strict=True) if h.above]
+        ax.set_title(f"{key} — dash-dot lines: each run's max" + (f"\n({', '.join(beyond)} the axis)"
+                                                                  if beyond else ""), fontsize=10)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("cycles (log)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"task {task} across runs, {period_text(period_ns)}", fontsize=12)
+    return fig, out
+
+
+def _on_edges(values: np.ndarray, edges_ns: np.ndarray) -> Histogram:
+    if values.size == 0:
+        return Histogram(np.zeros(len(edges_ns) - 1, np.int64), edges_ns, 0, 0, 0, float("nan"), float("nan"))
+    counts, _ = np.histogram(values, bins=edges_ns)
+    return Histogram(counts.astype(np.int64), edges_ns, int(np.count_nonzero(values < edges_ns[0])),
+                     int(np.count_nonzero(values > edges_ns[-1])), int(values.size),
+                     float(values.min()), float(values.max()))
+
+
+def save(fig: Figure, path: Path) -> Path:
+    """Write ``fig`` as a PNG and return the path."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, format="png")
+    return path
