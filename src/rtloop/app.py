@@ -191,6 +191,9 @@ class App:
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or count < 0:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer ≥ 0")
+        check_period = getattr(runnable, "check_period", None)
+        if callable(check_period):
+            check_period(period_ns)
         config = TaskConfig(name, period_ns, priority, cpu, policy, overrun)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec

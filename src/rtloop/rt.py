@@ -87,6 +87,14 @@ class AbsoluteSleeper:
         _check("clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)", result, returns_errno=True)
 
 
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(signum: int) -> None:
+    """Ask the kernel to send ``signum`` to this process when its parent exits."""
+    _check("prctl(PR_SET_PDEATHSIG)", _libc.prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0))
+
+
 def set_affinity(cpu: int | None) -> None:
     """Pin the calling process to one CPU (``None``: leave as is)."""
     if cpu is None:

@@ -46,7 +46,14 @@ class Runnable(ABC):
     outside the timed loop: allocate, open files and warm up there, never in ``step``.
 
     ``self.tick`` holds the current :class:`TickInfo` while the task runs.
+
+    A runnable whose outputs at t = 0 are not zero (a model's initial conditions) sets
+    ``initial_outputs`` in ``prerun``: other tasks then read those values at T0.
+    A runnable with a ``check_period(period_ns)`` method is told its task's period when
+    it is added to an app (models warn if it differs from their step size).
     """
+
+    initial_outputs: FloatVector | None = None
 
     n_inputs: int = 0
     n_outputs: int = 0

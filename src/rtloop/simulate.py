@@ -25,6 +25,7 @@ from .runnable import TickInfo
 from .status import StatusWord
 from .summary import RunSummary, TaskSummary
 from .supervisor import machine_facts, port_summaries
+from .task import initial_outputs
 from .timing import TimingSamples, task_timing
 from .wiring import TaskWiring
 
@@ -78,7 +79,7 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
             current = name
             tasks[name] = _SimTask(name, app, layout)
             tasks[name].runnable.prerun()
-            tasks[name].wiring.publish_initial(tasks[name].y)
+            tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
         for task in tasks.values():
             task.wiring.stamp_initial(t0_ns)
         phase = "step"

@@ -150,6 +150,8 @@ class Supervisor:
         give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
         while not all(r.finished for r in runs.values()):
             time.sleep(DRAIN_INTERVAL_S)
+            if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
+                self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
             self._drain(layout, runs, timing_csv, signals_csv)
             self._poll(layout, runs)
             if self.failure is not None or self.stop_reason != "duration":

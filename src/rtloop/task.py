@@ -120,6 +120,14 @@ class RealtimeTask:
         return next_cycle, t0_ns + next_cycle * period_ns
 
 
+def initial_outputs(runnable: Runnable, y: np.ndarray) -> np.ndarray:
+    """The outputs a task shows before its first step: ``runnable.initial_outputs`` or zeros."""
+    initial = getattr(runnable, "initial_outputs", None)
+    if initial is not None:
+        y[:] = initial
+    return y
+
+
 def _report(pipe: Any, **message: Any) -> None:
     try:
         pipe.send(message)
@@ -150,6 +158,12 @@ def task_process_main(
     control_segment = Segment.attach(segments.control)
     task_segment = Segment.attach(segments.task)
     control = WordBlock(control_segment, 0, CONTROL_WORDS)
+    # SIGTERM (from a user, or from the kernel when the supervisor dies) stops the whole
+    # app the orderly way: the loop sees the stop flag and postrun still runs.
+    signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
+    rt.die_with_parent(signal.SIGTERM)
+    if os.getppid() == 1:  # the supervisor died before we could ask
+        return
     status = WordBlock(task_segment, 0, STATUS_WORDS)
     timing = RecordRing(task_segment, STATUS_WORDS * 8)
     status[StatusWord.PID] = os.getpid()
@@ -166,7 +180,7 @@ def task_process_main(
     phase = "prerun"
     try:
         runnable.prerun()
-        wiring.publish_initial(task.y)
+        wiring.publish_initial(initial_outputs(runnable, task.y))
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
         phase = "step"
