@@ -17,7 +17,7 @@ class Primes(Runnable):
     def __init__(self, limit: int = 700) -> None:
         self.limit = limit
 
-    def step(self, u, y) -> None:  # noqa: ANN001
+    def step(self, u, y) -> None:
         count = 0
         for candidate in range(2, self.limit + 1):
             divisor = 2
