@@ -226,7 +226,7 @@ class Monitor:
         pid = status[StatusWord.PID]
         ran = state_value in (TaskState.RUNNING, TaskState.STOPPED, TaskState.FAILED) and status[
             StatusWord.EXEC_LAST_NS] > 0
-        cycles = 5 if ran else 0
+        cycles = status[StatusWord.CYCLE] + 1 if ran else 0
         rate = None
         if tracked.last_cycles is not None and tracked.last_time_s is not None and now_s > tracked.last_time_s:
             rate = (cycles - tracked.last_cycles) / (now_s - tracked.last_time_s)

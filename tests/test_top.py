@@ -1,0 +1,134 @@
+"""``rtloop top``: finds a running app through its registry and shows live task counters."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from rtloop import top
+
+NOOP = '''
+from rtloop import Runnable
+
+
+class Noop(Runnable):
+    """Does nothing, every period."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def step(self, u, y):
+        y[0] = 0.0
+'''
+
+
+def app_toml(name: str) -> str:
+    tasks = "".join(f'\n[tasks.{task}]\nrunnable = "noop_top:Noop"\nperiod_ns = 1_000_000\npriority = {prio}\n'
+                    for task, prio in (("fast", 70), ("slow", 60)))
+    return f'name = "{name}"\n{tasks}'
+
+
+def cycles_in_frame(text: str, task: str) -> int:
+    """The ``cycle`` cell of ``task``'s row in a rendered frame."""
+    lines = text.splitlines()
+    header = next(line for line in lines if "│ task" in line)
+    column = [cell.strip() for cell in header.split("│")].index("cycle")
+    row = next(line for line in lines if line.startswith(f"│ {task} "))
+    return int(row.split("│")[column].strip().replace(",", ""))
+
+
+def frame(app: str, capsys: pytest.CaptureFixture[str]) -> str:
+    assert top.main([app, "--once", "--interval", "0.2"]) == 0
+    return capsys.readouterr().out
+
+
+@pytest.fixture
+def running_app(tmp_path: Path):
+    name = f"toptest{os.getpid()}"
+    (tmp_path / "noop_top.py").write_text(NOOP)
+    (tmp_path / "app.toml").write_text(app_toml(name))
+    log = tmp_path / "run.log"
+    with log.open("w") as output:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "5",
+             "--out", str(tmp_path / "out"), "--quiet"],
+            stdout=output, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + 15
+        monitor = top.Monitor(name)
+        while True:
+            views = [v for v in monitor.snapshot() if v.pid == process.pid]
+            if views and len(views[0].tasks) == 2 and all(t.cycles > 0 for t in views[0].tasks):
+                break
+            if process.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"app did not start running (exit {process.poll()}): {log.read_text()}")
+            time.sleep(0.05)
+        yield name, process
+    finally:
+        process.terminate()
+        process.wait(timeout=20)
+
+
+@pytest.mark.slow
+def test_top_once_shows_every_task_counting(running_app, capsys: pytest.CaptureFixture[str]) -> None:
+    name, process = running_app
+    first = frame(name, capsys)
+    time.sleep(0.3)
+    second = frame(name, capsys)
+    assert f"{name}  (supervisor pid {process.pid})" in first
+    for task in ("fast", "slow"):
+        before, after = cycles_in_frame(first, task), cycles_in_frame(second, task)
+        assert 0 < before < after, (task, before, after)
+    assert "lat max" in second and "n/a" in second  # the note on the running maximum; GC not readable
+
+    monitor = top.Monitor(name)
+    (view,) = monitor.snapshot()
+    monitor.poll_for(0.3)
+    (later,) = monitor.snapshot()
+    for task, again in zip(view.tasks, later.tasks, strict=True):
+        assert again.cycles > task.cycles
+        assert again.cycles_per_s == pytest.approx(1000, rel=0.3)  # 1 kHz
+        assert again.pid > 0 and again.pid != process.pid
+        assert again.latency_max_ns >= again.latency_now_ns
+        assert again.cpu_percent is not None and again.minflt is not None
+        assert again.nonvoluntary_ctxt_switches is not None
+        assert again.sched.split(":")[0] in ("fifo", "other")
+
+
+@pytest.mark.slow
+def test_top_forgets_an_app_that_ended(running_app, capsys: pytest.CaptureFixture[str]) -> None:
+    name, process = running_app
+    process.terminate()
+    process.wait(timeout=20)
+    assert top.main([name, "--once", "--interval", "0.1"]) == 1
+    assert "no running rtloop app" in capsys.readouterr().out
+
+
+def test_registry_of_a_dead_supervisor_is_ignored(tmp_path: Path) -> None:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    for app, pid in (("gone", dead.pid), ("here", os.getpid())):
+        registry = {"app": app, "pid": pid, "ports": {}, "tasks": {"t": f"rtloop-{app}-{pid}-00000000-t.task"}}
+        (tmp_path / f"rtloop-{app}-{pid}-00000000-registry.json").write_text(json.dumps(registry))
+    (tmp_path / "rtloop-broken-1-00000000-registry.json").write_text("{")
+    assert [r.app for r in top.find_apps(shm_dir=tmp_path)] == ["here"]
+    assert top.find_apps("gone", shm_dir=tmp_path) == []
+    # its status segment does not exist: the app is listed with no task rows, not an error
+    (view,) = top.Monitor(shm_dir=tmp_path).snapshot()
+    assert view.app == "here" and view.tasks == []
+
+
+def test_read_proc_of_this_process() -> None:
+    stat = top.read_proc(os.getpid())
+    assert stat is not None
+    assert stat.policy in top.SCHED_NAMES.values()
+    assert stat.cpu_ticks >= 0 and stat.minflt > 0
+    assert stat.last_cpu in os.sched_getaffinity(0) or stat.last_cpu >= 0
+    assert top.read_proc(2**22 + 12345) is None
