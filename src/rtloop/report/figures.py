@@ -62,6 +62,11 @@ def _mark_extreme(ax: Axes, hist: Histogram, which: str, color: str = MAX_COLOR)
             bbox={"facecolor": "white", "edgecolor": color, "alpha": 0.9, "boxstyle": "round,pad=0.3"})
 
 
+def _headroom(ax: Axes, highest: int) -> None:
+    """Log axis from below 1 to well above the highest bar: room for the legend and notes."""
+    ax.set_ylim(0.5, max(highest, 1) * 40)
+
+
 def _no_data(ax: Axes, title: str) -> None:
     ax.set_title(title)
     ax.text(0.5, 0.5, "no samples", transform=ax.transAxes, ha="center", va="center", color="gray")
@@ -93,6 +98,7 @@ def draw_histogram(
     _mark_extreme(ax, hist, "max")
     if mark_min:
         _mark_extreme(ax, hist, "min", color="tab:purple")
+    _headroom(ax, int(hist.counts.max()))
     ax.set_title(title, fontsize=10)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("cycles (log)")
@@ -211,6 +217,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
         beyond = [f"{label}: {h.above} above" for (label, _), h in zip(runs, out[key], strict=True) if h.above]
         ax.set_title(f"{key} — dash-dot lines: each run's max" + (f"\n({', '.join(beyond)} the axis)"
                                                                   if beyond else ""), fontsize=10)
+        _headroom(ax, max(int(h.counts.max()) if h.counts.size else 0 for h in out[key]))
         ax.set_xlabel(xlabel)
         ax.set_ylabel("cycles (log)")
         ax.grid(True, alpha=0.3)

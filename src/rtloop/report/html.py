@@ -75,6 +75,16 @@ METRICS: tuple[tuple[str, Any, bool], ...] = (
 )
 
 
+RUN_FACTS: tuple[tuple[str, Any], ...] = (
+    ("mode", lambda r: r.summary.get("mode")),
+    ("kernel", lambda r: (r.summary.get("machine") or {}).get("kernel")),
+    ("preemption", lambda r: (r.summary.get("machine") or {}).get("preemption")),
+    ("isolated cpus", lambda r: (r.summary.get("machine") or {}).get("isolated_cpus")),
+    ("stopped by", lambda r: r.summary.get("stopped_by")),
+    ("failure", lambda r: (r.failure or {}).get("reason", "none")),
+)
+
+
 def _bad(value: str, flag: bool) -> str:
     return "bad" if flag and value not in ("0", "–") else ""
 
@@ -93,7 +103,9 @@ def summary_table(run: Run) -> str:
 def comparison_table(runs: Sequence[Run]) -> str:
     """One column per run, one row per (task, metric): the runs side by side."""
     head = _row(["task / metric", *(escape(r.label) for r in runs)], header=True)
-    rows = []
+    rows = [f'<tr><th class="name" colspan="{len(runs) + 1}">run</th></tr>']
+    for label, read in RUN_FACTS:
+        rows.append(_row([label, *(escape(_plain(read(run))) for run in runs)]))
     tasks = list(dict.fromkeys(name for run in runs for name in run.tasks))
     for name in tasks:
         rows.append(f'<tr><th class="name" colspan="{len(runs) + 1}">{escape(name)}</th></tr>')
