@@ -20,7 +20,7 @@ from . import rt
 from .app import App
 from .errors import AppError, TaskFailed
 from .layout import RECORD_QUEUE_CAPACITY, AppLayout
-from .record.csvfiles import SignalsCsv, TimingCsv
+from .record.recorder import Recorder
 from .runnable import TickInfo
 from .status import StatusWord
 from .summary import RunSummary, TaskSummary
@@ -42,7 +42,8 @@ class _SimTask:
         self.runnable.tick = self.tick
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
-        self.records: list[tuple[int, int, int, int]] = []
+        self.records: list[tuple[int, int, int, int]] = []  # since the last drain
+        self.drained: list[np.ndarray] = []
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
@@ -59,16 +60,10 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
     app.validate()
     if not duration_s > 0:
         raise AppError(f"duration must be > 0 seconds, got {duration_s}")
-    out.mkdir(parents=True, exist_ok=True)
     layout = AppLayout.create(app)
-    timing_csv = TimingCsv(out / "timing.csv")
-    signals_csv = (
-        SignalsCsv(out / "signals.csv", app.recorded,
-                   {n: t.config.period_ns for n, t in app.tasks.items()},
-                   {n: t.runnable.n_outputs for n, t in app.tasks.items()})
-        if app.recorded else None
-    )
+    recorder = Recorder(app, out)
     t0_ns = SIMULATION_T0_NS
+    recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
     tasks: dict[str, _SimTask] = {}
     failure: TaskFailed | None = None
@@ -94,7 +89,7 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
             heapq.heappush(releases, (release_ns + tasks[current].period_ns, rank, cycle + 1, current))
             steps += 1
             if steps % (RECORD_QUEUE_CAPACITY // 2) == 0:
-                _drain(tasks, signals_csv)
+                _drain(tasks, recorder)
         phase = "postrun"
         for name, task in tasks.items():
             current = name
@@ -105,13 +100,11 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
         failure = TaskFailed(current, cycle if phase == "step" else None, phase,
                              f"{type(error).__name__}: {error}", traceback.format_exc())
     finally:
-        _drain(tasks, signals_csv)
-        for name, task in tasks.items():
-            timing_csv.append(name, np.array(task.records, dtype=np.int64).reshape(-1, 4))
-        timing_csv.close()
-        if signals_csv is not None:
-            signals_csv.close()
+        _drain(tasks, recorder)
+        recorder.close()
         summary = _summary(app, tasks, layout, duration_s, trim, failure)
+        if recorder.mcap_note:
+            summary.notes.append(recorder.mcap_note)
         summary.write(out / "summary.json")
         layout.close()
     if failure is not None:
@@ -119,20 +112,25 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
     return summary
 
 
-def _drain(tasks: dict[str, _SimTask], signals_csv: SignalsCsv | None) -> None:
+def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
+    """Hand what the tasks recorded since the last drain to the recorder."""
     for name, task in tasks.items():
-        if task.handles.record is not None and signals_csv is not None:
-            ticks, rows = task.handles.record.drain()
-            signals_csv.add(name, ticks, rows)
-    if signals_csv is not None:
-        signals_csv.flush()
+        if task.records:
+            records = np.array(task.records, dtype=np.int64).reshape(-1, 4)
+            task.drained.append(records)
+            recorder.add_timing(name, records)
+            task.records.clear()
+        if task.handles.record is not None:
+            recorder.add_signals(name, *task.handles.record.drain())
+    recorder.flush()
 
 
 def _summary(app: App, tasks: dict[str, _SimTask], layout: AppLayout, duration_s: float, trim: int,
              failure: TaskFailed | None) -> RunSummary:
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
-        records = np.array(tasks[name].records if name in tasks else [], dtype=np.int64).reshape(-1, 4)
+        drained = tasks[name].drained if name in tasks else []
+        records = np.concatenate(drained) if drained else np.empty((0, 4), np.int64)
         summaries[name] = TaskSummary(
             period_ns=spec.config.period_ns, priority=0, cpu=None, policy="simulated", rt=False,
             rt_reason="offline simulation: logical time, no real-time scheduling",

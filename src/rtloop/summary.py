@@ -95,6 +95,8 @@ class RunSummary:
     """The task failure that stopped the run, if any (task, cycle, phase, reason, traceback)."""
     machine: dict[str, Any] = field(default_factory=dict)
     """Kernel, preemption model, CPUs: what the numbers were measured on."""
+    notes: list[str] = field(default_factory=list)
+    """Anything the reader should know that has no field of its own."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -106,6 +108,7 @@ class RunSummary:
             "stopped_by": self.stopped_by,
             "failure": self.failure,
             "machine": self.machine,
+            "notes": self.notes,
             "tasks": {name: task.to_json() for name, task in self.tasks.items()},
             "ports": {name: port.to_json() for name, port in self.ports.items()},
         }

@@ -25,7 +25,7 @@ from . import rt
 from .app import App
 from .errors import AppError, TaskFailed
 from .layout import AppLayout
-from .record.csvfiles import SignalsCsv, TimingCsv
+from .record.recorder import Recorder
 from .status import ControlWord, StatusWord, TaskState
 from .summary import PortSummary, RunSummary, TaskSummary
 from .task import task_process_main
@@ -65,8 +65,7 @@ class Supervisor:
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
         layout = AppLayout.create(self.app)
-        timing_csv = TimingCsv(self.out / "timing.csv")
-        signals_csv = self._signals_writer()
+        recorder = Recorder(self.app, self.out)
         runs: dict[str, _TaskRun] = {}
         previous_handlers = self._install_signal_handlers()
         self.dma_latency = rt.CpuDmaLatency().__enter__()
@@ -74,12 +73,12 @@ class Supervisor:
             runs = self._spawn(layout)
             self._wait_until_ready(layout, runs)
             if self.failure is None and self.stop_reason == "duration":
-                self._start_epoch(layout)
-                self._drain_until_done(layout, runs, timing_csv, signals_csv)
+                self._start_epoch(layout, recorder)
+                self._drain_until_done(layout, runs, recorder)
             else:
                 layout.control[ControlWord.STOP] = 1
             self._join(layout, runs)
-            self._drain(layout, runs, timing_csv, signals_csv)
+            self._drain(layout, runs, recorder)
         finally:
             self.dma_latency.__exit__()
             self._restore_signal_handlers(previous_handlers)
@@ -87,25 +86,13 @@ class Supervisor:
             for task_run in runs.values():
                 if task_run.process.is_alive():
                     task_run.process.kill()
-            timing_csv.close()
-            if signals_csv is not None:
-                signals_csv.close()
-            summary = self._summary(layout, runs, capabilities)
+            recorder.close()
+            summary = self._summary(layout, runs, capabilities, recorder)
             summary.write(self.out / "summary.json")
             layout.close()
         if self.failure is not None:
             raise self.failure
         return summary
-
-    def _signals_writer(self) -> SignalsCsv | None:
-        if not self.app.recorded:
-            return None
-        return SignalsCsv(
-            self.out / "signals.csv",
-            self.app.recorded,
-            {n: t.config.period_ns for n, t in self.app.tasks.items()},
-            {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
-        )
 
     def _spawn(self, layout: AppLayout) -> dict[str, _TaskRun]:
         # spawn, not fork: a forked child of a threaded parent can inherit held locks.
@@ -138,21 +125,22 @@ class Supervisor:
                 return
             time.sleep(0.005)
 
-    def _start_epoch(self, layout: AppLayout) -> None:
-        self.t0_ns = rt.now_ns() + START_MARGIN_NS
+    def _start_epoch(self, layout: AppLayout, recorder: Recorder) -> None:
+        wall_now_ns, now_ns = time.time_ns(), rt.now_ns()
+        self.t0_ns = now_ns + START_MARGIN_NS
         self.end_ns = self.t0_ns + round(self.duration_s * 1e9)
-        self.wall_t0 = time.time() + START_MARGIN_NS / 1e9
+        self.wall_t0 = (wall_now_ns + START_MARGIN_NS) / 1e9
+        recorder.start(self.t0_ns, wall_now_ns + START_MARGIN_NS)
         layout.control[ControlWord.END_NS] = self.end_ns
         layout.control[ControlWord.T0_NS] = self.t0_ns  # last: tasks start when they see it
 
-    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], timing_csv: TimingCsv,
-                          signals_csv: SignalsCsv | None) -> None:
+    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
         give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
         while not all(r.finished for r in runs.values()):
             time.sleep(DRAIN_INTERVAL_S)
             if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
                 self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
-            self._drain(layout, runs, timing_csv, signals_csv)
+            self._drain(layout, runs, recorder)
             self._poll(layout, runs)
             if self.failure is not None or self.stop_reason != "duration":
                 layout.control[ControlWord.STOP] = 1
@@ -184,20 +172,17 @@ class Supervisor:
         self._poll(layout, runs)
 
     # --- draining and watching ---------------------------------------------------------------
-    def _drain(self, layout: AppLayout, runs: dict[str, _TaskRun], timing_csv: TimingCsv,
-               signals_csv: SignalsCsv | None) -> None:
+    @staticmethod
+    def _drain(layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
         for name, task_run in runs.items():
             handles = layout.tasks[name]
             records = handles.timing.drain()
             if len(records):
                 task_run.records.append(records)
-                timing_csv.append(name, records)
-            if handles.record is not None and signals_csv is not None:
-                ticks, rows = handles.record.drain()
-                signals_csv.add(name, ticks, rows)
-        timing_csv.flush()
-        if signals_csv is not None:
-            signals_csv.flush()
+                recorder.add_timing(name, records)
+            if handles.record is not None:
+                recorder.add_signals(name, *handles.record.drain())
+        recorder.flush()
 
     def _poll(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
         """Read task messages; notice failures and dead processes."""
@@ -262,7 +247,8 @@ class Supervisor:
             signal.signal(signum, handler)
 
     # --- results --------------------------------------------------------------------------------
-    def _summary(self, layout: AppLayout, runs: dict[str, _TaskRun], capabilities: rt.Capabilities) -> RunSummary:
+    def _summary(self, layout: AppLayout, runs: dict[str, _TaskRun], capabilities: rt.Capabilities,
+                 recorder: Recorder) -> RunSummary:
         tasks: dict[str, TaskSummary] = {}
         for name, spec in self.app.tasks.items():
             task_run = runs.get(name)
@@ -293,6 +279,7 @@ class Supervisor:
             stopped_by=self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency.held},
+            notes=[recorder.mcap_note] if recorder.mcap_note else [],
         )
 
 

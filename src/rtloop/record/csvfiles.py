@@ -74,34 +74,44 @@ class SignalsCsv:
         self.pending[task].extend(zip((ticks * period).tolist(), rows, strict=True))
         self.delivered_ns[task] = int(ticks[-1]) * period
 
-    def flush(self, final: bool = False) -> None:
-        """Write every row whose time all recorded tasks have reached."""
+    def flush(self, final: bool = False) -> tuple[list[int], list[list[float]]]:
+        """Write every row whose time all recorded tasks have reached; return those rows.
+
+        Returns (times since T0 in ns, values) of the rows written, NaN where a signal
+        has no value yet, for other recorders (run.mcap) to take the same rows.
+        """
         if not self.tasks:
-            return
+            return [], []
         horizon = max(self.delivered_ns.values()) if final else min(self.delivered_ns.values())
         streams = [[(t, task, row) for t, row in self.pending[task] if t <= horizon] for task in self.tasks]
         for task in self.tasks:
             self.pending[task] = [(t, row) for t, row in self.pending[task] if t > horizon]
-        out: list[str] = []
+        times: list[int] = []
+        rows: list[list[float]] = []
         current_t: int | None = None
         for t_ns, task, row in heapq.merge(*streams, key=lambda item: item[0]):
             if current_t is not None and t_ns != current_t:
-                out.append(self._line(current_t))
+                times.append(current_t)
+                rows.append(self._row())
             current_t = t_ns
             self.held[task] = row
         if current_t is not None:
-            out.append(self._line(current_t))
-        self.file.writelines(out)
-        self.rows_written += len(out)
+            times.append(current_t)
+            rows.append(self._row())
+        self.file.writelines(_csv_line(t, row) for t, row in zip(times, rows, strict=True))
+        self.rows_written += len(rows)
         self.file.flush()
+        return times, rows
 
-    def _line(self, t_ns: int) -> str:
-        cells = [repr(t_ns / 1e9)]
-        for task, index in self.columns:
-            row = self.held[task]
-            cells.append("" if row is None else repr(float(row[index])))
-        return ",".join(cells) + "\n"
+    def _row(self) -> list[float]:
+        nan = float("nan")
+        return [nan if (held := self.held[task]) is None else float(held[index]) for task, index in self.columns]
 
     def close(self) -> None:
         self.flush(final=True)
         self.file.close()
+
+
+def _csv_line(t_ns: int, row: list[float]) -> str:
+    cells = [repr(t_ns / 1e9)] + ["" if value != value else repr(value) for value in row]
+    return ",".join(cells) + "\n"

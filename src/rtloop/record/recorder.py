@@ -1,0 +1,80 @@
+"""All of a run's recordings behind one object, shared by ``run`` and ``simulate``.
+
+timing.csv and signals.csv are always written; run.mcap too when the ``mcap`` packages
+are installed (``pip install 'rtloop[ros]'``), else the summary says why it is missing.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..app import App
+from .csvfiles import SignalsCsv, TimingCsv
+
+
+class Recorder:
+    def __init__(self, app: App, out: Path) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        self.out = out
+        self.timing = TimingCsv(out / "timing.csv")
+        self.signals = (
+            SignalsCsv(out / "signals.csv", app.recorded,
+                       {n: t.config.period_ns for n, t in app.tasks.items()},
+                       {n: t.runnable.n_outputs for n, t in app.tasks.items()})
+            if app.recorded else None
+        )
+        self.mcap = None
+        self.mcap_note = ""
+        self.app = app
+
+    def start(self, t0_ns: int, wall_t0_ns: int) -> None:
+        """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
+        try:
+            from .mcap_writer import RunMcapWriter
+        except ImportError as error:
+            self.mcap_note = f"run.mcap not written: {error} (pip install 'rtloop[ros]')"
+            return
+        names = self.signals.names if self.signals is not None else []
+        self.mcap = RunMcapWriter(self.out / "run.mcap", names, t0_ns, wall_t0_ns,
+                                  metadata={"app": self.app.name, "source": self.app.source})
+
+    def add_timing(self, task: str, records: np.ndarray) -> None:
+        if len(records):
+            self.timing.append(task, records)
+            if self.mcap is not None:
+                self.mcap.add_timing(task, records)
+
+    def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
+        if self.signals is not None:
+            self.signals.add(task, ticks, rows)
+
+    def flush(self, final: bool = False) -> None:
+        self.timing.flush()
+        if self.signals is not None:
+            times, rows = self.signals.flush(final=final)
+            if self.mcap is not None and times:
+                self.mcap.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
+
+    def close(self) -> None:
+        self.flush(final=True)
+        self.timing.close()
+        if self.signals is not None:
+            self.signals.file.close()  # rows were flushed just above
+        if self.mcap is not None:
+            self.mcap.close()
+        give_to_invoking_user(self.out)
+
+
+def give_to_invoking_user(out: Path) -> None:
+    """Under sudo, hand the artifacts to the user who ran sudo, so they can open and report them."""
+    uid, gid = os.environ.get("SUDO_UID"), os.environ.get("SUDO_GID")
+    if os.geteuid() != 0 or not uid or not gid:
+        return
+    for path in [out, *out.iterdir()]:
+        try:
+            os.chown(path, int(uid), int(gid))
+        except OSError:
+            pass
