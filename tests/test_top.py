@@ -132,3 +132,20 @@ def test_read_proc_of_this_process() -> None:
     assert stat.cpu_ticks >= 0 and stat.minflt > 0
     assert stat.last_cpu in os.sched_getaffinity(0) or stat.last_cpu >= 0
     assert top.read_proc(2**22 + 12345) is None
+
+
+def test_narrow_terminal_keeps_the_timing_columns() -> None:
+    from rich.console import Console
+
+    row = top.TaskView(name="controller", state="RUNNING", pid=4242, cpu="1 (on 1)", sched="fifo:80", cycles=123_456,
+                       cycles_per_s=1000.0, overruns=0, deadline_misses=2, stale_reads=0, latency_now_ns=21_000,
+                       latency_max_ns=180_000, exec_last_ns=95_000, cpu_percent=11.5, nonvoluntary_ctxt_switches=3,
+                       minflt=25_000, majflt=0)
+    views = [top.AppView("jiwy", 1, [row])]
+    for width, expect_gc in ((80, False), (250, True)):
+        console = Console(width=width, record=True)
+        console.print(top.render(views, width))
+        text = console.export_text()
+        assert max(len(line) for line in text.splitlines()) <= width
+        assert "123,456" in text and "180.0" in text and "lat max µs" in text
+        assert ("│ GC" in text or " GC │" in text) is expect_gc

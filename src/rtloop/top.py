@@ -273,39 +273,64 @@ def _num(value: float | int | None, fmt: str = "{:,}") -> str:
     return "n/a" if value is None else fmt.format(value)
 
 
-def render(views: list[AppView]) -> RenderableType:
-    """The frame: one table per app, and the note about the latency maximum."""
+# Columns dropped first when the terminal is narrow (most important last).
+DROP_ORDER = ("GC", "majflt", "state", "cyc/s", "minflt", "PID", "invol cs", "stale", "CPU", "exec µs", "%CPU")
+
+
+def _row_cells(t: TaskView) -> dict[str, str | Text]:
+    bad = "bold red"
+    return {
+        "task": t.name, "state": Text(t.state, style="green" if t.state == "RUNNING" else "yellow"),
+        "PID": str(t.pid), "CPU": t.cpu,
+        "sched": Text(t.sched, style="" if t.sched.startswith(("fifo", "rr", "deadline")) else bad),
+        "cycle": f"{t.cycles:,}", "cyc/s": _num(t.cycles_per_s, "{:,.0f}"),
+        "overruns": Text(str(t.overruns), style=bad if t.overruns else ""),
+        "misses": Text(str(t.deadline_misses), style=bad if t.deadline_misses else ""),
+        "stale": Text(str(t.stale_reads), style=bad if t.stale_reads else ""),
+        "lat now µs": f"{t.latency_now_ns / 1e3:,.1f}", "lat max µs": f"{t.latency_max_ns / 1e3:,.1f}",
+        "exec µs": f"{t.exec_last_ns / 1e3:,.1f}", "%CPU": _num(t.cpu_percent, "{:.1f}"),
+        "invol cs": _num(t.nonvoluntary_ctxt_switches), "minflt": _num(t.minflt),
+        "majflt": Text(_num(t.majflt), style=bad if t.majflt else ""), "GC": t.gc_collections,
+    }
+
+
+def _fitting_columns(rows: list[dict[str, str | Text]], width: int) -> list[str]:
+    """Every column if they fit in ``width``, else without the least important ones."""
+    def needed(column: str) -> int:
+        return max([len(column), *(len(str(row[column])) for row in rows)]) + 3
+
+    columns = list(COLUMNS)
+    for victim in DROP_ORDER:
+        if sum(needed(c) for c in columns) + 1 <= width:
+            break
+        columns.remove(victim)
+    return columns
+
+
+def render(views: list[AppView], width: int = 250) -> RenderableType:
+    """The frame: one table per app (columns that fit in ``width``) and the notes."""
     if not views:
         return Text("no running rtloop app found (looked for registries in /dev/shm)", style="yellow")
     tables: list[RenderableType] = []
     for view in views:
+        rows = [_row_cells(t) for t in view.tasks]
+        columns = _fitting_columns(rows, width)
         table = Table(title=f"{view.app}  (supervisor pid {view.pid})", box=box.SQUARE, title_justify="left")
-        for column in COLUMNS:
+        for column in columns:
             table.add_column(column, justify="left" if column in ("task", "state", "CPU", "sched") else "right",
                              no_wrap=True)
-        for t in view.tasks:
-            bad = "bold red"
-            table.add_row(
-                t.name, Text(t.state, style="green" if t.state == "RUNNING" else "yellow"), str(t.pid), t.cpu,
-                Text(t.sched, style="" if t.sched.startswith(("fifo", "rr", "deadline")) else bad),
-                f"{t.cycles:,}", _num(t.cycles_per_s, "{:,.0f}"),
-                Text(str(t.overruns), style=bad if t.overruns else ""),
-                Text(str(t.deadline_misses), style=bad if t.deadline_misses else ""),
-                Text(str(t.stale_reads), style=bad if t.stale_reads else ""),
-                f"{t.latency_now_ns / 1e3:,.1f}", f"{t.latency_max_ns / 1e3:,.1f}", f"{t.exec_last_ns / 1e3:,.1f}",
-                _num(t.cpu_percent, "{:.1f}"), _num(t.nonvoluntary_ctxt_switches), _num(t.minflt),
-                Text(_num(t.majflt), style=bad if t.majflt else ""), t.gc_collections,
-            )
+        for row in rows:
+            table.add_row(*(row[c] for c in columns))
         tables.append(table)
     tables.append(Text(LATENCY_MAX_NOTE + ".\nGC: not readable from outside a task process (rtloop disables "
                        "collection in the loop). cycle: release index (skipped releases included).", style="dim"))
     return Group(*tables)
 
 
-def frames(monitor: Monitor, interval_s: float) -> Iterator[RenderableType]:
-    """Endless frames, ``interval_s`` apart, polling in between."""
+def frames(monitor: Monitor, interval_s: float, console: Console) -> Iterator[RenderableType]:
+    """Endless frames, ``interval_s`` apart, polling in between; fitted to the console's current width."""
     while True:
-        yield render(monitor.snapshot())
+        yield render(monitor.snapshot(), console.width)
         monitor.poll_for(interval_s)
 
 
@@ -330,11 +355,11 @@ def main(argv: list[str] | None = None) -> int:
         monitor.snapshot()  # first look: starts the %CPU, cycles/s and maximum measurements
         monitor.poll_for(min(args.interval, 0.5))
         views = monitor.snapshot()
-        console.print(render(views))
+        console.print(render(views, console.width))
         return 0 if views else 1
     try:
-        with Live(render(monitor.snapshot()), console=console, auto_refresh=False) as live:
-            for frame in frames(monitor, args.interval):
+        with Live(render(monitor.snapshot(), console.width), console=console, auto_refresh=False) as live:
+            for frame in frames(monitor, args.interval, console):
                 live.update(frame, refresh=True)
     except KeyboardInterrupt:
         pass
