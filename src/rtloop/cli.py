@@ -12,6 +12,14 @@ from .summary import RunSummary
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
 ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
+# Commands with parsers of their own: `rtloop NAME ARGS...` is `python -m rtloop.MODULE ARGS...`.
+DELEGATED = {
+    "report": ("rtloop.report.build", "figures and report.html of one or more runs (compare several)"),
+    "top": ("rtloop.top", "live view of running apps: cycles, latency, misses, CPU, page faults"),
+    "doctor": ("rtloop.doctor", "is this machine ready for real time? how to fix what is not"),
+    "bridge": ("rtloop.ros.bridge", "ROS 2 listener/talker nodes between topics and an app's ports"),
+    "bench": ("rtloop.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
+}
 
 
 def _parse_feed(text: str) -> tuple[str, Path]:
@@ -53,8 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     read.add_argument("--count", type=int, default=10, help="rows to print, then exit (default 10)")
     port_commands.add_parser("list", help="list running apps and their ports")
 
-    doctor = commands.add_parser("doctor", help="is this machine ready for real time? how to fix it")
-    doctor.add_argument("--json", action="store_true", help="machine-readable output")
+    for name, (_module, text) in DELEGATED.items():
+        commands.add_parser(name, help=text, add_help=False)
 
     model = commands.add_parser("model", help="inspect or build a 20-sim model or an FMU")
     model_commands = model.add_subparsers(dest="model_command", required=True)
@@ -64,6 +72,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in DELEGATED:
+        import importlib
+
+        module = importlib.import_module(DELEGATED[argv[0]][0])
+        try:
+            return int(module.main(argv[1:]) or 0)
+        except RtloopError as error:
+            print(f"rtloop {argv[0]}: {error}", file=sys.stderr)
+            return EXIT_BAD_INPUT if isinstance(error, ValueError | LookupError) else EXIT_TASK_FAILED
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
@@ -90,10 +108,6 @@ def _dispatch(args: argparse.Namespace) -> int:
         from .ports import cli_port
 
         return cli_port(args)
-    if args.command == "doctor":
-        from .doctor import main as doctor_main
-
-        return doctor_main(["--json"] if args.json else [])
     if args.command == "model":
         from . import models
 
