@@ -135,6 +135,31 @@ class PortSpec:
     feed: Path | None = None
 
 
+ROS_TYPES = ("std_msgs/msg/Float64MultiArray", "std_msgs/msg/Float64", "sensor_msgs/msg/JointState")
+
+
+@dataclass(frozen=True, slots=True)
+class RosTopic:
+    """A ROS 2 topic bridged to a port, in a non-real-time bridge process started with the app."""
+
+    direction: Literal["publish", "subscribe"]
+    """``publish``: an output port's values go out on the topic; ``subscribe``: the topic feeds an input port."""
+    topic: str
+    """ROS 2 topic name, e.g. ``/jiwy/angles`` (on DDS: ``rt/jiwy/angles``)."""
+    port: str
+    """The app port it is attached to."""
+    msg_type: str = "std_msgs/msg/Float64MultiArray"
+    """One of :data:`ROS_TYPES`."""
+    qos: str = "sensor"
+    """``sensor`` (best effort, keep last) or ``reliable``."""
+    joint_names: tuple[str, ...] = ()
+    """For ``sensor_msgs/msg/JointState``: one name per value."""
+    every: int = 1
+    """Publish every N-th tick only (a 1 kHz task need not flood rviz)."""
+    domain_id: int | None = None
+    """DDS domain; ``None``: ``ROS_DOMAIN_ID`` or 0."""
+
+
 @dataclass
 class App:
     """A set of periodic tasks and their wiring. Build it, then ``run`` or ``simulate``."""
@@ -144,6 +169,7 @@ class App:
     connections: list[Connection] = field(default_factory=list)
     ports: dict[str, PortSpec] = field(default_factory=dict)
     recorded: list[SignalRef] = field(default_factory=list)
+    ros_topics: list[RosTopic] = field(default_factory=list)
     source: str = "<python>"
     """Where the app was described (an app file's path, for messages)."""
 
@@ -289,6 +315,56 @@ class App:
         spec = self.ports[port]
         self.ports[port] = PortSpec(spec.name, spec.direction, spec.signal, spec.initial,
                                     spec.allow_nonfinite, spec.capacity, Path(csv_path))
+
+    def ros_publish(self, topic: str, *, source: SignalRef | SignalVector | None = None, port: str | None = None,
+                    msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "sensor",
+                    joint_names: list[str] | tuple[str, ...] = (), every: int = 1,
+                    domain_id: int | None = None) -> RosTopic:
+        """Publish task outputs on a ROS 2 topic while the app runs.
+
+        Give ``source=`` (a signal: a port of its own is made for the bridge) or ``port=``
+        (an existing output port, which the bridge then reads exclusively).
+        """
+        if (source is None) == (port is None):
+            raise AppError(f"ros publish {topic!r}: give exactly one of source= (a signal) or port= (an output port)")
+        if source is not None:
+            port = "ros_" + re.sub(r"\W", "_", topic.strip("/"))
+            self.port(port, source=source)
+        assert port is not None
+        return self._ros("publish", topic, port, msg_type, qos, tuple(joint_names), every, domain_id)
+
+    def ros_subscribe(self, topic: str, *, port: str, msg_type: str = "std_msgs/msg/Float64MultiArray",
+                      qos: str = "reliable", domain_id: int | None = None) -> RosTopic:
+        """Feed an input port from a ROS 2 topic while the app runs (bad messages are rejected and counted)."""
+        return self._ros("subscribe", topic, port, msg_type, qos, (), 1, domain_id)
+
+    def _ros(self, direction: Literal["publish", "subscribe"], topic: str, port: str, msg_type: str, qos: str,
+             joint_names: tuple[str, ...], every: int, domain_id: int | None) -> RosTopic:
+        what = f"ros {direction} {topic!r}"
+        wanted = "out" if direction == "publish" else "in"
+        spec = self.ports.get(port)
+        if spec is None or spec.direction != wanted:
+            candidates = sorted(n for n, p in self.ports.items() if p.direction == wanted)
+            kind = "output" if wanted == "out" else "input"
+            raise AppError(f"{what}: no {kind} port {port!r}; {kind} ports are {candidates}")
+        if not re.fullmatch(r"/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*", topic):
+            raise AppError(f"{what}: not a valid ROS 2 topic name (e.g. /jiwy/angles)")
+        if msg_type not in ROS_TYPES:
+            raise AppError(f"{what}: type {msg_type!r}; expected one of {list(ROS_TYPES)}")
+        if msg_type == "std_msgs/msg/Float64" and spec.signal.size != 1:
+            raise ConnectionSizeError(f"{what}: std_msgs/msg/Float64 carries 1 value, port {port!r} has "
+                                      f"{spec.signal.size}")
+        if joint_names and len(joint_names) != spec.signal.size:
+            raise ConnectionSizeError(f"{what}: {len(joint_names)} joint names for {spec.signal.size} values")
+        if qos not in ("sensor", "reliable"):
+            raise AppError(f"{what}: qos {qos!r}; expected 'sensor' or 'reliable'")
+        if not isinstance(every, int) or every < 1:
+            raise AppError(f"{what}: every must be an integer ≥ 1")
+        if any(t.topic.strip("/") == topic.strip("/") and t.direction == direction for t in self.ros_topics):
+            raise AppError(f"{what}: defined twice")
+        ros_topic = RosTopic(direction, topic, port, msg_type, qos, joint_names, every, domain_id)
+        self.ros_topics.append(ros_topic)
+        return ros_topic
 
     def record(self, *signals: SignalRef | SignalVector) -> None:
         """Record these signals every tick into ``signals.csv`` and ``run.mcap``."""

@@ -35,7 +35,14 @@ from .app import App, parse_signal
 from .errors import AppError, AppFileError
 from .runnable import Runnable
 
-TOP_KEYS = {"name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict}
+TOP_KEYS = {
+    "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
+}
+ROS_KEYS = {"domain_id": int, "publish": list, "subscribe": list}
+ROS_TOPIC_KEYS = {
+    "topic": str, "port": str, "source": str, "type": str, "qos": str, "joint_names": list, "every": int,
+    "description": str,
+}
 TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
     "cpu": int, "policy": str, "overrun": str, "description": str,
@@ -136,6 +143,8 @@ def load_app(path: str | Path) -> App:
         except (AppError, TypeError, ValueError) as error:
             raise AppFileError(shown, where, str(error)) from None
 
+    _load_ros(shown, data.get("ros", {}), app)
+
     record = data.get("record", {})
     _check_keys(shown, "record", record, RECORD_KEYS)
     for index, text in enumerate(record.get("signals", [])):
@@ -144,6 +153,38 @@ def load_app(path: str | Path) -> App:
         except AppError as error:
             raise AppFileError(shown, f"record.signals[{index}]", str(error)) from None
     return app
+
+
+def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
+    """``[ros]``: ``domain_id`` and ``[[ros.publish]]`` / ``[[ros.subscribe]]`` tables."""
+    _check_keys(shown, "ros", ros, ROS_KEYS)
+    domain_id = ros.get("domain_id")
+    for direction in ("publish", "subscribe"):
+        for index, table in enumerate(ros.get(direction, [])):
+            where = f"ros.{direction}[{index}]"
+            if not isinstance(table, dict):
+                raise AppFileError(shown, where, f"expected a table [[ros.{direction}]]")
+            _check_keys(shown, where, table, ROS_TOPIC_KEYS)
+            if "topic" not in table:
+                raise AppFileError(shown, f"{where}.topic", "missing")
+            if direction == "subscribe" and "port" not in table:
+                raise AppFileError(shown, f"{where}.port", "missing: the input port the topic feeds")
+            if direction == "subscribe" and ("joint_names" in table or "every" in table):
+                raise AppFileError(shown, where, "joint_names and every apply to [[ros.publish]] only")
+            options: dict[str, Any] = {"domain_id": domain_id}
+            if "type" in table:
+                options["msg_type"] = table["type"]
+            if "qos" in table:
+                options["qos"] = table["qos"]
+            try:
+                if direction == "publish":
+                    source = parse_signal(table["source"], app, "source") if "source" in table else None
+                    app.ros_publish(table["topic"], source=source, port=table.get("port"),
+                                    joint_names=table.get("joint_names", ()), every=table.get("every", 1), **options)
+                else:
+                    app.ros_subscribe(table["topic"], port=table["port"], **options)
+            except AppError as error:
+                raise AppFileError(shown, where, str(error)) from None
 
 
 def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path) -> Runnable:

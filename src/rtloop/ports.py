@@ -72,6 +72,10 @@ class RunningApp:
         """The single reader of an output port (held until closed)."""
         return PortReader(self, port, self._port(port, "out"))
 
+    def alive(self) -> bool:
+        """Whether the app's supervisor is still running."""
+        return _pid_alive(self.pid) and self.path.exists()
+
     def task_pids(self) -> dict[str, int]:
         """PID of each task process (0 until it has started)."""
         pids: dict[str, int] = {}
@@ -124,16 +128,22 @@ def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, wh
     return array
 
 
+def app_from_registry(path: Path) -> RunningApp:
+    """The app described by one registry file."""
+    registry = json.loads(path.read_text())
+    return RunningApp(registry["app"], int(registry["pid"]), registry, path)
+
+
 def running_apps() -> list[RunningApp]:
     """Every app whose supervisor is alive, newest first."""
     found: list[RunningApp] = []
     for path in SHM_DIR.glob("rtloop-*-registry.json"):
         try:
-            registry = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
+            app = app_from_registry(path)
+        except (OSError, json.JSONDecodeError, KeyError):
             continue
-        if _pid_alive(int(registry["pid"])):
-            found.append(RunningApp(registry["app"], int(registry["pid"]), registry, path))
+        if _pid_alive(app.pid):
+            found.append(app)
     found.sort(key=lambda app: app.path.stat().st_mtime if app.path.exists() else 0, reverse=True)
     return found
 

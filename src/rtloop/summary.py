@@ -97,6 +97,8 @@ class RunSummary:
     """Kernel, preemption model, CPUs: what the numbers were measured on."""
     notes: list[str] = field(default_factory=list)
     """Anything the reader should know that has no field of its own."""
+    bridges: dict[str, Any] = field(default_factory=dict)
+    """ROS 2 bridge processes: state, messages passed, messages rejected (and why)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -111,6 +113,7 @@ class RunSummary:
             "notes": self.notes,
             "tasks": {name: task.to_json() for name, task in self.tasks.items()},
             "ports": {name: port.to_json() for name, port in self.ports.items()},
+            "bridges": self.bridges,
         }
 
     def write(self, path: Path) -> None:

@@ -23,6 +23,7 @@ import numpy as np
 
 from . import rt
 from .app import App
+from .bridges import Bridges
 from .errors import AppError, TaskFailed
 from .layout import AppLayout
 from .record.recorder import Recorder
@@ -66,6 +67,7 @@ class Supervisor:
         capabilities = rt.probe()
         layout = AppLayout.create(self.app)
         recorder = Recorder(self.app, self.out)
+        self.bridges = Bridges(self.app)
         runs: dict[str, _TaskRun] = {}
         previous_handlers = self._install_signal_handlers()
         self.dma_latency = rt.CpuDmaLatency().__enter__()
@@ -74,12 +76,15 @@ class Supervisor:
             self._wait_until_ready(layout, runs)
             if self.failure is None and self.stop_reason == "duration":
                 self._start_epoch(layout, recorder)
+                assert layout.registry_path is not None
+                self.bridges.start(layout.registry_path)
                 self._drain_until_done(layout, runs, recorder)
             else:
                 layout.control[ControlWord.STOP] = 1
             self._join(layout, runs)
             self._drain(layout, runs, recorder)
         finally:
+            self.bridges.stop()
             self.dma_latency.__exit__()
             self._restore_signal_handlers(previous_handlers)
             layout.control[ControlWord.STOP] = 1
@@ -142,6 +147,7 @@ class Supervisor:
                 self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
             self._drain(layout, runs, recorder)
             self._poll(layout, runs)
+            self.bridges.poll()
             if self.failure is not None or self.stop_reason != "duration":
                 layout.control[ControlWord.STOP] = 1
                 return
@@ -279,7 +285,8 @@ class Supervisor:
             stopped_by=self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency.held},
-            notes=[recorder.mcap_note] if recorder.mcap_note else [],
+            notes=[note for note in (recorder.mcap_note, self.bridges.note) if note],
+            bridges=self.bridges.summary(),
         )
 
 

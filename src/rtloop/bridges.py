@@ -1,0 +1,96 @@
+"""Start and stop the app's ROS 2 bridge processes (non-real-time) alongside a run.
+
+Each ``[[ros.publish]]`` / ``[[ros.subscribe]]`` entry gets a process of its own running
+:func:`rtloop.ros.bridge.bridge_process_main`, attached to the app's ports by the
+registry file. A bridge that fails or is killed never stops the real-time tasks: its
+fate is reported in ``summary.json`` under ``bridges``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import multiprocessing
+import signal
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .app import App, RosTopic
+
+STOP_TIMEOUT_S = 5.0
+
+
+def dds_available() -> str:
+    """'' if a ROS 2 backend can be used here, else why not."""
+    if importlib.util.find_spec("cyclonedds") or importlib.util.find_spec("rclpy"):
+        return ""
+    return "ROS 2 bridges are off: neither cyclonedds nor rclpy is installed (pip install 'rtloop[ros]')"
+
+
+@dataclass
+class _Bridge:
+    topic: RosTopic
+    process: Any
+    pipe: Any
+    stats: dict[str, Any] = field(default_factory=dict)
+    error: str = ""
+
+
+class Bridges:
+    """The bridge processes of one run."""
+
+    def __init__(self, app: App) -> None:
+        self.app = app
+        self.running: list[_Bridge] = []
+        self.note = dds_available() if app.ros_topics else ""
+
+    def start(self, registry_path: Path) -> None:
+        if not self.app.ros_topics or self.note:
+            return
+        from .ros.bridge import bridge_process_main
+
+        context = multiprocessing.get_context("spawn")
+        for topic in self.app.ros_topics:
+            reader, writer = context.Pipe(duplex=False)
+            process = context.Process(
+                target=bridge_process_main, args=(topic, str(registry_path), writer),
+                name=f"rtloop-{self.app.name}-bridge-{topic.topic}", daemon=True,
+            )
+            process.start()
+            writer.close()
+            self.running.append(_Bridge(topic, process, reader))
+
+    def poll(self) -> None:
+        for bridge in self.running:
+            try:
+                while bridge.pipe.poll():
+                    message = bridge.pipe.recv()
+                    if message.get("kind") == "stats":
+                        bridge.stats = message
+                    elif message.get("kind") == "error":
+                        bridge.error = message.get("reason", "unknown error")
+            except (EOFError, OSError):
+                pass
+
+    def stop(self) -> None:
+        for bridge in self.running:
+            if bridge.process.is_alive():
+                bridge.process.terminate()  # SIGTERM: the bridge sends its last stats and leaves
+        for bridge in self.running:
+            bridge.process.join(STOP_TIMEOUT_S)
+            if bridge.process.is_alive():
+                bridge.process.kill()
+                bridge.process.join()
+        self.poll()
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for bridge in self.running:
+            exitcode = bridge.process.exitcode
+            stopped_cleanly = exitcode in (0, -signal.SIGTERM)
+            state = "ok" if stopped_cleanly and not bridge.error else "failed"
+            reason = bridge.error or ("" if stopped_cleanly else f"bridge process ended with {exitcode}")
+            key = f"{bridge.topic.direction} {bridge.topic.topic}"
+            out[key] = {"port": bridge.topic.port, "type": bridge.topic.msg_type, "state": state,
+                        "reason": reason, **{k: v for k, v in bridge.stats.items() if k != "kind"}}
+        return out
