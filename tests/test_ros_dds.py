@@ -19,6 +19,7 @@ import sys
 import textwrap
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -217,7 +218,8 @@ def test_other_domain_does_not_receive():
 
 def test_cyclonedds_cli_prints_values_from_running_publisher():
     """`cyclonedds subscribe` discovers the type over XTypes; no type name needed."""
-    cli = shutil.which("cyclonedds")
+    beside_python = Path(sys.executable).parent / "cyclonedds"  # a venv's scripts are not on sudo's PATH
+    cli = str(beside_python) if beside_python.exists() else shutil.which("cyclonedds")
     if cli is None:
         pytest.skip("the cyclonedds CLI is not on PATH")
     domain = random_domain()
