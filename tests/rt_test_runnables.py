@@ -130,3 +130,20 @@ class Sleepy(Runnable):
 class BadPrerun(Noop):
     def prerun(self) -> None:
         raise RuntimeError("sensor not found on /dev/ttyUSB0")
+
+
+class SegfaultAt(Runnable):
+    """Dereferences a null pointer at a given cycle: the task process dies with SIGSEGV."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, cycle: int) -> None:
+        self.fail_cycle = cycle
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle == self.fail_cycle:
+            import ctypes
+
+            ctypes.string_at(0)

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from .app import App, parse_signal
-from .errors import AppError, AppFileError
+from .errors import AppError, AppFileError, RtloopError
 from .runnable import Runnable
 
 TOP_KEYS = {
@@ -199,7 +199,7 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
             raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
         try:
             return load_model(table["model"], base_dir, **args)
-        except (AppError, OSError, ValueError, TypeError) as error:
+        except (RtloopError, OSError, ValueError, TypeError) as error:  # incl. a model that does not build
             raise AppFileError(shown, f"{where}.model", str(error)) from None
     target = table["runnable"]
     module_name, _, class_name = target.partition(":")
