@@ -150,13 +150,13 @@ def test_no_torn_reads_across_cores_in_a_million_reads() -> None:
         writer = _spawn(shm_stress.let_writer, segment.name, 0, stop.name)
         os.sched_setaffinity(0, {1})
         out = np.zeros(shm_stress.N_VALUES)
-        source = slice(0, shm_stress.N_VALUES)
+        sources = channel.source_views(slice(0, shm_stress.N_VALUES))
         reads = torn = 0
         while channel.words[0] < 1000:
             time.sleep(0.001)
         stamps = set()
         while reads < 1_000_000:
-            stamp = channel.read_valid_at(2**62, source, out)
+            stamp = channel.read_valid_at(2**62, sources, out)
             if stamp == NO_STAMP:
                 continue
             reads += 1

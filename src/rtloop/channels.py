@@ -76,14 +76,18 @@ class LetChannel:
         words[0] = self.published
 
     # --- reader (RT) ---------------------------------------------------------------------
-    def read_valid_at(self, time_ns: int, source: slice, out: np.ndarray) -> int:
-        """Copy ``values[source]`` of the newest slot stamped ≤ ``time_ns`` into ``out``.
+    def source_views(self, source: slice) -> list[np.ndarray]:
+        """``values[source]`` of every slot, made once so that reads do not slice."""
+        return [values[source] for values in self.values]
+
+    def read_valid_at(self, time_ns: int, sources: list[np.ndarray], out: np.ndarray) -> int:
+        """Copy the newest slot stamped ≤ ``time_ns`` (its ``sources`` view) into ``out``.
 
         Returns that slot's stamp, or NO_STAMP if no such slot exists (``out`` untouched).
+        ``published`` only says where to start looking; each slot's seqlock decides.
         """
         words = self.words
         published = words[0]
-        fence()
         for back in range(1, min(published, self.n_slots) + 1):
             slot = (published - back) % self.n_slots
             base = HEADER_WORDS + slot * self.slot_words
@@ -94,7 +98,7 @@ class LetChannel:
                 fence()
                 stamp = words[base + 1]
                 if stamp <= time_ns:
-                    out[:] = self.values[slot][source]
+                    np.copyto(out, sources[slot])
                 fence()
                 if words[base] == seq:
                     break

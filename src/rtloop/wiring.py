@@ -68,10 +68,11 @@ class TaskWiringPlan:
 
 
 class _Link:
-    __slots__ = ("channel", "period_ns", "source", "target")
+    __slots__ = ("channel", "period_ns", "sources", "target")
 
     def __init__(self, channel: LetChannel, source: slice, target: np.ndarray, period_ns: int) -> None:
-        self.channel, self.source, self.target, self.period_ns = channel, source, target, period_ns
+        self.channel, self.target, self.period_ns = channel, target, period_ns
+        self.sources = channel.source_views(source)
 
 
 class _ProfileReader:
@@ -119,12 +120,13 @@ class TaskWiring:
         ]
         self.record = SampleQueue(self._segments[plan.record_queue]) if plan.record_queue else None
         self.record_row = np.zeros(len(y) + len(u))
+        self.record_y, self.record_u = self.record_row[: len(y)], self.record_row[len(y) :]
         self.initial_y = y.copy()
 
     def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
         t0_ns = self.t0_ns
         for link in self.links:
-            stamp = link.channel.read_valid_at(release_ns, link.source, link.target)
+            stamp = link.channel.read_valid_at(release_ns, link.sources, link.target)
             entitled = t0_ns + (release_ns - t0_ns) // link.period_ns * link.period_ns
             if stamp < entitled:  # the writer has not published what we are entitled to
                 self.stale_reads += 1
@@ -141,10 +143,9 @@ class TaskWiring:
         for queue, source in self.output_ports:
             queue.push(cycle, source)
         if self.record is not None:
-            row = self.record_row
-            row[: len(y)] = y
-            row[len(y) :] = self.u
-            self.record.push(cycle, row)
+            np.copyto(self.record_y, y)
+            np.copyto(self.record_u, self.u)
+            self.record.push(cycle, self.record_row)
 
     def publish_initial(self, y: np.ndarray) -> None:
         """Remember the outputs left by ``prerun`` (initial conditions), published at T0."""
