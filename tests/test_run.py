@@ -212,6 +212,18 @@ def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> No
     assert timing.deadline_misses >= 9
 
 
+@pytest.mark.rt
+def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: Path) -> None:
+    app = App("deadline")
+    app.add_task("t", ReportSettings(), period_ns=P, policy="deadline")
+    with pytest.raises(AppError, match="cannot be pinned"):
+        app.add_task("pinned", Noop(), period_ns=P, policy="deadline", cpu=0)
+    summary = app.run(0.2, tmp_path)
+    task = summary.tasks["t"]
+    assert (task.policy, task.rt, task.rt_reason) == ("deadline", True, "")
+    assert task.timing.cycles + task.timing.overruns == 200
+
+
 def test_cli_reports_a_malformed_app_file_with_the_key(tmp_path: Path, rtloop_env) -> None:
     path = tmp_path / "typo.toml"
     path.write_text('name = "typo"\n[tasks.t]\nrunnable = "rt_test_runnables:Noop"\nperiod_n = 1000000\n')

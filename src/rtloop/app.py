@@ -212,6 +212,9 @@ class App:
             available = sorted(os.sched_getaffinity(0))
             if not isinstance(cpu, int) or cpu not in available:
                 raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
+        if policy == "deadline" and cpu is not None:
+            raise AppError(f"{where}: a SCHED_DEADLINE task cannot be pinned to one CPU (the kernel refuses); "
+                           "leave cpu unset, or use fifo/rr to pin it")
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
