@@ -1,0 +1,466 @@
+"""A running app on ROS 2: the JIWY demo's bridges seen from outside, and two apps talking.
+
+Each test starts ``rtloop run`` as a subprocess with its own random ``ROS_DOMAIN_ID``
+and talks to it from a *peer*: a plain cyclonedds program that declares the ROS 2 types
+itself (``pkg::msg::dds_::Type_``) and never imports rtloop, as a ROS 2 node written by
+someone else would. Every wait is bounded; each test takes a few seconds.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import queue
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cyclonedds")
+
+from rtloop.ports import running_apps
+
+ROOT = Path(__file__).resolve().parents[1]
+JIWY = ROOT / "examples" / "jiwy" / "jiwy.toml"
+TWO_APPS = ROOT / "examples" / "two_apps"
+START_TIMEOUT_S = 15.0
+
+# The peer: someone else's ROS 2 node. `listen` prints each JointState as a JSON line;
+# `publish` sends Float64MultiArray messages (reliable, as `ros2 topic pub` does).
+PEER = textwrap.dedent(
+    """
+    import json, math, sys, time
+    from dataclasses import dataclass
+    from cyclonedds.core import ReadCondition, SampleState, WaitSet
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.idl.types import float64, int32, sequence, uint32
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.qos import Policy, Qos
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from cyclonedds.util import duration
+
+    @dataclass
+    class Time_(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+        sec: int32
+        nanosec: uint32
+
+    @dataclass
+    class Header_(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+        stamp: Time_
+        frame_id: str
+
+    @dataclass
+    class JointState_(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
+        header: Header_
+        name: sequence[str]
+        position: sequence[float64]
+        velocity: sequence[float64]
+        effort: sequence[float64]
+
+    @dataclass
+    class MultiArrayDimension_(IdlStruct, typename="std_msgs::msg::dds_::MultiArrayDimension_"):
+        label: str
+        size: uint32
+        stride: uint32
+
+    @dataclass
+    class MultiArrayLayout_(IdlStruct, typename="std_msgs::msg::dds_::MultiArrayLayout_"):
+        dim: sequence[MultiArrayDimension_]
+        data_offset: uint32
+
+    @dataclass
+    class Float64MultiArray_(IdlStruct, typename="std_msgs::msg::dds_::Float64MultiArray_"):
+        layout: MultiArrayLayout_
+        data: sequence[float64]
+
+    mode, domain, topic = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+    participant = DomainParticipant(domain)
+    if mode == "listen":
+        count, timeout_s = int(sys.argv[4]), float(sys.argv[5])
+        qos = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(100))
+        reader = DataReader(participant, Topic(participant, topic, JointState_), qos=qos)
+        waitset = WaitSet(participant)
+        waitset.attach(ReadCondition(reader, SampleState.NotRead))
+        print("READY", flush=True)
+        got, deadline = 0, time.monotonic() + timeout_s
+        while got < count and time.monotonic() < deadline:
+            waitset.wait(duration(milliseconds=100))
+            for s in reader.take(N=100):
+                if not hasattr(s, "header"):
+                    continue  # an invalid sample: the writer went away
+                got += 1
+                print(json.dumps({"stamp_ns": s.header.stamp.sec * 10**9 + s.header.stamp.nanosec,
+                                  "name": list(s.name), "position": list(s.position),
+                                  "rx_ns": time.time_ns()}), flush=True)
+        print("DONE", flush=True)
+    else:
+        messages = json.loads(sys.argv[4])
+        qos = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(10))
+        writer = DataWriter(participant, Topic(participant, topic, Float64MultiArray_), qos=qos)
+        deadline = time.monotonic() + 10
+        while not writer.get_matched_subscriptions() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        print("MATCHED" if writer.get_matched_subscriptions() else "UNMATCHED", flush=True)
+        for values in messages:
+            data = [float(v) for v in values]
+            writer.write(Float64MultiArray_(MultiArrayLayout_([], 0), data))
+            time.sleep(0.02)
+        time.sleep(1.0)  # reliable: let the last ones be acknowledged before leaving
+        print("DONE", flush=True)
+    """
+)
+
+
+def random_domain() -> int:
+    """A domain id for one test; ROS 2 uses 0..101, we avoid 0 (the default)."""
+    return random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 101)
+
+
+def env_with_domain(domain: int) -> dict[str, str]:
+    return {**os.environ, "ROS_DOMAIN_ID": str(domain)}
+
+
+def start_app(app_file: Path, out: Path, domain: int, duration_s: float) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s),
+         "--out", str(out), "--quiet"],
+        env=env_with_domain(domain), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def finish(process: subprocess.Popen, timeout_s: float = 20.0) -> tuple[int, str]:
+    """Wait for a run to end on its own; return (exit code, stderr)."""
+    try:
+        _, stderr = process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+        pytest.fail(f"the run did not end within {timeout_s} s: {stderr}")
+    return process.returncode, stderr
+
+
+class Peer:
+    """The peer script in a subprocess, its stdout lines in a queue."""
+
+    def __init__(self, *args: str, domain: int) -> None:
+        self.process = subprocess.Popen([sys.executable, "-c", PEER, args[0], str(domain), *args[1:]],
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        assert self.process.stdout is not None
+        for line in self.process.stdout:
+            self.lines.put(line.strip())
+        self.lines.put("EOF")
+
+    def expect(self, word: str, timeout_s: float = START_TIMEOUT_S) -> None:
+        try:
+            line = self.lines.get(timeout=timeout_s)
+        except queue.Empty:
+            pytest.fail(f"peer said nothing within {timeout_s} s (waiting for {word})")
+        if line != word:
+            self.process.kill()
+            pytest.fail(f"peer said {line!r}, expected {word!r}: {self.process.communicate()[1]}")
+
+    def samples(self, timeout_s: float) -> list[dict]:
+        """JSON lines until DONE."""
+        found: list[dict] = []
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                break
+            if line in ("DONE", "EOF"):
+                break
+            found.append(json.loads(line))
+        return found
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.communicate(timeout=5)
+
+
+def supervisor_children(supervisor_pid: int) -> list[int]:
+    children = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == supervisor_pid:
+            children.append(int(entry.name))
+    return children
+
+
+def start_time_ticks(pid: int) -> int:
+    return int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[19])
+
+
+def wait_for_app(supervisor_pid: int, timeout_s: float = START_TIMEOUT_S):
+    """The RunningApp of this supervisor (not another run of the same app by someone else)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for app in running_apps():
+            if app.pid == supervisor_pid:
+                return app
+        time.sleep(0.05)
+    pytest.fail(f"supervisor {supervisor_pid} never registered its app")
+
+
+def bridge_pids(supervisor_pid: int, task_pids: set[int], count: int, timeout_s: float = START_TIMEOUT_S) -> list[int]:
+    """The supervisor's bridge processes, oldest first: spawn children that are not tasks."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        found = []
+        for pid in supervisor_children(supervisor_pid):
+            try:
+                cmdline = (Path("/proc") / str(pid) / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            if "multiprocessing.spawn" in cmdline and pid not in task_pids:
+                found.append(pid)
+        if len(found) >= count:
+            return sorted(found, key=start_time_ticks)
+        time.sleep(0.05)
+    pytest.fail(f"expected {count} bridge processes under supervisor {supervisor_pid}")
+
+
+def summary_of(out: Path) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+def signals_of(out: Path) -> tuple[list[str], np.ndarray]:
+    with open(out / "signals.csv") as file:
+        header = file.readline().strip().split(",")
+    return header, np.loadtxt(out / "signals.csv", delimiter=",", skiprows=1, ndmin=2)
+
+
+# --- 1. an outside subscriber receives the angles ---------------------------------------------
+
+
+@pytest.mark.rt
+def test_independent_ros2_subscriber_receives_jiwy_angles(tmp_path: Path) -> None:
+    domain = random_domain()
+    peer = Peer("listen", "rt/jiwy/angles", "250", "12", domain=domain)
+    try:
+        peer.expect("READY")
+        run = start_app(JIWY, tmp_path / "out", domain, duration_s=4)
+        samples = peer.samples(timeout_s=15)
+        code, stderr = finish(run)
+    finally:
+        peer.close()
+    assert code == 0, stderr
+    assert len(samples) >= 200, f"only {len(samples)} JointState messages arrived"
+    assert all(s["name"] == ["pan", "tilt"] for s in samples)
+    assert all(len(s["position"]) == 2 and all(map(math.isfinite, s["position"])) for s in samples)
+    stamps = [s["stamp_ns"] for s in samples]
+    assert all(b > a for a, b in itertools.pairwise(stamps)), "header stamps must increase"
+    # every = 10 at 1 kHz: stamps are release times of every 10th tick, 10 ms apart
+    assert all((b - a) % 10_000_000 == 0 for a, b in itertools.pairwise(stamps))
+    # Stamps are wall-clock release times, so always in the past. The bridge starts just after
+    # the app's epoch and first sends what the port queued meanwhile; after that it keeps up.
+    ages_ms = [(s["rx_ns"] - s["stamp_ns"]) / 1e6 for s in samples]
+    assert all(0 < age < 5000 for age in ages_ms), ages_ms
+    assert np.median(ages_ms[-20:]) < 100, ages_ms[-20:]
+    assert summary_of(tmp_path / "out")["bridges"]["publish /jiwy/angles"]["state"] == "ok"
+
+
+# --- 2. setpoints from ROS 2 move the gimbal -----------------------------------------------------
+
+
+@pytest.mark.rt
+def test_setpoint_published_on_ros2_moves_the_gimbal(tmp_path: Path) -> None:
+    domain = random_domain()
+    out = tmp_path / "out"
+    run = start_app(JIWY, out, domain, duration_s=6)
+    peer = Peer("publish", "rt/jiwy/setpoint", json.dumps([[0.4, -0.2]]), domain=domain)
+    try:
+        peer.expect("MATCHED")
+        peer.expect("DONE")
+        code, stderr = finish(run)
+    finally:
+        peer.close()
+    assert code == 0, stderr
+    header, rows = signals_of(out)
+    final = rows[-50:]
+    pan, tilt = header.index("plant.y[0]"), header.index("plant.y[1]")
+    assert np.allclose(final[:, header.index("controller.u[2]")], 0.4)
+    assert np.allclose(final[:, header.index("controller.u[3]")], -0.2)
+    assert np.abs(final[:, pan] - 0.4).max() < 0.02, final[-1]
+    assert np.abs(final[:, tilt] + 0.2).max() < 0.02, final[-1]
+    bridge = summary_of(out)["bridges"]["subscribe /jiwy/setpoint"]
+    assert bridge["state"] == "ok" and bridge["accepted"] == 1
+
+
+# --- 3. bad messages are rejected and counted ------------------------------------------------------
+
+
+@pytest.mark.rt
+def test_bad_setpoints_are_rejected_counted_and_never_reach_the_port(tmp_path: Path) -> None:
+    domain = random_domain()
+    out = tmp_path / "out"
+    messages = [[0.1], [0.3, -0.1], [math.nan, 0.2], [0.1, 0.2, 0.3], [0.2, math.inf], [0.4, -0.2]]
+    run = start_app(JIWY, out, domain, duration_s=4)
+    peer = Peer("publish", "rt/jiwy/setpoint", json.dumps(messages), domain=domain)  # Python json writes NaN/Infinity
+    try:
+        peer.expect("MATCHED")
+        peer.expect("DONE")
+        code, stderr = finish(run)
+    finally:
+        peer.close()
+    assert code == 0, stderr
+    summary = summary_of(out)
+    bridge = summary["bridges"]["subscribe /jiwy/setpoint"]
+    assert bridge["rejected_by_reason"] == {"type": 0, "shape": 0, "length": 2, "nonfinite": 2}, bridge
+    assert bridge["rejected"] == 4
+    assert bridge["accepted"] == 2
+    assert bridge["refused_by_port"] == 0
+    assert summary["ports"]["setpoint"]["sent"] == bridge["accepted"]
+    header, rows = signals_of(out)
+    setpoints = rows[:, [header.index("controller.u[2]"), header.index("controller.u[3]")]]
+    assert np.isfinite(setpoints).all(), "a non-finite setpoint reached the controller"
+    assert {tuple(r) for r in setpoints.tolist()} <= {(0.0, 0.0), (0.3, -0.1), (0.4, -0.2)}
+    assert tuple(setpoints[-1]) == (0.4, -0.2)
+
+
+# --- 4. the cyclonedds command-line tool sees the angles ---------------------------------------------
+
+
+@pytest.mark.rt
+@pytest.mark.skipif(shutil.which("cyclonedds") is None, reason="the cyclonedds CLI is not installed")
+def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
+    domain = random_domain()
+    run = start_app(JIWY, tmp_path / "out", domain, duration_s=7)
+    try:
+        # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
+        cli = subprocess.Popen(
+            ["cyclonedds", "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
+             "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
+        )
+        try:
+            output, _ = cli.communicate(timeout=5)
+        except subprocess.TimeoutExpired:
+            cli.send_signal(signal.SIGINT)
+            try:
+                output, _ = cli.communicate(timeout=3)
+            except subprocess.TimeoutExpired:
+                cli.kill()
+                output, _ = cli.communicate()
+    finally:
+        code, stderr = finish(run)
+    assert code == 0, stderr
+    assert output.count("JointState_(") >= 5, output[-2000:]
+    assert "name=['pan', 'tilt']" in output
+    assert "position=[" in output and "stamp=Time_(sec=" in output
+
+
+# --- 5. a killed bridge does not stop the real-time tasks ------------------------------------------------
+
+
+@pytest.mark.rt
+def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
+    domain = random_domain()
+    out = tmp_path / "out"
+    duration_s = 4
+    peer = Peer("listen", "rt/jiwy/angles", "100000", "12", domain=domain)
+    stop_on_failure: subprocess.Popen | None = None
+    try:
+        peer.expect("READY")
+        run = start_app(JIWY, out, domain, duration_s=duration_s)
+        stop_on_failure = run  # killed in `finally` if an assertion fails before the run ends
+        app = wait_for_app(run.pid)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not all(app.task_pids().values()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        tasks = set(app.task_pids().values())
+        assert 0 not in tasks
+        # Bridges start in the order of the app file: publish /jiwy/angles first.
+        angles_bridge, setpoint_bridge = bridge_pids(run.pid, tasks, count=2)
+        time.sleep(1.0)
+        before = len(peer.samples(timeout_s=0.5))
+        assert before > 0, "the angles bridge published nothing before it was killed"
+        os.kill(angles_bridge, signal.SIGKILL)
+        killed_ns = time.time_ns()
+        # what was already on the wire arrives within milliseconds; nothing may come later
+        late = [s for s in peer.samples(timeout_s=1.5) if s["rx_ns"] > killed_ns + 200_000_000]
+        assert os.path.exists(f"/proc/{setpoint_bridge}")
+        assert all(os.path.exists(f"/proc/{pid}") for pid in tasks), "a task died with the bridge"
+        code, stderr = finish(run)
+        stop_on_failure = None
+    finally:
+        peer.close()
+        if stop_on_failure is not None:
+            stop_on_failure.kill()
+            stop_on_failure.communicate()
+    assert code == 0, stderr
+    assert not late, f"{len(late)} messages still arrived after the angles bridge was killed"
+    summary = summary_of(out)
+    assert summary["failure"] is None and summary["stopped_by"] == "duration"
+    killed = summary["bridges"]["publish /jiwy/angles"]
+    assert killed["state"] == "failed" and str(-signal.SIGKILL) in killed["reason"], killed
+    assert summary["bridges"]["subscribe /jiwy/setpoint"]["state"] == "ok"
+    expected_cycles = duration_s * 1000
+    for name, task in summary["tasks"].items():
+        # skipped releases (overruns) are the only cycles a task may lack
+        assert task["cycles"] + task["overruns"] >= expected_cycles - 2, (name, task["cycles"], task["overruns"])
+        assert task["cycles"] >= 0.95 * expected_cycles, name
+        assert task["deadline_misses"] <= 0.01 * expected_cycles, name
+    last = {}
+    for line in (out / "timing.csv").read_text().splitlines()[1:]:
+        task, cycle = line.split(",")[:2]
+        last[task] = max(last.get(task, 0), int(cycle))
+    assert all(cycle >= expected_cycles - 3 for cycle in last.values()), last
+
+
+# --- 6. two apps, as on two devices, exchange a signal over ROS 2 -----------------------------------------
+
+
+@pytest.mark.rt
+def test_two_apps_exchange_a_signal_over_ros2(tmp_path: Path) -> None:
+    domain = random_domain()
+    controller = start_app(TWO_APPS / "controller.toml", tmp_path / "controller", domain, duration_s=5)
+    sensor = start_app(TWO_APPS / "sensor.toml", tmp_path / "sensor", domain, duration_s=4)
+    code_sensor, err_sensor = finish(sensor)
+    code_controller, err_controller = finish(controller)
+    assert code_sensor == 0, err_sensor
+    assert code_controller == 0, err_controller
+
+    sensor_header, sensor_rows = signals_of(tmp_path / "sensor")
+    sent = {
+        round(t, 9): value
+        for t, value in zip(sensor_rows[:, sensor_header.index("sine.y[1]")],
+                            sensor_rows[:, sensor_header.index("sine.y[0]")], strict=True)
+    }
+    header, rows = signals_of(tmp_path / "controller")
+    value, stamp = rows[:, header.index("monitor.u[0]")], rows[:, header.index("monitor.u[1]")]
+    received = stamp > 0
+    assert received.sum() > 500, "the controller received (almost) nothing"
+    pairs = set(zip(stamp[received].round(9).tolist(), value[received].tolist(), strict=True))
+    assert len(pairs) > 100, f"only {len(pairs)} distinct samples arrived"
+    assert np.ptp(value[received]) > 1.0, "the received sine does not move"
+    # Each received (time, value) is one the sensor sent, bit for bit (doubles travel exactly).
+    unknown = [(t, v) for t, v in pairs if sent.get(t) != v]
+    assert not unknown, f"{len(unknown)} received samples the sensor never sent, e.g. {unknown[:3]}"
+    # ... and it is the sine: amplitude 1.5, 0.5 Hz (examples/two_apps/sensor.toml)
+    assert all(abs(v - 1.5 * math.sin(2 * math.pi * 0.5 * t)) < 1e-9 for t, v in pairs)
+    bridges = summary_of(tmp_path / "controller")["bridges"]["subscribe /two_apps/sensor"]
+    assert bridges["state"] == "ok" and bridges["rejected"] == 0 and bridges["accepted"] > 100
