@@ -1,0 +1,89 @@
+"""The benchmark scripts run end to end at their smallest settings and print their tables.
+
+Behaviour only: the columns and rows are there and the JSON is complete. Timings are
+not checked (that is what the scripts are for, on a quiet machine).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.rt,
+    pytest.mark.skipif(os.geteuid() != 0, reason="needs root: SCHED_FIFO, mlockall, cyclictest -m"),
+    pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs CPUs 0 and 1"),
+]
+
+
+def run_script(name: str, *args: str) -> str:
+    result = subprocess.run(
+        [sys.executable, str(BENCHMARKS / name), *args], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def table_rows(stdout: str, header: str) -> list[list[str]]:
+    """The rows (cells) of the markdown table whose header line is ``header``."""
+    lines = stdout.splitlines()
+    assert header in lines, f"no table with header {header!r} in:\n{stdout}"
+    rows = []
+    for line in lines[lines.index(header) + 2 :]:
+        if not line.startswith("|"):
+            break
+        rows.append([cell.strip() for cell in line.strip("|").split("|")])
+    return rows
+
+
+@pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
+def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
+    out = tmp_path / "latency.json"
+    stdout = run_script(
+        "bench_latency.py", "--rounds", "1", "--block-s", "0.3", "--fast-block-s", "0.05",
+        "--loop-cycles", "2000", "--trim", "5", "--json", str(out),
+    )  # fmt: skip
+
+    latency = table_rows(
+        stdout, "| contender | period_us | samples | min | p50 | p99 | p99.9 | max | drift_us_per_1k |"
+    )
+    assert [(row[0], row[1]) for row in latency] == [
+        ("rtloop", "1000"), ("cyclictest", "1000"), ("naive", "1000"), ("rtloop", "100"), ("cyclictest", "100"),
+    ]  # fmt: skip
+    assert all(int(row[2]) > 0 for row in latency)
+    misses = table_rows(
+        stdout,
+        "| contender | period_us | samples | late_wakeups | miss_rate | skipped_releases | deadline_misses |",
+    )
+    assert {row[0] for row in misses} == {"rtloop", "cyclictest"}
+    overhead = table_rows(stdout, "| measure | min | p50 | p99 | p99.9 | max |")
+    assert len(overhead) == 2
+    assert len(table_rows(stdout, "| target | measured | result |")) == 3
+
+    result = json.loads(out.read_text())
+    assert set(result["latency"]["rtloop@1000us"]["latency_us"]) == {"min", "p50", "p99", "p99.9", "max"}
+    assert result["machine"]["kernel"]
+
+
+def test_bench_channels_prints_its_tables(tmp_path: Path) -> None:
+    out = tmp_path / "channels.json"
+    stdout = run_script("bench_channels.py", "--rounds", "1", "--block-s", "0.3", "--trim", "5", "--json", str(out))
+
+    hops = table_rows(stdout, "| transport | samples | lost | min | p50 | p99 | p99.9 | max |")
+    assert [row[0] for row in hops] == ["LetChannel", "SampleQueue", "raw numpy"]
+    assert all(int(row[1]) > 0 for row in hops)
+    connections = table_rows(stdout, "| task | samples | min | p50 | p99 | p99.9 | max |")
+    assert [row[0] for row in connections] == ["0 connections", "4 input connections", "writer (1 output)"]
+    assert table_rows(stdout, "| target | measured | result |")
+
+    result = json.loads(out.read_text())
+    assert set(result["hops"]) == {"LetChannel", "SampleQueue", "raw numpy"}
