@@ -73,11 +73,11 @@ class Supervisor:
         self.dma_latency = rt.CpuDmaLatency().__enter__()
         try:
             runs = self._spawn(layout)
+            assert layout.registry_path is not None
+            self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
             self._wait_until_ready(layout, runs)
             if self.failure is None and self.stop_reason == "duration":
                 self._start_epoch(layout, recorder)
-                assert layout.registry_path is not None
-                self.bridges.start(layout.registry_path)
                 self._drain_until_done(layout, runs, recorder)
             else:
                 layout.control[ControlWord.STOP] = 1
