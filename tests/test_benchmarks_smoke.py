@@ -62,7 +62,8 @@ def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
     assert all(int(row[2]) > 0 for row in latency)
     misses = table_rows(
         stdout,
-        "| contender | period_us | samples | late_wakeups | miss_rate | skipped_releases | deadline_misses |",
+        "| contender | period_us | samples | late_wakeups | miss_rate | missed_releases | skipped_releases "
+        "| deadline_misses |",
     )
     assert {row[0] for row in misses} == {"rtloop", "cyclictest"}
     overhead = table_rows(stdout, "| measure | min | p50 | p99 | p99.9 | max |")
