@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
+import os
 import shutil
 import sys
 import tempfile
@@ -234,6 +235,57 @@ def run_hops(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def measure_operations(repeats: int, cpu: int) -> dict[str, float]:
+    """Median cost (µs) of each channel operation, in this process on ``cpu``: where a hop's time goes."""
+    from rtloop.shm import fence
+
+    names, segments = Transports.create(n_slots=4, capacity=4096)
+    previous = os.sched_getaffinity(0)
+    try:
+        os.sched_setaffinity(0, {cpu})
+        shm = Transports(names)
+        let, queue, raw, now = shm.let, shm.queue, shm.raw, rt.now_ns
+        values, out = np.zeros(2), np.zeros(2)
+        sources = let.source_views(slice(0, 2))
+
+        def queue_round_trip() -> None:
+            queue.push(0, values)
+            queue.drain()
+
+        def raw_write() -> None:
+            raw[1] = values[0]
+            raw[2] = values[1]
+            raw[0] = 1.0
+
+        def raw_read() -> None:
+            out[:] = raw[1:3]
+
+        operations = {
+            "fence() (ctypes atomic_thread_fence)": fence,
+            "rt.now_ns()": now,
+            "encode(now_ns(), values)": lambda: encode(now(), values),
+            "LetChannel.publish": lambda: let.publish(1, values),
+            "LetChannel.read_valid_at": lambda: let.read_valid_at(NEWEST, sources, out),
+            "SampleQueue.push + drain": queue_round_trip,
+            "raw numpy write (2 values + counter)": raw_write,
+            "raw numpy read (2 values)": raw_read,
+        }
+        costs = {}
+        for name, operation in operations.items():
+            samples = []
+            for _ in range(15):
+                started = time.perf_counter_ns()
+                for _ in range(repeats):
+                    operation()
+                samples.append((time.perf_counter_ns() - started) / repeats)
+            costs[name] = float(np.median(samples)) / 1000
+        return costs
+    finally:
+        os.sched_setaffinity(0, previous)
+        for segment in segments:
+            segment.unlink()
+
+
 def run_connections(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     """exec_ns of a no-op task with 0 vs 4 input connections (plus the writers' exec with 1 output)."""
     period_ns = args.task_period_us * 1000
@@ -270,6 +322,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     started = time.monotonic()
     try:
         hops = run_hops(args)
+        operations = measure_operations(args.op_repeats, args.reader_cpu)
         connections = run_connections(args, work)
     finally:
         facts["loadavg_at_end"] = Path("/proc/loadavg").read_text().split()[:3]
@@ -283,6 +336,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "machine": facts,
         "elapsed_s": round(time.monotonic() - started, 1),
         "hops": hops,
+        "operations_us": operations,
         "connections": connections,
         "targets": [
             {"target": "LetChannel hop ≤ 1.5 µs median", "measured": f"{let_p50:.2f} µs", "met": bool(let_p50 <= 1.5)},
@@ -305,6 +359,8 @@ def report_markdown(result: dict[str, Any]) -> str:
         f"SCHED_FIFO {settings['priority']}, one sample per {settings['hop_period_us']} µs, "
         f"{settings['rounds']} rounds × {settings['block_s']} s per transport",
         markdown_table(["transport", "samples", "lost", "min", "p50", "p99", "p99.9", "max"], hop_rows),
+        "### Where a hop's time goes: median cost of each operation in one process (µs, includes the Python call)",
+        markdown_table(["operation", "µs"], list(result["operations_us"].items())),
         f"### Per-cycle cost of connections: exec_ns of a no-op step (µs), period {settings['task_period_us']} µs",
         markdown_table(["task", "samples", "min", "p50", "p99", "p99.9", "max"], conn_rows),
         "### Targets",
@@ -328,6 +384,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--reader-cpu", type=int, default=1)
     parser.add_argument("--priority", type=int, default=80)
     parser.add_argument("--trim", type=int, default=20, help="cycles dropped at each end of every App block")
+    parser.add_argument("--op-repeats", type=int, default=20_000, help="calls per timing of each channel operation")
     parser.add_argument("--quick", action="store_true", help="2 rounds × 3 s blocks: under a minute")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     args = parser.parse_args(argv)

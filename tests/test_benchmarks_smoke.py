@@ -77,11 +77,16 @@ def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
 
 def test_bench_channels_prints_its_tables(tmp_path: Path) -> None:
     out = tmp_path / "channels.json"
-    stdout = run_script("bench_channels.py", "--rounds", "1", "--block-s", "0.3", "--trim", "5", "--json", str(out))
+    stdout = run_script(
+        "bench_channels.py", "--rounds", "1", "--block-s", "0.3", "--trim", "5", "--op-repeats", "200",
+        "--json", str(out),
+    )  # fmt: skip
 
     hops = table_rows(stdout, "| transport | samples | lost | min | p50 | p99 | p99.9 | max |")
     assert [row[0] for row in hops] == ["LetChannel", "SampleQueue", "raw numpy"]
     assert all(int(row[1]) > 0 for row in hops)
+    operations = table_rows(stdout, "| operation | µs |")
+    assert any(row[0] == "LetChannel.publish" for row in operations)
     connections = table_rows(stdout, "| task | samples | min | p50 | p99 | p99.9 | max |")
     assert [row[0] for row in connections] == ["0 connections", "4 input connections", "writer (1 output)"]
     assert table_rows(stdout, "| target | measured | result |")
