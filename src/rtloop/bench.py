@@ -474,7 +474,7 @@ def _stressors(text: str) -> tuple[str, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtloop bench", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="rtloop bench", description=(__doc__ or "").replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("experiment", choices=(*EXPERIMENTS, "all"), help="which experiment (all: the three)")
     parser.add_argument("--duration", type=_duration, default=10.0, metavar="S", help="seconds per run (default 10)")
