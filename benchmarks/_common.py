@@ -77,17 +77,21 @@ def machine_facts() -> dict[str, Any]:
                 break
     except OSError:
         pass
-    try:
-        hypervisor = subprocess.run(["systemd-detect-virt"], capture_output=True, text=True, check=False).stdout.strip()
-    except OSError:
-        hypervisor = "unknown"
+    virtualization = []
+    for flag in ("--vm", "--container"):
+        try:
+            found = subprocess.run(["systemd-detect-virt", flag], capture_output=True, text=True, check=False)
+        except OSError:
+            break
+        if found.stdout.strip() not in ("", "none"):
+            virtualization.append(f"{flag[2:]}: {found.stdout.strip()}")
     return {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "kernel": platform.release(),
         "preemption": rt.preemption_model(),
         "cpu_model": model,
         "cpus": os.cpu_count(),
-        "virtualization": hypervisor or "none",
+        "virtualization": ", ".join(virtualization) or "none detected",
         "python": platform.python_version(),
         "loadavg_at_start": Path("/proc/loadavg").read_text().split()[:3],
         "rt_runtime_us": Path("/proc/sys/kernel/sched_rt_runtime_us").read_text().strip(),
