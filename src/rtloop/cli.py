@@ -151,8 +151,10 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{t.deadline_misses:>7}"
                      f"{t.overruns:>9}{task.stale_reads:>6}")
     for name, port in summary.ports.items():
+        unread = port.direction == "out" and not port.received
+        idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
         lines.append(f"port {name} ({port.direction}, {port.signal}): sent {port.sent}, "
-                     f"received {port.received}, dropped {port.dropped}")
+                     f"received {port.received}, dropped {port.dropped}{idle}")
     written = [name for name in ARTIFACTS if (out / name).exists()]
     lines.append(f"artifacts in {out}/: {', '.join(written)}")
     return "\n".join(lines)

@@ -25,7 +25,7 @@ import numpy as np
 
 from .channels import LatestValue, SampleQueue
 from .errors import PortValueError, RtloopError
-from .shm import SHM_DIR, Segment, _pid_alive
+from .shm import SHM_DIR, Segment, pid_alive
 from .status import STATUS_WORDS, WordBlock
 
 
@@ -74,7 +74,7 @@ class RunningApp:
 
     def alive(self) -> bool:
         """Whether the app's supervisor is still running."""
-        return _pid_alive(self.pid) and self.path.exists()
+        return pid_alive(self.pid) and self.path.exists()
 
     def task_pids(self) -> dict[str, int]:
         """PID of each task process (0 until it has started)."""
@@ -134,15 +134,15 @@ def app_from_registry(path: Path) -> RunningApp:
     return RunningApp(registry["app"], int(registry["pid"]), registry, path)
 
 
-def running_apps() -> list[RunningApp]:
+def running_apps(shm_dir: Path = SHM_DIR) -> list[RunningApp]:
     """Every app whose supervisor is alive, newest first."""
     found: list[RunningApp] = []
-    for path in SHM_DIR.glob("rtloop-*-registry.json"):
+    for path in shm_dir.glob("rtloop-*-registry.json"):
         try:
             app = app_from_registry(path)
-        except (OSError, json.JSONDecodeError, KeyError):
-            continue
-        if _pid_alive(app.pid):
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # being written or removed right now, or not ours
+        if pid_alive(app.pid):
             found.append(app)
     found.sort(key=lambda app: app.path.stat().st_mtime if app.path.exists() else 0, reverse=True)
     return found

@@ -107,14 +107,19 @@ class Segment:
             pass
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this id is running (it may belong to another user; a zombie is not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
+        pass
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            return file.read().rsplit(") ", 1)[1][:1] not in ("Z", "X")
+    except (OSError, IndexError):
         return True
-    return True
 
 
 def remove_stale_segments() -> list[str]:
@@ -122,7 +127,7 @@ def remove_stale_segments() -> list[str]:
     removed: list[str] = []
     for path in SHM_DIR.glob(f"{SEGMENT_PREFIX}*"):
         match = re.match(rf"{SEGMENT_PREFIX}.*?-(\d+)-[0-9a-f]{{8}}-", path.name)
-        if match and not _pid_alive(int(match.group(1))):
+        if match and not pid_alive(int(match.group(1))):
             try:
                 path.unlink()
                 removed.append(path.name)

@@ -8,6 +8,7 @@ or cleans up after it.
 from __future__ import annotations
 
 import gc
+import multiprocessing
 import os
 import signal
 import traceback
@@ -162,7 +163,8 @@ def task_process_main(
     # app the orderly way: the loop sees the stop flag and postrun still runs.
     signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
     rt.die_with_parent(signal.SIGTERM)
-    if os.getppid() == 1:  # the supervisor died before we could ask
+    parent = multiprocessing.parent_process()
+    if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
         return
     status = WordBlock(task_segment, 0, STATUS_WORDS)
     timing = RecordRing(task_segment, STATUS_WORDS * 8)

@@ -13,7 +13,6 @@ that is in ``summary.json`` after the run), and *%CPU* is measured between refre
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Iterator
@@ -26,6 +25,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from .ports import running_apps
 from .shm import SHM_DIR, Segment
 from .status import STATUS_WORDS, StatusWord, TaskState, WordBlock
 
@@ -35,16 +35,6 @@ CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 SCHED_NAMES = {0: "other", 1: "fifo", 2: "rr", 3: "batch", 5: "idle", 6: "deadline"}
 LATENCY_MAX_NOTE = ("lat max: highest latency top saw polling the status block at "
                     f"{POLL_HZ} Hz since it started (tasks do not keep a maximum); the true one is in summary.json")
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @dataclass(frozen=True)
@@ -61,16 +51,11 @@ class Registry:
 
 def find_apps(app: str | None = None, shm_dir: Path = SHM_DIR) -> list[Registry]:
     """Running apps (supervisor alive), optionally only those named ``app``."""
-    found = []
-    for path in sorted(shm_dir.glob("rtloop-*-registry.json")):
-        try:
-            data = json.loads(path.read_text())
-            entry = Registry(str(data["app"]), int(data["pid"]), dict(data.get("tasks", {})), path)
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # being written or removed right now, or not ours
-        if (app is None or entry.app == app) and _pid_alive(entry.pid):
-            found.append(entry)
-    return found
+    return sorted(
+        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path)
+         for entry in running_apps(shm_dir) if app is None or entry.name == app),
+        key=lambda registry: registry.path,
+    )
 
 
 # --- /proc ----------------------------------------------------------------------------

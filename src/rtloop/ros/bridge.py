@@ -15,6 +15,7 @@ stalls the real-time side: ports drop and count when nobody reads them.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -85,10 +86,15 @@ class _Stats:
             self.pipe = None
 
 
-def _wall_offset_ns(app: RunningApp) -> tuple[int, int]:
-    """(T0 on CLOCK_MONOTONIC, wall clock − monotonic clock), to stamp ticks with wall time."""
+def _wall_offset_ns(app: RunningApp, stop: Any) -> tuple[int, int] | None:
+    """(T0 on CLOCK_MONOTONIC, wall clock − monotonic clock), to stamp ticks with wall time.
+
+    Waits for the app to pick T0; None if the bridge is stopped (or the app dies) first.
+    """
     control = WordBlock(Segment.attach(app.registry["control"]), 0, CONTROL_WORDS)
     while not control[ControlWord.T0_NS]:
+        if stop:
+            return None
         time.sleep(0.01)
     return control[ControlWord.T0_NS], time.time_ns() - time.monotonic_ns()
 
@@ -97,7 +103,11 @@ def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> 
     """Publish what an output port sends, until stopped."""
     info = app.ports[topic.port]
     publisher = RosPublisher(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id)
-    t0_ns, wall_offset_ns = _wall_offset_ns(app)
+    epoch = _wall_offset_ns(app, stop)
+    if epoch is None:
+        publisher.close()
+        return
+    t0_ns, wall_offset_ns = epoch
     period_ns = int(info["period_ns"])
     with app.reader(topic.port) as reader, publisher:
         while not stop:
@@ -144,6 +154,8 @@ def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -
 
     rt.die_with_parent(signal.SIGTERM)
     app = app_from_registry(Path(registry_path))
+    if os.getppid() != app.pid:  # the supervisor died before we could ask to follow it
+        return
     stats = _Stats(topic, pipe)
     try:
         run_bridge(app, topic, stats)
