@@ -224,6 +224,21 @@ def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: 
     assert task.timing.cycles + task.timing.overruns == 200
 
 
+@pytest.mark.rt
+def test_cli_cpu_option_pins_every_task(tmp_path: Path, rtloop_env) -> None:
+    app_file = _app_file(tmp_path, "pinned")
+    result = subprocess.run(
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.2", "--out", str(tmp_path / "o"),
+         "--cpu", "0", "-q"], env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert {task["cpu"] for task in summary["tasks"].values()} == {0}
+    bad = subprocess.run(
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.2", "--out", str(tmp_path / "o"),
+         "--cpu", "99"], env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "cpu 99 is not one of this machine's CPUs" in bad.stderr
+
+
 def test_cli_reports_a_malformed_app_file_with_the_key(tmp_path: Path, rtloop_env) -> None:
     path = tmp_path / "typo.toml"
     path.write_text('name = "typo"\n[tasks.t]\nrunnable = "rt_test_runnables:Noop"\nperiod_n = 1000000\n')

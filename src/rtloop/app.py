@@ -228,6 +228,19 @@ class App:
         self.tasks[name] = spec
         return spec
 
+    def pin_all(self, cpu: int) -> None:
+        """Pin every task to ``cpu`` (e.g. the isolated core of a Raspberry Pi)."""
+        import dataclasses
+        import os
+
+        available = sorted(os.sched_getaffinity(0))
+        if cpu not in available:
+            raise AppError(f"cpu {cpu} is not one of this machine's CPUs {available}")
+        for spec in self.tasks.values():
+            if spec.config.policy == "deadline":
+                raise AppError(f"task {spec.name!r}: a SCHED_DEADLINE task cannot be pinned to one CPU")
+            spec.config = dataclasses.replace(spec.config, cpu=cpu)
+
     def _resolve(self, signal: SignalRef | SignalVector, role: str) -> SignalRef:
         ref = signal.all if isinstance(signal, SignalVector) else signal
         if not isinstance(ref, SignalRef):

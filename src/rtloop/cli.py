@@ -35,6 +35,8 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the artifacts")
     parser.add_argument("--feed", type=_parse_feed, action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile (t_s, values...)")
+    parser.add_argument("--cpu", type=int, default=None, metavar="N",
+                        help="pin every task to CPU N, whatever the app file says")
     parser.add_argument("--trim", type=int, default=20, metavar="N",
                         help="cycles left out at each end of the statistics (default 20)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary table")
@@ -123,6 +125,8 @@ def _run(args: argparse.Namespace) -> int:
     app = load_app(args.app)
     for port, path in args.feed:
         app.feed(port, path)
+    if args.cpu is not None:
+        app.pin_all(args.cpu)
     interactive = not args.quiet and sys.stderr.isatty()
     if args.command == "run":
         summary = app.run(args.duration, args.out, progress=interactive, trim=args.trim)
