@@ -42,3 +42,17 @@ def test_mcap_signals_equal_signals_csv_and_timing_equals_timing_csv(tmp_path: P
         plant_rows = [tuple(int(x) for x in r[1:]) for r in csv.reader(file) if r[0] == "plant"]
     assert timing == plant_rows
     assert not any(math.isnan(v) for _, _, values in signals for v in values)
+
+
+def test_summary_names_signals_and_the_report_labels_them(tmp_path: Path) -> None:
+    import json
+
+    from rtloop.appfile import load_app
+    from rtloop.report.figures import names_from_summary
+
+    app = load_app(EXAMPLES / "jiwy" / "jiwy.toml")
+    app.simulate(0.05, tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["tasks"]["plant"]["output_names"] == ["AnglePan", "AngleTilt"]
+    names = names_from_summary(summary)
+    assert names["plant.y[1]"] == "AngleTilt" and names["controller.u[2]"] == "SetPointPan"

@@ -23,7 +23,7 @@ from .layout import RECORD_QUEUE_CAPACITY, AppLayout
 from .record.recorder import Recorder
 from .runnable import TickInfo
 from .status import StatusWord
-from .summary import RunSummary, TaskSummary
+from .summary import RunSummary, TaskSummary, signal_names
 from .supervisor import machine_facts, port_summaries
 from .task import initial_outputs
 from .timing import TimingSamples, task_timing
@@ -139,6 +139,7 @@ def _summary(app: App, tasks: dict[str, _SimTask], layout: AppLayout, duration_s
                                overrun_policy=spec.config.overrun),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,
+            **signal_names(spec.runnable),
         )
     capabilities = rt.probe()
     return RunSummary(

@@ -34,6 +34,10 @@ class TaskSummary:
     """Connection reads that found an older value than the tick was entitled to."""
     timing_samples_dropped: int
     """Timing samples lost because the supervisor did not drain fast enough."""
+    input_names: tuple[str, ...] | None = None
+    """Names of u[0], u[1], ... if the runnable gives them (a model's .info file, say)."""
+    output_names: tuple[str, ...] | None = None
+    """Names of y[0], y[1], ... if the runnable gives them."""
 
     def to_json(self) -> dict[str, Any]:
         timing = self.timing.to_json()
@@ -48,7 +52,18 @@ class TaskSummary:
             **{k: v for k, v in timing.items() if k != "period_ns"},
             "stale_reads": self.stale_reads,
             "timing_samples_dropped": self.timing_samples_dropped,
+            "input_names": list(self.input_names) if self.input_names else None,
+            "output_names": list(self.output_names) if self.output_names else None,
         }
+
+
+def signal_names(runnable: object) -> dict[str, tuple[str, ...] | None]:
+    """``input_names``/``output_names`` of a runnable, as TaskSummary fields (None if absent)."""
+    out: dict[str, tuple[str, ...] | None] = {}
+    for key in ("input_names", "output_names"):
+        names = getattr(runnable, key, None)
+        out[key] = tuple(str(n) for n in names) if names else None
+    return out
 
 
 @dataclass(frozen=True, slots=True)

@@ -28,7 +28,7 @@ from .errors import AppError, TaskFailed
 from .layout import AppLayout
 from .record.recorder import Recorder
 from .status import ControlWord, StatusWord, TaskState
-from .summary import PortSummary, RunSummary, TaskSummary
+from .summary import PortSummary, RunSummary, TaskSummary, signal_names
 from .task import task_process_main
 from .timing import TimingSamples, task_timing
 
@@ -273,6 +273,7 @@ class Supervisor:
                 timing=task_timing(samples, spec.config.period_ns, trim=self.trim, overrun_policy=spec.config.overrun),
                 stale_reads=status[StatusWord.STALE_READS],
                 timing_samples_dropped=layout.tasks[name].timing.dropped,
+                **signal_names(spec.runnable),
             )
         return RunSummary(
             app=self.app.name,

@@ -54,7 +54,10 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
             path = figures.save(figures.latency_over_time_figure(run, series), fig_dir / f"{prefix}-latency-time.png")
             refs.append(html.FigureRef(path, "Wake-up latency of every cycle over time (grey: trimmed ends)."))
         if run.signals is not None:
-            path = figures.save(figures.signals_figure(run.label, run.signals), fig_dir / f"{prefix}-signals.png")
+            path = figures.save(
+                figures.signals_figure(run.label, run.signals, figures.names_from_summary(run.summary)),
+                fig_dir / f"{prefix}-signals.png",
+            )
             refs.append(html.FigureRef(path, "Recorded signals (signals.csv) over time."))
         report.pngs.extend(ref.path for ref in refs)
     comparison: list[html.FigureRef] = []

@@ -166,8 +166,12 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     return fig
 
 
-def signals_figure(run_label: str, signals: Signals) -> Figure:
-    """Recorded signals against time, one panel per task (thesis figure 6.2)."""
+def signals_figure(run_label: str, signals: Signals, model_names: dict[str, str] | None = None) -> Figure:
+    """Recorded signals against time, one panel per task (thesis figure 6.2).
+
+    ``model_names`` maps a column (``plant.y[0]``) to what the model calls it (``AnglePan``).
+    """
+    model_names = model_names or {}
     groups: dict[str, list[str]] = {}
     for name in signals.columns:
         groups.setdefault(name.split(".", 1)[0], []).append(name)
@@ -175,7 +179,8 @@ def signals_figure(run_label: str, signals: Signals) -> Figure:
     axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
     for ax, (task, names) in zip(axes, groups.items(), strict=True):
         for name in names:
-            ax.plot(signals.t_s, signals.columns[name], linewidth=1.2, label=name)
+            label = f"{name} {model_names[name]}" if name in model_names else name
+            ax.plot(signals.t_s, signals.columns[name], linewidth=1.2, label=label)
         ax.set_ylabel("value")
         ax.set_title(f"task {task}", fontsize=10)
         ax.grid(True, alpha=0.3)
@@ -183,6 +188,16 @@ def signals_figure(run_label: str, signals: Signals) -> Figure:
     axes[-1].set_xlabel("release time t [s]")
     fig.suptitle(f"{run_label} — recorded signals", fontsize=12)
     return fig
+
+
+def names_from_summary(summary: dict) -> dict[str, str]:
+    """``{"plant.y[0]": "AnglePan", ...}`` from the task entries of summary.json."""
+    names: dict[str, str] = {}
+    for task, entry in summary.get("tasks", {}).items():
+        for side, key in (("u", "input_names"), ("y", "output_names")):
+            for index, name in enumerate(entry.get(key) or []):
+                names[f"{task}.{side}[{index}]"] = name
+    return names
 
 
 def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tuple[Figure, dict[str, list[Histogram]]]:
