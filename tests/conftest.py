@@ -33,3 +33,11 @@ def rtloop_env() -> dict[str, str]:
 def other_cpu() -> int:
     """A CPU to pin test tasks to: the last one."""
     return max(os.sched_getaffinity(0))
+
+
+def find_cyclonedds_cli() -> str | None:
+    """The ``cyclonedds`` command: beside this Python first (a venv's scripts are not on sudo's PATH)."""
+    import shutil
+
+    beside_python = Path(sys.executable).parent / "cyclonedds"
+    return str(beside_python) if beside_python.exists() else shutil.which("cyclonedds")

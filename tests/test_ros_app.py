@@ -14,7 +14,6 @@ import math
 import os
 import queue
 import random
-import shutil
 import signal
 import subprocess
 import sys
@@ -25,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from conftest import find_cyclonedds_cli
 
 pytest.importorskip("cyclonedds")
 
@@ -341,18 +342,20 @@ def test_bad_setpoints_are_rejected_counted_and_never_reach_the_port(tmp_path: P
     assert tuple(setpoints[-1]) == (0.4, -0.2)
 
 
+CYCLONEDDS_CLI = find_cyclonedds_cli()
+
 # --- 4. the cyclonedds command-line tool sees the angles ---------------------------------------------
 
 
 @pytest.mark.rt
-@pytest.mark.skipif(shutil.which("cyclonedds") is None, reason="the cyclonedds CLI is not installed")
+@pytest.mark.skipif(CYCLONEDDS_CLI is None, reason="the cyclonedds CLI is not installed")
 def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
     domain = random_domain()
     run = start_app(JIWY, tmp_path / "out", domain, duration_s=7)
     try:
         # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
         cli = subprocess.Popen(
-            ["cyclonedds", "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
+            [CYCLONEDDS_CLI, "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
              "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
         )

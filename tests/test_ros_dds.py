@@ -13,15 +13,15 @@ import json
 import os
 import queue
 import random
-import shutil
 import subprocess
 import sys
 import textwrap
 import threading
 import time
-from pathlib import Path
 
 import pytest
+
+from conftest import find_cyclonedds_cli
 
 pytest.importorskip("cyclonedds")
 
@@ -218,8 +218,7 @@ def test_other_domain_does_not_receive():
 
 def test_cyclonedds_cli_prints_values_from_running_publisher():
     """`cyclonedds subscribe` discovers the type over XTypes; no type name needed."""
-    beside_python = Path(sys.executable).parent / "cyclonedds"  # a venv's scripts are not on sudo's PATH
-    cli = str(beside_python) if beside_python.exists() else shutil.which("cyclonedds")
+    cli = find_cyclonedds_cli()
     if cli is None:
         pytest.skip("the cyclonedds CLI is not on PATH")
     domain = random_domain()
