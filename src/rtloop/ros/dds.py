@@ -60,7 +60,42 @@ def _check_qos(qos: str) -> str:
     return qos
 
 
-class RosPublisher:
+class _Endpoint:
+    """What a publisher and a subscriber share: checked settings, a backend, closing."""
+
+    def __init__(
+        self,
+        topic: str,
+        msg_type: Any,
+        qos: str = "sensor",
+        domain_id: int | None = None,
+        backend: str = "auto",
+        depth: int | None = None,
+    ) -> None:
+        self.topic = topic
+        self.dds_topic = dds_topic_name(topic)
+        self.qos = _check_qos(qos)
+        self.depth = _check_depth(qos, depth)
+        self.domain_id = domain_id_from_env(domain_id)
+        self.backend = choose_backend(backend)
+        self._impl: Any = self._open(msg_type)
+        self.msg_type = self._impl.msg_type
+
+    def _open(self, msg_type: Any) -> Any:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Delete the DDS writer or reader. Safe to call twice."""
+        self._impl.close()
+
+    def __enter__(self) -> Any:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RosPublisher(_Endpoint):
     """Publishes messages of one type on one ROS 2 topic.
 
     Args:
@@ -78,31 +113,15 @@ class RosPublisher:
         RosConfigError: invalid topic, QoS preset, domain id or message type.
     """
 
-    def __init__(
-        self,
-        topic: str,
-        msg_type: Any,
-        qos: str = "sensor",
-        domain_id: int | None = None,
-        backend: str = "auto",
-        depth: int | None = None,
-    ) -> None:
-        self.topic = topic
-        self.dds_topic = dds_topic_name(topic)
-        self.qos = _check_qos(qos)
-        self.depth = _check_depth(qos, depth)
-        self.domain_id = domain_id_from_env(domain_id)
-        self.backend = choose_backend(backend)
-        self.published = 0
-        """Messages handed to DDS so far."""
-        if self.backend == "cyclonedds":
-            self._impl: Any = _CyclonePublisher(self.dds_topic, msg_type, qos, self.depth,
-                                                 self.domain_id)
-        else:
-            from .rclpy_backend import RclpyPublisher
+    published = 0
+    """Messages handed to DDS so far."""
 
-            self._impl = RclpyPublisher(topic, msg_type, qos, self.depth, self.domain_id)
-        self.msg_type = self._impl.msg_type
+    def _open(self, msg_type: Any) -> Any:
+        if self.backend == "cyclonedds":
+            return _CyclonePublisher(self.dds_topic, msg_type, self.qos, self.depth, self.domain_id)
+        from .rclpy_backend import RclpyPublisher
+
+        return RclpyPublisher(self.topic, msg_type, self.qos, self.depth, self.domain_id)
 
     def publish(self, msg: Any) -> None:
         """Send ``msg`` (an instance of ``msg_type``). Does not wait for subscribers."""
@@ -117,18 +136,8 @@ class RosPublisher:
         """Wait until at least ``count`` subscriptions match; return whether they did."""
         return _poll(lambda: self.subscriber_count() >= count, timeout_s)
 
-    def close(self) -> None:
-        """Delete the DDS writer. Safe to call twice."""
-        self._impl.close()
 
-    def __enter__(self) -> RosPublisher:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class RosSubscriber:
+class RosSubscriber(_Endpoint):
     """Receives messages of one type from one ROS 2 topic; polled with :meth:`take`.
 
     Arguments are those of :class:`RosPublisher`. Incoming messages queue up to the
@@ -136,29 +145,12 @@ class RosSubscriber:
     are dropped by DDS, so poll at least as often as that many messages arrive.
     """
 
-    def __init__(
-        self,
-        topic: str,
-        msg_type: Any,
-        qos: str = "sensor",
-        domain_id: int | None = None,
-        backend: str = "auto",
-        depth: int | None = None,
-    ) -> None:
-        self.topic = topic
-        self.dds_topic = dds_topic_name(topic)
-        self.qos = _check_qos(qos)
-        self.depth = _check_depth(qos, depth)
-        self.domain_id = domain_id_from_env(domain_id)
-        self.backend = choose_backend(backend)
+    def _open(self, msg_type: Any) -> Any:
         if self.backend == "cyclonedds":
-            self._impl: Any = _CycloneSubscriber(self.dds_topic, msg_type, qos, self.depth,
-                                                  self.domain_id)
-        else:
-            from .rclpy_backend import RclpySubscriber
+            return _CycloneSubscriber(self.dds_topic, msg_type, self.qos, self.depth, self.domain_id)
+        from .rclpy_backend import RclpySubscriber
 
-            self._impl = RclpySubscriber(topic, msg_type, qos, self.depth, self.domain_id)
-        self.msg_type = self._impl.msg_type
+        return RclpySubscriber(self.topic, msg_type, self.qos, self.depth, self.domain_id)
 
     def take(self, max_messages: int = 64) -> list[Any]:
         """Return the messages received since the last call, oldest first. Never blocks."""
@@ -175,16 +167,6 @@ class RosSubscriber:
     def wait_for_publishers(self, count: int = 1, timeout_s: float = 5.0) -> bool:
         """Wait until at least ``count`` publications match; return whether they did."""
         return _poll(lambda: self.publisher_count() >= count, timeout_s)
-
-    def close(self) -> None:
-        """Delete the DDS reader. Safe to call twice."""
-        self._impl.close()
-
-    def __enter__(self) -> RosSubscriber:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _poll(condition: Any, timeout_s: float, interval_s: float = 0.01) -> bool:
