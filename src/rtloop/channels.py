@@ -38,10 +38,8 @@ class LetChannel:
         floats = segment.array(
             np.float64, HEADER_WORDS + self.n_slots * self.slot_words, offset_bytes
         )
-        self.values = [
-            floats[self._base(i) + 2 : self._base(i) + 2 + self.n_values]
-            for i in range(self.n_slots)
-        ]
+        self.bases = [self._base(i) for i in range(self.n_slots)]
+        self.values = [floats[base + 2 : base + 2 + self.n_values] for base in self.bases]
         self.published = int(self.words[0])
 
     @staticmethod
@@ -64,16 +62,18 @@ class LetChannel:
     # --- writer (RT) ---------------------------------------------------------------------
     def publish(self, stamp_ns: int, values: np.ndarray) -> None:
         words = self.words
-        slot = self.published % self.n_slots
-        base = HEADER_WORDS + slot * self.slot_words
-        words[base] += 1  # odd: slot being written
+        published = self.published
+        slot = published % self.n_slots
+        base = self.bases[slot]
+        seq = words[base] + 1
+        words[base] = seq  # odd: slot being written
         fence()
         self.values[slot][:] = values
         words[base + 1] = stamp_ns
         fence()
-        words[base] += 1  # even: slot complete
-        self.published += 1
-        words[0] = self.published
+        words[base] = seq + 1  # even: slot complete
+        self.published = published + 1
+        words[0] = published + 1
 
     # --- reader (RT) ---------------------------------------------------------------------
     def source_views(self, source: slice) -> list[np.ndarray]:
@@ -86,26 +86,26 @@ class LetChannel:
         Returns that slot's stamp, or NO_STAMP if no such slot exists (``out`` untouched).
         ``published`` only says where to start looking; each slot's seqlock decides.
         """
-        words = self.words
+        words, bases, n_slots = self.words, self.bases, self.n_slots
         published = words[0]
-        for back in range(1, min(published, self.n_slots) + 1):
-            slot = (published - back) % self.n_slots
-            base = HEADER_WORDS + slot * self.slot_words
-            for _ in range(READ_RETRIES):
-                seq = words[base]
-                if seq & 1:
-                    continue
-                fence()
-                stamp = words[base + 1]
-                if stamp <= time_ns:
-                    np.copyto(out, sources[slot])
-                fence()
-                if words[base] == seq:
-                    break
-            else:
-                continue  # this slot kept changing under us: the writer lapped it
+        back, tries = 1, 0
+        while back <= published and back <= n_slots and tries < READ_RETRIES * n_slots:
+            tries += 1
+            slot = (published - back) % n_slots
+            base = bases[slot]
+            seq = words[base]
+            if seq & 1:
+                continue  # being written: look again
+            fence()
+            stamp = words[base + 1]
+            if stamp <= time_ns:
+                np.copyto(out, sources[slot])
+            fence()
+            if words[base] != seq:
+                continue  # changed under us: look again (the writer may have lapped it)
             if stamp <= time_ns:
                 return stamp
+            back += 1  # too new for this reader: try the slot before
         return NO_STAMP
 
 

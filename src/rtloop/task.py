@@ -11,6 +11,7 @@ import gc
 import multiprocessing
 import os
 import signal
+import time
 import traceback
 from dataclasses import dataclass
 from typing import Any
@@ -137,8 +138,6 @@ def _report(pipe: Any, **message: Any) -> None:
 
 
 def _wait_for_epoch(control: WordBlock) -> tuple[int, int]:
-    import time
-
     while not control[ControlWord.T0_NS]:
         if control[ControlWord.STOP]:
             return 0, 0
