@@ -88,7 +88,7 @@ class Transports:
 
     @staticmethod
     def create(n_slots: int, capacity: int) -> tuple[dict[str, str], list[Segment]]:
-        token, owner = new_run_token(), 0
+        token, owner = new_run_token(), os.getpid()  # lets a later run remove them if this one dies
         segments = {
             "let": Segment.create("bench_hop", owner, token, "let", LetChannel.size_bytes(2, n_slots)),
             "queue": Segment.create("bench_hop", owner, token, "queue", SampleQueue.size_bytes(2, capacity)),

@@ -109,6 +109,8 @@ class Segment:
 
 def pid_alive(pid: int) -> bool:
     """Whether a process with this id is running (it may belong to another user; a zombie is not)."""
+    if pid <= 0:  # kill(0, ...) would ask about our own process group
+        return False
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
