@@ -81,34 +81,27 @@ PAN_PID = PidParameters(kp=0.3, tau_d_s=0.1, beta=0.1, tau_i_s=1000.0)
 TILT_PID = PidParameters(kp=0.2, tau_d_s=0.2, beta=0.1, tau_i_s=1000.0)
 
 
-class JiwyPlant(PythonModel):
-    """JIWY plant: u = [SteeringPan, SteeringTilt] → y = [AnglePan, AngleTilt] [rad]."""
+class _TwoAxisEulerModel(PythonModel):
+    """Two axes of two states each, integrated with Euler in 20-sim's order of evaluation.
 
-    n_inputs = 2
-    n_outputs = 2
-    input_names = ("SteeringPan", "SteeringTilt")
-    output_names = ("AnglePan", "AngleTilt")
+    Subclasses give ``_evaluate(u, y)``: the outputs and the state rates from the current
+    states and inputs.
+    """
 
-    def __init__(
-        self,
-        step_size_s: float = STEP_SIZE_S,
-        pan: AxisParameters = PAN_AXIS,
-        tilt: AxisParameters = TILT_AXIS,
-    ) -> None:
+    def __init__(self, step_size_s: float, pan: object, tilt: object) -> None:
         super().__init__()
         self.step_size_s = step_size_s
         self.pan = pan
         self.tilt = tilt
         self.time_s = 0.0
-        # states [p_pan, theta_pan, p_tilt, theta_tilt] and their rates
         self.states = [0.0, 0.0, 0.0, 0.0]
         self.rates = [0.0, 0.0, 0.0, 0.0]
 
     def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
-        """Zero states at ``t_s``; outputs and rates from them (20-sim ``Initialize``)."""
+        """Zero states at ``t_s``; outputs and rates from them and ``u`` (20-sim ``Initialize``)."""
         self.time_s = t_s
         self.states = [0.0, 0.0, 0.0, 0.0]
-        self._evaluate(float(u[0]), float(u[1]), y)
+        self._evaluate(u, y)
 
     def calculate(self, u: FloatVector, y: FloatVector) -> None:
         """One Euler step: integrate with the previous rates, then evaluate with ``u``."""
@@ -120,13 +113,38 @@ class JiwyPlant(PythonModel):
         s[2] += h * r[2]
         s[3] += h * r[3]
         self.time_s += h
-        self._evaluate(float(u[0]), float(u[1]), y)
+        self._evaluate(u, y)
 
-    def _evaluate(self, u_pan: float, u_tilt: float, y: FloatVector) -> None:
+    def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
+        raise NotImplementedError
+
+
+class JiwyPlant(_TwoAxisEulerModel):
+    """JIWY plant: u = [SteeringPan, SteeringTilt] → y = [AnglePan, AngleTilt] [rad].
+
+    States [p_pan, theta_pan, p_tilt, theta_tilt]: motor momentum and camera angle per axis.
+    """
+
+    n_inputs = 2
+    n_outputs = 2
+    input_names = ("SteeringPan", "SteeringTilt")
+    output_names = ("AnglePan", "AngleTilt")
+    pan: AxisParameters
+    tilt: AxisParameters
+
+    def __init__(
+        self,
+        step_size_s: float = STEP_SIZE_S,
+        pan: AxisParameters = PAN_AXIS,
+        tilt: AxisParameters = TILT_AXIS,
+    ) -> None:
+        super().__init__(step_size_s, pan, tilt)
+
+    def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states
         r = self.rates
-        r[0], r[1] = _axis_rates(self.pan, s[0], u_pan)
-        r[2], r[3] = _axis_rates(self.tilt, s[2], u_tilt)
+        r[0], r[1] = _axis_rates(self.pan, s[0], float(u[0]))
+        r[2], r[3] = _axis_rates(self.tilt, s[2], float(u[1]))
         y[0] = s[1]
         y[1] = s[3]
 
@@ -141,17 +159,20 @@ def _axis_rates(a: AxisParameters, p: float, u: float) -> tuple[float, float]:
     return a.r * u - a.d_mot * omega - gb * tau_cam, omega_cam
 
 
-class JiwyController(PythonModel):
+class JiwyController(_TwoAxisEulerModel):
     """JIWY PID controller, one per axis.
 
     u = [MeasuredPan, MeasuredTilt, SetPointPan, SetPointTilt] → y = [SteeringPan, SteeringTilt].
     Direct feed-through: the output answers the current input at once.
+    States [pdstate_pan, pistate_pan, pdstate_tilt, pistate_tilt].
     """
 
     n_inputs = 4
     n_outputs = 2
     input_names = ("MeasuredPan", "MeasuredTilt", "SetPointPan", "SetPointTilt")
     output_names = ("SteeringPan", "SteeringTilt")
+    pan: PidParameters
+    tilt: PidParameters
 
     def __init__(
         self,
@@ -159,38 +180,14 @@ class JiwyController(PythonModel):
         pan: PidParameters = PAN_PID,
         tilt: PidParameters = TILT_PID,
     ) -> None:
-        super().__init__()
-        self.step_size_s = step_size_s
-        self.pan = pan
-        self.tilt = tilt
-        self.time_s = 0.0
-        # states [pdstate_pan, pistate_pan, pdstate_tilt, pistate_tilt] and their rates
-        self.states = [0.0, 0.0, 0.0, 0.0]
-        self.rates = [0.0, 0.0, 0.0, 0.0]
+        super().__init__(step_size_s, pan, tilt)
 
-    def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
-        """Zero states at ``t_s``; outputs and rates from them and ``u``."""
-        self.time_s = t_s
-        self.states = [0.0, 0.0, 0.0, 0.0]
-        self._evaluate(u.tolist(), y)
-
-    def calculate(self, u: FloatVector, y: FloatVector) -> None:
-        """One Euler step: integrate with the previous rates, then evaluate with ``u``."""
+    def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states
         r = self.rates
-        h = self.step_size_s
-        s[0] += h * r[0]
-        s[1] += h * r[1]
-        s[2] += h * r[2]
-        s[3] += h * r[3]
-        self.time_s += h
-        self._evaluate(u.tolist(), y)
-
-    def _evaluate(self, u: list[float], y: FloatVector) -> None:
-        s = self.states
-        r = self.rates
-        y[0], r[0], r[1] = _pid(self.pan, s[0], s[1], u[2] - u[0])
-        y[1], r[2], r[3] = _pid(self.tilt, s[2], s[3], u[3] - u[1])
+        values = u.tolist()
+        y[0], r[0], r[1] = _pid(self.pan, s[0], s[1], values[2] - values[0])
+        y[1], r[2], r[3] = _pid(self.tilt, s[2], s[3], values[3] - values[1])
 
 
 def _pid(c: PidParameters, pdstate: float, pistate: float, e: float) -> tuple[float, float, float]:
