@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import find_cyclonedds_cli
+from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
 
@@ -44,47 +45,14 @@ PEER = textwrap.dedent(
     from dataclasses import dataclass
     from cyclonedds.core import ReadCondition, SampleState, WaitSet
     from cyclonedds.domain import DomainParticipant
-    from cyclonedds.idl import IdlStruct
-    from cyclonedds.idl.types import float64, int32, sequence, uint32
     from cyclonedds.pub import DataWriter
     from cyclonedds.qos import Policy, Qos
     from cyclonedds.sub import DataReader
     from cyclonedds.topic import Topic
     from cyclonedds.util import duration
-
-    @dataclass
-    class Time_(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-        sec: int32
-        nanosec: uint32
-
-    @dataclass
-    class Header_(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-        stamp: Time_
-        frame_id: str
-
-    @dataclass
-    class JointState_(IdlStruct, typename="sensor_msgs::msg::dds_::JointState_"):
-        header: Header_
-        name: sequence[str]
-        position: sequence[float64]
-        velocity: sequence[float64]
-        effort: sequence[float64]
-
-    @dataclass
-    class MultiArrayDimension_(IdlStruct, typename="std_msgs::msg::dds_::MultiArrayDimension_"):
-        label: str
-        size: uint32
-        stride: uint32
-
-    @dataclass
-    class MultiArrayLayout_(IdlStruct, typename="std_msgs::msg::dds_::MultiArrayLayout_"):
-        dim: sequence[MultiArrayDimension_]
-        data_offset: uint32
-
-    @dataclass
-    class Float64MultiArray_(IdlStruct, typename="std_msgs::msg::dds_::Float64MultiArray_"):
-        layout: MultiArrayLayout_
-        data: sequence[float64]
+    """
+) + ROS2_TYPES + textwrap.dedent(
+    """
 
     mode, domain, topic = sys.argv[1], int(sys.argv[2]), sys.argv[3]
     participant = DomainParticipant(domain)
