@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
+from .channels import LatestValue, LetChannel, SampleQueue
 from .shm import Segment
 from .status import StatusWord, WordBlock
 
@@ -156,5 +156,3 @@ class TaskWiring:
         if self.output is not None:
             self.output.publish(t0_ns, self.initial_y)
 
-
-__all__ = ["NO_STAMP", "InputLink", "InputPortLink", "OutputPortLink", "Profile", "TaskWiring", "TaskWiringPlan"]

@@ -108,7 +108,7 @@ class SignalsCsv:
         return [nan if (held := self.held[task]) is None else float(held[index]) for task, index in self.columns]
 
     def close(self) -> None:
-        self.flush(final=True)
+        """Close the file; ``flush(final=True)`` first writes what is still pending."""
         self.file.close()
 
 

@@ -62,7 +62,7 @@ class Recorder:
         self.flush(final=True)
         self.timing.close()
         if self.signals is not None:
-            self.signals.file.close()  # rows were flushed just above
+            self.signals.close()  # its last rows were flushed just above
         if self.mcap is not None:
             self.mcap.close()
         give_to_invoking_user(self.out)
