@@ -26,7 +26,7 @@ from .status import StatusWord
 from .summary import RunSummary, TaskSummary, signal_names
 from .supervisor import machine_facts, port_summaries
 from .task import initial_outputs
-from .timing import TimingSamples, task_timing
+from .timing import task_timing
 from .wiring import TaskWiring
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
@@ -43,7 +43,6 @@ class _SimTask:
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
-        self.drained: list[np.ndarray] = []
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
@@ -102,7 +101,7 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
     finally:
         _drain(tasks, recorder)
         recorder.close()
-        summary = _summary(app, tasks, layout, duration_s, trim, failure)
+        summary = _summary(app, recorder, layout, duration_s, trim, failure)
         if recorder.mcap_note:
             summary.notes.append(recorder.mcap_note)
         summary.write(out / "summary.json")
@@ -115,27 +114,22 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
 def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
     """Hand what the tasks recorded since the last drain to the recorder."""
     for name, task in tasks.items():
-        if task.records:
-            records = np.array(task.records, dtype=np.int64).reshape(-1, 4)
-            task.drained.append(records)
-            recorder.add_timing(name, records)
-            task.records.clear()
+        recorder.add_timing(name, np.array(task.records, dtype=np.int64).reshape(-1, 4))
+        task.records.clear()
         if task.handles.record is not None:
             recorder.add_signals(name, *task.handles.record.drain())
     recorder.flush()
 
 
-def _summary(app: App, tasks: dict[str, _SimTask], layout: AppLayout, duration_s: float, trim: int,
+def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float, trim: int,
              failure: TaskFailed | None) -> RunSummary:
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
-        drained = tasks[name].drained if name in tasks else []
-        records = np.concatenate(drained) if drained else np.empty((0, 4), np.int64)
         summaries[name] = TaskSummary(
             period_ns=spec.config.period_ns, priority=0, cpu=None, policy="simulated", rt=False,
             rt_reason="offline simulation: logical time, no real-time scheduling",
             memory_locked=False,
-            timing=task_timing(TimingSamples.from_records(records), spec.config.period_ns, trim=trim,
+            timing=task_timing(recorder.samples(name), spec.config.period_ns, trim=trim,
                                overrun_policy=spec.config.overrun),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,

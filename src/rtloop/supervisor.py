@@ -15,11 +15,9 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from . import rt
 from .app import App
@@ -30,7 +28,7 @@ from .record.recorder import Recorder
 from .status import ControlWord, StatusWord, TaskState
 from .summary import PortSummary, RunSummary, TaskSummary, signal_names
 from .task import task_process_main
-from .timing import TimingSamples, task_timing
+from .timing import task_timing
 
 DRAIN_INTERVAL_S = 0.05
 START_MARGIN_NS = 100_000_000
@@ -43,7 +41,6 @@ class _TaskRun:
     name: str
     process: Any
     pipe: Any
-    records: list[np.ndarray] = field(default_factory=list)
     settings: rt.AppliedSettings | None = None
     failure: TaskFailed | None = None
     finished: bool = False
@@ -82,7 +79,7 @@ class Supervisor:
             else:
                 layout.control[ControlWord.STOP] = 1
             self._join(layout, runs)
-            self._drain(layout, runs, recorder)
+            self._drain(layout, recorder)
         finally:
             self.bridges.stop()
             self.dma_latency.__exit__()
@@ -145,7 +142,7 @@ class Supervisor:
             time.sleep(DRAIN_INTERVAL_S)
             if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
                 self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
-            self._drain(layout, runs, recorder)
+            self._drain(layout, recorder)
             self._poll(layout, runs)
             self.bridges.poll()
             if self.failure is not None or self.stop_reason != "duration":
@@ -179,13 +176,9 @@ class Supervisor:
 
     # --- draining and watching ---------------------------------------------------------------
     @staticmethod
-    def _drain(layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
-        for name, task_run in runs.items():
-            handles = layout.tasks[name]
-            records = handles.timing.drain()
-            if len(records):
-                task_run.records.append(records)
-                recorder.add_timing(name, records)
+    def _drain(layout: AppLayout, recorder: Recorder) -> None:
+        for name, handles in layout.tasks.items():
+            recorder.add_timing(name, handles.timing.drain())
             if handles.record is not None:
                 recorder.add_signals(name, *handles.record.drain())
         recorder.flush()
@@ -259,8 +252,7 @@ class Supervisor:
         for name, spec in self.app.tasks.items():
             task_run = runs.get(name)
             status = layout.tasks[name].status
-            records = np.concatenate(task_run.records) if task_run and task_run.records else np.empty((0, 4), np.int64)
-            samples = TimingSamples.from_records(records)
+            samples = recorder.samples(name)
             settings = task_run.settings if task_run else None
             tasks[name] = TaskSummary(
                 period_ns=spec.config.period_ns,

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..app import App
+from ..timing import TimingSamples
 from .csvfiles import SignalsCsv, TimingCsv
 
 
@@ -29,6 +30,7 @@ class Recorder:
         self.mcap = None
         self.mcap_note = ""
         self.app = app
+        self._timing_records: dict[str, list[np.ndarray]] = {name: [] for name in app.tasks}
 
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:
         """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
@@ -43,9 +45,15 @@ class Recorder:
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         if len(records):
+            self._timing_records[task].append(records)
             self.timing.append(task, records)
             if self.mcap is not None:
                 self.mcap.add_timing(task, records)
+
+    def samples(self, task: str) -> TimingSamples:
+        """Every timing record of ``task`` added so far (for the statistics)."""
+        records = self._timing_records[task]
+        return TimingSamples.from_records(np.concatenate(records) if records else np.empty((0, 4), np.int64))
 
     def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
         if self.signals is not None:
