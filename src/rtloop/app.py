@@ -15,6 +15,8 @@ Every mistake that can be found before a process starts is found here, with an
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import pickle
 import re
 from dataclasses import dataclass, field
@@ -206,15 +208,7 @@ class App:
             raise AppError(f"{where}: priority {priority!r}; expected an integer {low}–99 for {policy}")
         if policy in ("other", "deadline"):
             priority = 0
-        if cpu is not None:
-            import os
-
-            available = sorted(os.sched_getaffinity(0))
-            if not isinstance(cpu, int) or cpu not in available:
-                raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
-        if policy == "deadline" and cpu is not None:
-            raise AppError(f"{where}: a SCHED_DEADLINE task cannot be pinned to one CPU (the kernel refuses); "
-                           "leave cpu unset, or use fifo/rr to pin it")
+        _check_cpu(where, cpu, policy)
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
@@ -230,15 +224,9 @@ class App:
 
     def pin_all(self, cpu: int) -> None:
         """Pin every task to ``cpu`` (e.g. the isolated core of a Raspberry Pi)."""
-        import dataclasses
-        import os
-
-        available = sorted(os.sched_getaffinity(0))
-        if cpu not in available:
-            raise AppError(f"cpu {cpu} is not one of this machine's CPUs {available}")
         for spec in self.tasks.values():
-            if spec.config.policy == "deadline":
-                raise AppError(f"task {spec.name!r}: a SCHED_DEADLINE task cannot be pinned to one CPU")
+            _check_cpu(f"task {spec.name!r}", cpu, spec.config.policy)
+        for spec in self.tasks.values():
             spec.config = dataclasses.replace(spec.config, cpu=cpu)
 
     def _resolve(self, signal: SignalRef | SignalVector, role: str) -> SignalRef:
@@ -328,9 +316,7 @@ class App:
         if port not in self.ports or self.ports[port].direction != "in":
             inputs = sorted(n for n, p in self.ports.items() if p.direction == "in")
             raise AppError(f"feed {port}={csv_path}: no input port {port!r}; input ports are {inputs}")
-        spec = self.ports[port]
-        self.ports[port] = PortSpec(spec.name, spec.direction, spec.signal, spec.initial,
-                                    spec.allow_nonfinite, spec.capacity, Path(csv_path))
+        self.ports[port] = dataclasses.replace(self.ports[port], feed=Path(csv_path))
 
     def ros_publish(self, topic: str, *, source: SignalRef | SignalVector | None = None, port: str | None = None,
                     msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "sensor",
@@ -421,6 +407,18 @@ class App:
         from .simulate import simulate_app
 
         return simulate_app(self, duration_s, Path(out), trim=trim)
+
+
+def _check_cpu(where: str, cpu: int | None, policy: str) -> None:
+    """A CPU this process may run on, and not for SCHED_DEADLINE (the kernel refuses to pin those)."""
+    if cpu is None:
+        return
+    available = sorted(os.sched_getaffinity(0))
+    if not isinstance(cpu, int) or cpu not in available:
+        raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
+    if policy == "deadline":
+        raise AppError(f"{where}: a SCHED_DEADLINE task cannot be pinned to one CPU (the kernel refuses); "
+                       "leave cpu unset, or use fifo/rr to pin it")
 
 
 def parse_signal(text: str, app: App, where: str) -> SignalRef:
