@@ -70,7 +70,8 @@ class ReleaseTime(Runnable):
 
 def run_subscriber(domain_id: int, give_up_s: float) -> None:
     """Take JointStates until ``IDLE_END_S`` without any (or ``give_up_s``); print one JSON line."""
-    from rtloop.ros import JointState, RosSubscriber, time_to_ns
+    from rtloop.ros.dds import RosSubscriber
+    from rtloop.ros.messages import JointState, time_to_ns
 
     sub = RosSubscriber(TOPIC, JointState, qos="sensor", domain_id=domain_id, depth=10_000)
     print("READY", flush=True)

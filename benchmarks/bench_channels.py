@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+import rtloop
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import (
@@ -55,9 +57,9 @@ from _common import (
 )
 
 from rtloop import rt
-from rtloop.app import App
-from rtloop.channels import LetChannel, SampleQueue
-from rtloop.shm import Segment, new_run_token
+from rtloop.app.builder import App
+from rtloop.ipc.channels import LetChannel, SampleQueue
+from rtloop.ipc.segments import Segment, new_run_token
 
 TRANSPORTS = ("LetChannel", "SampleQueue", "raw numpy")
 LOW_BITS = 1 << 32
@@ -241,7 +243,7 @@ def run_hops(args: argparse.Namespace) -> dict[str, Any]:
 
 def measure_operations(repeats: int, cpu: int) -> dict[str, float]:
     """Median cost (µs) of each channel operation, in this process on ``cpu``: where a hop's time goes."""
-    from rtloop.shm import fence
+    from rtloop.ipc.segments import fence
 
     names, segments = Transports.create(n_slots=4, capacity=4096)
     previous = os.sched_getaffinity(0)
@@ -305,7 +307,7 @@ def run_connections(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                                           priority=args.priority, cpu=args.writer_cpu)
                     app.connect(writer.y[0], sink.u[i])
             out = work / f"r{round_index}-{'4' if connected else '0'}conn"
-            summary = app.run(args.block_s, out, trim=args.trim)
+            summary = rtloop.run(app, args.block_s, out, trim=args.trim)
             if not all(task.rt for task in summary.tasks.values()):
                 raise SystemExit("tasks did not run real-time")
             timing = load_timing_csv(out / "timing.csv")

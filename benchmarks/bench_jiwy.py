@@ -13,14 +13,18 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import sys
 import tempfile
 import warnings
 from pathlib import Path
 
+import rtloop
 from rtloop import App
 from rtloop.models import load_model
 from rtloop.models.base import StepSizeWarning
-from rtloop.models.jiwy import JiwyController, JiwyPlant
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "jiwy"))  # the example's models
+from jiwy_models import JiwyController, JiwyPlant
 
 JIWY = Path(__file__).resolve().parent.parent / "examples" / "jiwy"
 
@@ -55,7 +59,7 @@ def main() -> None:
             for kind in ("python", "20sim"):
                 for rate_hz in (1000, 5000):
                     app = jiwy_app(kind, 1_000_000_000 // rate_hz, args.cpu)
-                    summary = app.run(args.duration, work / f"{kind}-{rate_hz}")
+                    summary = rtloop.run(app, args.duration, work / f"{kind}-{rate_hz}")
                     results.setdefault((kind, rate_hz), []).append(summary)
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+import rtloop
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import (
@@ -57,7 +59,7 @@ from _common import (
     write_json,
 )
 
-from rtloop.app import App
+from rtloop.app.builder import App
 
 CYCLICTEST_SAMPLE = re.compile(r"^\s*0:\s*\d+:\s*(\d+)\s*$")
 
@@ -88,7 +90,7 @@ class Samples:
 def run_rtloop_block(args: argparse.Namespace, period_us: int, block_s: float, out: Path, into: Samples) -> None:
     app = App("bench_latency")
     app.add_task("noop", NoOp(), period_ns=period_us * 1000, priority=args.priority, cpu=args.cpu)
-    summary = app.run(block_s, out, trim=args.trim)
+    summary = rtloop.run(app, block_s, out, trim=args.trim)
     task = summary.tasks["noop"]
     if not task.rt:
         raise SystemExit(f"rtloop task did not run real-time: {task.rt_reason}")
@@ -176,10 +178,10 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
     from rtloop import rt
-    from rtloop.shm import RecordRing, Segment, new_run_token
-    from rtloop.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
-    from rtloop.task import RealtimeTask, TaskConfig, task_segment_size
-    from rtloop.wiring import TaskWiring, TaskWiringPlan
+    from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+    from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+    from rtloop.runtime.task import RealtimeTask, TaskConfig, task_segment_size
+    from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
 
     token = new_run_token()
     control_segment = Segment.create("bench", os.getpid(), token, "control", CONTROL_WORDS * 8)

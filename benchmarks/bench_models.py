@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import platform
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -22,8 +23,10 @@ import numpy as np
 
 from rtloop.models import ModelRunnable, load_model
 from rtloop.models.fmu_build import build_fmu
-from rtloop.models.jiwy import JiwyController, JiwyPlant
 from rtloop.models.twentysim import TwentySimModel
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "jiwy"))  # the example's models
+from jiwy_models import JiwyController, JiwyPlant
 
 MODELS = Path(__file__).resolve().parents[1] / "examples" / "jiwy" / "models"
 

@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from rtloop.ros import JointState, RosPublisher, RosSubscriber, joint_state, time_to_ns
+from rtloop.ros.dds import RosPublisher, RosSubscriber
+from rtloop.ros.messages import JointState, joint_state, time_to_ns
 
 TOPIC = "/bench/angles"
 NAMES = ["pan", "tilt"]

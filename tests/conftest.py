@@ -10,6 +10,7 @@ from rtloop import rt
 
 TESTS_DIR = Path(__file__).parent
 sys.path.insert(0, str(TESTS_DIR))  # rt_test_runnables, for spawned task processes too
+sys.path.insert(1, str(TESTS_DIR.parent / "examples" / "jiwy"))  # the JIWY example's plant and controller
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -26,7 +27,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 def rtloop_env() -> dict[str, str]:
     """Environment for running the rtloop CLI in a subprocess that finds the test runnables."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    paths = [str(TESTS_DIR), str(TESTS_DIR.parent / "examples" / "jiwy"), env.get("PYTHONPATH", "")]
+    env["PYTHONPATH"] = os.pathsep.join(paths).rstrip(os.pathsep)
     return env
 
 

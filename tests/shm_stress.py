@@ -6,8 +6,8 @@ import os
 
 import numpy as np
 
-from rtloop.channels import LetChannel, SampleQueue
-from rtloop.shm import Segment
+from rtloop.ipc.channels import LetChannel, SampleQueue
+from rtloop.ipc.segments import Segment
 
 N_VALUES = 16
 

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from rtloop import bench, rt
-from rtloop.cli import main as cli_main
+from rtloop import rt
+from rtloop.cli import bench
+from rtloop.cli.main import main as cli_main
 
 DURATION = "1"
 

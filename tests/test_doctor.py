@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from rtloop import doctor
-from rtloop.doctor import Check, format_human, main, run_checks, to_json, verdict
+from rtloop.cli import doctor
+from rtloop.cli.doctor import Check, format_human, main, run_checks, to_json, verdict
 from rtloop.rt import CAP_IPC_LOCK, CAP_SYS_NICE
 
 LIMITS_HEADER = "Limit                     Soft Limit           Hard Limit           Units     \n"
@@ -283,7 +283,7 @@ def test_real_machine_tells_the_truth() -> None:
 
 
 def test_module_runs_as_a_script() -> None:
-    result = subprocess.run([sys.executable, "-m", "rtloop.doctor", "--json"],
+    result = subprocess.run([sys.executable, "-m", "rtloop.cli.doctor", "--json"],
                             capture_output=True, text=True, timeout=60, check=False)
     document = json.loads(result.stdout)
     assert result.returncode == (1 if document["verdict"] == "fail" else 0), result.stderr

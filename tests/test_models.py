@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from jiwy_models import PAN_AXIS, JiwyController, JiwyPlant
 
 from rtloop import Runnable
 from rtloop.models import (
@@ -28,7 +29,6 @@ from rtloop.models import (
     load_model,
     model_info,
 )
-from rtloop.models.jiwy import PAN_AXIS, JiwyController, JiwyPlant
 from rtloop.models.twentysim import TwentySimModel, default_cache_dir, inspect
 
 MODELS = Path(__file__).resolve().parents[1] / "examples" / "jiwy" / "models"
@@ -315,7 +315,7 @@ def test_fmu_info(jiwy_fmu: Path) -> None:
 @needs_gxx
 def test_runnables_pickle_before_prerun(cache_dir: Path, jiwy_fmu: Path) -> None:
     runnables = [
-        load_model("python:rtloop.models.jiwy:JiwyPlant"),
+        load_model("python:jiwy_models:JiwyPlant"),
         twentysim("Plant", cache_dir),
         twentysim("PlantC", cache_dir),
         load_model(f"fmu:{jiwy_fmu}"),
@@ -351,11 +351,11 @@ def test_fmu_takes_task_period_as_communication_step(jiwy_fmu: Path) -> None:
 
 
 def test_load_model_specs(tmp_path: Path) -> None:
-    plant = load_model("python:rtloop.models.jiwy:JiwyPlant")
+    plant = load_model("python:jiwy_models:JiwyPlant")
     assert isinstance(plant, JiwyPlant)
     info = model_info("20sim:Plant", base_dir=MODELS)
     assert info["kind"] == "20sim-cpp" and info["outputs"] == ["AnglePan", "AngleTilt"]
     with pytest.raises(ModelError, match="does not exist"):
         load_model("20sim:NoSuchModel", base_dir=tmp_path)
     with pytest.raises(ModelError, match="nothing to build"):
-        build("python:rtloop.models.jiwy:JiwyPlant")
+        build("python:jiwy_models:JiwyPlant")

@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
+import rtloop
 from conftest import other_cpu
 from rt_test_runnables import Counter, SegfaultAt
 from rtloop import App, TaskFailed
-from rtloop.appfile import load_app
+from rtloop.app.appfile import load_app
 
 JIWY = Path(__file__).parent.parent / "examples" / "jiwy"
 needs_compiler = pytest.mark.skipif(shutil.which("g++") is None or shutil.which("gcc") is None,
@@ -25,8 +26,8 @@ def jiwy_variant(folder: Path, plant_line: str, controller_line: str) -> Path:
     if not (folder / "models").exists():
         shutil.copytree(JIWY / "models", folder / "models")
     text = (JIWY / "jiwy.toml").read_text()
-    text = text.replace('runnable = "rtloop.models.jiwy:JiwyPlant"', plant_line)
-    text = text.replace('runnable = "rtloop.models.jiwy:JiwyController"', controller_line)
+    text = text.replace('runnable = "jiwy_models:JiwyPlant"', plant_line)
+    text = text.replace('runnable = "jiwy_models:JiwyController"', controller_line)
     path = folder / f"jiwy-{len(list(folder.glob('*.toml')))}.toml"
     path.write_text(text)
     return path
@@ -35,7 +36,7 @@ def jiwy_variant(folder: Path, plant_line: str, controller_line: str) -> Path:
 def simulate_signals(app_file: Path, out: Path) -> list[list[str]]:
     app = load_app(app_file)
     app.feed("setpoint", JIWY / "setpoints" / "step.csv")
-    app.simulate(2.0, out)
+    rtloop.simulate(app, 2.0, out)
     with open(out / "signals.csv", newline="") as file:
         return list(csv.reader(file))
 
@@ -48,7 +49,7 @@ def test_jiwy_with_20sim_cpp_models_and_fmu_plant_matches_python_models(tmp_path
     reference = simulate_signals(JIWY / "jiwy.toml", tmp_path / "python")
     variants = {
         "20sim": jiwy_variant(tmp_path, 'model = "20sim:models/Plant"', 'model = "20sim:models/Controller"'),
-        "fmu": jiwy_variant(tmp_path, f'model = "fmu:{fmu}"', 'runnable = "rtloop.models.jiwy:JiwyController"'),
+        "fmu": jiwy_variant(tmp_path, f'model = "fmu:{fmu}"', 'runnable = "jiwy_models:JiwyController"'),
     }
     for name, path in variants.items():
         rows = simulate_signals(path, tmp_path / name)
@@ -92,7 +93,7 @@ def test_a_model_that_segfaults_kills_only_its_task_and_is_reported(tmp_path: Pa
     app.add_task("other", Counter(), period_ns=1_000_000, cpu=other_cpu(), priority=70)
     app.record(crash.y)
     with pytest.raises(TaskFailed, match="SIGSEGV") as caught:
-        app.run(5, tmp_path)
+        rtloop.run(app, 5, tmp_path)
     assert caught.value.task == "crash" and caught.value.phase == "step"
     assert caught.value.cycle is not None and 195 <= caught.value.cycle <= 200  # last cycle seen by the supervisor
     with open(tmp_path / "signals.csv", newline="") as file:

@@ -8,17 +8,19 @@ from pathlib import Path
 
 import pytest
 
+import rtloop
+
 EXAMPLES = Path(__file__).parent.parent / "examples"
 
 
 def test_mcap_signals_equal_signals_csv_and_timing_equals_timing_csv(tmp_path: Path) -> None:
     mcap_reader = pytest.importorskip("mcap.reader")
     decoder = pytest.importorskip("mcap_ros2.decoder")
-    from rtloop.appfile import load_app
+    from rtloop.app.appfile import load_app
 
     app = load_app(EXAMPLES / "jiwy" / "jiwy.toml")
     app.feed("setpoint", EXAMPLES / "jiwy" / "setpoints" / "step.csv")
-    app.simulate(1.0, tmp_path)
+    rtloop.simulate(app, 1.0, tmp_path)
     with open(tmp_path / "signals.csv", newline="") as file:
         rows = list(csv.reader(file))
     header, rows = rows[0], rows[1:]
@@ -47,11 +49,11 @@ def test_mcap_signals_equal_signals_csv_and_timing_equals_timing_csv(tmp_path: P
 def test_summary_names_signals_and_the_report_labels_them(tmp_path: Path) -> None:
     import json
 
-    from rtloop.appfile import load_app
+    from rtloop.app.appfile import load_app
     from rtloop.report.figures import names_from_summary
 
     app = load_app(EXAMPLES / "jiwy" / "jiwy.toml")
-    app.simulate(0.05, tmp_path)
+    rtloop.simulate(app, 0.05, tmp_path)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tasks"]["plant"]["output_names"] == ["AnglePan", "AngleTilt"]
     names = names_from_summary(summary)

@@ -117,7 +117,7 @@ def test_figure_bars_are_the_histogram_counts(synthetic_run: Path) -> None:
 
 
 def test_simulated_primes_report(tmp_path: Path) -> None:
-    from rtloop.cli import main as cli_main
+    from rtloop.cli.main import main as cli_main
 
     out = tmp_path / "sim"
     assert cli_main(["simulate", str(EXAMPLES / "primes" / "primes.toml"), "--duration", "0.5",

@@ -30,7 +30,7 @@ from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
 
-from rtloop.ports import running_apps
+from rtloop.ipc.ports import running_apps
 
 ROOT = Path(__file__).resolve().parents[1]
 JIWY = ROOT / "examples" / "jiwy" / "jiwy.toml"

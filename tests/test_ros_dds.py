@@ -26,16 +26,9 @@ from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
 
-from rtloop.ros import (
-    JointState,
-    RosConfigError,
-    RosPublisher,
-    RosSubscriber,
-    dds_topic_name,
-    domain_id_from_env,
-    float64_multi_array,
-    joint_state,
-)
+from rtloop.ros.dds import RosPublisher, RosSubscriber, dds_topic_name
+from rtloop.ros.errors import RosConfigError, domain_id_from_env
+from rtloop.ros.messages import JointState, float64_multi_array, joint_state
 
 TEST_TIMEOUT_S = 10.0
 

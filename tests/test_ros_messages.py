@@ -87,7 +87,10 @@ def test_messages_work_as_plain_dataclasses_without_cyclonedds():
         import sys
         sys.modules["cyclonedds"] = None  # as on aarch64, where there is no wheel
         sys.modules["rclpy"] = None  # and no ROS 2 sourced
-        from rtloop.ros import RosPublisher, RosUnavailable, messages, joint_state
+        from rtloop.ros import messages
+        from rtloop.ros.dds import RosPublisher
+        from rtloop.ros.errors import RosUnavailable
+        from rtloop.ros.messages import joint_state
         assert not messages.HAVE_CYCLONEDDS
         msg = joint_state(["a"], [1.0], 5)
         assert msg.position == [1.0] and msg.header.stamp.nanosec == 5

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rtloop.errors import PortValueError
-from rtloop.ros import MessageValidator, RateLimitedWarner, RejectedValues, validate_values
+from rtloop.ros.validate import MessageValidator, RateLimitedWarner, RejectedValues, validate_values
 
 
 def test_accepts_numbers_and_returns_a_float64_copy():

@@ -14,10 +14,11 @@ from pathlib import Path
 
 import pytest
 
+import rtloop
 from conftest import other_cpu
 from rt_test_runnables import BadPrerun, Counter, Noop, RaiseAt, ReportSettings, Sleepy
 from rtloop import App, AppError, TaskFailed
-from rtloop.ports import connect_app
+from rtloop.ipc.ports import connect_app
 
 P = 1_000_000
 
@@ -33,7 +34,7 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     a = app.add_task("a", Counter(), period_ns=P, priority=70, cpu=other_cpu())
     app.add_task("b", Noop(), period_ns=2 * P, priority=60, cpu=other_cpu())
     app.record(a.y)
-    summary = app.run(0.5, tmp_path)
+    summary = rtloop.run(app, 0.5, tmp_path)
     data = json.loads((tmp_path / "summary.json").read_text())
     assert data["app"] == "two_counters" and data["duration_s"] == 0.5 and data["rt_capable"] is True
     task = data["tasks"]["a"]
@@ -62,7 +63,7 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
     app = App("settings")
     t = app.add_task("probe", ReportSettings(), period_ns=P, priority=42, cpu=other_cpu(), policy="rr")
     app.record(t.y)
-    app.run(0.1, tmp_path)
+    rtloop.run(app, 0.1, tmp_path)
     row = read_csv(tmp_path / "signals.csv")[0]
     assert float(row["probe.y[0]"]) == os.SCHED_RR
     assert float(row["probe.y[1]"]) == 42
@@ -77,7 +78,7 @@ def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(
     app.add_task("good", Counter(), period_ns=P, cpu=other_cpu(), priority=70)
     app.record(bad.y)
     with pytest.raises(TaskFailed) as caught:
-        app.run(5, tmp_path)
+        rtloop.run(app, 5, tmp_path)
     failure = caught.value
     assert (failure.task, failure.cycle, failure.phase) == ("bad", 123, "step")
     assert "ZeroDivisionError" in failure.reason and "rt_test_runnables.py" in failure.traceback_text
@@ -96,7 +97,7 @@ def test_exception_in_prerun_is_reported_before_the_loop(tmp_path: Path) -> None
     app = App("badprerun")
     app.add_task("t", BadPrerun(), period_ns=P, policy="other")
     with pytest.raises(TaskFailed, match="sensor not found") as caught:
-        app.run(1, tmp_path)
+        rtloop.run(app, 1, tmp_path)
     assert caught.value.phase == "prerun" and caught.value.cycle is None
     assert (tmp_path / "summary.json").exists()
 
@@ -108,7 +109,7 @@ def test_a_runnable_that_cannot_reach_its_process_is_refused_before_running(tmp_
     app = App("local")
     app.add_task("t", Local(), period_ns=P)
     with pytest.raises(AppError, match="task 't': its runnable cannot be sent"):
-        app.run(1, tmp_path)
+        rtloop.run(app, 1, tmp_path)
 
 
 def _start_cli(app_file: Path, out: Path, env: dict[str, str], duration: float = 30) -> subprocess.Popen:
@@ -205,7 +206,7 @@ def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: 
 def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> None:
     app = App("overrun")
     app.add_task("slow", Sleepy(0.0035, every=50), period_ns=P, cpu=other_cpu())
-    summary = app.run(0.5, tmp_path)
+    summary = rtloop.run(app, 0.5, tmp_path)
     timing = summary.tasks["slow"].timing
     assert timing.overruns >= 3 * 9  # each sleep of 3.5 ms skips at least 3 releases
     assert timing.cycles + timing.overruns == 500
@@ -218,7 +219,7 @@ def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: 
     app.add_task("t", ReportSettings(), period_ns=P, policy="deadline")
     with pytest.raises(AppError, match="cannot be pinned"):
         app.add_task("pinned", Noop(), period_ns=P, policy="deadline", cpu=0)
-    summary = app.run(0.2, tmp_path)
+    summary = rtloop.run(app, 0.2, tmp_path)
     task = summary.tasks["t"]
     assert (task.policy, task.rt, task.rt_reason) == ("deadline", True, "")
     assert task.timing.cycles + task.timing.overruns == 200

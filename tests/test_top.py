@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from rtloop import top
+from rtloop.cli import top
 
 NOOP = '''
 from rtloop import Runnable

@@ -15,14 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import rtloop
 import shm_stress
 from conftest import other_cpu
 from rt_test_runnables import Counter, Gain, Integrator, Noop, PiController
 from rtloop import App, AppError, ConnectionSizeError, PortValueError
-from rtloop.appfile import load_app
-from rtloop.channels import NO_STAMP, LetChannel, SampleQueue
-from rtloop.ports import RunningApp, running_apps, validate_values
-from rtloop.shm import Segment, new_run_token, remove_stale_segments
+from rtloop.app.appfile import load_app
+from rtloop.ipc.channels import NO_STAMP, LetChannel, SampleQueue
+from rtloop.ipc.ports import RunningApp, running_apps, validate_values
+from rtloop.ipc.segments import Segment, new_run_token, remove_stale_segments
 
 P = 1_000_000
 EXAMPLES = Path(__file__).parent.parent / "examples"
@@ -67,12 +68,12 @@ def first_unclean_time_ns(out: Path) -> int:
 def test_run_reproduces_simulation_value_for_value(tmp_path: Path) -> None:
     profile = tmp_path / "steps.csv"
     profile.write_text("t_s,a,b\n0,0,0\n0.1,1.0,-0.5\n0.35,0.25,2.0\n")
-    simulated = closed_loop_app(profile, None).simulate(1.0, tmp_path / "sim")
+    simulated = rtloop.simulate(closed_loop_app(profile, None), 1.0, tmp_path / "sim")
     assert simulated.tasks["plant"].stale_reads == 0
     compared, horizons = 0, []
     for attempt in range(5):  # a hypervisor stall or a busy machine can spoil a run early; the rule is the same
         out = tmp_path / f"run{attempt}"
-        closed_loop_app(profile, other_cpu()).run(1.0, out)
+        rtloop.run(closed_loop_app(profile, other_cpu()), 1.0, out)
         horizon_ns = first_unclean_time_ns(out)
         horizons.append(horizon_ns)
         sim_rows = read_rows(tmp_path / "sim" / "signals.csv")
@@ -97,8 +98,8 @@ def test_simulation_is_deterministic_and_feeds_profiles_by_release_time(tmp_path
     profile.write_text("t_s,a,b\n0,0,0\n0.5,0.5,0.3\n")
     app = closed_loop_app(profile, None)
     app.record(app.tasks["controller"].u[2:4])
-    app.simulate(1.0, tmp_path / "a")
-    closed_loop_app(profile, None).simulate(1.0, tmp_path / "b")
+    rtloop.simulate(app, 1.0, tmp_path / "a")
+    rtloop.simulate(closed_loop_app(profile, None), 1.0, tmp_path / "b")
     rows = read_rows(tmp_path / "a" / "signals.csv")
     header = rows[0]
     setpoint = header.index("controller.u[2]")
@@ -115,7 +116,7 @@ def test_logical_execution_time_one_tick_delay_per_hop(tmp_path: Path) -> None:
     copy = app.add_task("copy", Gain(2), period_ns=P)
     app.connect(counter.y, copy.u)
     app.record(counter.y, copy.y)
-    app.simulate(0.01, tmp_path)
+    rtloop.simulate(app, 0.01, tmp_path)
     rows = read_rows(tmp_path / "signals.csv")[1:]
     # tick k of copy sees what counter computed at tick k-1 (initial zeros at k = 0)
     assert [float(r[3]) for r in rows[:4]] == [0.0, 1.0, 2.0, 3.0]
@@ -128,7 +129,7 @@ def test_multirate_reader_sees_the_newest_value_valid_at_its_release(tmp_path: P
     slow = app.add_task("slow", Gain(2), period_ns=3 * P)
     app.connect(fast.y, slow.u)
     app.record(slow.y)
-    app.simulate(0.012, tmp_path)
+    rtloop.simulate(app, 0.012, tmp_path)
     rows = read_rows(tmp_path / "signals.csv")[1:]
     # slow releases at 0, 3, 6, 9 ms; fast's tick k publishes count k+1 at (k+1) ms
     assert [(r[0], float(r[1])) for r in rows] == [("0.0", 0.0), ("0.003", 3.0), ("0.006", 6.0), ("0.009", 9.0)]
@@ -238,7 +239,7 @@ def test_unknown_task_and_out_of_range_slices() -> None:
         plant.y[5]
     with pytest.raises(AppError, match="not a contiguous, non-empty slice"):
         controller.u[2:9]
-    from rtloop.app import SignalRef
+    from rtloop.app.builder import SignalRef
 
     with pytest.raises(AppError, match="unknown task 'sensor'"):
         app.connect(SignalRef("sensor", "y", 0, 2), controller.u[0:2])
@@ -275,10 +276,10 @@ def test_bad_profile_is_refused_before_running(tmp_path: Path) -> None:
     bad.write_text("t_s,a\n0,1\n")
     app.feed("setpoint", bad)
     with pytest.raises(ConnectionSizeError, match="has 1 value columns"):
-        app.simulate(0.01, tmp_path / "out")
+        rtloop.simulate(app, 0.01, tmp_path / "out")
     bad.write_text("t_s,a,b\n0,1,2\n0.1,nan,2\n")
     with pytest.raises(AppError, match=r"bad\.csv:3: NaN"):
-        app.simulate(0.01, tmp_path / "out")
+        rtloop.simulate(app, 0.01, tmp_path / "out")
 
 
 # --- a running app, reached from outside ------------------------------------------------------
@@ -371,5 +372,5 @@ def _alive(pid: int) -> bool:
 def test_noop_has_no_wiring(tmp_path: Path) -> None:
     app = App("alone")
     app.add_task("t", Noop(), period_ns=P)
-    summary = app.simulate(0.01, tmp_path)
+    summary = rtloop.simulate(app, 0.01, tmp_path)
     assert summary.tasks["t"].timing.cycles == 10 and not (tmp_path / "signals.csv").exists()

@@ -11,9 +11,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from jiwy_models import JiwyController, JiwyPlant
+
+import rtloop
 from rtloop import App
-from rtloop.cli import format_summary
-from rtloop.models.jiwy import JiwyController, JiwyPlant
+from rtloop.cli.main import format_summary
 
 HERE = Path(__file__).parent
 PERIOD_NS = 1_000_000  # 1 kHz, as in the thesis
@@ -38,7 +40,8 @@ def main() -> None:
     parser.add_argument("--simulate", action="store_true", help="offline, lock-step, no RT needed")
     args = parser.parse_args()
     app = build_app()
-    summary = app.simulate(args.duration, args.out) if args.simulate else app.run(args.duration, args.out)
+    run = rtloop.simulate if args.simulate else rtloop.run
+    summary = run(app, args.duration, args.out)
     print(format_summary(summary, args.out))
 
 

@@ -2,23 +2,25 @@
 
 Write a :class:`Runnable`, add it to an :class:`App` as a periodic task, wire tasks
 with ``app.connect``, reach them from non-real-time code through ports, then
-``app.run`` (real time) or ``app.simulate`` (offline, lock-step).
+``rtloop.run(app, ...)`` (real time) or ``rtloop.simulate(app, ...)`` (offline, lock-step).
 """
 
-from .app import App as App
-from .app import SignalRef as SignalRef
-from .errors import AppError as AppError
-from .errors import AppFileError as AppFileError
-from .errors import ConnectionSizeError as ConnectionSizeError
-from .errors import LibcError as LibcError
-from .errors import PortValueError as PortValueError
-from .errors import RtloopError as RtloopError
-from .errors import TaskFailed as TaskFailed
-from .runnable import Runnable as Runnable
-from .runnable import TickInfo as TickInfo
-from .summary import RunSummary as RunSummary
-from .summary import TaskSummary as TaskSummary
-from .timing import TaskTiming as TaskTiming
+from rtloop.app.builder import App as App
+from rtloop.app.builder import SignalRef as SignalRef
+from rtloop.errors import AppError as AppError
+from rtloop.errors import AppFileError as AppFileError
+from rtloop.errors import ConnectionSizeError as ConnectionSizeError
+from rtloop.errors import LibcError as LibcError
+from rtloop.errors import PortValueError as PortValueError
+from rtloop.errors import RtloopError as RtloopError
+from rtloop.errors import TaskFailed as TaskFailed
+from rtloop.record.summary import RunSummary as RunSummary
+from rtloop.record.summary import TaskSummary as TaskSummary
+from rtloop.runnable import Runnable as Runnable
+from rtloop.runnable import TickInfo as TickInfo
+from rtloop.runtime.simulate import simulate as simulate
+from rtloop.runtime.supervisor import run as run
+from rtloop.timing import TaskTiming as TaskTiming
 
 __version__ = "0.1.0"
 
@@ -37,4 +39,6 @@ __all__ = [
     "TaskSummary",
     "TaskTiming",
     "TickInfo",
+    "run",
+    "simulate",
 ]

@@ -16,7 +16,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .errors import LibcError
+from rtloop.errors import LibcError
 
 now_ns = time.monotonic_ns
 """CLOCK_MONOTONIC in nanoseconds: clock_gettime without a ctypes round-trip."""

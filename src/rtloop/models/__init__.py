@@ -17,14 +17,14 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ..runnable import Runnable
-from .base import FmuError as FmuError
-from .base import Model as Model
-from .base import ModelBuildError as ModelBuildError
-from .base import ModelError as ModelError
-from .base import ModelRunnable as ModelRunnable
-from .base import StepSizeWarning as StepSizeWarning
-from .python import PythonModel as PythonModel
+from rtloop.models.base import FmuError as FmuError
+from rtloop.models.base import Model as Model
+from rtloop.models.base import ModelBuildError as ModelBuildError
+from rtloop.models.base import ModelError as ModelError
+from rtloop.models.base import ModelRunnable as ModelRunnable
+from rtloop.models.base import StepSizeWarning as StepSizeWarning
+from rtloop.models.python import PythonModel as PythonModel
+from rtloop.runnable import Runnable
 
 __all__ = [
     "FmuError",
@@ -77,10 +77,10 @@ def open_model(
         return cls(**options)
     path = _resolve(rest, base_dir)
     if scheme == "fmu":
-        from .fmu import FmuModel
+        from rtloop.models.fmu import FmuModel
 
         return FmuModel(path, **options)
-    from .twentysim import TwentySimModel
+    from rtloop.models.twentysim import TwentySimModel
 
     return TwentySimModel(path, **options)
 
@@ -122,7 +122,7 @@ def model_info(
         }
     path = _resolve(rest, base_dir)
     if scheme == "fmu":
-        from .fmu import FmuModel
+        from rtloop.models.fmu import FmuModel
 
         fmu = FmuModel(path)
         return {
@@ -134,7 +134,7 @@ def model_info(
             "step_size_s": fmu.default_step_size_s,
             "fmi_version": fmu.fmi_version,
         }
-    from .twentysim import inspect
+    from rtloop.models.twentysim import inspect
 
     info = inspect(path)
     return {
@@ -164,14 +164,14 @@ def build(
     path = _resolve(rest, base_dir)
     if scheme == "fmu":
         if path.is_dir() and (path / "sources").is_dir():
-            from .fmu_build import build_fmu
+            from rtloop.models.fmu_build import build_fmu
 
             target = Path(out_path) if out_path else path.parent / f"{path.name}.fmu"
             return build_fmu(path, target)
         raise ModelError(f"{str(path)!r} is an FMU: it is already built")
     if scheme == "python":
         raise ModelError(f"{spec!r} is a Python model: nothing to build")
-    from .twentysim import build_library, inspect
+    from rtloop.models.twentysim import build_library, inspect
 
     return build_library(inspect(path))
 

@@ -31,8 +31,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..errors import RtloopError
-from ..runnable import FloatVector, Runnable
+from rtloop.errors import RtloopError
+from rtloop.runnable import FloatVector, Runnable
 
 __all__ = [
     "FmuError",

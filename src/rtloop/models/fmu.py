@@ -19,8 +19,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from ..runnable import FloatVector
-from .base import FmuError, ModelError
+from rtloop.models.base import FmuError, ModelError
+from rtloop.runnable import FloatVector
 
 __all__ = ["FmuModel"]
 

@@ -16,7 +16,7 @@ import xml.etree.ElementTree as ET
 import zipfile
 from pathlib import Path
 
-from .base import ModelBuildError, ModelError
+from rtloop.models.base import ModelBuildError, ModelError
 
 __all__ = ["build_fmu"]
 

@@ -9,8 +9,8 @@ floats and locals, no numpy temporaries.
 
 from __future__ import annotations
 
-from ..runnable import FloatVector
-from .base import ModelRunnable
+from rtloop.models.base import ModelRunnable
+from rtloop.runnable import FloatVector
 
 
 class PythonModel(ModelRunnable):

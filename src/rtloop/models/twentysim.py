@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runnable import FloatVector
-from .base import ModelBuildError, ModelError
+from rtloop.models.base import ModelBuildError, ModelError
+from rtloop.runnable import FloatVector
 
 __all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
 

@@ -15,7 +15,7 @@ from typing import TextIO
 
 import numpy as np
 
-from ..app import SignalRef
+from rtloop.app.builder import SignalRef
 
 
 class TimingCsv:

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..app import App
-from ..timing import TimingSamples
-from .csvfiles import SignalsCsv, TimingCsv
+from rtloop.app.builder import App
+from rtloop.record.csvfiles import SignalsCsv, TimingCsv
+from rtloop.timing import TimingSamples
 
 
 class Recorder:
@@ -35,7 +35,7 @@ class Recorder:
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:
         """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
         try:
-            from .mcap_writer import RunMcapWriter
+            from rtloop.record.mcap_writer import RunMcapWriter
         except ImportError as error:
             self.mcap_note = f"run.mcap not written: {error} (pip install 'rtloop[ros]')"
             return

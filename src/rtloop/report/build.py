@@ -8,8 +8,8 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import figures, html
-from .data import Histogram, ReportError, Run, load_run, run_labels, task_series
+from rtloop.report import figures, html
+from rtloop.report.data import Histogram, ReportError, Run, load_run, run_labels, task_series
 
 FIGURES_DIR = "report-figures"
 

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .. import timing
-from ..errors import RtloopError
+from rtloop import timing
+from rtloop.errors import RtloopError
 
 FloatArray = npt.NDArray[np.float64]
 HISTOGRAM_BINS = 100

@@ -16,8 +16,8 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from ..timing import THESIS_JITTER_FRACTION
-from .data import Histogram, Run, Signals, TaskSeries, histogram
+from rtloop.report.data import Histogram, Run, Signals, TaskSeries, histogram
+from rtloop.timing import THESIS_JITTER_FRACTION
 
 US = 1e3  # ns per µs
 MAX_COLOR = "tab:red"

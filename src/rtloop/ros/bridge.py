@@ -22,14 +22,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..app import ROS_TYPES, RosTopic
-from ..errors import PortValueError
-from ..ports import RunningApp, app_from_registry, connect_app
-from ..shm import Segment
-from ..status import CONTROL_WORDS, ControlWord, WordBlock
-from .dds import RosPublisher, RosSubscriber
-from .messages import Float64, float64_multi_array, joint_state
-from .validate import MessageValidator, RateLimitedWarner
+from rtloop.app.builder import RosTopic
+from rtloop.errors import PortValueError
+from rtloop.ipc.ports import RunningApp, app_from_registry, connect_app
+from rtloop.ipc.segments import Segment
+from rtloop.ipc.status import CONTROL_WORDS, ControlWord, WordBlock
+from rtloop.ros.dds import RosPublisher, RosSubscriber
+from rtloop.ros.messages import Float64, float64_multi_array, joint_state
+from rtloop.ros.types import ROS_TYPES
+from rtloop.ros.validate import MessageValidator, RateLimitedWarner
 
 POLL_INTERVAL_S = 0.002
 STATS_INTERVAL_S = 1.0
@@ -150,7 +151,7 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> No
 
 def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -> None:
     """Entry point of a bridge process started by the supervisor."""
-    from .. import rt
+    from rtloop import rt
 
     rt.die_with_parent(signal.SIGTERM)
     app = app_from_registry(Path(registry_path))

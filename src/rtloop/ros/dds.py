@@ -17,7 +17,7 @@ import threading
 import time
 from typing import Any
 
-from .errors import RosConfigError, choose_backend, domain_id_from_env
+from rtloop.ros.errors import RosConfigError, choose_backend, domain_id_from_env
 
 QOS_PRESETS = ("sensor", "reliable")
 """``sensor``: best effort, keep last 5, volatile (rclpy ``qos_profile_sensor_data``).
@@ -119,7 +119,7 @@ class RosPublisher(_Endpoint):
     def _open(self, msg_type: Any) -> Any:
         if self.backend == "cyclonedds":
             return _CyclonePublisher(self.dds_topic, msg_type, self.qos, self.depth, self.domain_id)
-        from .rclpy_backend import RclpyPublisher
+        from rtloop.ros.rclpy_backend import RclpyPublisher
 
         return RclpyPublisher(self.topic, msg_type, self.qos, self.depth, self.domain_id)
 
@@ -148,7 +148,7 @@ class RosSubscriber(_Endpoint):
     def _open(self, msg_type: Any) -> Any:
         if self.backend == "cyclonedds":
             return _CycloneSubscriber(self.dds_topic, msg_type, self.qos, self.depth, self.domain_id)
-        from .rclpy_backend import RclpySubscriber
+        from rtloop.ros.rclpy_backend import RclpySubscriber
 
         return RclpySubscriber(self.topic, msg_type, self.qos, self.depth, self.domain_id)
 
@@ -197,7 +197,7 @@ def _participant(domain_id: int) -> Any:
 def _resolve_idl_type(msg_type: Any) -> Any:
     from cyclonedds.idl import IdlStruct
 
-    from .messages import ROS_TYPES
+    from rtloop.ros.messages import ROS_TYPES
 
     if isinstance(msg_type, str):
         if msg_type not in ROS_TYPES:

@@ -10,7 +10,7 @@ import importlib
 import os
 import platform
 
-from ..errors import RtloopError
+from rtloop.errors import RtloopError
 
 CYCLONEDDS_HINT = (
     "install it with: pip install 'rtloop[ros]'. "

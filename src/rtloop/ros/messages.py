@@ -22,7 +22,7 @@ try:
 
     HAVE_CYCLONEDDS = True
 except ImportError:  # rclpy-only installs: same classes, as plain dataclasses
-    from ._plain_idl import IdlStruct, float64, int32, sequence, uint32  # type: ignore[assignment]
+    from rtloop.ros._plain_idl import IdlStruct, float64, int32, sequence, uint32  # type: ignore[assignment]
 
     HAVE_CYCLONEDDS = False
 

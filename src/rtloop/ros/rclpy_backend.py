@@ -16,7 +16,7 @@ import threading
 from collections import deque
 from typing import Any
 
-from .errors import RosConfigError, require_rclpy
+from rtloop.ros.errors import RosConfigError, require_rclpy
 
 _nodes: dict[int, tuple[Any, Any, Any]] = {}
 _nodes_lock = threading.Lock()
@@ -27,7 +27,7 @@ def ros_message_class(msg_type: Any) -> Any:
     if isinstance(msg_type, str):
         name = msg_type
     elif hasattr(msg_type, "__idl_typename__"):
-        from .messages import ros_type_name
+        from rtloop.ros.messages import ros_type_name
 
         name = ros_type_name(msg_type)
     else:

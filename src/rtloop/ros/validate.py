@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import PortValueError
+from rtloop.errors import PortValueError
 
 logger = logging.getLogger("rtloop.ros")
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .app import App, RosTopic
+from rtloop.app.builder import App, RosTopic
 
 STOP_TIMEOUT_S = 5.0
 
@@ -47,7 +47,7 @@ class Bridges:
     def start(self, registry_path: Path) -> None:
         if not self.app.ros_topics or self.note:
             return
-        from .ros.bridge import bridge_process_main
+        from rtloop.ros.bridge import bridge_process_main
 
         context = multiprocessing.get_context("spawn")
         for topic in self.app.ros_topics:

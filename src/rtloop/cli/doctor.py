@@ -6,7 +6,7 @@ directory (``/`` on a live system, a fake tree in the tests) and returns a
 Only the standard library is used, so the doctor runs before anything else is
 installed.
 
-Run it as ``rtloop doctor`` or ``python -m rtloop.doctor [--json]``. The exit
+Run it as ``rtloop doctor`` or ``python -m rtloop.cli.doctor [--json]``. The exit
 status is 1 when any check fails, 0 otherwise.
 """
 
@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
-from .rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list, preemption_model
+from rtloop.rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list, preemption_model
 
 Status = Literal["ok", "warn", "fail"]
 

@@ -19,16 +19,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import rt
-from .app import App
-from .bridges import Bridges
-from .errors import AppError, TaskFailed
-from .layout import AppLayout
-from .record.recorder import Recorder
-from .status import ControlWord, StatusWord, TaskState
-from .summary import PortSummary, RunSummary, TaskSummary, signal_names
-from .task import task_process_main
-from .timing import task_timing
+from rtloop import rt
+from rtloop.app.builder import App
+from rtloop.errors import AppError, TaskFailed
+from rtloop.ipc.status import ControlWord, StatusWord, TaskState
+from rtloop.record.recorder import Recorder
+from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names
+from rtloop.runtime.bridges import Bridges
+from rtloop.runtime.layout import AppLayout
+from rtloop.runtime.task import task_process_main
+from rtloop.timing import task_timing
 
 DRAIN_INTERVAL_S = 0.05
 START_MARGIN_NS = 100_000_000
@@ -320,5 +320,6 @@ def _describe_exit(exitcode: int) -> str:
     return f"exit code {exitcode}"
 
 
-def run_app(app: App, duration_s: float, out: Path, *, progress: bool = False, trim: int = 20) -> RunSummary:
-    return Supervisor(app, duration_s, out, progress=progress, trim=trim).run()
+def run(app: App, duration_s: float, out: str | Path, *, progress: bool = False, trim: int = 20) -> RunSummary:
+    """Run ``app`` in real time for ``duration_s``; write the run's artifacts into ``out``."""
+    return Supervisor(app, duration_s, Path(out), progress=progress, trim=trim).run()

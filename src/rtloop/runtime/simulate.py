@@ -16,18 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from . import rt
-from .app import App
-from .errors import AppError, TaskFailed
-from .layout import RECORD_QUEUE_CAPACITY, AppLayout
-from .record.recorder import Recorder
-from .runnable import TickInfo
-from .status import StatusWord
-from .summary import RunSummary, TaskSummary, signal_names
-from .supervisor import machine_facts, port_summaries
-from .task import initial_outputs
-from .timing import task_timing
-from .wiring import TaskWiring
+from rtloop import rt
+from rtloop.app.builder import App
+from rtloop.errors import AppError, TaskFailed
+from rtloop.ipc.status import StatusWord
+from rtloop.record.recorder import Recorder
+from rtloop.record.summary import RunSummary, TaskSummary, signal_names
+from rtloop.runnable import TickInfo
+from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
+from rtloop.runtime.supervisor import machine_facts, port_summaries
+from rtloop.runtime.task import initial_outputs
+from rtloop.runtime.wiring import TaskWiring
+from rtloop.timing import task_timing
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
 
@@ -55,7 +55,9 @@ class _SimTask:
         self.records.append((cycle, release_ns, release_ns, release_ns + exec_ns))
 
 
-def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> RunSummary:
+def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) -> RunSummary:
+    """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`."""
+    out = Path(out)
     app.validate()
     if not duration_s > 0:
         raise AppError(f"duration must be > 0 seconds, got {duration_s}")

@@ -7,7 +7,7 @@
     app.connect(controller.y[0:2], plant.u[0:2])
     app.port("setpoint", to=controller.u[2:4])
     app.record(plant.y, controller.y)
-    summary = app.run(duration_s=10, out="runs/jiwy")
+    summary = rtloop.run(app, duration_s=10, out="runs/jiwy")
 
 Every mistake that can be found before a process starts is found here, with an
 :class:`~rtloop.errors.AppError` that names the culprit.
@@ -21,19 +21,32 @@ import pickle
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
-import numpy as np
-
-from .errors import AppError, ConnectionSizeError
-from .runnable import Runnable
-from .task import OVERRUN_POLICIES, TaskConfig
-
-if TYPE_CHECKING:
-    from .summary import RunSummary
+from rtloop.errors import AppError, ConnectionSizeError
+from rtloop.ros.types import ROS_TYPES
+from rtloop.runnable import Runnable
 
 Side = Literal["u", "y"]
 NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+OVERRUN_POLICIES = ("skip", "catch_up")
+
+@dataclass(frozen=True, slots=True)
+class TaskConfig:
+    """How a task runs: its timing and its place on the machine."""
+
+    name: str
+    """Unique name within the app (used in signal names, e.g. ``plant.y[0]``)."""
+    period_ns: int
+    """Period P; releases happen at T0 + k·P."""
+    priority: int = 80
+    """Real-time priority (1–99 for fifo/rr; ignored for other)."""
+    cpu: int | None = None
+    """CPU to pin the task to (None: any)."""
+    policy: str = "fifo"
+    """Scheduling policy: fifo, rr, other or deadline."""
+    overrun: str = "skip"
+    """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,9 +150,6 @@ class PortSpec:
     feed: Path | None = None
 
 
-ROS_TYPES = ("std_msgs/msg/Float64MultiArray", "std_msgs/msg/Float64", "sensor_msgs/msg/JointState")
-
-
 @dataclass(frozen=True, slots=True)
 class RosTopic:
     """A ROS 2 topic bridged to a port, in a non-real-time bridge process started with the app."""
@@ -164,7 +174,7 @@ class RosTopic:
 
 @dataclass
 class App:
-    """A set of periodic tasks and their wiring. Build it, then ``run`` or ``simulate``."""
+    """Periodic tasks and their wiring, described; ``rtloop.run(app)`` or ``rtloop.simulate(app)`` runs it."""
 
     name: str
     tasks: dict[str, TaskSpec] = field(default_factory=dict)
@@ -375,7 +385,7 @@ class App:
             if ref not in self.recorded:
                 self.recorded.append(ref)
 
-    # --- running -------------------------------------------------------------------------
+    # --- checking ------------------------------------------------------------------------
     def validate(self) -> None:
         """Checks that need the whole app (done again before running)."""
         if not self.tasks:
@@ -388,25 +398,6 @@ class App:
                     f"task {name!r}: its runnable cannot be sent to the task process ({error}); "
                     "define its class at module level and open devices/libraries in prerun(), not __init__"
                 ) from None
-
-    def run(
-        self,
-        duration_s: float,
-        out: str | Path,
-        *,
-        progress: bool = False,
-        trim: int = 20,
-    ) -> RunSummary:
-        """Run in real time for ``duration_s``; write the artifacts into ``out``."""
-        from .supervisor import run_app
-
-        return run_app(self, duration_s, Path(out), progress=progress, trim=trim)
-
-    def simulate(self, duration_s: float, out: str | Path, *, trim: int = 20) -> RunSummary:
-        """Run lock-step in this process, as fast as possible; same artifacts as ``run``."""
-        from .simulate import simulate_app
-
-        return simulate_app(self, duration_s, Path(out), trim=trim)
 
 
 def _check_cpu(where: str, cpu: int | None, policy: str) -> None:
@@ -435,42 +426,3 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
     if stop is None and ":" not in text:
         return vector[int(start)]
     return vector[slice(int(start) if start else None, int(stop) if stop else None)]
-
-
-def load_profile(path: Path, size: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Read a CSV profile: header ``t_s,...`` then rows; returns (t_ns, values)."""
-    import csv
-
-    try:
-        with open(path, newline="") as file:
-            rows = list(csv.reader(file))
-    except OSError as error:
-        raise AppError(f"{where}: cannot read profile {path}: {error.strerror}") from None
-    if not rows or not rows[0] or rows[0][0].strip() != "t_s":
-        raise AppError(f"{where}: {path}: the first column must be named t_s")
-    header = rows[0]
-    if len(header) - 1 != size:
-        raise ConnectionSizeError(
-            f"{where}: {path} has {len(header) - 1} value columns {header[1:]}, the port takes {size}"
-        )
-    times: list[int] = []
-    values: list[list[float]] = []
-    for line_number, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        try:
-            numbers = [float(cell) for cell in row]
-        except ValueError:
-            raise AppError(f"{where}: {path}:{line_number}: not a number in {row}") from None
-        if len(numbers) != len(header):
-            raise AppError(f"{where}: {path}:{line_number}: {len(numbers)} columns, header has {len(header)}")
-        if not all(np.isfinite(numbers)):
-            raise AppError(f"{where}: {path}:{line_number}: NaN or infinite value in {row}")
-        t_ns = round(numbers[0] * 1e9)
-        if times and t_ns <= times[-1]:
-            raise AppError(f"{where}: {path}:{line_number}: t_s must increase")
-        times.append(t_ns)
-        values.append(numbers[1:])
-    if not times:
-        raise AppError(f"{where}: {path}: no rows")
-    return np.array(times, dtype=np.int64), np.array(values, dtype=np.float64).reshape(len(times), size)

@@ -1,6 +1,6 @@
 """Reaching a running app from non-real-time code: by app name, then by port name.
 
-    from rtloop.ports import connect_app
+    from rtloop.ipc.ports import connect_app
     app = connect_app("jiwy")
     app.write("setpoint", [0.5, 0.3])          # validated here; the task never sees a bad value
     ticks, rows = app.read("log")              # every tick since the last read (one reader at a time)
@@ -11,7 +11,6 @@ A running supervisor describes its ports in a registry file next to its shared m
 
 from __future__ import annotations
 
-import argparse
 import fcntl
 import json
 import math
@@ -23,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from .channels import LatestValue, SampleQueue
-from .errors import PortValueError, RtloopError
-from .shm import SHM_DIR, Segment, pid_alive
-from .status import STATUS_WORDS, WordBlock
+from rtloop.errors import PortValueError, RtloopError
+from rtloop.ipc.channels import LatestValue, SampleQueue
+from rtloop.ipc.segments import SHM_DIR, Segment, pid_alive
+from rtloop.ipc.status import STATUS_WORDS, WordBlock
 
 
 class AppNotRunning(RtloopError, LookupError):
@@ -163,29 +162,3 @@ def connect_app(name: str, timeout_s: float = 0.0) -> RunningApp:
             running = sorted({app.name for app in running_apps()})
             raise AppNotRunning(f"no running app named {name!r}; running: {running or 'none'}")
         time.sleep(0.05)
-
-
-def cli_port(args: argparse.Namespace) -> int:
-    if args.port_command == "list":
-        apps = running_apps()
-        if not apps:
-            print("no running apps")
-        for app in apps:
-            print(f"{app.name} (supervisor pid {app.pid})")
-            for name, info in app.ports.items():
-                print(f"  {name:<16} {info['direction']:<4} {info['signal']}  ({info['size']} values)")
-        return 0
-    app = connect_app(args.app)
-    if args.port_command == "write":
-        app.write(args.port, args.values)
-        return 0
-    printed = 0
-    with app.reader(args.port) as reader:
-        while printed < args.count:
-            ticks, rows = reader.read(args.count - printed)
-            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):
-                print(f"{tick * reader.period_ns / 1e9:.6f} " + " ".join(repr(v) for v in row), flush=True)
-            printed += len(ticks)
-            if not len(ticks):
-                time.sleep(0.02)
-    return 0

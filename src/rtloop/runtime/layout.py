@@ -2,7 +2,7 @@
 
 ``AppLayout.create`` makes every segment the run needs (control block, a status block
 and timing ring per task, an output channel per connected task, port and record
-queues), and the :class:`~rtloop.wiring.TaskWiringPlan` each task process attaches to.
+queues), and the :class:`~rtloop.runtime.wiring.TaskWiringPlan` each task process attaches to.
 ``close`` removes them all; segments of a run that died are removed by the next run.
 """
 
@@ -15,12 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .app import App, PortSpec, load_profile
-from .channels import LatestValue, LetChannel, SampleQueue
-from .shm import SHM_DIR, RecordRing, Segment, new_run_token, remove_stale_segments
-from .status import CONTROL_WORDS, STATUS_WORDS, WordBlock
-from .task import TaskSegments, task_segment_size
-from .wiring import InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
+from rtloop.app.builder import App, PortSpec
+from rtloop.app.profiles import load_profile
+from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.segments import SHM_DIR, RecordRing, Segment, new_run_token, remove_stale_segments
+from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+from rtloop.runtime.task import TaskSegments, task_segment_size
+from rtloop.runtime.wiring import InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15

@@ -3,7 +3,7 @@
     name = "jiwy"
 
     [tasks.plant]
-    runnable = "rtloop.models.jiwy:JiwyPlant"   # or model = "20sim:models/Plant", "fmu:plant.fmu"
+    runnable = "jiwy_models:JiwyPlant"   # module beside the app file; or model = "20sim:models/Plant"
     args = {}                                  # keyword arguments of the constructor
     period_ns = 1_000_000
     priority = 80
@@ -31,9 +31,9 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from .app import App, parse_signal
-from .errors import AppError, AppFileError, RtloopError
-from .runnable import Runnable
+from rtloop.app.builder import App, parse_signal
+from rtloop.errors import AppError, AppFileError, RtloopError
+from rtloop.runnable import Runnable
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
@@ -194,7 +194,7 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     args = table.get("args", {})
     if has_model:
         try:
-            from .models import load_model
+            from rtloop.models import load_model
         except ImportError as error:
             raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
         try:

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from .errors import AppError, RtloopError, TaskFailed
-from .summary import RunSummary
+from rtloop.errors import AppError, RtloopError, TaskFailed
+from rtloop.record.summary import RunSummary
 
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -15,10 +15,10 @@ ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
 # Commands with parsers of their own: `rtloop NAME ARGS...` is `python -m rtloop.MODULE ARGS...`.
 DELEGATED = {
     "report": ("rtloop.report.build", "figures and report.html of one or more runs (compare several)"),
-    "top": ("rtloop.top", "live view of running apps: cycles, latency, misses, CPU, page faults"),
-    "doctor": ("rtloop.doctor", "is this machine ready for real time? how to fix what is not"),
+    "top": ("rtloop.cli.top", "live view of running apps: cycles, latency, misses, CPU, page faults"),
+    "doctor": ("rtloop.cli.doctor", "is this machine ready for real time? how to fix what is not"),
     "bridge": ("rtloop.ros.bridge", "ROS 2 listener/talker nodes between topics and an app's ports"),
-    "bench": ("rtloop.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
+    "bench": ("rtloop.cli.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
 }
 
 
@@ -107,11 +107,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command in ("run", "simulate"):
         return _run(args)
     if args.command == "port":
-        from .ports import cli_port
+        from rtloop.ipc.ports import cli_port
 
         return cli_port(args)
     if args.command == "model":
-        from . import models
+        from rtloop import models
 
         text = models.cli_model_info(args.path) if args.model_command == "info" else models.cli_model_build(args.path)
         print(text)
@@ -120,7 +120,7 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .appfile import load_app
+    from rtloop.app.appfile import load_app
 
     app = load_app(args.app)
     for port, path in args.feed:
@@ -129,9 +129,13 @@ def _run(args: argparse.Namespace) -> int:
         app.pin_all(args.cpu)
     interactive = not args.quiet and sys.stderr.isatty()
     if args.command == "run":
-        summary = app.run(args.duration, args.out, progress=interactive, trim=args.trim)
+        from rtloop.runtime.supervisor import run
+
+        summary = run(app, args.duration, args.out, progress=interactive, trim=args.trim)
     else:
-        summary = app.simulate(args.duration, args.out, trim=args.trim)
+        from rtloop.runtime.simulate import simulate
+
+        summary = simulate(app, args.duration, args.out, trim=args.trim)
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0

@@ -18,32 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from . import rt
-from .runnable import Runnable, TickInfo
-from .shm import RecordRing, Segment
-from .status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
-from .wiring import TaskWiring, TaskWiringPlan
+from rtloop import rt
+from rtloop.app.builder import TaskConfig
+from rtloop.ipc.segments import RecordRing, Segment
+from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
+from rtloop.runnable import Runnable, TickInfo
+from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
 
-OVERRUN_POLICIES = ("skip", "catch_up")
 T0_POLL_S = 0.001
 
 
-@dataclass(frozen=True, slots=True)
-class TaskConfig:
-    """How a task runs: its timing and its place on the machine."""
-
-    name: str
-    """Unique name within the app (used in signal names, e.g. ``plant.y[0]``)."""
-    period_ns: int
-    """Period P; releases happen at T0 + k·P."""
-    priority: int = 80
-    """Real-time priority (1–99 for fifo/rr; ignored for other)."""
-    cpu: int | None = None
-    """CPU to pin the task to (None: any)."""
-    policy: str = "fifo"
-    """Scheduling policy: fifo, rr, other or deadline."""
-    overrun: str = "skip"
-    """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
 
 
 @dataclass(frozen=True, slots=True)

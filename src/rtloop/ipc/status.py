@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 
-from .shm import Segment
+from rtloop.ipc.segments import Segment
 
 
 class TaskState(enum.IntEnum):

@@ -6,16 +6,16 @@
 ``SampleQueue``   one RT writer → one non-RT reader: every tick's values, bounded;
                   a full queue drops and counts, it never blocks the RT side.
 
-Every class takes a :class:`~rtloop.shm.Segment` and an offset, so the same code runs
+Every class takes a :class:`~rtloop.ipc.segments.Segment` and an offset, so the same code runs
 over ``/dev/shm`` between processes and over plain memory in the simulator. Word
-stores are single aligned 8-byte writes; ordering comes from :func:`~rtloop.shm.fence`.
+stores are single aligned 8-byte writes; ordering comes from :func:`~rtloop.ipc.segments.fence`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .shm import Segment, fence
+from rtloop.ipc.segments import Segment, fence
 
 HEADER_WORDS = 8
 NO_STAMP = -(2**62)

@@ -36,10 +36,11 @@ from typing import Any
 
 import numpy as np
 
-from . import rt, timing
-from .app import App
-from .errors import RtloopError
-from .runnable import Runnable
+from rtloop import rt, timing
+from rtloop.app.builder import App
+from rtloop.errors import RtloopError
+from rtloop.runnable import Runnable
+from rtloop.runtime.supervisor import run
 
 EXPERIMENTS = ("affinity", "stress", "cyclictest")
 PERIOD_NS = 1_000_000
@@ -256,7 +257,7 @@ def run_app(app: App, settings: Settings, out: Path, notes: list[str]) -> list[R
     """Run ``app`` for the set duration into ``out``; its rows; warn if a task was not real-time or had company."""
     notes += warn_neighbours(settings, f"before {out.name}")
     started = time.monotonic()
-    app.run(settings.duration_s, out, trim=settings.trim)
+    run(app, settings.duration_s, out, trim=settings.trim)
     rows = rows_from_run(out)
     progress(f"  {out.name}: done in {time.monotonic() - started:.1f} s → {out}")
     notes += warn_neighbours(settings, f"after {out.name}")
@@ -270,7 +271,7 @@ def run_app(app: App, settings: Settings, out: Path, notes: list[str]) -> list[R
 
 def write_outcome(outcome: Outcome, run_dirs: list[Path]) -> Outcome:
     """Comparison report of the runs, ``table.md`` and ``bench.json`` in the experiment's directory."""
-    from .report.build import build_report
+    from rtloop.report.build import build_report
 
     outcome.report = build_report(run_dirs, out=outcome.out).html
     (outcome.out / "table.md").write_text(outcome.markdown() + "\n")

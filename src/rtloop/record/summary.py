@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .timing import TaskTiming
+from rtloop.timing import TaskTiming
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,7 +3,7 @@
 :class:`JiwyPlant` (2 in / 2 out) and :class:`JiwyController` (4 in / 2 out) follow the
 order of evaluation of 20-sim generated code with the Euler method, step 1 ms, so they
 match a 20-sim build of the same equations to rounding error. Use them directly as a
-task's runnable: ``runnable = "rtloop.models.jiwy:JiwyPlant"``.
+task's runnable: ``runnable = "jiwy_models:JiwyPlant"``.
 
 Plant, per axis (motor momentum ``p`` [N·m·s] on the motor side of gear ``g`` and belt
 ``b``, camera angle ``theta`` [rad])::
@@ -26,8 +26,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..runnable import FloatVector
-from .python import PythonModel
+from rtloop.models.python import PythonModel
+from rtloop.runnable import FloatVector
 
 __all__ = [
     "PAN_AXIS",

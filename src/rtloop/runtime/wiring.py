@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .channels import LatestValue, LetChannel, SampleQueue
-from .shm import Segment
-from .status import StatusWord, WordBlock
+from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.segments import Segment
+from rtloop.ipc.status import StatusWord, WordBlock
 
 
 @dataclass(frozen=True, slots=True)

@@ -25,9 +25,9 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from .ports import running_apps
-from .shm import SHM_DIR, Segment
-from .status import STATUS_WORDS, StatusWord, TaskState, WordBlock
+from rtloop.ipc.ports import running_apps
+from rtloop.ipc.segments import SHM_DIR, Segment
+from rtloop.ipc.status import STATUS_WORDS, StatusWord, TaskState, WordBlock
 
 POLL_HZ = 50
 """How often top reads LATENCY_LAST between refreshes (to keep its running maximum)."""

@@ -1,0 +1,7 @@
+"""``python -m rtloop.cli``: the same as the ``rtloop`` command."""
+
+import sys
+
+from rtloop.cli.main import main
+
+sys.exit(main())

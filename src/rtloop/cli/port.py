@@ -1,0 +1,34 @@
+"""``rtloop port write/read/list``: a thin command line over :mod:`rtloop.ipc.ports`."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from rtloop.ipc.ports import connect_app, running_apps
+
+
+def cli_port(args: argparse.Namespace) -> int:
+    if args.port_command == "list":
+        apps = running_apps()
+        if not apps:
+            print("no running apps")
+        for app in apps:
+            print(f"{app.name} (supervisor pid {app.pid})")
+            for name, info in app.ports.items():
+                print(f"  {name:<16} {info['direction']:<4} {info['signal']}  ({info['size']} values)")
+        return 0
+    app = connect_app(args.app)
+    if args.port_command == "write":
+        app.write(args.port, args.values)
+        return 0
+    printed = 0
+    with app.reader(args.port) as reader:
+        while printed < args.count:
+            ticks, rows = reader.read(args.count - printed)
+            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):
+                print(f"{tick * reader.period_ns / 1e9:.6f} " + " ".join(repr(v) for v in row), flush=True)
+            printed += len(ticks)
+            if not len(ticks):
+                time.sleep(0.02)
+    return 0

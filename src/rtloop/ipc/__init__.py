@@ -1,0 +1,1 @@
+"""Shared memory between processes: segments, channels, status words, the ports client."""

@@ -1,0 +1,173 @@
+"""The package's layers: imports point one way, and no module imports itself back round.
+
+Every ``import`` in ``src/rtloop`` counts, wherever it stands (a function-level import that
+hides a cycle is still a cycle). Importing ``rtloop.a.b`` also runs ``rtloop/a/__init__.py``,
+so it counts as an import of ``rtloop.a`` too (except from inside ``rtloop.a``, whose
+``__init__`` has run already; importing a name from it still counts). Only the root ``rtloop/__init__.py`` (the
+public facade, the top of the stack) is exempt, and no module of the package may import it
+for a name: modules import from where a name is defined.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGE = SRC / "rtloop"
+
+# Which layers each layer may import (besides itself). The floor imports only the floor.
+FLOOR = "floor"
+ALLOWED: dict[str, set[str]] = {
+    FLOOR: set(),
+    "ros.types": set(),
+    "ipc": {FLOOR},
+    "models": {FLOOR},
+    "app": {FLOOR, "models", "ros.types"},
+    "record": {FLOOR, "app", "ros.types"},
+    "ros": {FLOOR, "ros.types", "app", "ipc"},
+    "runtime": {FLOOR, "app", "ipc", "models", "record", "ros", "ros.types"},
+    "report": {FLOOR, "record"},
+    "cli": {FLOOR, "app", "ipc", "models", "record", "ros", "ros.types", "runtime", "report", "cli"},
+}
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def all_modules() -> dict[str, Path]:
+    return {module_name(path): path for path in PACKAGE.rglob("*.py")}
+
+
+def layer_of(module: str) -> str:
+    parts = module.split(".")
+    if module in ("rtloop.ros", "rtloop.ros.types"):  # the package's __init__ runs first: it imports nothing
+        return "ros.types"
+    if module in ("rtloop", "rtloop.__main__"):
+        return "facade"
+    return parts[1] if parts[1] in ALLOWED else FLOOR
+
+
+def imports_of(module: str, path: Path, modules: dict[str, Path]) -> set[str]:
+    """The rtloop modules ``module`` imports, at any depth of its code, with their parent packages."""
+    is_package = path.name == "__init__.py"
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        targets: list[str] = []
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base if is_package else base[:-1]
+                base = base[: len(base) - node.level + 1]
+                stem = ".".join(base + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            submodules = [f"{stem}.{alias.name}" for alias in node.names if f"{stem}.{alias.name}" in modules]
+            names_only_submodules = len(submodules) == len(node.names)
+            targets = submodules if names_only_submodules else [stem, *submodules]
+        for target in targets:
+            if target != "rtloop" and not target.startswith("rtloop."):
+                continue
+            if target in modules:
+                found.add(target)
+            parts = target.split(".")
+            for depth in range(2, len(parts)):  # each package above the target, but not the root
+                package = ".".join(parts[:depth])
+                if package in modules and not module.startswith(package + "."):  # own packages run first anyway
+                    found.add(package)
+    found.discard(module)
+    return found
+
+
+def import_graph() -> dict[str, set[str]]:
+    modules = all_modules()
+    return {name: imports_of(name, path, modules) for name, path in modules.items()}
+
+
+def strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Tarjan's algorithm, iterative; components of more than one module are cycles."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[list[str]] = []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in graph:
+                    continue
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                components.append(sorted(component))
+    return [component for component in components if len(component) > 1]
+
+
+def test_no_import_cycles() -> None:
+    graph = {name: deps - {"rtloop"} for name, deps in import_graph().items() if name != "rtloop"}
+    assert strongly_connected(graph) == []
+
+
+def test_the_cycle_finder_finds_cycles() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert strongly_connected(graph) == [["a", "b", "c"]]
+
+
+def test_relative_and_function_level_imports_count(tmp_path: Path) -> None:
+    source = "def f():\n    from ..ipc import segments\n    import rtloop.app.builder\n"
+    path = tmp_path / "x.py"
+    path.write_text(source)
+    modules = {"rtloop.ipc": Path(), "rtloop.ipc.segments": Path(), "rtloop.app": Path(),
+               "rtloop.app.builder": Path(), "rtloop.runtime.x": path}
+    assert imports_of("rtloop.runtime.x", path, modules) == {
+        "rtloop.ipc", "rtloop.ipc.segments", "rtloop.app", "rtloop.app.builder"}
+
+
+@pytest.mark.parametrize("module", sorted(m for m in all_modules() if m not in ("rtloop", "rtloop.__main__")))
+def test_imports_point_down(module: str) -> None:
+    graph = import_graph()
+    layer = layer_of(module)
+    allowed = ALLOWED[layer] | {layer}
+    wrong = sorted(dep for dep in graph[module] if layer_of(dep) not in allowed)
+    assert not wrong, f"{module} ({layer}) imports {wrong}; {layer} may import only {sorted(allowed)}"
+
+
+def test_the_description_knows_nothing_of_running() -> None:
+    graph = import_graph()
+    for module in (m for m in graph if layer_of(m) == "app"):
+        assert not {dep for dep in graph[module] if layer_of(dep) in ("runtime", "ipc", "record", "cli")}, module
