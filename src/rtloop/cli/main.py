@@ -22,6 +22,20 @@ DELEGATED = {
 }
 
 
+# Optional packages and the extra that installs them (the core needs numpy only).
+EXTRAS = {"mcap": "ros", "mcap_ros2": "ros", "cyclonedds": "ros", "rich": "report", "matplotlib": "report",
+          "fmpy": "fmu"}
+
+
+def missing_extra(error: ModuleNotFoundError) -> str:
+    """One line for a missing optional package: what is missing and what installs it."""
+    top = (error.name or "").split(".")[0]
+    extra = EXTRAS.get(top)
+    if extra is None:
+        return f"the Python package {top!r} is missing"
+    return f"needs the optional package {top!r}: pip install 'rtloop[{extra}]'"
+
+
 def _parse_feed(text: str) -> tuple[str, Path]:
     port, sep, path = text.partition("=")
     if not sep or not port or not path:
@@ -78,7 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in DELEGATED:
         import importlib
 
-        module = importlib.import_module(DELEGATED[argv[0]][0])
+        try:
+            module = importlib.import_module(DELEGATED[argv[0]][0])
+        except ModuleNotFoundError as error:
+            print(f"rtloop {argv[0]}: {missing_extra(error)}", file=sys.stderr)
+            return EXIT_TASK_FAILED
         try:
             return int(module.main(argv[1:]) or 0)
         except RtloopError as error:
@@ -107,7 +125,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command in ("run", "simulate"):
         return _run(args)
     if args.command == "port":
-        from rtloop.ipc.ports import cli_port
+        from rtloop.cli.port import cli_port
 
         return cli_port(args)
     if args.command == "model":
@@ -159,10 +177,11 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{t.deadline_misses:>7}"
                      f"{t.overruns:>9}{task.stale_reads:>6}")
     for name, port in summary.ports.items():
-        unread = port.direction == "out" and not port.received
+        unread = port.direction == "out" and not port.received and port.dropped
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
         lines.append(f"port {name} ({port.direction}, {port.signal}): sent {port.sent}, "
                      f"received {port.received}, dropped {port.dropped}{idle}")
+    lines += [f"note: {note}" for note in summary.notes]
     written = [name for name in ARTIFACTS if (out / name).exists()]
     lines.append(f"artifacts in {out}/: {', '.join(written)}")
     return "\n".join(lines)

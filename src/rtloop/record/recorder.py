@@ -34,14 +34,14 @@ class Recorder:
 
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:
         """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
-        try:
-            from rtloop.record.mcap_writer import RunMcapWriter
-        except ImportError as error:
-            self.mcap_note = f"run.mcap not written: {error} (pip install 'rtloop[ros]')"
-            return
+        from rtloop.record.mcap_writer import RunMcapWriter
+
         names = self.signals.names if self.signals is not None else []
-        self.mcap = RunMcapWriter(self.out / "run.mcap", names, t0_ns, wall_t0_ns,
-                                  metadata={"app": self.app.name, "source": self.app.source})
+        try:
+            self.mcap = RunMcapWriter(self.out / "run.mcap", names, t0_ns, wall_t0_ns,
+                                      metadata={"app": self.app.name, "source": self.app.source})
+        except ModuleNotFoundError as error:
+            self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         if len(records):

@@ -1,0 +1,26 @@
+#!/bin/sh
+# Install rtloop for this checkout: Debian/Ubuntu packages, then a virtual environment in .venv
+# with every extra and the test tools. Works as root (no sudo needed) and as a user with sudo.
+#
+#   tools/setup.sh            # system packages + .venv with rtloop[all,test]
+#   tools/setup.sh --no-apt   # only the virtual environment (packages already there)
+set -eu
+cd "$(dirname "$0")/.."
+
+packages="python3-venv python3-dev gcc g++ libatomic1 util-linux rt-tests stress-ng"
+
+if [ "${1:-}" != "--no-apt" ]; then
+    if ! command -v apt-get >/dev/null 2>&1; then
+        echo "tools/setup.sh: no apt-get here; install these yourself, then run tools/setup.sh --no-apt:" >&2
+        echo "  $packages" >&2
+        exit 2
+    fi
+    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+    # shellcheck disable=SC2086  # one word per package
+    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null
+fi
+
+python3 -m venv .venv
+.venv/bin/pip install -q --upgrade pip
+.venv/bin/pip install -q -e '.[all,test]'
+echo "rtloop installed in .venv: .venv/bin/rtloop (real-time runs need root: tools/as-root .venv/bin/rtloop run ...)"
