@@ -175,7 +175,7 @@ def _realtime_lines(app: App, options: ServiceOptions) -> list[str]:
         return lines
     lines += [
         f"# Runs as {options.user}, not root: real time comes from the limits above. /dev/cpu_dma_latency is",
-        "# root-only: the run says so and the CPUs may enter deep idle states (wake-up latency).",
+        "# root-only: CPUs may enter deep idle states (summary.json: cpu_dma_latency_held; `rtloop doctor`).",
         f"User={options.user}",
     ]
     if deadline:
