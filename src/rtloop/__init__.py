@@ -21,8 +21,7 @@ from rtloop.runnable import TickInfo as TickInfo
 from rtloop.runtime.simulate import simulate as simulate
 from rtloop.runtime.supervisor import run as run
 from rtloop.timing import TaskTiming as TaskTiming
-
-__version__ = "0.1.0"
+from rtloop.version import __version__ as __version__
 
 __all__ = [
     "App",

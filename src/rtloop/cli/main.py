@@ -19,6 +19,7 @@ DELEGATED = {
     "doctor": ("rtloop.cli.doctor", "is this machine ready for real time? how to fix what is not"),
     "bridge": ("rtloop.ros.bridge", "ROS 2 listener/talker nodes between topics and an app's ports"),
     "bench": ("rtloop.cli.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
+    "service": ("rtloop.cli.service", "a systemd unit that runs an app until stopped (--install writes it)"),
 }
 
 
