@@ -11,6 +11,7 @@ from rtloop.record.summary import RunSummary
 
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # as a shell reports death by SIGINT
 ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
 # Commands with parsers of their own: `rtloop NAME ARGS...` is `python -m rtloop.MODULE ARGS...`.
 DELEGATED = {
@@ -119,7 +120,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except RtloopError as error:
         print(f"rtloop: {error}", file=sys.stderr)
-        return EXIT_TASK_FAILED
+        return EXIT_BAD_INPUT if isinstance(error, ValueError | LookupError) else EXIT_TASK_FAILED
+    except KeyboardInterrupt:
+        print("rtloop: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _dispatch(args: argparse.Namespace) -> int:
