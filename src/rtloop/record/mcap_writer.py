@@ -20,16 +20,26 @@ Topics:
 
 Written incrementally (:class:`RunMcapWriter`), because the supervisor writes as it
 drains; :func:`write_run_mcap` writes a finished run in one call.
+
+The file is laid out as rosbag2's MCAP storage plugin writes it (header profile
+``ros2``, ``ros2msg`` schemas, ``cdr`` channels whose metadata holds
+``offered_qos_profiles``), and the writer counts what it wrote per topic
+(:meth:`RunMcapWriter.bag_contents`) so ``metadata.yaml`` can make the run directory a
+ROS 2 bag (:mod:`.rosbag2`).
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from os import PathLike
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from rtloop.record.rosbag2 import BagContents, BagTopic, offered_qos_profiles
 
 SIGNALS_TOPIC = "/rtloop/signals"
 TIMING_TOPIC_PREFIX = "/rtloop/timing/"
@@ -65,6 +75,21 @@ def topic_token(name: str) -> str:
     return token if token and not token[0].isdigit() else f"n_{token}"
 
 
+@dataclass
+class _Schema:
+    schema_id: int
+    type_name: str
+    encode: Callable[[Any], bytes]
+
+
+@dataclass
+class _Channel:
+    channel_id: int
+    schema: _Schema
+    qos_profiles: str
+    message_count: int = 0
+
+
 def _stamp(wall_ns: int) -> dict[str, int]:
     sec, nanosec = divmod(wall_ns, NS_PER_S)
     return {"sec": sec, "nanosec": nanosec}
@@ -96,26 +121,26 @@ class RunMcapWriter:
         per_signal_topics: bool = False,
         metadata: Mapping[str, str] | None = None,
     ) -> None:
-        from mcap.writer import CompressionType
-        from mcap_ros2.writer import Writer
+        from mcap.well_known import Profile
+        from mcap.writer import CompressionType, Writer
 
         self.signal_names = [str(name) for name in signal_names]
         self.t0_ns = int(t0_ns)
         self.wall_t0_ns = int(wall_t0_ns)
         self.per_signal_topics = per_signal_topics
         self.signal_topics = self._signal_topics() if per_signal_topics else []
-        self.messages_written = 0
-        """Messages written so far, all topics together."""
+        self.file_name = Path(path).name if isinstance(path, str | PathLike) else "run.mcap"
         # Open the file ourselves: mcap's writer takes only str paths and we close it.
         self._file = open(path, "wb") if isinstance(path, str | PathLike) else None  # noqa: SIM115
         self._writer = Writer(self._file or path, compression=CompressionType.ZSTD)
-        self._joint_state = self._writer.register_msgdef("sensor_msgs/msg/JointState",
-                                                         JOINT_STATE_SCHEMA)
-        self._timing = self._writer.register_msgdef("rtloop_msgs/msg/CycleTiming",
-                                                    CYCLE_TIMING_SCHEMA)
-        self._float64 = (self._writer.register_msgdef("std_msgs/msg/Float64", FLOAT64_SCHEMA)
+        self._writer.start(profile=Profile.ROS2, library="rtloop")
+        self._joint_state = self._register("sensor_msgs/msg/JointState", JOINT_STATE_SCHEMA)
+        self._timing = self._register("rtloop_msgs/msg/CycleTiming", CYCLE_TIMING_SCHEMA)
+        self._float64 = (self._register("std_msgs/msg/Float64", FLOAT64_SCHEMA)
                          if per_signal_topics else None)
-        self._sequence: dict[str, int] = {}
+        self._channels: dict[str, _Channel] = {}
+        self._first_log_time_ns: int | None = None
+        self._last_log_time_ns: int | None = None
         self._closed = False
         info = {"t0_ns": str(self.t0_ns), "wall_t0_ns": str(self.wall_t0_ns),
                 "signals": ",".join(self.signal_names)}
@@ -129,10 +154,47 @@ class RunMcapWriter:
                              "rename them or use per_signal_topics=False")
         return topics
 
-    def _next_sequence(self, topic: str) -> int:
-        sequence = self._sequence.get(topic, 0)
-        self._sequence[topic] = sequence + 1
-        return sequence
+    def _register(self, type_name: str, definition: str) -> _Schema:
+        from mcap.well_known import SchemaEncoding
+        from mcap_ros2._dynamic import serialize_dynamic  # the CDR encoder mcap_ros2 uses
+
+        schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2,
+                                                 definition.encode())
+        return _Schema(schema_id, type_name, serialize_dynamic(type_name, definition)[type_name])
+
+    def _write(self, topic: str, schema: _Schema, message: dict[str, Any], log_time_ns: int) -> None:
+        """Write one message; the channel's message count is also its sequence number."""
+        channel = self._channels.get(topic)
+        if channel is None:
+            from mcap.well_known import MessageEncoding
+
+            qos = offered_qos_profiles()
+            channel_id = self._writer.register_channel(
+                topic, MessageEncoding.CDR, schema.schema_id,
+                metadata={"offered_qos_profiles": qos})  # as rosbag2's MCAP storage does
+            channel = self._channels[topic] = _Channel(channel_id, schema, qos)
+        self._writer.add_message(channel.channel_id, log_time=log_time_ns,
+                                 data=schema.encode(message), publish_time=log_time_ns,
+                                 sequence=channel.message_count)
+        channel.message_count += 1
+        if self._first_log_time_ns is None or log_time_ns < self._first_log_time_ns:
+            self._first_log_time_ns = log_time_ns
+        if self._last_log_time_ns is None or log_time_ns > self._last_log_time_ns:
+            self._last_log_time_ns = log_time_ns
+
+    @property
+    def messages_written(self) -> int:
+        """Messages written so far, all topics together."""
+        return sum(channel.message_count for channel in self._channels.values())
+
+    def bag_contents(self) -> BagContents:
+        """Topics, message counts and time span written so far, for ``metadata.yaml``."""
+        topics = tuple(BagTopic(topic, channel.schema.type_name, channel.message_count,
+                                channel.qos_profiles)
+                       for topic, channel in self._channels.items())
+        first = self._first_log_time_ns or 0
+        last = self._last_log_time_ns or 0
+        return BagContents(self.file_name, topics, first, last - first)
 
     def add_rows(self, t_ns: np.ndarray | Sequence[int], values: np.ndarray) -> None:
         """Add recorded signal rows.
@@ -149,15 +211,10 @@ class RunMcapWriter:
             wall_ns = self.wall_t0_ns + t
             message = {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names,
                        "position": row, "velocity": [], "effort": []}
-            self._writer.write_message(SIGNALS_TOPIC, self._joint_state, message,
-                                       log_time=wall_ns,
-                                       sequence=self._next_sequence(SIGNALS_TOPIC))
-            self.messages_written += 1
-            for topic, value in zip(self.signal_topics, row, strict=False):
-                self._writer.write_message(topic, self._float64, {"data": value},
-                                           log_time=wall_ns,
-                                           sequence=self._next_sequence(topic))
-                self.messages_written += 1
+            self._write(SIGNALS_TOPIC, self._joint_state, message, wall_ns)
+            if self._float64 is not None:
+                for topic, value in zip(self.signal_topics, row, strict=True):
+                    self._write(topic, self._float64, {"data": value}, wall_ns)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         """Add timing records of ``task``: rows ``(cycle, release_ns, start_ns, end_ns)``.
@@ -171,10 +228,7 @@ class RunMcapWriter:
         for cycle, release, start, end in table.tolist():
             message = {"cycle": cycle, "release_ns": release, "start_ns": start,
                        "end_ns": end, "latency_ns": start - release, "exec_ns": end - start}
-            self._writer.write_message(topic, self._timing, message,
-                                       log_time=release + offset,
-                                       sequence=self._next_sequence(topic))
-            self.messages_written += 1
+            self._write(topic, self._timing, message, release + offset)
 
     def close(self) -> None:
         """Write the index and summary; the file is complete after this. Safe twice."""

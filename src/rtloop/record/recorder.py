@@ -2,6 +2,7 @@
 
 timing.csv and signals.csv are always written; run.mcap too when the ``mcap`` packages
 are installed (``pip install 'rtloop[ros]'``), else the summary says why it is missing.
+Beside run.mcap, metadata.yaml makes the run directory a ROS 2 bag (``ros2 bag info``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import numpy as np
 
 from rtloop.app.builder import App
 from rtloop.record.csvfiles import SignalsCsv, TimingCsv
+from rtloop.record.rosbag2 import write_metadata
 from rtloop.timing import TimingSamples
 
 
@@ -73,6 +75,7 @@ class Recorder:
             self.signals.close()  # its last rows were flushed just above
         if self.mcap is not None:
             self.mcap.close()
+            write_metadata(self.out, self.mcap.bag_contents())
         give_to_invoking_user(self.out)
 
 
