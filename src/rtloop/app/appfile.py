@@ -21,6 +21,17 @@
 
     [record]
     signals = ["plant.y", "controller.y"]
+
+    [ros]                                      # optional; domain_id defaults to ROS_DOMAIN_ID or 0
+    [[ros.publish]]
+    topic = "/jiwy/angles"
+    source = "plant.y[0:2]"                    # or port = "NAME" (an output port)
+    type = "sensor_msgs/msg/JointState"
+    qos = "reliable"                           # default: ROS 2's default profile, matches every
+                                               # reader; "sensor" = best effort (best-effort readers only)
+    [[ros.subscribe]]
+    topic = "/jiwy/setpoint"
+    port = "setpoint"
 """
 
 from __future__ import annotations

@@ -162,8 +162,8 @@ class RosTopic:
     """The app port it is attached to."""
     msg_type: str = "std_msgs/msg/Float64MultiArray"
     """One of :data:`ROS_TYPES`."""
-    qos: str = "sensor"
-    """``sensor`` (best effort, keep last) or ``reliable``."""
+    qos: str = "reliable"
+    """``reliable`` (ROS 2's default: keep last 10; matches every reader) or ``sensor`` (best effort, keep last 5)."""
     joint_names: tuple[str, ...] = ()
     """For ``sensor_msgs/msg/JointState``: one name per value."""
     every: int = 1
@@ -329,7 +329,7 @@ class App:
         self.ports[port] = dataclasses.replace(self.ports[port], feed=Path(csv_path))
 
     def ros_publish(self, topic: str, *, source: SignalRef | SignalVector | None = None, port: str | None = None,
-                    msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "sensor",
+                    msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "reliable",
                     joint_names: list[str] | tuple[str, ...] = (), every: int = 1,
                     domain_id: int | None = None) -> RosTopic:
         """Publish task outputs on a ROS 2 topic while the app runs.

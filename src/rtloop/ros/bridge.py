@@ -181,12 +181,13 @@ def build_parser() -> argparse.ArgumentParser:
     kinds = parser.add_subparsers(dest="kind", required=True)
     listener = kinds.add_parser("listener", help="publish an output port on a ROS 2 topic")
     talker = kinds.add_parser("talker", help="feed an input port from a ROS 2 topic")
-    for sub, default_qos in ((listener, "sensor"), (talker, "reliable")):
+    for sub in (listener, talker):
         sub.add_argument("--app", required=True, help="name of the running app")
         sub.add_argument("--port", required=True)
         sub.add_argument("--topic", required=True, help="ROS 2 topic, e.g. /jiwy/angles")
         sub.add_argument("--type", default="std_msgs/msg/Float64MultiArray", choices=ROS_TYPES)
-        sub.add_argument("--qos", default=default_qos, choices=("sensor", "reliable"))
+        sub.add_argument("--qos", default="reliable", choices=("reliable", "sensor"),
+                         help="reliable (ROS 2's default, matches every reader) or sensor (best effort)")
         sub.add_argument("--domain-id", type=int, default=None, help="default: ROS_DOMAIN_ID or 0")
     listener.add_argument("--joint-names", nargs="+", default=[], help="for JointState: one name per value")
     listener.add_argument("--every", type=int, default=1, help="publish every N-th tick")
