@@ -132,6 +132,22 @@ class RosPublisher(_Endpoint):
         self._impl.publish(msg)
         self.published += 1
 
+    def publish_cdr(self, data: bytes) -> None:
+        """Send a message already encoded (:mod:`rtloop.ros.cdr`): the listener's fast path.
+
+        Raises:
+            RosConfigError: this backend cannot send encoded bytes (check :attr:`takes_cdr`).
+        """
+        if not self.takes_cdr:
+            raise RosConfigError(f"the {self.backend} backend does not send pre-encoded messages")
+        self._impl.publish_cdr(data)
+        self.published += 1
+
+    @property
+    def takes_cdr(self) -> bool:
+        """Whether :meth:`publish_cdr` works here (the cyclonedds backend)."""
+        return hasattr(self._impl, "publish_cdr")
+
     def subscriber_count(self) -> int:
         """Return how many subscriptions currently match this publisher."""
         return self._impl.subscriber_count()
@@ -250,6 +266,15 @@ class _CyclonePublisher:
 
     def publish(self, msg: Any) -> None:
         self._writer.write(msg)
+
+    def publish_cdr(self, data: bytes) -> None:
+        # What DataWriter.write does after serialising: hand the CDR bytes to the C layer.
+        from cyclonedds._clayer import ddspy_write
+
+        if ddspy_write(self._writer._ref, data) < 0:
+            from cyclonedds.core import DDSException
+
+            raise DDSException(-1, f"Occurred while writing a sample on {self._topic.name}")
 
     def subscriber_count(self) -> int:
         return len(self._writer.get_matched_subscriptions())
