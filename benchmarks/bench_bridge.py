@@ -6,7 +6,12 @@ release ns]`` (the release time on CLOCK_MONOTONIC, split so that it is exact). 
 bridge stamps each message with the tick's release time on the wall clock. A subscriber
 in another process takes what arrives and computes ``receive wall time − header stamp``:
 the whole path from the task's release (LET: the value is visible one period later)
-through the port queue, the bridge's 2 ms polling, DDS and the subscriber's wake-up.
+through the port queue, the bridge's wake-up on the task's timeline, DDS and the
+subscriber's wake-up. Both ends use ROS 2's default QoS (reliable, keep last).
+
+Next to each rate, the same run measures a plain Cyclone DDS publisher → subscriber
+(``bench_ros.py``: a Python publisher stamps each message with its send time) at that
+rate: the floor the bridge is compared with (target: bridge p50 ≤ 1.5 × plain p50).
 
 Drops are counted at each stage: ticks the task ran (and releases it skipped); ticks the
 port queue dropped before the bridge read them; ticks still queued when the bridge was
@@ -73,7 +78,7 @@ def run_subscriber(domain_id: int, give_up_s: float) -> None:
     from rtloop.ros.dds import RosSubscriber
     from rtloop.ros.messages import JointState, time_to_ns
 
-    sub = RosSubscriber(TOPIC, JointState, qos="sensor", domain_id=domain_id, depth=10_000)
+    sub = RosSubscriber(TOPIC, JointState, qos="reliable", domain_id=domain_id, depth=10_000)
     print("READY", flush=True)
     rows: list[tuple[int, int, int]] = []  # (cycle, release_ns, receive wall ns - stamp ns)
     offsets: set[int] = set()  # stamp − release: constant if the stamp is the release time
@@ -147,19 +152,29 @@ def measure(rate_hz: int, duration_s: float, cpu: int, settle_s: float) -> dict[
     }
 
 
+def plain_dds(rate_hz: int, duration_s: float) -> dict[str, float]:
+    """A plain Cyclone DDS publisher → subscriber at ``rate_hz`` (bench_ros.py), ROS 2 default QoS."""
+    from bench_ros import measure as measure_plain
+
+    result = measure_plain(rate_hz, duration_s, "reliable", None, 0)
+    return {"plain_p50_us": result["p50_us"], "plain_p99_us": result["p99_us"], "plain_drops": result["drops"]}
+
+
 def table(results: list[dict[str, float]]) -> str:
     lines = [
         "| rate | ticks run | skipped (overruns) | port queue dropped | unread at stop | bridge published "
         "| received | lost in DDS "
-        "| latency p50 | p99 | max |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| latency p50 | p99 | max | plain DDS p50 | p99 | bridge p50 / plain p50 |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
         lines.append(
             f"| {r['rate_hz'] / 1000:g} kHz | {r['ticks']} | {r['overruns']} | {r['port_dropped']} "
             f"| {r['unread_at_stop']} | {r['published']} "
             f"| {r['received']} | {r['dds_lost']} | {r['p50_us'] / 1e3:.2f} ms | {r['p99_us'] / 1e3:.2f} ms "
-            f"| {r['max_us'] / 1e3:.2f} ms |"
+            f"| {r['max_us'] / 1e3:.2f} ms | {r.get('plain_p50_us', float('nan')) / 1e3:.2f} ms "
+            f"| {r.get('plain_p99_us', float('nan')) / 1e3:.2f} ms "
+            f"| {r['p50_us'] / r.get('plain_p50_us', float('nan')):.2f} |"
         )
     return "\n".join(lines)
 
@@ -171,6 +186,7 @@ def main() -> int:
     parser.add_argument("--cpu", type=int, default=max(os.sched_getaffinity(0)), help="CPU of the task")
     parser.add_argument("--settle-s", type=float, default=1.0, help="leave out ticks released before T0 + this")
     parser.add_argument("--json", action="store_true", help="print the results as JSON too")
+    parser.add_argument("--no-baseline", action="store_true", help="skip the plain DDS pub → sub measurement")
     parser.add_argument("--subscriber", nargs=2, metavar=("DOMAIN", "GIVE_UP_S"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.subscriber:
@@ -179,6 +195,8 @@ def main() -> int:
     results = []
     for rate in (int(r) for r in args.rates.split(",")):
         result = measure(rate, args.duration_s, args.cpu, args.settle_s)
+        if not args.no_baseline:
+            result.update(plain_dds(rate, args.duration_s))
         results.append(result)
         print(f"{rate} Hz: {json.dumps(result)}", file=sys.stderr, flush=True)
     if not all(r["stamp_is_release"] for r in results):

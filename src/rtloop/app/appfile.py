@@ -21,6 +21,21 @@
 
     [record]
     signals = ["plant.y", "controller.y"]
+
+    [ros]                                      # optional; domain_id defaults to ROS_DOMAIN_ID or 0
+    [[ros.publish]]
+    topic = "/jiwy/angles"
+    source = "plant.y[0:2]"                    # or port = "NAME" (an output port)
+    type = "sensor_msgs/msg/JointState"
+    qos = "reliable"                           # default: ROS 2's default profile, matches every
+                                               # reader; "sensor" = best effort (best-effort readers only)
+    [[ros.subscribe]]
+    topic = "/jiwy/setpoint"
+    port = "setpoint"
+
+    [foxglove]                                 # optional: a live view (pip install 'rtloop[live]')
+    port = 8765                                # ws://127.0.0.1:8765 ; host = "0.0.0.0" to serve the network
+    inputs = ["setpoint"]                      # input ports Foxglove may publish to (default: none)
 """
 
 from __future__ import annotations
@@ -37,7 +52,9 @@ from rtloop.runnable import Runnable
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
+    "foxglove": dict,
 }
+FOXGLOVE_KEYS = {"host": str, "port": int, "inputs": list, "description": str}
 ROS_KEYS = {"domain_id": int, "publish": list, "subscribe": list}
 ROS_TOPIC_KEYS = {
     "topic": str, "port": str, "source": str, "type": str, "qos": str, "joint_names": list, "every": int,
@@ -144,6 +161,8 @@ def load_app(path: str | Path) -> App:
             raise AppFileError(shown, where, str(error)) from None
 
     _load_ros(shown, data.get("ros", {}), app)
+    if "foxglove" in data:
+        _load_foxglove(shown, data["foxglove"], app)
 
     record = data.get("record", {})
     _check_keys(shown, "record", record, RECORD_KEYS)
@@ -185,6 +204,18 @@ def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
                     app.ros_subscribe(table["topic"], port=table["port"], **options)
             except AppError as error:
                 raise AppFileError(shown, where, str(error)) from None
+
+
+def _load_foxglove(shown: str, table: dict[str, Any], app: App) -> None:
+    """``[foxglove]``: ``port`` (8765), ``host`` (127.0.0.1), ``inputs`` (input ports it may write)."""
+    _check_keys(shown, "foxglove", table, FOXGLOVE_KEYS)
+    inputs = table.get("inputs", [])
+    if not all(isinstance(name, str) for name in inputs):
+        raise AppFileError(shown, "foxglove.inputs", f"expected port names (strings), got {inputs!r}")
+    try:
+        app.serve_foxglove(table.get("port", 8765), host=table.get("host", "127.0.0.1"), inputs=inputs)
+    except AppError as error:
+        raise AppFileError(shown, "foxglove", str(error)) from None
 
 
 def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path) -> Runnable:

@@ -162,14 +162,26 @@ class RosTopic:
     """The app port it is attached to."""
     msg_type: str = "std_msgs/msg/Float64MultiArray"
     """One of :data:`ROS_TYPES`."""
-    qos: str = "sensor"
-    """``sensor`` (best effort, keep last) or ``reliable``."""
+    qos: str = "reliable"
+    """``reliable`` (ROS 2's default: keep last 10; matches every reader) or ``sensor`` (best effort, keep last 5)."""
     joint_names: tuple[str, ...] = ()
     """For ``sensor_msgs/msg/JointState``: one name per value."""
     every: int = 1
     """Publish every N-th tick only (a 1 kHz task need not flood rviz)."""
     domain_id: int | None = None
     """DDS domain; ``None``: ``ROS_DOMAIN_ID`` or 0."""
+
+
+@dataclass(frozen=True, slots=True)
+class LiveViewSpec:
+    """A Foxglove WebSocket server (``foxglove.sdk.v1``) showing the run live, in the supervisor."""
+
+    host: str = "127.0.0.1"
+    """Address to bind: this machine only unless told otherwise (``0.0.0.0``: every interface)."""
+    port: int = 8765
+    """TCP port; 0 picks a free one (the run prints the URL)."""
+    inputs: tuple[str, ...] = ()
+    """Input ports Foxglove may write (topic ``/rtloop/ports/<port>``), checked as the talker checks."""
 
 
 @dataclass
@@ -182,6 +194,7 @@ class App:
     ports: dict[str, PortSpec] = field(default_factory=dict)
     recorded: list[SignalRef] = field(default_factory=list)
     ros_topics: list[RosTopic] = field(default_factory=list)
+    live_view: LiveViewSpec | None = None
     source: str = "<python>"
     """Where the app was described (an app file's path, for messages)."""
 
@@ -329,7 +342,7 @@ class App:
         self.ports[port] = dataclasses.replace(self.ports[port], feed=Path(csv_path))
 
     def ros_publish(self, topic: str, *, source: SignalRef | SignalVector | None = None, port: str | None = None,
-                    msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "sensor",
+                    msg_type: str = "std_msgs/msg/Float64MultiArray", qos: str = "reliable",
                     joint_names: list[str] | tuple[str, ...] = (), every: int = 1,
                     domain_id: int | None = None) -> RosTopic:
         """Publish task outputs on a ROS 2 topic while the app runs.
@@ -377,6 +390,24 @@ class App:
         ros_topic = RosTopic(direction, topic, port, msg_type, qos, joint_names, every, domain_id)
         self.ros_topics.append(ros_topic)
         return ros_topic
+
+    def serve_foxglove(self, port: int = 8765, *, host: str = "127.0.0.1",
+                       inputs: list[str] | tuple[str, ...] = ()) -> LiveViewSpec:
+        """Serve the recorded signals and each task's timing live to Foxglove while the app runs.
+
+        ``inputs`` names the input ports Foxglove may publish to (none by default).
+        """
+        what = f"foxglove {host}:{port}"
+        if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+            raise AppError(f"{what}: port must be an integer 0..65535 (0: any free port)")
+        if not isinstance(host, str) or not host or any(c.isspace() for c in host):
+            raise AppError(f"{what}: host must be an address such as 127.0.0.1")
+        for name in inputs:
+            if name not in self.ports or self.ports[name].direction != "in":
+                candidates = sorted(n for n, p in self.ports.items() if p.direction == "in")
+                raise AppError(f"{what}: inputs: no input port {name!r}; input ports are {candidates}")
+        self.live_view = LiveViewSpec(host, port, tuple(inputs))
+        return self.live_view
 
     def record(self, *signals: SignalRef | SignalVector) -> None:
         """Record these signals every tick into ``signals.csv`` and ``run.mcap``."""

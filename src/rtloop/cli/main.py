@@ -26,7 +26,7 @@ DELEGATED = {
 
 # Optional packages and the extra that installs them (the core needs numpy only).
 EXTRAS = {"mcap": "ros", "mcap_ros2": "ros", "cyclonedds": "ros", "rich": "report", "matplotlib": "report",
-          "fmpy": "fmu"}
+          "fmpy": "fmu", "foxglove": "live"}
 
 
 def missing_extra(error: ModuleNotFoundError) -> str:
@@ -45,6 +45,13 @@ def _parse_feed(text: str) -> tuple[str, Path]:
     return port, Path(path)
 
 
+def _parse_host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not port.isdigit() or not 0 <= int(port) <= 65535 or (sep and not host):
+        raise argparse.ArgumentTypeError(f"--foxglove {text!r}: expected PORT or HOST:PORT, e.g. 8765 or 0.0.0.0:8765")
+    return host or "127.0.0.1", int(port)
+
+
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("app", help="app file (TOML)")
     parser.add_argument("--duration", type=float, required=True, metavar="S", help="seconds to run")
@@ -56,6 +63,8 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trim", type=int, default=20, metavar="N",
                         help="cycles left out at each end of the statistics (default 20)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary table")
+    parser.add_argument("--foxglove", type=_parse_host_port, default=None, metavar="[HOST:]PORT",
+                        help="serve signals and timing live to Foxglove (ws://, binds 127.0.0.1 unless HOST is given)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -150,6 +159,9 @@ def _run(args: argparse.Namespace) -> int:
         app.feed(port, path)
     if args.cpu is not None:
         app.pin_all(args.cpu)
+    if args.foxglove is not None:
+        host, port = args.foxglove
+        app.serve_foxglove(port, host=host, inputs=app.live_view.inputs if app.live_view else ())
     interactive = not args.quiet and sys.stderr.isatty()
     if args.command == "run":
         from rtloop.runtime.supervisor import run

@@ -30,7 +30,6 @@ ROS 2 bag (:mod:`.rosbag2`).
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from os import PathLike
@@ -40,39 +39,16 @@ from typing import Any
 import numpy as np
 
 from rtloop.record.rosbag2 import BagContents, BagTopic, offered_qos_profiles
-
-SIGNALS_TOPIC = "/rtloop/signals"
-TIMING_TOPIC_PREFIX = "/rtloop/timing/"
-SIGNAL_TOPIC_PREFIX = "/rtloop/signal/"
-NS_PER_S = 1_000_000_000
-
-_SEPARATOR = "\n" + "=" * 80 + "\n"
-_TIME_MSG = "int32 sec\nuint32 nanosec\n"
-_HEADER_MSG = "builtin_interfaces/Time stamp\nstring frame_id\n"
-JOINT_STATE_SCHEMA = (
-    "std_msgs/Header header\n"
-    "string[] name\nfloat64[] position\nfloat64[] velocity\nfloat64[] effort\n"
-    + _SEPARATOR + "MSG: std_msgs/Header\n" + _HEADER_MSG
-    + _SEPARATOR + "MSG: builtin_interfaces/Time\n" + _TIME_MSG
+from rtloop.ros.types import (  # shared with the live view: the same topics and schemas
+    CYCLE_TIMING_SCHEMA,
+    FLOAT64_SCHEMA,
+    JOINT_STATE_SCHEMA,
+    NS_PER_S,
+    SIGNAL_TOPIC_PREFIX,
+    SIGNALS_TOPIC,
+    TIMING_TOPIC_PREFIX,
+    topic_token,
 )
-FLOAT64_SCHEMA = "float64 data\n"
-CYCLE_TIMING_SCHEMA = (
-    "# One cycle of an rtloop task; times are CLOCK_MONOTONIC nanoseconds (timing.csv).\n"
-    "uint64 cycle\n"
-    "int64 release_ns\n"
-    "int64 start_ns\n"
-    "int64 end_ns\n"
-    "# start_ns - release_ns: wake-up latency, as cyclictest measures it\n"
-    "int64 latency_ns\n"
-    "# end_ns - start_ns: time spent reading inputs, stepping and publishing\n"
-    "int64 exec_ns\n"
-)
-
-
-def topic_token(name: str) -> str:
-    """Turn a task or signal name into a ROS 2 topic token: ``plant.y[0]`` → ``plant_y_0``."""
-    token = re.sub(r"_+", "_", re.sub(r"[^A-Za-z0-9_]", "_", name)).strip("_")
-    return token if token and not token[0].isdigit() else f"n_{token}"
 
 
 @dataclass

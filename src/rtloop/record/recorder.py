@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +32,8 @@ class Recorder:
         )
         self.mcap = None
         self.mcap_note = ""
+        self.live: Any = None
+        """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
         self.app = app
         self._timing_records: dict[str, list[np.ndarray]] = {name: [] for name in app.tasks}
 
@@ -51,6 +54,8 @@ class Recorder:
             self.timing.append(task, records)
             if self.mcap is not None:
                 self.mcap.add_timing(task, records)
+            if self.live is not None:
+                self.live.add_timing(task, records)
 
     def samples(self, task: str) -> TimingSamples:
         """Every timing record of ``task`` added so far (for the statistics)."""
@@ -67,6 +72,8 @@ class Recorder:
             times, rows = self.signals.flush(final=final)
             if self.mcap is not None and times:
                 self.mcap.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
+            if self.live is not None and times:
+                self.live.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
 
     def close(self) -> None:
         self.flush(final=True)

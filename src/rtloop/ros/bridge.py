@@ -6,7 +6,10 @@ Each bridge is a non-real-time process attached to a running app's port:
         --joint-names pan tilt
     rtloop bridge talker --app jiwy --topic /jiwy/setpoint --port setpoint
 
-A listener publishes every tick an output port sends (or every N-th, ``--every``);
+A listener publishes every tick an output port sends (or every N-th, ``--every``). It
+knows the task's timeline (T0 and the period P, from the app's control block and
+registry) and sleeps until just after tick k should have been sent, T0 + k·P + lag, where
+lag is learnt from when ticks did arrive; it never polls on a clock of its own.
 a talker checks every message (type, length, NaN/inf) before it reaches the port —
 rejected ones are counted and warned about at most once a second. A bridge never
 stalls the real-time side: ports drop and count when nobody reads them.
@@ -27,13 +30,17 @@ from rtloop.errors import PortValueError
 from rtloop.ipc.ports import RunningApp, app_from_registry, connect_app
 from rtloop.ipc.segments import Segment
 from rtloop.ipc.status import CONTROL_WORDS, ControlWord, WordBlock
+from rtloop.ros.cdr import encoder_for
 from rtloop.ros.dds import RosPublisher, RosSubscriber
 from rtloop.ros.messages import Float64, float64_multi_array, joint_state
 from rtloop.ros.types import ROS_TYPES
 from rtloop.ros.validate import MessageValidator, RateLimitedWarner
 
-POLL_INTERVAL_S = 0.002
 STATS_INTERVAL_S = 1.0
+ALIVE_CHECK_INTERVAL_S = 0.2
+# A tick not yet sent at the expected time is looked for again this much later.
+RETRY_NS = 25_000
+TIMER_SLACK_NS = 1_000
 
 
 def values_of(message: Any) -> Any:
@@ -59,6 +66,7 @@ class _Stop:
     def __init__(self, app: RunningApp) -> None:
         self.requested = False
         self.app = app
+        self.checked_at, self.app_alive = 0.0, True
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, self._request)
 
@@ -66,7 +74,12 @@ class _Stop:
         self.requested = True
 
     def __bool__(self) -> bool:
-        return self.requested or not self.app.alive()
+        if self.requested:
+            return True
+        now = time.monotonic()
+        if now - self.checked_at >= ALIVE_CHECK_INTERVAL_S:  # the listener asks every tick: keep it cheap
+            self.checked_at, self.app_alive = now, self.app.alive()
+        return not self.app_alive
 
 
 class _Stats:
@@ -100,8 +113,59 @@ def _wall_offset_ns(app: RunningApp, stop: Any) -> tuple[int, int] | None:
     return control[ControlWord.T0_NS], time.time_ns() - time.monotonic_ns()
 
 
+class TickTimeline:
+    """When the listener looks for tick k: T0 + k·P + lag, lag learnt from when ticks arrive.
+
+    A task sends tick k once it has stepped, a little after its release T0 + k·P. Found at
+    the first look, the tick may have been waiting: the lag shrinks by an eighth. Found
+    only after looking again, it becomes the time it took. So the listener wakes about
+    when the tick is sent, without spinning and without a poll interval of its own.
+    """
+
+    def __init__(self, t0_ns: int, period_ns: int, every: int = 1) -> None:
+        self.t0_ns, self.period_ns, self.every = t0_ns, period_ns, every
+        self.lag_ns = 0
+
+    def release_ns(self, tick: int) -> int:
+        return self.t0_ns + tick * self.period_ns
+
+    def next_tick(self, after_tick: int) -> int:
+        """The first tick after ``after_tick`` that is published (a multiple of ``every``)."""
+        return (after_tick // self.every + 1) * self.every
+
+    def look_at_ns(self, tick: int) -> int:
+        return self.release_ns(tick) + self.lag_ns
+
+    def found(self, tick: int, found_ns: int, looked_again: bool) -> None:
+        if looked_again:
+            self.lag_ns = min(max(0, found_ns - self.release_ns(tick)), self.period_ns * self.every)
+        else:
+            self.lag_ns -= self.lag_ns >> 3
+
+
+def _sender(publisher: RosPublisher, topic: RosTopic, size: int) -> Any:
+    """``send(values, stamp_ns)``: CDR encoded here if it gives the DDS library's own bytes, else generic."""
+    def generic(values: list[float], stamp_ns: int) -> None:
+        publisher.publish(message_for(topic.msg_type, values, stamp_ns, topic.joint_names))
+
+    if not publisher.takes_cdr:
+        return generic
+    encode = encoder_for(topic.msg_type, topic.joint_names)
+    probe_values, probe_stamp_ns = [0.1 * (i + 1) for i in range(size)], 1_700_000_000_123_456_789
+    reference = message_for(topic.msg_type, probe_values, probe_stamp_ns, topic.joint_names).serialize()
+    if encode(probe_values, probe_stamp_ns) != reference.ljust(-(-len(reference) // 4) * 4, b"\0"):
+        return generic  # another data representation (XCDR2): let the DDS library encode
+
+    def fast(values: list[float], stamp_ns: int) -> None:
+        publisher.publish_cdr(encode(values, stamp_ns))
+
+    return fast
+
+
 def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> None:
-    """Publish what an output port sends, until stopped."""
+    """Publish what an output port sends, until stopped, waking on the task's timeline."""
+    from rtloop import rt
+
     info = app.ports[topic.port]
     publisher = RosPublisher(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id)
     epoch = _wall_offset_ns(app, stop)
@@ -110,18 +174,37 @@ def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> 
         return
     t0_ns, wall_offset_ns = epoch
     period_ns = int(info["period_ns"])
+    timeline = TickTimeline(t0_ns, period_ns, topic.every)
+    sleeper = rt.AbsoluteSleeper()
+    try:
+        rt.set_timer_slack(TIMER_SLACK_NS)
+    except OSError:
+        pass  # only later wake-ups
+    send = _sender(publisher, topic, int(info["size"]))
+    wanted = 0
     with app.reader(topic.port) as reader, publisher:
         while not stop:
+            sleeper.sleep_until(timeline.look_at_ns(wanted))
             ticks, rows = reader.read()
-            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):
+            looked_again = False
+            give_up_ns = timeline.release_ns(timeline.next_tick(wanted))
+            while not len(ticks) and rt.now_ns() + RETRY_NS < give_up_ns and not stop:
+                sleeper.sleep_until(rt.now_ns() + RETRY_NS)
+                ticks, rows = reader.read()
+                looked_again = True
+            if not len(ticks):  # not sent this period (a skipped release, or the run is ending)
+                wanted = timeline.next_tick(wanted)
+                continue
+            tick_list = ticks.tolist()
+            if wanted in tick_list:
+                timeline.found(wanted, rt.now_ns(), looked_again)
+            for tick, row in zip(tick_list, rows.tolist(), strict=True):
                 if tick % topic.every:
                     continue
-                stamp_ns = t0_ns + tick * period_ns + wall_offset_ns
-                publisher.publish(message_for(topic.msg_type, row, stamp_ns, topic.joint_names))
+                send(row, t0_ns + tick * period_ns + wall_offset_ns)
                 stats.messages += 1
+            wanted = timeline.next_tick(tick_list[-1])
             stats.send()
-            if not len(ticks):
-                time.sleep(POLL_INTERVAL_S)
 
 
 def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> None:
@@ -181,12 +264,13 @@ def build_parser() -> argparse.ArgumentParser:
     kinds = parser.add_subparsers(dest="kind", required=True)
     listener = kinds.add_parser("listener", help="publish an output port on a ROS 2 topic")
     talker = kinds.add_parser("talker", help="feed an input port from a ROS 2 topic")
-    for sub, default_qos in ((listener, "sensor"), (talker, "reliable")):
+    for sub in (listener, talker):
         sub.add_argument("--app", required=True, help="name of the running app")
         sub.add_argument("--port", required=True)
         sub.add_argument("--topic", required=True, help="ROS 2 topic, e.g. /jiwy/angles")
         sub.add_argument("--type", default="std_msgs/msg/Float64MultiArray", choices=ROS_TYPES)
-        sub.add_argument("--qos", default=default_qos, choices=("sensor", "reliable"))
+        sub.add_argument("--qos", default="reliable", choices=("reliable", "sensor"),
+                         help="reliable (ROS 2's default, matches every reader) or sensor (best effort)")
         sub.add_argument("--domain-id", type=int, default=None, help="default: ROS_DOMAIN_ID or 0")
     listener.add_argument("--joint-names", nargs="+", default=[], help="for JointState: one name per value")
     listener.add_argument("--every", type=int, default=1, help="publish every N-th tick")

@@ -2,8 +2,8 @@
 
 ``RosPublisher`` and ``RosSubscriber`` speak ROS 2 conventions: the DDS topic of
 ROS 2 topic ``/jiwy/angles`` is ``rt/jiwy/angles``, the domain is ``ROS_DOMAIN_ID``
-(default 0) and the QoS presets match rclpy's ``qos_profile_sensor_data`` and its
-default profile. The default backend is the ``cyclonedds`` Python package (no ROS 2
+(default 0) and the QoS presets match rclpy's default profile (the default here too)
+and its ``qos_profile_sensor_data``. The default backend is the ``cyclonedds`` Python package (no ROS 2
 needed); ``backend="rclpy"`` uses a sourced ROS 2 install instead, with the same API.
 
 These run in non-real-time processes only (bridges, tools, tests): DDS allocates,
@@ -19,9 +19,13 @@ from typing import Any
 
 from rtloop.ros.errors import RosConfigError, choose_backend, domain_id_from_env
 
-QOS_PRESETS = ("sensor", "reliable")
-"""``sensor``: best effort, keep last 5, volatile (rclpy ``qos_profile_sensor_data``).
-``reliable``: reliable, keep last 10, volatile (rclpy's default profile)."""
+QOS_PRESETS = ("reliable", "sensor")
+"""``reliable`` (the default): reliable, keep last 10, volatile — ROS 2's default profile.
+A reliable writer matches reliable readers (rclpy's default, ``ros2 topic echo``) and
+best-effort ones alike; keep-last means a slow reader never blocks the writer for long.
+``sensor``: best effort, keep last 5, volatile (rclpy ``qos_profile_sensor_data``); a
+best-effort writer matches best-effort readers only."""
+DEFAULT_QOS = "reliable"
 
 _HISTORY_DEPTH = {"sensor": 5, "reliable": 10}
 _TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -67,7 +71,7 @@ class _Endpoint:
         self,
         topic: str,
         msg_type: Any,
-        qos: str = "sensor",
+        qos: str = DEFAULT_QOS,
         domain_id: int | None = None,
         backend: str = "auto",
         depth: int | None = None,
@@ -102,7 +106,7 @@ class RosPublisher(_Endpoint):
         topic: ROS 2 topic name, e.g. ``"/jiwy/angles"``.
         msg_type: a message class from :mod:`rtloop.ros.messages`, or its ROS 2 name
             such as ``"sensor_msgs/msg/JointState"``.
-        qos: ``"sensor"`` (best effort) or ``"reliable"``; see :data:`QOS_PRESETS`.
+        qos: ``"reliable"`` (default) or ``"sensor"`` (best effort); see :data:`QOS_PRESETS`.
         domain_id: DDS domain; ``None`` reads ``ROS_DOMAIN_ID`` (default 0).
         backend: ``"auto"`` (cyclonedds, else rclpy), ``"cyclonedds"`` or ``"rclpy"``.
         depth: history depth instead of the preset's (5 or 10); a subscriber that may
@@ -127,6 +131,22 @@ class RosPublisher(_Endpoint):
         """Send ``msg`` (an instance of ``msg_type``). Does not wait for subscribers."""
         self._impl.publish(msg)
         self.published += 1
+
+    def publish_cdr(self, data: bytes) -> None:
+        """Send a message already encoded (:mod:`rtloop.ros.cdr`): the listener's fast path.
+
+        Raises:
+            RosConfigError: this backend cannot send encoded bytes (check :attr:`takes_cdr`).
+        """
+        if not self.takes_cdr:
+            raise RosConfigError(f"the {self.backend} backend does not send pre-encoded messages")
+        self._impl.publish_cdr(data)
+        self.published += 1
+
+    @property
+    def takes_cdr(self) -> bool:
+        """Whether :meth:`publish_cdr` works here (the cyclonedds backend)."""
+        return hasattr(self._impl, "publish_cdr")
 
     def subscriber_count(self) -> int:
         """Return how many subscriptions currently match this publisher."""
@@ -181,15 +201,21 @@ def _poll(condition: Any, timeout_s: float, interval_s: float = 0.01) -> bool:
 # --- cyclonedds backend -------------------------------------------------------------
 
 _participants: dict[int, Any] = {}
+_domains: dict[int, Any] = {}
 _participants_lock = threading.Lock()
 
 
 def _participant(domain_id: int) -> Any:
     # One participant per domain and process: each costs threads, sockets and discovery.
-    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.domain import Domain, DomainParticipant
+
+    from rtloop.ros.discovery import cyclone_config_string
 
     with _participants_lock:
         if domain_id not in _participants:
+            config = cyclone_config_string()  # ROS_AUTOMATIC_DISCOVERY_RANGE & co., then CYCLONEDDS_URI
+            if config is not None:
+                _domains[domain_id] = Domain(domain_id, config)  # kept: the participant lives in it
             _participants[domain_id] = DomainParticipant(domain_id)
         return _participants[domain_id]
 
@@ -240,6 +266,15 @@ class _CyclonePublisher:
 
     def publish(self, msg: Any) -> None:
         self._writer.write(msg)
+
+    def publish_cdr(self, data: bytes) -> None:
+        # What DataWriter.write does after serialising: hand the CDR bytes to the C layer.
+        from cyclonedds._clayer import ddspy_write
+
+        if ddspy_write(self._writer._ref, data) < 0:
+            from cyclonedds.core import DDSException
+
+            raise DDSException(-1, f"Occurred while writing a sample on {self._topic.name}")
 
     def subscriber_count(self) -> int:
         return len(self._writer.get_matched_subscriptions())

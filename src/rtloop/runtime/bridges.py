@@ -27,6 +27,13 @@ def dds_available() -> str:
     return "ROS 2 bridges are off: neither cyclonedds nor rclpy is installed (pip install 'rtloop[ros]')"
 
 
+def discovery_warning() -> str:
+    """'' unless ROS 2's discovery variables were not taken as written (the bridges inherit them)."""
+    from rtloop.ros.discovery import discovery_from_env
+
+    return discovery_from_env().warning
+
+
 @dataclass
 class _Bridge:
     topic: RosTopic
@@ -42,10 +49,11 @@ class Bridges:
     def __init__(self, app: App) -> None:
         self.app = app
         self.running: list[_Bridge] = []
-        self.note = dds_available() if app.ros_topics else ""
+        self.off_reason = dds_available() if app.ros_topics else ""
+        self.note = (self.off_reason or discovery_warning()) if app.ros_topics else ""
 
     def start(self, registry_path: Path) -> None:
-        if not self.app.ros_topics or self.note:
+        if not self.app.ros_topics or self.off_reason:
             return
         from rtloop.ros.bridge import bridge_process_main
 

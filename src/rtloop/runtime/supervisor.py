@@ -60,21 +60,29 @@ class Supervisor:
 
     # --- lifecycle -------------------------------------------------------------------------
     def run(self) -> RunSummary:
+        if self.app.live_view is not None:  # a missing foxglove-sdk stops the run before anything starts
+            from rtloop.ros.live import import_foxglove
+
+            import_foxglove()
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
         layout = AppLayout.create(self.app)
         recorder = Recorder(self.app, self.out)
         self.bridges = Bridges(self.app)
+        self.live: Any = None
         runs: dict[str, _TaskRun] = {}
         previous_handlers = self._install_signal_handlers()
         self.dma_latency = rt.CpuDmaLatency().__enter__()
         try:
+            self._open_live_view(recorder, layout)
             runs = self._spawn(layout)
             assert layout.registry_path is not None
             self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
             self._wait_until_ready(layout, runs)
             if self.failure is None and self.stop_reason == "duration":
                 self._start_epoch(layout, recorder)
+                if self.live is not None:
+                    self.live.start(self.t0_ns, self.wall_t0_ns)
                 self._drain_until_done(layout, runs, recorder)
             else:
                 layout.control[ControlWord.STOP] = 1
@@ -82,6 +90,8 @@ class Supervisor:
             self._drain(layout, recorder)
         finally:
             self.bridges.stop()
+            if self.live is not None:
+                self.live.close()
             self.dma_latency.__exit__()
             self._restore_signal_handlers(previous_handlers)
             layout.control[ControlWord.STOP] = 1
@@ -95,6 +105,19 @@ class Supervisor:
         if self.failure is not None:
             raise self.failure
         return summary
+
+    def _open_live_view(self, recorder: Recorder, layout: AppLayout) -> None:
+        """Start the Foxglove server if the app asks for one (in this non-real-time process)."""
+        if self.app.live_view is None:
+            return
+        from rtloop.ros.live import LiveView
+
+        names = recorder.signals.names if recorder.signals is not None else []
+        assert layout.registry_path is not None
+        self.live = LiveView(self.app, self.app.live_view, names, layout.registry_path)
+        recorder.live = self.live
+        print(f"rtloop: Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)",
+              file=sys.stderr, flush=True)
 
     def _spawn(self, layout: AppLayout) -> dict[str, _TaskRun]:
         # spawn, not fork: a forked child of a threaded parent can inherit held locks.
@@ -132,6 +155,7 @@ class Supervisor:
         self.t0_ns = now_ns + START_MARGIN_NS
         self.end_ns = self.t0_ns + round(self.duration_s * 1e9)
         self.wall_t0 = (wall_now_ns + START_MARGIN_NS) / 1e9
+        self.wall_t0_ns = wall_now_ns + START_MARGIN_NS
         recorder.start(self.t0_ns, wall_now_ns + START_MARGIN_NS)
         layout.control[ControlWord.END_NS] = self.end_ns
         layout.control[ControlWord.T0_NS] = self.t0_ns  # last: tasks start when they see it
@@ -279,7 +303,7 @@ class Supervisor:
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency.held},
             notes=[note for note in (recorder.mcap_note, self.bridges.note) if note],
-            bridges=self.bridges.summary(),
+            bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
         )
 
 
