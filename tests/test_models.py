@@ -297,7 +297,7 @@ def test_fmu_variables_by_name(jiwy_fmu: Path) -> None:
     assert runnable.output_names == ("AngleTilt", "pan.p")
     with pytest.raises(FmuError, match="no variable 'Nope'"):
         load_model(f"fmu:{jiwy_fmu}", outputs=["Nope"])
-    with pytest.raises(FmuError, match="only inputs can be set"):
+    with pytest.raises(FmuError, match="only inputs and tunable parameters can be set"):
         load_model(f"fmu:{jiwy_fmu}", inputs=["AnglePan"])
 
 

@@ -176,6 +176,10 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         cpu = "-" if task.cpu is None else str(task.cpu)
         lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{t.deadline_misses:>7}"
                      f"{t.overruns:>9}{task.stale_reads:>6}")
+        if task.host_exec_ns:
+            host = task.host_exec_ns
+            lines.append(f"  {name}: host execution time (not real time) mean {_us(host['mean'])} µs, "
+                         f"max {_us(host['max'])} µs")
     for name, port in summary.ports.items():
         unread = port.direction == "out" and not port.received and port.dropped
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
