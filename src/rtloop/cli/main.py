@@ -131,7 +131,12 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "model":
         from rtloop import models
 
-        text = models.cli_model_info(args.path) if args.model_command == "info" else models.cli_model_build(args.path)
+        try:
+            command = models.cli_model_info if args.model_command == "info" else models.cli_model_build
+            text = command(args.path)
+        except models.ModelError as error:  # the model the user named cannot be used: bad input
+            print(f"rtloop: {error}", file=sys.stderr)
+            return EXIT_BAD_INPUT
         print(text)
         return 0
     raise AssertionError(args.command)
