@@ -65,6 +65,10 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
     _add_run_arguments(simulate)
 
+    replay = commands.add_parser("replay", help="re-simulate a run with its logged port inputs; compare signals")
+    replay.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="output folder of `rtloop run`")
+    replay.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the replay's artifacts")
+
     port = commands.add_parser("port", help="write to or read from a running app's port")
     port_commands = port.add_subparsers(dest="port_command", required=True)
     write = port_commands.add_parser("write", help="post values to an input port")
@@ -124,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command in ("run", "simulate"):
         return _run(args)
+    if args.command == "replay":
+        return _replay(args)
     if args.command == "port":
         from rtloop.cli.port import cli_port
 
@@ -162,6 +168,20 @@ def _run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from rtloop.runtime.replay import replay
+
+    result = replay(args.run_dir, args.out)
+    horizon = "the whole run" if result.first_miss_s is None else f"its first miss at t = {result.first_miss_s:g} s"
+    if result.equal:
+        print(f"replay of {args.run_dir}: signals equal bit for bit up to {horizon} "
+              f"({result.rows_compared} rows); artifacts in {args.out}/")
+        return 0
+    print(f"replay of {args.run_dir}: signals differ from t = {result.first_difference_s:g} s "
+          f"(before {horizon}); artifacts in {args.out}/", file=sys.stderr)
+    return EXIT_TASK_FAILED
 
 
 def format_summary(summary: RunSummary, out: Path) -> str:

@@ -298,7 +298,7 @@ class FmuModel:
 
     def set_period_ns(self, period_ns: int) -> None:
         """Use the task period as communication step (called through ``check_period``)."""
-        self.communication_step_s = period_ns * 1e-9
+        self.communication_step_s = period_ns / 1e9  # correctly rounded: 10 ms is 0.01 exactly
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -363,9 +363,8 @@ class FmuModel:
         self._unload()
 
     def _log(self, status: int, category: bytes | None, message: bytes | None) -> None:
-        if status >= 1:
-            label = _STATUS[status] if 0 <= status < len(_STATUS) else str(status)
-            self.messages.append(f"[{label}] {(message or b'').decode(errors='replace')}")
+        label = _STATUS[status] if 0 <= status < len(_STATUS) else str(status)
+        self.messages.append(f"[{label}] {(message or b'').decode(errors='replace')}")  # bounded: last few
 
     def _set_start_values(self, fmu: Any, u: FloatVector) -> None:
         """Parameters and the inputs' start values, set before initialisation, each in its own type."""
@@ -498,7 +497,8 @@ class FmuModel:
             status = transfer.set(c, transfer.vrs, transfer.n_vrs, transfer.pointer, *transfer.tail)
             if status:
                 self._check(status, f"set inputs at t = {t:.6f} s")
-        self._step(t, h)  # type: ignore[arg-type]
+        # Communication points on the timeline t0 + k·h, the step between them (as FMPy's own loop does)
+        self._step(t, self._t0_s + (self._k + 1) * h - t)  # type: ignore[operator]
         self._k += 1
         self._read_outputs(y)
 
@@ -578,12 +578,14 @@ class FmuModel:
             return
         h = self.communication_step_s
         t = self._t0_s + self._k * h  # type: ignore[operator]
+        k, t0 = self._k, self._t0_s
         if self.variable_step:
-            self._step(t, skipped * h)  # type: ignore[operator]
+            self._step(t, t0 + (k + skipped) * h - t)  # type: ignore[operator]
             self.long_steps += 1
         else:
             for i in range(skipped):
-                self._step(t + i * h, h)  # type: ignore[operator]
+                start = t0 + (k + i) * h  # type: ignore[operator]
+                self._step(start, t0 + (k + i + 1) * h - start)  # type: ignore[operator]
             self.catch_up_steps += skipped
         self._k += skipped
 
