@@ -297,7 +297,7 @@ def test_fmu_variables_by_name(jiwy_fmu: Path) -> None:
     assert runnable.output_names == ("AngleTilt", "pan.p")
     with pytest.raises(FmuError, match="no variable 'Nope'"):
         load_model(f"fmu:{jiwy_fmu}", outputs=["Nope"])
-    with pytest.raises(FmuError, match="only inputs can be set"):
+    with pytest.raises(FmuError, match="only inputs and tunable parameters can be set"):
         load_model(f"fmu:{jiwy_fmu}", inputs=["AnglePan"])
 
 
@@ -305,8 +305,11 @@ def test_fmu_info(jiwy_fmu: Path) -> None:
     info = model_info(jiwy_fmu)
     assert info["kind"] == "fmu2-cs" and info["fmi_version"] == "2.0"
     assert info["inputs"] == ["SteeringPan", "SteeringTilt"]
-    assert info["step_size_s"] == 0.001
-    assert "y[1]  AngleTilt" in cli_model_info(f"fmu:{jiwy_fmu}")
+    # a variable-step FMU follows the task period; its default step is only a suggestion
+    assert info["step_size_s"] is None and info["default_step_size_s"] == 0.001
+    text = cli_model_info(f"fmu:{jiwy_fmu}")
+    assert "y[1]  AngleTilt" in text and "follows the task period (the FMU suggests 1 ms" in text
+    assert "AnglePan  Real  output/continuous" in text and "→ y[0]" in text
 
 
 # -- adapter contract -----------------------------------------------------------------

@@ -34,7 +34,7 @@ def test_mcap_signals_equal_signals_csv_and_timing_equals_timing_csv(tmp_path: P
                 signals.append((message.log_time, list(ros_msg.name), list(ros_msg.position)))
             elif channel.topic == "/rtloop/timing/plant":
                 timing.append((ros_msg.cycle, ros_msg.release_ns, ros_msg.start_ns, ros_msg.end_ns))
-    assert len(signals) == len(rows) == 1000
+    assert len(signals) == len(rows) == 1001  # the initial outputs at t = 0, then one row per tick
     t0_wall = signals[0][0]
     for (log_time, names, values), row in zip(signals, rows, strict=True):
         assert names == header[1:]

@@ -55,7 +55,9 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     assert first_b["release_ns"] == next(r for r in a_rows if r["cycle"] == "0")["release_ns"]
     signals = read_csv(tmp_path / "signals.csv")
     assert list(signals[0]) == ["t_s", "a.y[0]", "a.y[1]"]
-    assert signals[3]["t_s"] == "0.003" and float(signals[3]["a.y[1]"]) == 0.003
+    # the row at t holds what is valid from t on: the job released at 2 ms publishes at 3 ms
+    assert signals[0]["t_s"] == "0.0" and float(signals[0]["a.y[0]"]) == 0.0  # initial outputs
+    assert signals[3]["t_s"] == "0.003" and float(signals[3]["a.y[1]"]) == 0.002
 
 
 @pytest.mark.rt
@@ -64,7 +66,7 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
     t = app.add_task("probe", ReportSettings(), period_ns=P, priority=42, cpu=other_cpu(), policy="rr")
     app.record(t.y)
     rtloop.run(app, 0.1, tmp_path)
-    row = read_csv(tmp_path / "signals.csv")[0]
+    row = read_csv(tmp_path / "signals.csv")[1]  # [0] holds the initial outputs (t = 0)
     assert float(row["probe.y[0]"]) == os.SCHED_RR
     assert float(row["probe.y[1]"]) == 42
     assert float(row["probe.y[2]"]) == other_cpu()
@@ -161,7 +163,7 @@ def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path,
     assert 100 < cycles < 30_000
     rows = [r for r in read_csv(tmp_path / "out" / "timing.csv") if r["task"] == "counter"]
     assert len(rows) == cycles
-    assert len(read_csv(tmp_path / "out" / "signals.csv")) == cycles
+    assert len(read_csv(tmp_path / "out" / "signals.csv")) == cycles + 1  # and the initial outputs at t = 0
     assert not list(Path("/dev/shm").glob(f"rtloop-{name}-*")), "shared memory left behind"
 
 

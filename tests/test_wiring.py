@@ -118,9 +118,11 @@ def test_logical_execution_time_one_tick_delay_per_hop(tmp_path: Path) -> None:
     app.record(counter.y, copy.y)
     rtloop.simulate(app, 0.01, tmp_path)
     rows = read_rows(tmp_path / "signals.csv")[1:]
-    # tick k of copy sees what counter computed at tick k-1 (initial zeros at k = 0)
-    assert [float(r[3]) for r in rows[:4]] == [0.0, 1.0, 2.0, 3.0]
-    assert [float(r[1]) for r in rows[:4]] == [1.0, 2.0, 3.0, 4.0]
+    # tick k of copy sees what counter computed at tick k-1 (initial zeros at k = 0); a row
+    # at t holds what is valid from t: tick k's outputs at (k+1)·P, the initial outputs at 0
+    assert [r[0] for r in rows[:3]] == ["0.0", "0.001", "0.002"]
+    assert [float(r[3]) for r in rows[:5]] == [0.0, 0.0, 1.0, 2.0, 3.0]
+    assert [float(r[1]) for r in rows[:5]] == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
 def test_multirate_reader_sees_the_newest_value_valid_at_its_release(tmp_path: Path) -> None:
@@ -131,8 +133,10 @@ def test_multirate_reader_sees_the_newest_value_valid_at_its_release(tmp_path: P
     app.record(slow.y)
     rtloop.simulate(app, 0.012, tmp_path)
     rows = read_rows(tmp_path / "signals.csv")[1:]
-    # slow releases at 0, 3, 6, 9 ms; fast's tick k publishes count k+1 at (k+1) ms
-    assert [(r[0], float(r[1])) for r in rows] == [("0.0", 0.0), ("0.003", 3.0), ("0.006", 6.0), ("0.009", 9.0)]
+    # slow releases at 0, 3, 6, 9 ms; fast's tick k publishes count k+1 at (k+1) ms;
+    # slow's job released at t holds its result from t + 3 ms
+    assert [(r[0], float(r[1])) for r in rows] == [("0.0", 0.0), ("0.003", 0.0), ("0.006", 3.0), ("0.009", 6.0),
+                                                   ("0.012", 9.0)]
 
 
 def _spawn(target, *args):
@@ -322,7 +326,7 @@ def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path
     assert summary["ports"]["setpoint"]["sent"] == 1 and summary["ports"]["setpoint"]["received"] == 1
     assert summary["ports"]["angles"]["received"] >= 5
     rows = read_rows(tmp_path / "out" / "signals.csv")
-    pan = rows[0].index("plant.y[0]")
+    pan = rows[0].index("plant.AnglePan")
     assert float(rows[-1][pan]) == pytest.approx(0.5, abs=0.02)
 
 

@@ -13,6 +13,7 @@ from rtloop.errors import ConnectionSizeError as ConnectionSizeError
 from rtloop.errors import LibcError as LibcError
 from rtloop.errors import PortValueError as PortValueError
 from rtloop.errors import RtloopError as RtloopError
+from rtloop.errors import StopRequested as StopRequested
 from rtloop.errors import TaskFailed as TaskFailed
 from rtloop.record.summary import RunSummary as RunSummary
 from rtloop.record.summary import TaskSummary as TaskSummary
@@ -34,6 +35,7 @@ __all__ = [
     "RunSummary",
     "Runnable",
     "SignalRef",
+    "StopRequested",
     "TaskFailed",
     "TaskSummary",
     "TaskTiming",

@@ -81,3 +81,12 @@ class TaskFailed(RtloopError, RuntimeError):
 
 class PortValueError(RtloopError, ValueError):
     """A value written to a port was rejected (wrong length, NaN/inf)."""
+
+
+class StopRequested(RtloopError):
+    """Raised by a runnable's ``step`` to stop the app in order (not a fault).
+
+    A model that reached its end (an FMU's ``terminateSimulation``) raises it: the
+    task publishes nothing for that step, runs ``postrun``, and the app stops with
+    ``stopped_by`` naming the task and this reason.
+    """

@@ -5,6 +5,7 @@
     [tasks.plant]
     runnable = "jiwy_models:JiwyPlant"   # module beside the app file; or model = "20sim:models/Plant"
     args = {}                                  # keyword arguments of the constructor
+    parameters = {}                            # model parameters by name (FMU, 20-sim, PythonModel)
     period_ns = 1_000_000
     priority = 80
     cpu = 1
@@ -62,7 +63,7 @@ ROS_TOPIC_KEYS = {
 }
 TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
-    "cpu": int, "policy": str, "overrun": str, "description": str,
+    "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict,
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
@@ -223,11 +224,14 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     if has_runnable == has_model:
         raise AppFileError(shown, where, 'give exactly one of runnable = "module:Class" or model = "kind:path"')
     args = table.get("args", {})
+    parameters = table.get("parameters")
     if has_model:
         try:
             from rtloop.models import load_model
         except ImportError as error:
             raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
+        if parameters is not None:
+            args = {**args, "parameters": parameters}
         try:
             return load_model(table["model"], base_dir, **args)
         except (RtloopError, OSError, ValueError, TypeError) as error:  # incl. a model that does not build
@@ -254,4 +258,11 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
         raise AppFileError(shown, f"{where}.args", f"{target}({args}) failed: {error}") from None
     if not isinstance(runnable, Runnable):
         raise AppFileError(shown, f"{where}.runnable", f"{target} is not a subclass of rtloop.Runnable")
+    if parameters is not None:
+        from rtloop.models.base import apply_parameters
+
+        try:
+            apply_parameters(runnable, parameters, target)
+        except RtloopError as error:
+            raise AppFileError(shown, f"{where}.parameters", str(error)) from None
     return runnable

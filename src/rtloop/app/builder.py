@@ -447,6 +447,9 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
     """Parse ``task.y[0:2]``, ``task.u[3]`` or ``task.y`` against an app's tasks."""
     match = re.fullmatch(r"\s*([A-Za-z_]\w*)\.([uy])(?:\[(\d*)(?::(\d*))?\])?\s*", text)
     if not match:
+        named = _named_signal(text, app)
+        if named is not None:
+            return named
         raise AppError(f"{where}: {text!r} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
     task, side, start, stop = match.groups()
     if task not in app.tasks:
@@ -457,3 +460,16 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
     if stop is None and ":" not in text:
         return vector[int(start)]
     return vector[slice(int(start) if start else None, int(stop) if stop else None)]
+
+
+def _named_signal(text: str, app: App) -> SignalRef | None:
+    """``plant.AnglePan``: one element named by the task's model (output names first)."""
+    task, dot, name = text.strip().partition(".")
+    spec = app.tasks.get(task)
+    if not dot or spec is None:
+        return None
+    for side in ("y", "u"):
+        names = list(getattr(spec.runnable, "output_names" if side == "y" else "input_names", None) or ())
+        if names.count(name) == 1:
+            return getattr(spec, side)[names.index(name)]
+    return None

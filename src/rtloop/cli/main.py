@@ -76,6 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
     _add_run_arguments(simulate)
 
+    replay = commands.add_parser("replay", help="re-simulate a run with its logged port inputs; compare signals")
+    replay.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="output folder of `rtloop run`")
+    replay.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the replay's artifacts")
+
     port = commands.add_parser("port", help="write to or read from a running app's port")
     port_commands = port.add_subparsers(dest="port_command", required=True)
     write = port_commands.add_parser("write", help="post values to an input port")
@@ -138,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command in ("run", "simulate"):
         return _run(args)
+    if args.command == "replay":
+        return _replay(args)
     if args.command == "port":
         from rtloop.cli.port import cli_port
 
@@ -145,7 +151,12 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "model":
         from rtloop import models
 
-        text = models.cli_model_info(args.path) if args.model_command == "info" else models.cli_model_build(args.path)
+        try:
+            command = models.cli_model_info if args.model_command == "info" else models.cli_model_build
+            text = command(args.path)
+        except models.ModelError as error:  # the model the user named cannot be used: bad input
+            print(f"rtloop: {error}", file=sys.stderr)
+            return EXIT_BAD_INPUT
         print(text)
         return 0
     raise AssertionError(args.command)
@@ -176,6 +187,20 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay(args: argparse.Namespace) -> int:
+    from rtloop.runtime.replay import replay
+
+    result = replay(args.run_dir, args.out)
+    horizon = "the whole run" if result.first_miss_s is None else f"its first miss at t = {result.first_miss_s:g} s"
+    if result.equal:
+        print(f"replay of {args.run_dir}: signals equal bit for bit up to {horizon} "
+              f"({result.rows_compared} rows); artifacts in {args.out}/")
+        return 0
+    print(f"replay of {args.run_dir}: signals differ from t = {result.first_difference_s:g} s "
+          f"(before {horizon}); artifacts in {args.out}/", file=sys.stderr)
+    return EXIT_TASK_FAILED
+
+
 def format_summary(summary: RunSummary, out: Path) -> str:
     """A short table of the run, with the non-real-time warning first."""
     lines: list[str] = []
@@ -193,6 +218,10 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         cpu = "-" if task.cpu is None else str(task.cpu)
         lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{t.deadline_misses:>7}"
                      f"{t.overruns:>9}{task.stale_reads:>6}")
+        if task.host_exec_ns:
+            host = task.host_exec_ns
+            lines.append(f"  {name}: host execution time (not real time) mean {_us(host['mean'])} µs, "
+                         f"max {_us(host['max'])} µs")
     for name, port in summary.ports.items():
         unread = port.direction == "out" and not port.received and port.dropped
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""

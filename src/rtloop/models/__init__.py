@@ -131,8 +131,10 @@ def model_info(
             "name": fmu.model_identifier,
             "inputs": list(fmu.input_names or ()),
             "outputs": list(fmu.output_names or ()),
-            "step_size_s": fmu.default_step_size_s,
+            "step_size_s": fmu.step_size_s,
+            "default_step_size_s": fmu.default_step_size_s,
             "fmi_version": fmu.fmi_version,
+            "variables": fmu.describe_variables(),
         }
     from rtloop.models.twentysim import inspect
 
@@ -146,6 +148,7 @@ def model_info(
         "step_size_s": info.step_size_s,
         "template": info.template,
         "sources": [str(s.relative_to(info.path)) for s in info.sources],
+        "parameters": [{"name": n, "index": i, "default": d} for n, i, d in info.parameters],
     }
 
 
@@ -180,14 +183,33 @@ def cli_model_info(spec: str | os.PathLike[str]) -> str:
     """Text for ``rtloop model info PATH``."""
     info = model_info(spec)
     step = info["step_size_s"]
+    default_step = info.get("default_step_size_s")
+    if step:
+        step_line = f"step size: {step * 1e3:g} ms"
+    elif default_step:
+        step_line = (f"step size: follows the task period (the FMU suggests {default_step * 1e3:g} ms, "
+                     "used only without a task)")
+    else:
+        step_line = "step size: follows the task period"
     lines = [
         f"{info['name']}  ({info['kind']})  {info['path']}",
-        f"step size: {step * 1e3:g} ms" if step else "step size: follows the task period",
+        step_line,
         f"inputs ({len(info['inputs'])}):",
         *(f"  u[{i}]  {name}" for i, name in enumerate(info["inputs"])),
         f"outputs ({len(info['outputs'])}):",
         *(f"  y[{i}]  {name}" for i, name in enumerate(info["outputs"])),
     ]
+    if info.get("parameters"):
+        lines.append(f"parameters ({len(info['parameters'])}), set with parameters = {{ name = value }}:")
+        lines += [f"  {p['name']} = {p['default']!r}" for p in info["parameters"]]
+    if info.get("variables"):
+        lines.append("variables (name  type  causality/variability  start  unit  → mapped to; description):")
+        for v in info["variables"]:
+            shape = f"[{','.join(str(n) for n in v['shape'])}]" if v["shape"] else ""
+            mapped = f"  → {', '.join(v['mapped'][:4])}{'…' if len(v['mapped']) > 4 else ''}" if v["mapped"] else ""
+            lines.append(f"  {v['name']}{shape}  {v['type']}  {v['causality']}/{v['variability']}  "
+                         f"start={v['start'] if v['start'] is not None else '-'}  unit={v['unit'] or '-'}"
+                         f"{mapped}{'; ' + v['description'] if v['description'] else ''}")
     return "\n".join(lines)
 
 

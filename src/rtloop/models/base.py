@@ -41,6 +41,7 @@ __all__ = [
     "ModelError",
     "ModelRunnable",
     "StepSizeWarning",
+    "apply_parameters",
 ]
 
 
@@ -136,6 +137,12 @@ class ModelRunnable(Runnable):
     ``initialize``, which runs in :meth:`prerun`, inside the task process.
 
     The core calls :meth:`check_period` with the task period before spawning the task.
+
+    Time follows the release timeline: when the task skipped releases (an overrun
+    under the ``skip`` policy) the model is brought to the new release first — by its
+    own ``skip_releases(n)`` if it has one (an FMU steps over the interval), else by
+    ``n`` extra ``calculate`` calls with the inputs held. Counted in
+    :attr:`catch_up_steps`.
     """
 
     def __init__(self, model: Model | None = None) -> None:
@@ -144,8 +151,14 @@ class ModelRunnable(Runnable):
         self.n_outputs = self.model.n_outputs
         self.input_names = self.model.input_names
         self.output_names = self.model.output_names
+        starts = getattr(self.model, "input_start_values", None)
+        self.input_start_values: tuple[float, ...] | None = tuple(starts) if starts is not None else None
+        """What each input holds until something writes it (an FMU's start values)."""
         self.initial_outputs: FloatVector | None = None
         """What ``initialize`` answered (outputs at t = 0), kept for inspection."""
+        self.catch_up_steps = 0
+        """Extra model steps taken to follow the timeline after skipped releases."""
+        self._next_cycle = 0
 
     def check_period(self, period_ns: int) -> bool:
         """Tell the model its task period; warn if it is not the model's step size.
@@ -162,18 +175,57 @@ class ModelRunnable(Runnable):
         return agrees
 
     def prerun(self) -> None:
-        """Initialize the model with zero inputs at t = 0 (20-sim's ``Initialize``)."""
+        """Initialize the model at t = 0 with the inputs' start values (zeros if none)."""
         u0 = np.zeros(self.n_inputs)
+        if self.input_start_values is not None:
+            u0[:] = self.input_start_values
         y0 = np.zeros(self.n_outputs)
         self.model.initialize(u0, y0, 0.0)
         self.initial_outputs = y0.copy()
         self._u_final = u0
         self._y_final = y0
+        self._next_cycle = 0
 
     def step(self, u: FloatVector, y: FloatVector) -> None:
-        """One model step: ``calculate(u, y)``."""
+        """One model step: ``calculate(u, y)``, after catching up with skipped releases."""
+        tick = getattr(self, "tick", None)
+        if tick is not None and tick.cycle > self._next_cycle:
+            self.follow_timeline(tick.cycle - self._next_cycle, u, y)
         self.model.calculate(u, y)
+        if tick is not None:
+            self._next_cycle = tick.cycle + 1
+
+    def follow_timeline(self, skipped: int, u: FloatVector, y: FloatVector) -> None:
+        """Bring the model ``skipped`` periods forward (releases the task did not run)."""
+        skip = getattr(self.model, "skip_releases", None)
+        if skip is not None:
+            skip(skipped)
+        else:
+            for _ in range(skipped):
+                self.model.calculate(u, y)
+        self.catch_up_steps += skipped
 
     def postrun(self) -> None:
         """``terminate`` the model (zero inputs; the outputs it writes are not published)."""
         self.model.terminate(self._u_final, self._y_final)
+        if self.catch_up_steps:
+            import sys
+
+            print(f"rtloop: {describe(self.model)}: {self.catch_up_steps} model steps taken to follow the "
+                  "release timeline after skipped releases", file=sys.stderr)
+
+
+def apply_parameters(runnable: object, parameters: dict[str, object], where: str) -> None:
+    """Set declared parameters of a Python model by name (``parameters = {…}`` in an app file)."""
+    declared = getattr(runnable, "parameters", None)
+    if not isinstance(declared, dict) or not declared:
+        raise ModelError(f"{where}: {type(runnable).__name__} declares no parameters")
+    for name, value in parameters.items():
+        if name not in declared:
+            raise ModelError(f"{where}: unknown parameter {name!r}; parameters are {sorted(declared)}")
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a number")
+    setter = getattr(runnable, "set_parameters", None)
+    if setter is None:
+        raise ModelError(f"{where}: {type(runnable).__name__} has no set_parameters method")
+    setter({name: float(value) for name, value in parameters.items()})  # type: ignore[arg-type]

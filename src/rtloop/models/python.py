@@ -9,6 +9,8 @@ floats and locals, no numpy temporaries.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from rtloop.models.base import ModelRunnable
 from rtloop.runnable import FloatVector
 
@@ -20,9 +22,17 @@ class PythonModel(ModelRunnable):
     step_size_s: float | None = None
     input_names: tuple[str, ...] | None = None
     output_names: tuple[str, ...] | None = None
+    parameters: ClassVar[dict[str, float]] = {}
+    """Declared parameters and their defaults; an app file sets them by name
+    (``parameters = { gain = 2.0 }``), which calls :meth:`set_parameters`."""
 
     def __init__(self) -> None:
         super().__init__(model=None)
+        self.parameters = dict(type(self).parameters)
+
+    def set_parameters(self, values: dict[str, float]) -> None:
+        """Take new parameter values (before the run); names are checked by the caller."""
+        self.parameters.update(values)
 
     def initialize(self, u: FloatVector, y: FloatVector, t_s: float) -> None:
         """Set initial states at time ``t_s`` and write the initial outputs."""
@@ -36,4 +46,8 @@ class PythonModel(ModelRunnable):
 
     def step(self, u: FloatVector, y: FloatVector) -> None:
         # Direct call, no adapter hop: this runs every tick.
+        cycle = self.tick.cycle if hasattr(self, "tick") else 0
+        if cycle > self._next_cycle:  # releases were skipped: keep model time on the timeline
+            self.follow_timeline(cycle - self._next_cycle, u, y)
         self.calculate(u, y)
+        self._next_cycle = cycle + 1

@@ -38,8 +38,9 @@ from rtloop.runnable import FloatVector
 
 __all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
 
-CXX_FLAGS = ("-O2", "-fPIC", "-shared", "-include", "cstddef")
-C_FLAGS = ("-O2", "-fPIC", "-shared")
+# -z defs: a symbol nothing defines (a missing common/*.cpp) fails the link, at build time
+CXX_FLAGS = ("-O2", "-fPIC", "-shared", "-Wl,-z,defs", "-include", "cstddef")
+C_FLAGS = ("-O2", "-fPIC", "-shared", "-Wl,-z,defs")
 SOURCE_SUFFIXES = {".c", ".cpp", ".cc", ".cxx", ".h", ".hpp"}
 
 _CLASS_RE = re.compile(
@@ -49,6 +50,7 @@ _C_INIT_RE = re.compile(r"\b(\w*?)XXInitializeSubmodel\s*\(")
 _MAIN_RE = re.compile(r"\bint\s+main\s*\(")
 # "m_V[0] = u[0]; /* SteeringPan */" and "y[0] = m_V[14]; /* AnglePan */"
 _SIGNAL_RE = re.compile(r"(?<![\w\]])([uy])\s*\[\s*(\d+)\s*\][^/\n]*/\*\s*(.*?)\s*\*/")
+_PARAM_RE = re.compile(r"\b(?:m_P|\w*xx_P)\s*\[\s*(\d+)\s*\]\s*=\s*([^;]*);[ \t]*/\*\s*(.*?)\s*\*/")
 _STEP_INFO_RE = re.compile(r"step\s*size\s*[:=]\s*([-+0-9.eE]+)", re.IGNORECASE)
 _STEP_SRC_RE = re.compile(r"(?:m_step_size|xx_step_size)\s*=\s*([-+0-9.eE]+)\s*;")
 
@@ -74,6 +76,15 @@ class TwentySimInfo:
     """C++: the header declaring the model class."""
     prefix: str = ""
     """ANSI-C: the function prefix (``%FUNCTIONPREFIX%``), may be empty."""
+    parameters: tuple[tuple[str, int, float], ...] = ()
+    """(name, index into the parameter array, default) from ``m_P[i] = value; /* name */`` lines."""
+
+    def parameter_index(self, name: str) -> int | None:
+        """Index of a parameter by its 20-sim name (``pan\\r``; ``pan.r`` also works)."""
+        for known, index, _default in self.parameters:
+            if name in (known, known.replace("\\", ".")):
+                return index
+        return None
 
     @property
     def kind(self) -> str:
@@ -110,6 +121,13 @@ def inspect(path: str | os.PathLike[str]) -> TwentySimInfo:
             if m:
                 prefix = m.group(1)
                 break
+    exports = _exports(folder, texts)
+    if len(exports) > 1:
+        listed = ", ".join(exports)
+        raise ModelError(
+            f"{str(folder)!r} holds {len(exports)} 20-sim exports ({listed}): name one of them, "
+            f"e.g. 20sim:{folder / exports[0]}"
+        )
     if header is None and prefix is None:
         raise ModelError(
             f"{str(folder)!r} is not a 20-sim export: no class derived from Submodel20sim "
@@ -132,8 +150,22 @@ def inspect(path: str | os.PathLike[str]) -> TwentySimInfo:
     m = _STEP_INFO_RE.search(info_text) or _STEP_SRC_RE.search("\n".join(texts.values()))
     if m:
         step_size_s = float(m.group(1))
+    parameters: dict[str, tuple[int, float]] = {}
+
+    def literal(text: str) -> float:
+        """A number, or a quotient of two (``1.0 / 19.0``); NaN for anything else."""
+        try:
+            parts = [float(x) for x in text.split("/")]
+        except ValueError:
+            return float("nan")
+        return parts[0] / parts[1] if len(parts) == 2 else parts[0] if len(parts) == 1 else float("nan")
+
+    for text in texts.values():
+        for index, value, name in _PARAM_RE.findall(text):
+            parameters.setdefault(name, (int(index), literal(value)))
     return TwentySimInfo(
         path=folder,
+        parameters=tuple((name, index, default) for name, (index, default) in parameters.items()),
         name=class_name or folder.name,
         template=template,
         input_names=inputs,
@@ -144,6 +176,20 @@ def inspect(path: str | os.PathLike[str]) -> TwentySimInfo:
         header=header,
         prefix=prefix or "",
     )
+
+
+_C_INIT_DEF_RE = re.compile(r"^\s*void\s+(\w*?)XXInitializeSubmodel\s*\([^;]*$", re.MULTILINE)
+
+
+def _exports(folder: Path, texts: dict[Path, str]) -> list[str]:
+    """Folders (relative to ``folder``) that each hold one export: a Submodel20sim class or an
+    XXInitializeSubmodel definition."""
+    found: set[Path] = set()
+    for p, text in texts.items():
+        is_class = p.suffix in {".h", ".hpp"} and _CLASS_RE.search(text)
+        if is_class or (p.suffix == ".c" and _C_INIT_DEF_RE.search(text)):
+            found.add(p.parent)
+    return sorted(str(p.relative_to(folder)) or "." for p in found)
 
 
 def _parse_signals(text: str, folder: Path) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -172,6 +218,10 @@ namespace {{
 /* Derived only to read the protected step size. */
 struct RtloopModel : public {info.name} {{
     XXDouble rtloop_step_size(void) {{ return m_step_size; }}
+    void rtloop_set_parameter(int i, XXDouble v) {{ m_P[i] = v; }}
+    /* after Initialize set new parameters: evaluate the equations again, as Initialize does */
+    void rtloop_reevaluate(XXDouble *y)
+    {{ CalculateStatic(); CalculateInput(); CalculateDynamic(); CalculateOutput(); CopyVariablesToOutputs(y); }}
 }};
 inline RtloopModel *M(void *m) {{ return static_cast<RtloopModel *>(m); }}
 }}
@@ -187,6 +237,8 @@ int rtloop_set_finish_time(void *m, XXDouble t) {{ return M(m)->SetFinishTime(t)
 int rtloop_is_finished(void *m) {{ return M(m)->IsFinished() ? 1 : 0; }}
 void rtloop_reset(void *m, XXDouble t) {{ M(m)->Reset(t); }}
 XXDouble rtloop_step_size(void *m) {{ return M(m)->rtloop_step_size(); }}
+void rtloop_set_parameter(void *m, int i, XXDouble v) {{ M(m)->rtloop_set_parameter(i, v); }}
+void rtloop_reevaluate(void *m, XXDouble *y) {{ M(m)->rtloop_reevaluate(y); }}
 }}
 """
     p = info.prefix
@@ -276,9 +328,34 @@ def build_library(
         ]
         done = subprocess.run(command, capture_output=True, text=True, cwd=info.path)
         if done.returncode != 0:
-            raise ModelBuildError(str(info.path), command, done.stdout + done.stderr)
+            output_text = done.stdout + done.stderr
+            raise ModelBuildError(str(info.path), command, _explain_undefined(info, output_text) + output_text)
+        try:
+            ctypes.CDLL(str(output))  # load it once here: what builds must also load
+        except OSError as error:
+            raise ModelBuildError(str(info.path), command, f"the library built but does not load: {error}\n") from None
         os.replace(output, library)  # atomic: concurrent builds of one model are harmless
     return library
+
+
+_UNDEFINED_RE = re.compile(r"undefined reference to [`'‘]([^'’`]+)['’`]")
+
+
+def _explain_undefined(info: TwentySimInfo, compiler_output: str) -> str:
+    """A first line naming undefined symbols (demangled by the linker) and the file likely missing."""
+    symbols = list(dict.fromkeys(_UNDEFINED_RE.findall(compiler_output)))
+    if not symbols:
+        return ""
+    present = {p.stem for p in info.sources}
+    missing = []
+    for symbol in symbols:
+        owner = symbol.split("::")[0].split("(")[0].strip()
+        if owner and owner not in present and owner not in missing:
+            missing.append(owner)
+    suffix = ".cpp" if info.template == "cpp" else ".c"
+    hint = (f"; the export seems to lack {', '.join(f'common/{m}{suffix}' for m in missing)}"
+            " (copy it from 20-sim's code generation templates)" if missing else "")
+    return f"undefined symbols: {', '.join(symbols[:5])}{hint}\n"
 
 
 # ANSI-C libraries in use in this process (their globals are the model state).
@@ -296,6 +373,10 @@ _SIGNATURES = {
     "rtloop_is_finished": ([_VOIDP], ctypes.c_int),
     "rtloop_reset": ([_VOIDP, _DOUBLE], None),
     "rtloop_step_size": ([_VOIDP], _DOUBLE),
+}
+_CPP_SIGNATURES = {
+    "rtloop_set_parameter": ([_VOIDP, ctypes.c_int, _DOUBLE], None),
+    "rtloop_reevaluate": ([_VOIDP, _VOIDP], None),
 }
 
 
@@ -319,8 +400,10 @@ class TwentySimModel:
         cache_dir: str | os.PathLike[str] | None = None,
         build: bool = True,
         extra_flags: tuple[str, ...] = (),
+        parameters: dict[str, float] | None = None,
     ) -> None:
         self.info = inspect(path)
+        self.parameters = self._check_parameters(dict(parameters or {}))
         self.path = self.info.path
         self.kind = self.info.kind
         self.n_inputs = len(self.info.input_names)
@@ -333,6 +416,21 @@ class TwentySimModel:
         self.extra_flags = tuple(extra_flags)
         self.library_path: Path | None = self.build() if build else None
         self._unload()
+
+    def _check_parameters(self, parameters: dict[str, float]) -> dict[int, float]:
+        where = f"20-sim model {str(self.info.path)!r}"
+        if parameters and self.info.template != "cpp":
+            raise ModelError(f"{where}: parameters are supported for C++ exports only (this is ANSI-C)")
+        checked: dict[int, float] = {}
+        for name, value in parameters.items():
+            index = self.info.parameter_index(name)
+            if index is None:
+                known = ", ".join(n for n, _i, _d in self.info.parameters) or "none named in the sources"
+                raise ModelError(f"{where}: unknown parameter {name!r}; parameters are: {known}")
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a number")
+            checked[index] = float(value)
+        return checked
 
     def build(self) -> Path:
         """Compile (or find in the cache) the shared library; return its path."""
@@ -371,7 +469,8 @@ class TwentySimModel:
             else:
                 _C_LIBRARIES_IN_USE.add(library)
         lib = ctypes.CDLL(library)
-        for name, (argtypes, restype) in _SIGNATURES.items():
+        signatures = {**_SIGNATURES, **(_CPP_SIGNATURES if self.info.template == "cpp" else {})}
+        for name, (argtypes, restype) in signatures.items():
             function = getattr(lib, name)
             function.argtypes = argtypes
             function.restype = restype
@@ -399,6 +498,10 @@ class TwentySimModel:
         assert self._lib is not None
         self._bind(u, y)
         self._lib.rtloop_initialize(self._handle, self._u_ptr, self._y_ptr, t_s)
+        if self.parameters:  # Initialize set the defaults; ours replace them, then the equations run again
+            for index, value in self.parameters.items():
+                self._lib.rtloop_set_parameter(self._handle, index, value)
+            self._lib.rtloop_reevaluate(self._handle, self._y_ptr)
         if not self._lib.rtloop_set_finish_time(self._handle, self.finish_time_s):
             raise ModelError(
                 f"{str(self.path)!r}: SetFinishTime({self.finish_time_s}) refused "

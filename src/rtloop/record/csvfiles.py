@@ -2,9 +2,10 @@
 
 timing.csv  ``task,cycle,release_ns,start_ns,end_ns``, one row per cycle, appended and
             flushed at every drain, so a crash loses at most the last drain interval.
-signals.csv ``t_s`` then one column per recorded signal. Row k holds tick k's release
-            time and the values that tick computed; with several periods, rows are the
-            union of release times and a slower task's columns hold their last value.
+signals.csv ``t_s`` then one column per recorded signal. A row holds the values valid
+            from its time on: outputs of the job released at t appear at t + P, the
+            initial outputs at 0 (see :class:`SignalsCsv`); with several periods, rows are
+            the union of those times and a slower task's columns hold their last value.
 """
 
 from __future__ import annotations
@@ -35,10 +36,61 @@ class TimingCsv:
         self.file.close()
 
 
+class InputsCsv:
+    """``inputs.csv``: what entered the run from outside, and the cycle that took it.
+
+    ``task,cycle,port,values`` — one row each time a task took a new value from a live
+    input port (CLI, Python client, ROS 2 bridge); ``values`` are the port's values,
+    space-separated with full precision. ``rtloop replay`` feeds them back at the same
+    cycles.
+    """
+
+    HEADER = "task,cycle,port,values\n"
+
+    def __init__(self, path: Path) -> None:
+        self.file: TextIO = open(path, "w", buffering=1 << 14)  # noqa: SIM115
+        self.file.write(self.HEADER)
+
+    def append(self, task: str, period_ns: int, ports: list[tuple[str, int]], ticks: np.ndarray,
+               rows: np.ndarray) -> None:
+        """``ports[i]`` = (name, size) of the task's input port i; ``ticks`` are ns since T0."""
+        for since_t0_ns, row in zip(ticks.tolist(), rows.tolist(), strict=True):
+            name, size = ports[int(row[0])]
+            values = " ".join(repr(v) for v in row[1 : 1 + size])
+            self.file.write(f"{task},{since_t0_ns // period_ns},{name},{values}\n")
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_inputs_csv(path: Path) -> list[tuple[str, int, str, list[float]]]:
+    """Rows of an ``inputs.csv``: (task, cycle, port, values)."""
+    rows = []
+    with open(path) as file:
+        header = file.readline()
+        if header != InputsCsv.HEADER:
+            raise ValueError(f"{path}: not an inputs.csv (header {header.strip()!r})")
+        for number, line in enumerate(file, start=2):
+            parts = line.rstrip("\n").split(",")
+            if len(parts) != 4:
+                raise ValueError(f"{path}:{number}: expected task,cycle,port,values")
+            rows.append((parts[0], int(parts[1]), parts[2], [float(v) for v in parts[3].split()]))
+    return rows
+
+
 class SignalsCsv:
     """Collects record-queue rows per task and writes signals.csv rows in time order.
 
-    Rows are written once every recorded task has delivered the ticks up to that
+    Each row is labelled with the time from which its values hold (logical execution
+    time): the outputs ``y`` computed by the job released at k·P hold from (k+1)·P, the
+    inputs ``u`` it read hold from k·P, and a task's initial outputs (record tick −1)
+    hold from 0. Columns are named by the model's variable names where the runnable
+    gives them (``plant.AnglePan``), else by index (``plant.y[0]``).
+
+    Rows are written once every recorded stream has delivered the values up to that
     time, so the file grows during the run.
     """
 
@@ -48,53 +100,61 @@ class SignalsCsv:
         recorded: list[SignalRef],
         periods_ns: dict[str, int],
         n_outputs: dict[str, int],
+        signal_names: dict[str, tuple[tuple[str, ...] | None, tuple[str, ...] | None]] | None = None,
     ) -> None:
         self.path = path
-        self.columns: list[tuple[str, int]] = []  # (task, index into the record row)
+        self.columns: list[tuple[tuple[str, str], int]] = []  # ((task, side), index into the record row)
         names: list[str] = []
+        signal_names = signal_names or {}
         for ref in recorded:
             offset = 0 if ref.side == "y" else n_outputs[ref.task]
-            for i, name in zip(range(ref.start, ref.stop), ref.names(), strict=True):
-                self.columns.append((ref.task, offset + i))
+            labels = column_names(ref, *signal_names.get(ref.task, (None, None)))
+            for i, name in zip(range(ref.start, ref.stop), labels, strict=True):
+                self.columns.append(((ref.task, ref.side), offset + i))
                 names.append(name)
         self.names = names
-        self.tasks = sorted({task for task, _ in self.columns})
+        self.streams = sorted({stream for stream, _ in self.columns})
         self.periods_ns = periods_ns
-        self.pending: dict[str, list[tuple[int, np.ndarray]]] = {t: [] for t in self.tasks}
-        self.delivered_ns: dict[str, int] = dict.fromkeys(self.tasks, -1)
-        self.held: dict[str, np.ndarray | None] = dict.fromkeys(self.tasks)
+        self.pending: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = {s: [] for s in self.streams}
+        self.delivered_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
+        self.held: dict[tuple[str, str], np.ndarray | None] = dict.fromkeys(self.streams)
         self.file: TextIO = open(path, "w", buffering=1 << 16)  # noqa: SIM115
         self.file.write(",".join(["t_s", *names]) + "\n")
         self.rows_written = 0
 
     def add(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
-        if task not in self.pending or not len(ticks):
+        if not len(ticks):
             return
         period = self.periods_ns[task]
-        self.pending[task].extend(zip((ticks * period).tolist(), rows, strict=True))
-        self.delivered_ns[task] = int(ticks[-1]) * period
+        for side, shift in (("y", 1), ("u", 0)):  # y of tick k holds from (k+1)·P, u from k·P
+            stream = (task, side)
+            if stream not in self.pending:
+                continue
+            times = ((ticks + shift) * period).tolist()
+            self.pending[stream].extend((t, row) for t, row in zip(times, rows, strict=True) if t >= 0)
+            self.delivered_ns[stream] = max(self.delivered_ns[stream], times[-1])
 
     def flush(self, final: bool = False) -> tuple[list[int], list[list[float]]]:
-        """Write every row whose time all recorded tasks have reached; return those rows.
+        """Write every row whose time all recorded streams have reached; return those rows.
 
         Returns (times since T0 in ns, values) of the rows written, NaN where a signal
         has no value yet, for other recorders (run.mcap) to take the same rows.
         """
-        if not self.tasks:
+        if not self.streams:
             return [], []
         horizon = max(self.delivered_ns.values()) if final else min(self.delivered_ns.values())
-        streams = [[(t, task, row) for t, row in self.pending[task] if t <= horizon] for task in self.tasks]
-        for task in self.tasks:
-            self.pending[task] = [(t, row) for t, row in self.pending[task] if t > horizon]
+        streams = [[(t, s, row) for t, row in self.pending[s] if t <= horizon] for s in self.streams]
+        for s in self.streams:
+            self.pending[s] = [(t, row) for t, row in self.pending[s] if t > horizon]
         times: list[int] = []
         rows: list[list[float]] = []
         current_t: int | None = None
-        for t_ns, task, row in heapq.merge(*streams, key=lambda item: item[0]):
+        for t_ns, stream, row in heapq.merge(*streams, key=lambda item: item[0]):
             if current_t is not None and t_ns != current_t:
                 times.append(current_t)
                 rows.append(self._row())
             current_t = t_ns
-            self.held[task] = row
+            self.held[stream] = row
         if current_t is not None:
             times.append(current_t)
             rows.append(self._row())
@@ -105,11 +165,29 @@ class SignalsCsv:
 
     def _row(self) -> list[float]:
         nan = float("nan")
-        return [nan if (held := self.held[task]) is None else float(held[index]) for task, index in self.columns]
+        return [nan if (held := self.held[stream]) is None else float(held[index])
+                for stream, index in self.columns]
 
     def close(self) -> None:
         """Close the file; ``flush(final=True)`` first writes what is still pending."""
         self.file.close()
+
+
+def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
+                 output_names: tuple[str, ...] | None) -> list[str]:
+    """``task.Name`` for each element of ``ref`` where the model names it uniquely, else ``task.y[i]``."""
+    names = output_names if ref.side == "y" else input_names
+    other = input_names if ref.side == "y" else output_names
+    index_form = ref.names()
+    if not names:
+        return index_form
+    taken = set(other or ())
+    out = []
+    for i, fallback in zip(range(ref.start, ref.stop), index_form, strict=True):
+        name = names[i] if i < len(names) else ""
+        usable = name and name not in taken and list(names).count(name) == 1
+        out.append(f"{ref.task}.{name}" if usable else fallback)
+    return out
 
 
 def _csv_line(t_ns: int, row: list[float]) -> str:

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.app.builder import App
-from rtloop.record.csvfiles import SignalsCsv, TimingCsv
+from rtloop.record.csvfiles import InputsCsv, SignalsCsv, TimingCsv
 from rtloop.record.rosbag2 import write_metadata
 from rtloop.timing import TimingSamples
 
@@ -27,9 +27,16 @@ class Recorder:
         self.signals = (
             SignalsCsv(out / "signals.csv", app.recorded,
                        {n: t.config.period_ns for n, t in app.tasks.items()},
-                       {n: t.runnable.n_outputs for n, t in app.tasks.items()})
+                       {n: t.runnable.n_outputs for n, t in app.tasks.items()},
+                       {n: (t.runnable.input_names, t.runnable.output_names) for n, t in app.tasks.items()})
             if app.recorded else None
         )
+        live_ports = [p for p in app.ports.values() if p.direction == "in"]
+        self.inputs = InputsCsv(out / "inputs.csv") if live_ports else None
+        self._port_order = {
+            name: [(link.name, link.signal.size) for link in live_ports if link.signal.task == name]
+            for name in app.tasks
+        }
         self.mcap = None
         self.mcap_note = ""
         self.live: Any = None
@@ -47,6 +54,24 @@ class Recorder:
                                       metadata={"app": self.app.name, "source": self.app.source})
         except ModuleNotFoundError as error:
             self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
+
+    def write_replay_info(self, duration_s: float) -> None:
+        """``replay.json``: what ``rtloop replay`` needs besides inputs.csv to rebuild the run."""
+        import json
+
+        source = self.app.source
+        if source != "<python>":
+            source = str(Path(source).resolve())
+        info = {
+            "app": self.app.name, "source": source, "duration_s": duration_s,
+            "feeds": {name: str(Path(p.feed).resolve()) for name, p in self.app.ports.items() if p.feed is not None},
+        }
+        (self.out / "replay.json").write_text(json.dumps(info, indent=1) + "\n")
+
+    def add_inputs(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
+        """Port values ``task`` took (ticks: ns since T0; rows: [index into the task's input ports, values…])."""
+        if self.inputs is not None and len(ticks):
+            self.inputs.append(task, self.app.tasks[task].config.period_ns, self._port_order[task], ticks, rows)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         if len(records):
@@ -68,6 +93,8 @@ class Recorder:
 
     def flush(self, final: bool = False) -> None:
         self.timing.flush()
+        if self.inputs is not None:
+            self.inputs.flush()
         if self.signals is not None:
             times, rows = self.signals.flush(final=final)
             if self.mcap is not None and times:
@@ -78,6 +105,8 @@ class Recorder:
     def close(self) -> None:
         self.flush(final=True)
         self.timing.close()
+        if self.inputs is not None:
+            self.inputs.close()
         if self.signals is not None:
             self.signals.close()  # its last rows were flushed just above
         if self.mcap is not None:

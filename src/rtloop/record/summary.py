@@ -38,6 +38,8 @@ class TaskSummary:
     """Names of u[0], u[1], ... if the runnable gives them (a model's .info file, say)."""
     output_names: tuple[str, ...] | None = None
     """Names of y[0], y[1], ... if the runnable gives them."""
+    host_exec_ns: dict[str, float] | None = None
+    """Simulation only: what ``step`` cost on the host (count, mean, max), not real time."""
 
     def to_json(self) -> dict[str, Any]:
         timing = self.timing.to_json()
@@ -54,6 +56,7 @@ class TaskSummary:
             "timing_samples_dropped": self.timing_samples_dropped,
             "input_names": list(self.input_names) if self.input_names else None,
             "output_names": list(self.output_names) if self.output_names else None,
+            **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
         }
 
 

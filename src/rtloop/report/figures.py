@@ -185,7 +185,7 @@ def signals_figure(run_label: str, signals: Signals, model_names: dict[str, str]
         ax.set_title(f"task {task}", fontsize=10)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="upper right", ncol=min(len(names), 4))
-    axes[-1].set_xlabel("release time t [s]")
+    axes[-1].set_xlabel("time t [s] (each value holds from t on)")
     fig.suptitle(f"{run_label} — recorded signals", fontsize=12)
     return fig
 

@@ -25,6 +25,7 @@ from rtloop.runtime.wiring import InputLink, InputPortLink, OutputPortLink, Prof
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
+INPUT_LOG_CAPACITY = 1 << 12
 LET_SLOTS = 8
 
 
@@ -37,6 +38,8 @@ class TaskHandles:
     timing: RecordRing
     plan: TaskWiringPlan
     record: SampleQueue | None = None
+    input_log: SampleQueue | None = None
+    """Port values the task took, with the release that took them (``inputs.csv``)."""
 
 
 @dataclass
@@ -118,16 +121,24 @@ class AppLayout:
             wanted |= {link.segment for link in links}
             if record is not None:
                 wanted.add(record_segment.name)
+            live = [link for link in links if isinstance(link, InputPortLink) and link.profile is None]
+            input_log = input_log_segment = None
+            if live:
+                width = 1 + max(link.target.stop - link.target.start for link in live)
+                input_log_segment = segment(f"{name}.inputs", SampleQueue.size_bytes(width, INPUT_LOG_CAPACITY))
+                input_log = SampleQueue.initialise(input_log_segment, width, INPUT_LOG_CAPACITY)
+                wanted.add(input_log_segment.name)
             plan = TaskWiringPlan(
                 output_channel=channels.get(name),
                 inputs=inputs,
                 input_ports=tuple(link for link in links if isinstance(link, InputPortLink)),
                 output_ports=tuple(link for link in links if isinstance(link, OutputPortLink)),
                 record_queue=record_segment.name if record is not None else None,
+                input_log=input_log_segment.name if input_log_segment is not None else None,
                 segments=tuple(sorted(w for w in wanted if w)),
             )
             segments_of_task = TaskSegments(control_segment.name, task_segment.name)
-            tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record)
+            tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log)
         layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
         layout._write_registry()
         return layout
@@ -143,7 +154,9 @@ class AppLayout:
         if port.feed is not None:
             t_ns, values = load_profile(port.feed, ref.size, f"port {port.name!r}")
             profile = Profile(t_ns, values)
-        initial = np.array(port.initial if port.initial is not None else [0.0] * ref.size)
+        starts = getattr(app.tasks[ref.task].runnable, "input_start_values", None)
+        default = list(starts[ref.slice]) if starts is not None else [0.0] * ref.size  # a tunable keeps its start
+        initial = np.array(port.initial if port.initial is not None else default, dtype=np.float64)
         created = segment(f"port.{port.name}", LatestValue.size_bytes(ref.size))
         LatestValue.initialise(created, initial, fed_by_profile=profile is not None)
         return created, InputPortLink(port.name, created.name, ref.slice, profile)

@@ -18,14 +18,14 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import App
-from rtloop.errors import AppError, TaskFailed
+from rtloop.errors import AppError, StopRequested, TaskFailed
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import RunSummary, TaskSummary, signal_names
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.supervisor import machine_facts, port_summaries
-from rtloop.runtime.task import initial_outputs
+from rtloop.runtime.task import initial_inputs, initial_outputs
 from rtloop.runtime.wiring import TaskWiring
 from rtloop.timing import task_timing
 
@@ -36,13 +36,14 @@ class _SimTask:
     def __init__(self, name: str, app: App, layout: AppLayout) -> None:
         spec = app.tasks[name]
         self.name, self.runnable, self.period_ns = name, spec.runnable, spec.config.period_ns
-        self.u = np.zeros(spec.runnable.n_inputs)
+        self.u = initial_inputs(spec.runnable)
         self.y = np.zeros(spec.runnable.n_outputs)
         self.tick = TickInfo(period_ns=self.period_ns)
         self.runnable.tick = self.tick
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
+        self.host_exec = HostExecution()
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
@@ -50,26 +51,56 @@ class _SimTask:
         self.wiring.read_inputs(release_ns, self.u)
         started = time.perf_counter_ns()
         self.runnable.step(self.u, self.y)
-        exec_ns = time.perf_counter_ns() - started
+        self.host_exec.add(time.perf_counter_ns() - started)
         self.wiring.publish_outputs(cycle, release_ns + self.period_ns, self.y)
-        self.records.append((cycle, release_ns, release_ns, release_ns + exec_ns))
+        # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
+        # What it cost on this host is kept apart (host_exec_ns), never taken for timing.
+        self.records.append((cycle, release_ns, release_ns, release_ns))
 
 
-def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) -> RunSummary:
-    """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`."""
+class HostExecution:
+    """Streaming count/mean/max of how long ``step`` took on the host (no list that grows)."""
+
+    def __init__(self) -> None:
+        self.count, self.total_ns, self.max_ns = 0, 0, 0
+
+    def add(self, exec_ns: int) -> None:
+        self.count += 1
+        self.total_ns += exec_ns
+        self.max_ns = max(self.max_ns, exec_ns)
+
+    def to_json(self) -> dict[str, float]:
+        mean = self.total_ns / self.count if self.count else float("nan")
+        return {"count": self.count, "mean": mean, "max": float(self.max_ns)}
+
+
+PortWrites = dict[tuple[str, int], list[tuple[str, list[float]]]]
+"""(task, cycle) → the (port, values) a run's task took at that cycle (its inputs.csv)."""
+
+
+def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
+             port_writes: PortWrites | None = None) -> RunSummary:
+    """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`.
+
+    ``port_writes`` replays what entered a real run from outside: each value is written
+    to its port just before the task's release that took it in the run.
+    """
     out = Path(out)
     app.validate()
     if not duration_s > 0:
         raise AppError(f"duration must be > 0 seconds, got {duration_s}")
     layout = AppLayout.create(app)
     recorder = Recorder(app, out)
+    recorder.write_replay_info(duration_s)
     t0_ns = SIMULATION_T0_NS
+    port_writes = port_writes or {}
     recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
     tasks: dict[str, _SimTask] = {}
     failure: TaskFailed | None = None
     phase, current = "prerun", ""
     cycle = -1
+    stopped_by = "duration"
     try:
         for name in app.tasks:
             current = name
@@ -86,7 +117,13 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) ->
         steps = 0
         while releases and releases[0][0] < end_ns:
             release_ns, rank, cycle, current = heapq.heappop(releases)
-            tasks[current].step(cycle, release_ns)
+            for port, values in port_writes.get((current, cycle), ()):
+                layout.input_ports[port].write(np.asarray(values, dtype=np.float64))
+            try:
+                tasks[current].step(cycle, release_ns)
+            except StopRequested as request:  # a model ended the run: stop every task, in order
+                stopped_by = f"task {current} at cycle {cycle}: {request}"
+                break
             heapq.heappush(releases, (release_ns + tasks[current].period_ns, rank, cycle + 1, current))
             steps += 1
             if steps % (RECORD_QUEUE_CAPACITY // 2) == 0:
@@ -103,7 +140,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) ->
     finally:
         _drain(tasks, recorder)
         recorder.close()
-        summary = _summary(app, recorder, layout, duration_s, trim, failure)
+        summary = _summary(app, recorder, layout, duration_s, trim, failure, tasks, stopped_by)
         if recorder.mcap_note:
             summary.notes.append(recorder.mcap_note)
         summary.write(out / "summary.json")
@@ -118,13 +155,15 @@ def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
     for name, task in tasks.items():
         recorder.add_timing(name, np.array(task.records, dtype=np.int64).reshape(-1, 4))
         task.records.clear()
+        if task.handles.input_log is not None:
+            recorder.add_inputs(name, *task.handles.input_log.drain())
         if task.handles.record is not None:
             recorder.add_signals(name, *task.handles.record.drain())
     recorder.flush()
 
 
 def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float, trim: int,
-             failure: TaskFailed | None) -> RunSummary:
+             failure: TaskFailed | None, sim_tasks: dict[str, _SimTask], stopped_by: str) -> RunSummary:
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
         summaries[name] = TaskSummary(
@@ -135,6 +174,7 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
                                overrun_policy=spec.config.overrun),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,
+            host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
             **signal_names(spec.runnable),
         )
     capabilities = rt.probe()
@@ -142,6 +182,6 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
         app=app.name, mode="simulate",
         started=dt.datetime.now(tz=dt.UTC).isoformat(timespec="milliseconds"),
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
-        ports=port_summaries(layout), stopped_by="fault" if failure else "duration",
+        ports=port_summaries(layout), stopped_by="fault" if failure else stopped_by,
         failure=failure.to_json() if failure else None, machine=machine_facts(capabilities),
     )

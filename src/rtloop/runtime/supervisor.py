@@ -44,6 +44,7 @@ class _TaskRun:
     settings: rt.AppliedSettings | None = None
     failure: TaskFailed | None = None
     finished: bool = False
+    stop_request: str | None = None
 
 
 class Supervisor:
@@ -68,6 +69,7 @@ class Supervisor:
         capabilities = rt.probe()
         layout = AppLayout.create(self.app)
         recorder = Recorder(self.app, self.out)
+        recorder.write_replay_info(self.duration_s)
         self.bridges = Bridges(self.app)
         self.live: Any = None
         runs: dict[str, _TaskRun] = {}
@@ -164,10 +166,10 @@ class Supervisor:
         give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
         while not all(r.finished for r in runs.values()):
             time.sleep(DRAIN_INTERVAL_S)
+            self._poll(layout, runs)
             if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
                 self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
             self._drain(layout, recorder)
-            self._poll(layout, runs)
             self.bridges.poll()
             if self.failure is not None or self.stop_reason != "duration":
                 layout.control[ControlWord.STOP] = 1
@@ -203,6 +205,8 @@ class Supervisor:
     def _drain(layout: AppLayout, recorder: Recorder) -> None:
         for name, handles in layout.tasks.items():
             recorder.add_timing(name, handles.timing.drain())
+            if handles.input_log is not None:
+                recorder.add_inputs(name, *handles.input_log.drain())
             if handles.record is not None:
                 recorder.add_signals(name, *handles.record.drain())
         recorder.flush()
@@ -228,14 +232,15 @@ class Supervisor:
                 self.stop_reason = "fault"
                 layout.control[ControlWord.STOP] = 1
 
-    @staticmethod
-    def _read_messages(task_run: _TaskRun) -> None:
+    def _read_messages(self, task_run: _TaskRun) -> None:
         try:
             while task_run.pipe.poll():
                 message = task_run.pipe.recv()
                 kind = message.get("kind")
                 if kind == "settings":
                     task_run.settings = message["settings"]
+                elif kind == "finished":
+                    task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
                 elif kind == "failed":
                     task_run.failure = TaskFailed(
                         task_run.name, message["cycle"], message["phase"], message["reason"],
@@ -243,6 +248,8 @@ class Supervisor:
                     )
         except (EOFError, OSError):
             pass
+        if task_run.stop_request and self.stop_reason == "duration":
+            self.stop_reason = task_run.stop_request
 
     def _show_progress(self, layout: AppLayout) -> None:
         elapsed_s = max(0.0, (rt.now_ns() - self.t0_ns) / 1e9)

@@ -20,6 +20,7 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
+from rtloop.errors import StopRequested
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
 from rtloop.runnable import Runnable, TickInfo
@@ -61,7 +62,7 @@ class RealtimeTask:
         self.control = control
         self.status = status
         self.timing = timing
-        self.u = np.zeros(runnable.n_inputs)
+        self.u = initial_inputs(runnable)
         self.y = np.zeros(runnable.n_outputs)
         self.tick = TickInfo(period_ns=config.period_ns)
         runnable.tick = self.tick
@@ -104,6 +105,15 @@ class RealtimeTask:
         next_cycle = (now_ns - t0_ns) // period_ns + 1
         status[StatusWord.OVERRUNS] += next_cycle - cycle
         return next_cycle, t0_ns + next_cycle * period_ns
+
+
+def initial_inputs(runnable: Runnable) -> np.ndarray:
+    """The task's ``u`` before anything writes it: the model's input start values, or zeros."""
+    u = np.zeros(runnable.n_inputs)
+    starts = getattr(runnable, "input_start_values", None)
+    if starts is not None:
+        u[:] = starts
+    return u
 
 
 def initial_outputs(runnable: Runnable, y: np.ndarray) -> np.ndarray:
@@ -175,7 +185,11 @@ def task_process_main(
         gc.disable()  # and no collection pauses inside the loop
         status[StatusWord.STATE] = TaskState.RUNNING
         if t0_ns:
-            task.run_loop(t0_ns, end_ns)
+            try:
+                task.run_loop(t0_ns, end_ns)
+            except StopRequested as request:  # the runnable ended the run (a model's end): stop in order
+                _report(pipe, kind="finished", cycle=task.cycle, reason=str(request))
+                control[ControlWord.STOP] = 1
         gc.enable()
         phase = "postrun"
         runnable.postrun()

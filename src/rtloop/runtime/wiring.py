@@ -64,6 +64,9 @@ class TaskWiringPlan:
     output_ports: tuple[OutputPortLink, ...] = ()
     record_queue: str | None = None
     """Segment of the queue carrying ``[y…, u…]`` of every tick to the recorder."""
+    input_log: str | None = None
+    """Segment of the queue carrying ``[port index, values…]`` each time a live input port
+    delivers a new value, stamped with the release (ns since T0) that took it (for replay)."""
     segments: tuple[str, ...] = field(default=())
 
 
@@ -108,10 +111,12 @@ class TaskWiring:
             for link in plan.inputs
         ]
         self.live_ports = [
-            (LatestValue(self._segments[port.segment]), u[port.target])
-            for port in plan.input_ports
+            (LatestValue(self._segments[port.segment]), u[port.target], float(index))
+            for index, port in enumerate(plan.input_ports)
             if port.profile is None
         ]
+        self.input_log = SampleQueue(self._segments[plan.input_log]) if plan.input_log else None
+        self.input_log_row = np.zeros(self.input_log.n_values if self.input_log is not None else 0)
         self.profiles = [
             _ProfileReader(port.profile, u[port.target]) for port in plan.input_ports if port.profile is not None
         ]
@@ -132,10 +137,20 @@ class TaskWiring:
                 self.stale_reads += 1
                 if self.status is not None:
                     self.status[StatusWord.STALE_READS] = self.stale_reads
-        for port, target in self.live_ports:
+        for port, target, index in self.live_ports:
+            seen = port.last_seq_seen
             port.read_into(target)
+            if port.last_seq_seen != seen and self.input_log is not None:
+                self._log_input(release_ns - t0_ns, index, target)
         for profile in self.profiles:
             profile.read(release_ns - t0_ns)
+
+    def _log_input(self, since_t0_ns: int, index: float, values: np.ndarray) -> None:
+        """A port delivered a new value at this release: log it so the run can be replayed."""
+        row = self.input_log_row
+        row[0] = index
+        row[1 : 1 + len(values)] = values
+        self.input_log.push(since_t0_ns, row)  # type: ignore[union-attr]
 
     def publish_outputs(self, cycle: int, publish_ns: int, y: np.ndarray) -> None:
         if self.output is not None:
@@ -155,4 +170,8 @@ class TaskWiring:
         self.t0_ns = t0_ns
         if self.output is not None:
             self.output.publish(t0_ns, self.initial_y)
+        if self.record is not None:  # tick -1: the outputs that hold from T0 (signals.csv row t = 0)
+            np.copyto(self.record_y, self.initial_y)
+            np.copyto(self.record_u, self.u)
+            self.record.push(-1, self.record_row)
 

@@ -92,21 +92,21 @@ void Plant::EulerStep(void)
 void Plant::CalculateInitial(void)
 {
 	/* pan: r, Jmot, Dmot, g, b, Jcam, Dcam */
-	m_P[0] = 0.018;
-	m_P[1] = 2.06e-7;
-	m_P[2] = 1.77e-6;
-	m_P[3] = 1.0 / 19.0;
-	m_P[4] = 1.0;
-	m_P[5] = 3e-4;
-	m_P[6] = 2e-4;
+	m_P[0] = 0.018;	/* pan\r */
+	m_P[1] = 2.06e-7;	/* pan\Jmot */
+	m_P[2] = 1.77e-6;	/* pan\Dmot */
+	m_P[3] = 1.0 / 19.0;	/* pan\g */
+	m_P[4] = 1.0;	/* pan\b */
+	m_P[5] = 3e-4;	/* pan\Jcam */
+	m_P[6] = 2e-4;	/* pan\Dcam */
 	/* tilt */
-	m_P[7] = 0.00701;
-	m_P[8] = 5.28e-8;
-	m_P[9] = 4e-7;
-	m_P[10] = 1.0 / 19.0;
-	m_P[11] = 0.25;
-	m_P[12] = 4.5e-5;
-	m_P[13] = 1e-4;
+	m_P[7] = 0.00701;	/* tilt\r */
+	m_P[8] = 5.28e-8;	/* tilt\Jmot */
+	m_P[9] = 4e-7;	/* tilt\Dmot */
+	m_P[10] = 1.0 / 19.0;	/* tilt\g */
+	m_P[11] = 0.25;	/* tilt\b */
+	m_P[12] = 4.5e-5;	/* tilt\Jcam */
+	m_P[13] = 1e-4;	/* tilt\Dcam */
 
 	m_s[0] = 0.0;	/* pan.p */
 	m_s[1] = 0.0;	/* pan.theta */
