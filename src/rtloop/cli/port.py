@@ -18,12 +18,14 @@ def cli_port(args: argparse.Namespace) -> int:
             for name, info in app.ports.items():
                 print(f"  {name:<16} {info['direction']:<4} {info['signal']}  ({info['size']} values)")
         return 0
-    app = connect_app(args.app)
+    app = connect_app(args.app, owner_uid=args.user)
     if args.port_command == "write":
         app.write(args.port, args.values)
         return 0
     printed = 0
     with app.reader(args.port) as reader:
+        if not args.queued:
+            reader.skip_to_newest()  # what the app sends now, not what queued up before anyone read
         while printed < args.count:
             ticks, rows = reader.read(args.count - printed)
             for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):

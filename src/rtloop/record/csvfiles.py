@@ -5,6 +5,7 @@ timing.csv  ``task,cycle,release_ns,start_ns,end_ns``, one row per cycle, append
 signals.csv ``t_s`` then one column per recorded signal. Row k holds tick k's release
             time and the values that tick computed; with several periods, rows are the
             union of release times and a slower task's columns hold their last value.
+            Values are written with ``repr``: full precision, NaN as ``nan``, ±inf as ``inf``/``-inf``.
 """
 
 from __future__ import annotations
@@ -113,5 +114,5 @@ class SignalsCsv:
 
 
 def _csv_line(t_ns: int, row: list[float]) -> str:
-    cells = [repr(t_ns / 1e9)] + ["" if value != value else repr(value) for value in row]
+    cells = [repr(t_ns / 1e9)] + [repr(value) for value in row]  # NaN as nan, ±inf as inf/-inf
     return ",".join(cells) + "\n"

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from rtloop import rt
-from rtloop.app.builder import App
-from rtloop.errors import AppError, TaskFailed
+from rtloop.app.builder import App, check_duration
+from rtloop.errors import TaskFailed
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import RunSummary, TaskSummary, signal_names
@@ -59,8 +59,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) ->
     """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`."""
     out = Path(out)
     app.validate()
-    if not duration_s > 0:
-        raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+    check_duration(duration_s)
     layout = AppLayout.create(app)
     recorder = Recorder(app, out)
     t0_ns = SIMULATION_T0_NS

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
+import multiprocessing.util
 import os
 import signal
 import time
@@ -146,6 +147,8 @@ def task_process_main(
     # app the orderly way: the loop sees the stop flag and postrun still runs.
     signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
     rt.die_with_parent(signal.SIGTERM)
+    rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
+    multiprocessing.util.Finalize(None, rt.end_strays, exitpriority=100)
     parent = multiprocessing.parent_process()
     if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
         return
@@ -178,6 +181,7 @@ def task_process_main(
             task.run_loop(t0_ns, end_ns)
         gc.enable()
         phase = "postrun"
+        status[StatusWord.STATE] = TaskState.POSTRUN
         runnable.postrun()
     except BaseException as error:
         status[StatusWord.STATE] = TaskState.FAILED
