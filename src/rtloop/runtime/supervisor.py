@@ -33,6 +33,8 @@ from rtloop.timing import task_timing
 DRAIN_INTERVAL_S = 0.05
 START_MARGIN_NS = 100_000_000
 STOP_GRACE_S = 5.0
+STARTUP_ALLOWANCE_S = 10.0
+"""Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
 
 
 @dataclass
@@ -116,8 +118,8 @@ class Supervisor:
         return runs
 
     def _wait_until_ready(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
-        """Wait for every prerun; bounded by a stop signal and by the run's duration."""
-        limit_s = self.duration_s
+        """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
+        limit_s = self.duration_s + STARTUP_ALLOWANCE_S
         deadline = time.monotonic() + limit_s
         while self.failure is None and self.stop_reason == "duration":
             self._poll(layout, runs)
@@ -127,7 +129,8 @@ class Supervisor:
             if time.monotonic() > deadline:
                 slow = [n for n, s in zip(runs, states, strict=True) if s != TaskState.READY]
                 self.failure = TaskFailed(slow[0], None, "prerun",
-                                          f"prerun did not finish within the run's duration ({limit_s:g} s)")
+                                          f"prerun did not finish within the run's duration + {STARTUP_ALLOWANCE_S:g} s "
+                                          f"of start-up ({limit_s:g} s)")
                 self.stop_reason = "fault"
                 return
             time.sleep(0.005)
