@@ -38,11 +38,15 @@ def _app_file(tmp_path: Path, name: str, phase: str, kind: str) -> Path:
     return path
 
 
-def _run(app_file: Path, out: Path, env: dict[str, str], duration_s: float, timeout_s: float) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s), "--out", str(out), "-q"],
-        env=env, capture_output=True, text=True, timeout=timeout_s,
-    )
+def _command(app_file: Path, out: Path, duration_s: float) -> list[str]:
+    return [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s),
+            "--out", str(out), "-q"]
+
+
+def _run(app_file: Path, out: Path, env: dict[str, str], duration_s: float,
+         timeout_s: float) -> subprocess.CompletedProcess:
+    return subprocess.run(_command(app_file, out, duration_s), env=env, capture_output=True, text=True,
+                          timeout=timeout_s)
 
 
 def _gone(pid: int, within_s: float = 10.0) -> bool:
@@ -94,10 +98,8 @@ def test_fault_in_each_phase_is_reported_there_and_leaves_nothing(tmp_path: Path
 
 
 def _start(app_file: Path, out: Path, env: dict[str, str], duration_s: float) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s), "--out", str(out), "-q"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+    return subprocess.Popen(_command(app_file, out, duration_s), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
 
 
 def _task_pids(name: str) -> dict[str, int]:
@@ -123,10 +125,11 @@ def test_supervisor_killed_with_sigkill_leaves_no_process_and_the_next_run_clean
             time.sleep(0.05)
         forked = int(forked_file.read_text())
         process.send_signal(signal.SIGKILL)
-        process.wait(timeout=10)
+        process.communicate(timeout=10)
     finally:
         if process.poll() is None:
             process.kill()
+            process.communicate()
     for pid in [*pids.values(), forked]:
         assert _gone(pid), f"process {pid} outlived its killed supervisor"
     left = list(SHM.glob(f"rtloop-{name}-*"))

@@ -109,7 +109,7 @@ def test_a_registry_not_owned_by_its_supervisors_uid_is_refused(shm_files: list[
     with pytest.raises(SegmentRefused, match=f"owned by uid {NOBODY_UID}, but its supervisor pid 1 runs as uid 0"):
         app_from_registry(path)
     assert app not in {a.name for a in running_apps()}
-    with pytest.raises(AppNotReachable, match="registry refused: .*owned by uid"):
+    with pytest.raises(AppNotReachable, match=r"registry refused: .*owned by uid"):
         connect_app(app)
 
 
@@ -151,7 +151,7 @@ def test_root_acts_on_another_users_app_only_when_it_says_so(shm_files: list[Pat
         deadline = time.monotonic() + 10  # /proc shows the new uid once the child has switched
         while time.monotonic() < deadline and not any(a.name == app for a in running_apps()):
             time.sleep(0.05)
-        with pytest.raises(AppNotReachable, match=f"runs as uid {NOBODY_UID}, not as uid 0.*--user"):
+        with pytest.raises(AppNotReachable, match=rf"runs as uid {NOBODY_UID}, not as uid 0.*--user"):
             connect_app(app)
         assert connect_app(app, owner_uid=NOBODY_UID).uid == NOBODY_UID
     finally:
@@ -209,6 +209,21 @@ def test_other_modules_in_the_folder_are_not_importable(tmp_path: Path) -> None:
 
 
 # --- a second local user plants a registry, a segment and a module ----------------------------
+def _python_for_anyone() -> str:
+    """An interpreter of this Python version that any user may run (a venv's may live in /root)."""
+    import shutil
+
+    version = f"python{sys.version_info.major}.{sys.version_info.minor}"
+    for candidate in (sys.executable, shutil.which(version, path="/usr/bin:/bin:/usr/local/bin")):
+        if candidate and all(os.stat(p).st_mode & 0o001 for p in _path_and_parents(Path(candidate).resolve())):
+            return candidate
+    pytest.skip(f"no {version} that another user may run (this one lives in a private folder)")
+
+
+def _path_and_parents(path: Path) -> list[Path]:
+    return [path, *path.parents]
+
+
 @pytest.fixture(scope="module")
 def second_user() -> Iterator[pwd.struct_passwd]:
     if not ROOT:
@@ -224,9 +239,17 @@ def second_user() -> Iterator[pwd.struct_passwd]:
         subprocess.run(["userdel", name], capture_output=True)
 
 
+def _env_for_anyone(env: dict[str, str]) -> dict[str, str]:
+    """``env`` plus this interpreter's packages (numpy) on PYTHONPATH, for another user's interpreter."""
+    import numpy
+
+    site = str(Path(numpy.__file__).parent.parent)
+    return {**env, "PYTHONPATH": os.pathsep.join([env.get("PYTHONPATH", ""), site]).strip(os.pathsep)}
+
+
 def _as(user: pwd.struct_passwd, code: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], user=user.pw_uid, group=user.pw_gid, env=env,
-                          capture_output=True, text=True, cwd="/", timeout=60)
+    return subprocess.run([_python_for_anyone(), "-c", code], user=user.pw_uid, group=user.pw_gid,
+                          env=_env_for_anyone(env), capture_output=True, text=True, cwd="/", timeout=60)
 
 
 def _rtloop(args: list[str], env: dict[str, str], **kwargs) -> subprocess.CompletedProcess:
@@ -256,8 +279,9 @@ def test_second_user_plants_a_registry_and_a_segment_root_refuses(second_user, t
         print(sleeper.pid, flush=True)
         time.sleep(60)
     """)
-    planter = subprocess.Popen([sys.executable, "-c", plant], user=second_user.pw_uid, group=second_user.pw_gid,
-                               env=rtloop_env, stdout=subprocess.PIPE, text=True, cwd="/")
+    planter = subprocess.Popen([_python_for_anyone(), "-c", plant], user=second_user.pw_uid,
+                               group=second_user.pw_gid, env=_env_for_anyone(rtloop_env), stdout=subprocess.PIPE,
+                               text=True, cwd="/")
     try:
         sleeper_pid = int(planter.stdout.readline())
         time.sleep(0.2)
@@ -273,7 +297,7 @@ def test_second_user_plants_a_registry_and_a_segment_root_refuses(second_user, t
         os.kill(sleeper_pid, 9)
     finally:
         planter.kill()
-        planter.wait()
+        planter.communicate()
         for path in SHM.glob(f"rtloop-{app}-*"):
             path.unlink(missing_ok=True)
 

@@ -128,9 +128,9 @@ class Supervisor:
                 return
             if time.monotonic() > deadline:
                 slow = [n for n, s in zip(runs, states, strict=True) if s != TaskState.READY]
-                self.failure = TaskFailed(slow[0], None, "prerun",
-                                          f"prerun did not finish within the run's duration + {STARTUP_ALLOWANCE_S:g} s "
-                                          f"of start-up ({limit_s:g} s)")
+                reason = (f"prerun did not finish within the run's duration + {STARTUP_ALLOWANCE_S:g} s "
+                          f"of start-up ({limit_s:g} s)")
+                self.failure = TaskFailed(slow[0], None, "prerun", reason)
                 self.stop_reason = "fault"
                 return
             time.sleep(0.005)
