@@ -139,7 +139,7 @@ def _load_or_refuse(text: str, folder: Path) -> Any:
         return None
 
 
-@settings(FUZZ, max_examples=1500)
+@settings(FUZZ, max_examples=800)
 @given(data=apps)
 def test_generated_app_files_load_or_are_refused_cleanly(data: dict[str, Any]) -> None:
     connect = _connect_lines(data)
@@ -158,7 +158,7 @@ VALID = (
 )
 
 
-@settings(FUZZ, max_examples=1000)
+@settings(FUZZ, max_examples=800)
 @given(position=st.integers(0, len(VALID)), junk=st.text(max_size=6), cut=st.integers(0, 4))
 def test_mutated_app_files_load_or_are_refused_cleanly(position: int, junk: str, cut: int) -> None:
     text = VALID[:position] + junk + VALID[position + cut:]
@@ -167,7 +167,7 @@ def test_mutated_app_files_load_or_are_refused_cleanly(position: int, junk: str,
 
 
 
-@settings(FUZZ, max_examples=1500)
+@settings(FUZZ, max_examples=1000)
 @given(values=st.one_of(
     st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=4),
     st.lists(st.integers(), max_size=4),

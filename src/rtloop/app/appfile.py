@@ -216,7 +216,9 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
             raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
         try:
             return load_model(table["model"], base_dir, **args)
-        except (RtloopError, OSError, ValueError, TypeError) as error:  # incl. a model that does not build
+        except RtloopError as error:  # incl. a model that does not build: the compiler's own words, whole
+            raise AppFileError(shown, f"{where}.model", str(error)) from error
+        except (OSError, ValueError, TypeError) as error:
             raise AppFileError(shown, f"{where}.model", _clip(str(error), 300)) from error
         except Exception as error:  # a model library or FMU failing in a way of its own
             raise AppFileError(shown, f"{where}.model", f"{type(error).__name__}: "
