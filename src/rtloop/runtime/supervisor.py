@@ -33,7 +33,7 @@ from rtloop.timing import task_timing
 DRAIN_INTERVAL_S = 0.05
 START_MARGIN_NS = 100_000_000
 STOP_GRACE_S = 5.0
-STARTUP_ALLOWANCE_S = 10.0
+STARTUP_ALLOWANCE_S = 30.0
 """Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
 
 
