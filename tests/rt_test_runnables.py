@@ -147,3 +147,53 @@ class SegfaultAt(Runnable):
             import ctypes
 
             ctypes.string_at(0)
+
+
+class Fault(Runnable):
+    """Misbehaves in one phase: raise, exit, segfault, fork (a detached process left running) or hang.
+
+    In ``step`` it waits for ``at_cycle``; a forked process writes its pid to ``pid_file``.
+    """
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, phase: str, kind: str, at_cycle: int = 3, pid_file: str = "") -> None:
+        self.phase, self.kind, self.at_cycle, self.pid_file = phase, kind, at_cycle, pid_file
+
+    def _misbehave(self) -> None:
+        if self.kind == "raise":
+            raise RuntimeError(f"injected in {self.phase}")
+        if self.kind == "exit":
+            os._exit(3)
+        if self.kind == "segfault":
+            import ctypes
+
+            ctypes.string_at(0)
+        if self.kind == "fork":
+            if os.fork() == 0:  # detach: a new session, then the grandchild lives on alone
+                os.setsid()
+                if os.fork() == 0:
+                    Path(self.pid_file).write_text(str(os.getpid()))
+                    while True:
+                        time.sleep(1)
+                os._exit(0)
+            os.wait()
+            while not Path(self.pid_file).exists():
+                time.sleep(0.01)
+        if self.kind == "hang":
+            while True:
+                time.sleep(0.1)
+
+    def prerun(self) -> None:
+        if self.phase == "prerun":
+            self._misbehave()
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.phase == "step" and self.tick.cycle == self.at_cycle:
+            self._misbehave()
+
+    def postrun(self) -> None:
+        if self.phase == "postrun":
+            self._misbehave()

@@ -298,7 +298,7 @@ def test_bad_setpoints_are_rejected_counted_and_never_reach_the_port(tmp_path: P
     assert code == 0, stderr
     summary = summary_of(out)
     bridge = summary["bridges"]["subscribe /jiwy/setpoint"]
-    assert bridge["rejected_by_reason"] == {"type": 0, "shape": 0, "length": 2, "nonfinite": 2}, bridge
+    assert bridge["rejected_by_reason"] == {"type": 0, "shape": 0, "length": 2, "nonfinite": 2, "range": 0}, bridge
     assert bridge["rejected"] == 4
     assert bridge["accepted"] == 2
     assert bridge["refused_by_port"] == 0

@@ -76,5 +76,5 @@ def test_message_validator_counts_and_warns_once_per_interval():
     assert len(emitted) == 2  # one per reason within the interval
     assert counts.to_json() == {
         "accepted": 1, "rejected": 4,
-        "rejected_by_reason": {"type": 0, "shape": 0, "length": 3, "nonfinite": 1},
+        "rejected_by_reason": {"type": 0, "shape": 0, "length": 3, "nonfinite": 1, "range": 0},
     }

@@ -299,7 +299,7 @@ def _jiwy_cli(tmp_path: Path, duration: float) -> subprocess.Popen:
 
 @pytest.mark.rt
 def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path) -> None:
-    process = _jiwy_cli(tmp_path, 4)
+    process = _jiwy_cli(tmp_path, 8)
     try:
         app = _app_of(process)
         time.sleep(0.5)

@@ -12,6 +12,7 @@ import ctypes.util
 import os
 import platform
 import resource
+import signal
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -96,9 +97,59 @@ def set_timer_slack(slack_ns: int) -> None:
     _check("prctl(PR_SET_TIMERSLACK)", _libc.prctl(PR_SET_TIMERSLACK, slack_ns, 0, 0, 0))
 
 
+PR_SET_CHILD_SUBREAPER = 36
+
+
 def die_with_parent(signum: int) -> None:
     """Ask the kernel to send ``signum`` to this process when its parent exits."""
     _check("prctl(PR_SET_PDEATHSIG)", _libc.prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0))
+
+
+def become_subreaper() -> None:
+    """prctl(PR_SET_CHILD_SUBREAPER): orphaned descendants are re-parented to this process, not init."""
+    _check("prctl(PR_SET_CHILD_SUBREAPER)", _libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0))
+
+
+def child_pids(pid: int | None = None) -> set[int]:
+    """Process ids whose parent is ``pid`` (default: this process), from /proc."""
+    parent = os.getpid() if pid is None else pid
+    children: set[int] = set()
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat", "rb") as file:
+                fields = file.read().rsplit(b") ", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == parent and fields[0] not in (b"Z", b"X"):
+            children.add(int(entry.name))
+    return children
+
+
+def end_strays(keep: set[int] = frozenset(), rounds: int = 20) -> list[int]:  # type: ignore[assignment]
+    """SIGKILL every child of this process not in ``keep``, and reap them; returns their ids.
+
+    With :func:`become_subreaper`, the children include every orphaned descendant, so
+    repeating until none is left ends whole trees, also processes that double-forked.
+    """
+    ended: list[int] = []
+    for _ in range(rounds):
+        strays = child_pids() - set(keep)
+        if not strays:
+            break
+        for pid in strays:
+            try:
+                os.kill(pid, signal.SIGKILL)
+                ended.append(pid)
+            except ProcessLookupError:
+                pass
+        for pid in strays:
+            try:
+                os.waitpid(pid, 0)
+            except ChildProcessError:
+                pass
+    return ended
 
 
 def set_affinity(cpu: int | None) -> None:

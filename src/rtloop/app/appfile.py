@@ -42,14 +42,16 @@
 from __future__ import annotations
 
 import importlib
-import sys
 import tomllib
 from pathlib import Path
 from typing import Any
 
-from rtloop.app.builder import App, parse_signal
+from rtloop.app.builder import App, _clip, _short, parse_signal
+from rtloop.app.modules import ModuleRefused, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, RtloopError
 from rtloop.runnable import Runnable
+
+MAX_APP_FILE_BYTES = 1 << 20
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
@@ -59,7 +61,7 @@ FOXGLOVE_KEYS = {"host": str, "port": int, "inputs": list, "description": str}
 ROS_KEYS = {"domain_id": int, "publish": list, "subscribe": list}
 ROS_TOPIC_KEYS = {
     "topic": str, "port": str, "source": str, "type": str, "qos": str, "joint_names": list, "every": int,
-    "description": str,
+    "description": str, "range": list,
 }
 TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
@@ -67,7 +69,7 @@ TASK_KEYS = {
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
-    "feed": str, "description": str,
+    "feed": str, "description": str, "range": list,
 }
 CONNECT_KEYS = {"from": str, "to": str}
 RECORD_KEYS = {"signals": list}
@@ -76,32 +78,42 @@ TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an arr
 
 def _check_keys(path: str, where: str, table: dict[str, Any], allowed: dict[str, type]) -> None:
     for key, value in table.items():
-        full = f"{where}.{key}" if where else key
+        full = f"{where}.{_clip(key, 40)}" if where else _clip(key, 40)
         if key not in allowed:
             close = [k for k in allowed if _similar(k, key)]
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise AppFileError(path, full, f"unknown key{hint}; expected one of {sorted(allowed)}")
         expected = allowed[key]
         if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {value!r}")
+            raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {_short(value)}")
 
 
 def _similar(a: str, b: str) -> bool:
     import difflib
 
-    return difflib.SequenceMatcher(None, a, b).ratio() >= 0.75
+    return difflib.SequenceMatcher(None, a[:40], b[:40]).ratio() >= 0.75
 
 
 def load_app(path: str | Path) -> App:
     """Read and validate an app file; builds the runnables (in this process)."""
     file = Path(path)
-    shown = str(path)
+    shown = _clip(str(path), 200)
     try:
-        data = tomllib.loads(file.read_text())
+        if file.is_dir():
+            raise AppFileError(shown, "", "is a directory; expected an app file (TOML)")
+        with open(file, "rb") as stream:
+            raw = stream.read(MAX_APP_FILE_BYTES + 1)
+        if len(raw) > MAX_APP_FILE_BYTES:
+            raise AppFileError(shown, "", f"larger than {MAX_APP_FILE_BYTES} bytes; not an app file")
+        data = tomllib.loads(raw.decode("utf-8"))
     except FileNotFoundError:
         raise AppFileError(shown, "", "no such file") from None
+    except OSError as error:
+        raise AppFileError(shown, "", f"cannot read it: {error.strerror}") from None
+    except UnicodeDecodeError as error:
+        raise AppFileError(shown, "", f"not UTF-8 text (byte {error.start}); an app file is TOML") from None
     except tomllib.TOMLDecodeError as error:
-        raise AppFileError(shown, "", f"not valid TOML: {error}") from None
+        raise AppFileError(shown, "", f"not valid TOML: {_clip(str(error), 160)}") from None
     _check_keys(shown, "", data, TOP_KEYS)
     if "name" not in data:
         raise AppFileError(shown, "name", "missing; every app needs a name")
@@ -113,8 +125,10 @@ def load_app(path: str | Path) -> App:
     except AppError as error:
         raise AppFileError(shown, "name", str(error)) from None
 
+    if not isinstance(data["tasks"], dict):
+        raise AppFileError(shown, "tasks", "expected tables [tasks.NAME]")
     for task_name, table in data["tasks"].items():
-        where = f"tasks.{task_name}"
+        where = f"tasks.{_clip(task_name, 40)}"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [tasks.NAME]")
         _check_keys(shown, where, table, TASK_KEYS)
@@ -144,7 +158,7 @@ def load_app(path: str | Path) -> App:
             raise AppFileError(shown, where, str(error)) from None
 
     for port_name, table in data.get("ports", {}).items():
-        where = f"ports.{port_name}"
+        where = f"ports.{_clip(port_name, 40)}"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [ports.NAME]")
         _check_keys(shown, where, table, PORT_KEYS)
@@ -157,6 +171,7 @@ def load_app(path: str | Path) -> App:
                 allow_nonfinite=table.get("allow_nonfinite", False),
                 capacity=table.get("capacity", 4096),
                 feed=(base_dir / table["feed"]) if "feed" in table else None,
+                value_range=table.get("range"),
             )
         except (AppError, TypeError, ValueError) as error:
             raise AppFileError(shown, where, str(error)) from None
@@ -191,6 +206,8 @@ def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
                 raise AppFileError(shown, f"{where}.port", "missing: the input port the topic feeds")
             if direction == "subscribe" and ("joint_names" in table or "every" in table):
                 raise AppFileError(shown, where, "joint_names and every apply to [[ros.publish]] only")
+            if direction == "publish" and "range" in table:
+                raise AppFileError(shown, f"{where}.range", "range applies to [[ros.subscribe]] only")
             options: dict[str, Any] = {"domain_id": domain_id}
             if "type" in table:
                 options["msg_type"] = table["type"]
@@ -202,7 +219,7 @@ def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
                     app.ros_publish(table["topic"], source=source, port=table.get("port"),
                                     joint_names=table.get("joint_names", ()), every=table.get("every", 1), **options)
                 else:
-                    app.ros_subscribe(table["topic"], port=table["port"], **options)
+                    app.ros_subscribe(table["topic"], port=table["port"], value_range=table.get("range"), **options)
             except AppError as error:
                 raise AppFileError(shown, where, str(error)) from None
 
@@ -234,28 +251,28 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
             args = {**args, "parameters": parameters}
         try:
             return load_model(table["model"], base_dir, **args)
-        except (RtloopError, OSError, ValueError, TypeError) as error:  # incl. a model that does not build
-            raise AppFileError(shown, f"{where}.model", str(error)) from None
+        except RtloopError as error:  # incl. a model that does not build: the compiler's own words, whole
+            raise AppFileError(shown, f"{where}.model", str(error)) from error
+        except (OSError, ValueError, TypeError) as error:
+            raise AppFileError(shown, f"{where}.model", _clip(str(error), 300)) from error
+        except Exception as error:  # a model library or FMU failing in a way of its own
+            raise AppFileError(shown, f"{where}.model", f"{type(error).__name__}: "
+                               f"{_clip(str(error), 200)}") from error
     target = table["runnable"]
     module_name, _, class_name = target.partition(":")
-    if not module_name or not class_name:
-        raise AppFileError(shown, f"{where}.runnable", f'{target!r}: expected "module:Class"')
-    if str(base_dir) not in sys.path:
-        sys.path.insert(0, str(base_dir))  # task processes inherit sys.path (spawn)
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as error:
-        raise AppFileError(
-            shown, f"{where}.runnable",
-            f"cannot import module {module_name!r} (looked beside the app file and on sys.path): {error}",
-        ) from None
+    key = f"{where}.runnable"
+    if not _is_dotted_name(module_name) or not class_name.isidentifier():
+        raise AppFileError(shown, key, f'{_short(target)}: expected "module:Class"')
+    module = _import_runnable_module(shown, key, module_name, base_dir)
     cls = getattr(module, class_name, None)
-    if cls is None:
-        raise AppFileError(shown, f"{where}.runnable", f"module {module_name!r} has no {class_name!r}")
+    if not isinstance(cls, type) or not issubclass(cls, Runnable):
+        what = "has no" if cls is None else "has no Runnable subclass"
+        raise AppFileError(shown, key, f"module {module_name!r} {what} {class_name!r}")
     try:
         runnable = cls(**args)
-    except TypeError as error:
-        raise AppFileError(shown, f"{where}.args", f"{target}({args}) failed: {error}") from None
+    except Exception as error:  # the constructor is user code: whatever it raises is a bad app
+        raise AppFileError(shown, f"{where}.args", f"{_clip(target)}({_short(args, 60)}) failed: "
+                           f"{type(error).__name__}: {_clip(str(error), 120)}") from error
     if not isinstance(runnable, Runnable):
         raise AppFileError(shown, f"{where}.runnable", f"{target} is not a subclass of rtloop.Runnable")
     if parameters is not None:
@@ -266,3 +283,32 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
         except RtloopError as error:
             raise AppFileError(shown, f"{where}.parameters", str(error)) from None
     return runnable
+
+
+def _is_dotted_name(text: str) -> bool:
+    return bool(text) and all(part.isidentifier() for part in text.split("."))
+
+
+def _import_runnable_module(shown: str, key: str, module_name: str, base_dir: Path) -> Any:
+    """The named module: beside the app file (by path, only that file) or installed — never both."""
+    beside = module_beside(base_dir, module_name)
+    try:
+        if beside is not None:
+            installed = installed_origin(module_name)
+            if installed is not None and Path(installed).resolve() != beside.resolve():
+                raise AppFileError(shown, key, f"{beside} would shadow the installed module {module_name!r} "
+                                   f"({_clip(installed, 100)}); rename the file beside the app file")
+            return load_module_file(module_name, beside.resolve())
+        return importlib.import_module(module_name)
+    except AppFileError:
+        raise
+    except ModuleRefused as error:
+        raise AppFileError(shown, key, str(error)) from None
+    except ImportError as error:
+        raise AppFileError(shown, key, f"cannot import module {module_name!r} (looked for {module_name}.py "
+                           f"beside the app file, then installed modules): {_clip(str(error), 120)}") from error
+    except BaseException as error:  # SyntaxError, or anything the module raises while importing
+        if isinstance(error, KeyboardInterrupt):
+            raise
+        raise AppFileError(shown, key, f"module {module_name!r} failed to import: {type(error).__name__}: "
+                           f"{_clip(str(error), 120)}") from error

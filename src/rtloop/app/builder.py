@@ -16,6 +16,7 @@ Every mistake that can be found before a process starts is found here, with an
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import pickle
 import re
@@ -28,8 +29,19 @@ from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
 
 Side = Literal["u", "y"]
-NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,31}$")
+"""App, task and port names: letters, digits, underscores, at most 32 characters (they become
+parts of shared-memory file names)."""
 OVERRUN_POLICIES = ("skip", "catch_up")
+MIN_PERIOD_NS = 10_000
+MAX_PERIOD_NS = 3600 * 1_000_000_000
+"""Periods from 10 µs (100 kHz) to one hour."""
+MAX_VECTOR_SIZE = 1 << 16
+"""Inputs or outputs of one runnable: at most 65536 values."""
+MAX_PORT_CAPACITY = 1 << 20
+"""Samples an output port may queue."""
+MAX_DURATION_S = 1e8
+"""About three years: a longer run is a controller that runs until stopped."""
 
 @dataclass(frozen=True, slots=True)
 class TaskConfig:
@@ -148,6 +160,8 @@ class PortSpec:
     allow_nonfinite: bool = False
     capacity: int = 4096
     feed: Path | None = None
+    value_range: tuple[float, float] | None = None
+    """``[lo, hi]``: values written to an input port outside it are refused (like NaN)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +184,8 @@ class RosTopic:
     """Publish every N-th tick only (a 1 kHz task need not flood rviz)."""
     domain_id: int | None = None
     """DDS domain; ``None``: ``ROS_DOMAIN_ID`` or 0."""
+    value_range: tuple[float, float] | None = None
+    """``subscribe`` only: messages with a value outside ``[lo, hi]`` are rejected and counted."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,8 +215,8 @@ class App:
     """Where the app was described (an app file's path, for messages)."""
 
     def __post_init__(self) -> None:
-        if not NAME_PATTERN.match(self.name):
-            raise AppError(f"app name {self.name!r}: use letters, digits and underscores")
+        if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
+            raise AppError(f"app name {_short(self.name)}: use letters, digits and underscores, at most 32")
 
     # --- building ------------------------------------------------------------------------
     def add_task(
@@ -216,14 +232,16 @@ class App:
     ) -> TaskSpec:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
         where = f"task {name!r}"
-        if not NAME_PATTERN.match(name):
-            raise AppError(f"{where}: a task name uses letters, digits and underscores")
+        if not isinstance(name, str) or not NAME_PATTERN.match(name):
+            raise AppError(f"task {_short(name)}: a task name uses letters, digits and underscores, at most 32")
         if name in self.tasks:
             raise AppError(f"{where}: defined twice")
         if not isinstance(runnable, Runnable):
             raise AppError(f"{where}: {runnable!r} is not an rtloop.Runnable")
-        if not isinstance(period_ns, int) or period_ns < 10_000:
-            raise AppError(f"{where}: period_ns must be an integer ≥ 10000 (100 kHz), got {period_ns!r}")
+        if not isinstance(period_ns, int) or isinstance(period_ns, bool) \
+                or not MIN_PERIOD_NS <= period_ns <= MAX_PERIOD_NS:
+            raise AppError(f"{where}: period_ns must be an integer from {MIN_PERIOD_NS} (100 kHz) to "
+                           f"{MAX_PERIOD_NS} (1 hour), got {_short(period_ns)}")
         if policy not in ("fifo", "rr", "other", "deadline"):
             raise AppError(f"{where}: policy {policy!r}; expected fifo, rr, other or deadline")
         low = 0 if policy in ("other", "deadline") else 1
@@ -235,8 +253,9 @@ class App:
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
-            if not isinstance(count, int) or count < 0:
-                raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer ≥ 0")
+            if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_VECTOR_SIZE:
+                raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer from 0 to "
+                               f"{MAX_VECTOR_SIZE}, got {_short(count)}")
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
@@ -300,11 +319,16 @@ class App:
         allow_nonfinite: bool = False,
         capacity: int = 4096,
         feed: str | Path | None = None,
+        value_range: tuple[float, float] | list[float] | None = None,
     ) -> PortSpec:
-        """A port into a task (``to=``, latest value) or out of one (``source=``, every tick)."""
-        what = f"port {name!r}"
-        if not NAME_PATTERN.match(name):
-            raise AppError(f"{what}: a port name uses letters, digits and underscores")
+        """A port into a task (``to=``, latest value) or out of one (``source=``, every tick).
+
+        ``value_range=(lo, hi)`` (input ports): values written from outside that fall
+        outside it are refused and counted, like NaN.
+        """
+        what = f"port {_short(name)}"
+        if not isinstance(name, str) or not NAME_PATTERN.match(name):
+            raise AppError(f"{what}: a port name uses letters, digits and underscores, at most 32")
         if name in self.ports:
             raise AppError(f"{what}: defined twice")
         if (to is None) == (source is None):
@@ -315,12 +339,16 @@ class App:
                 raise AppError(f"{what}: to={ref} must be a task input (u)")
             self._check_single_writer(ref, what)
             initial_values = None
+            checked_range = _check_range(what, value_range)
             if initial is not None:
                 if len(initial) != ref.size:
                     raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
-                initial_values = tuple(float(v) for v in initial)
+                initial_values = tuple(_number(what, "initial", v) for v in initial)
+                if checked_range and any(not checked_range[0] <= v <= checked_range[1] for v in initial_values):
+                    raise AppError(f"{what}: initial {_short(list(initial_values))} is outside its range "
+                                   f"{list(checked_range)}")
             spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
-                            Path(feed) if feed is not None else None)
+                            Path(feed) if feed is not None else None, checked_range)
         else:
             assert source is not None
             ref = self._resolve(source, what)
@@ -328,8 +356,11 @@ class App:
                 raise AppError(f"{what}: source={ref} must be a task output (y)")
             if feed is not None:
                 raise AppError(f"{what}: only ports into a task can be fed from a profile")
-            if not isinstance(capacity, int) or capacity < 2:
-                raise AppError(f"{what}: capacity must be an integer ≥ 2")
+            if value_range is not None:
+                raise AppError(f"{what}: range applies to ports into a task (values from outside)")
+            if not isinstance(capacity, int) or isinstance(capacity, bool) or not 2 <= capacity <= MAX_PORT_CAPACITY:
+                raise AppError(f"{what}: capacity must be an integer from 2 to {MAX_PORT_CAPACITY}, "
+                               f"got {_short(capacity)}")
             spec = PortSpec(name, "out", ref, capacity=capacity)
         self.ports[name] = spec
         return spec
@@ -359,9 +390,18 @@ class App:
         return self._ros("publish", topic, port, msg_type, qos, tuple(joint_names), every, domain_id)
 
     def ros_subscribe(self, topic: str, *, port: str, msg_type: str = "std_msgs/msg/Float64MultiArray",
-                      qos: str = "reliable", domain_id: int | None = None) -> RosTopic:
-        """Feed an input port from a ROS 2 topic while the app runs (bad messages are rejected and counted)."""
-        return self._ros("subscribe", topic, port, msg_type, qos, (), 1, domain_id)
+                      qos: str = "reliable", domain_id: int | None = None,
+                      value_range: tuple[float, float] | list[float] | None = None) -> RosTopic:
+        """Feed an input port from a ROS 2 topic while the app runs (bad messages are rejected and counted).
+
+        ``value_range=(lo, hi)``: messages with a value outside it are rejected and counted, like NaN
+        (the port's own range, if any, applies too).
+        """
+        checked = _check_range(f"ros subscribe {_short(topic)}", value_range)
+        topic_spec = self._ros("subscribe", topic, port, msg_type, qos, (), 1, domain_id)
+        if checked is not None:
+            self.ros_topics[-1] = topic_spec = dataclasses.replace(topic_spec, value_range=checked)
+        return topic_spec
 
     def _ros(self, direction: Literal["publish", "subscribe"], topic: str, port: str, msg_type: str, qos: str,
              joint_names: tuple[str, ...], every: int, domain_id: int | None) -> RosTopic:
@@ -431,6 +471,45 @@ class App:
                 ) from None
 
 
+def check_duration(duration_s: float) -> float:
+    """A run's length: a finite number of seconds, more than 0 and at most :data:`MAX_DURATION_S`."""
+    if isinstance(duration_s, bool) or not isinstance(duration_s, int | float) \
+            or not 0 < duration_s <= MAX_DURATION_S:
+        raise AppError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} seconds, got {_short(duration_s)}")
+    return float(duration_s)
+
+
+def _short(value: object, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters: errors quote input, never a 5 MB of it."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 5] + "…" + text[-4:]
+
+
+def _clip(text: str, limit: int = 80) -> str:
+    """``text`` cut to ``limit`` characters (for quoting messages of other errors)."""
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _number(what: str, key: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise AppError(f"{what}: {key} must hold numbers, got {_short(value)}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise AppError(f"{what}: {key} value {_short(value)} does not fit a float64") from None
+
+
+def _check_range(what: str, value_range: object) -> tuple[float, float] | None:
+    if value_range is None:
+        return None
+    if not isinstance(value_range, list | tuple) or len(value_range) != 2:
+        raise AppError(f"{what}: range must be [lo, hi], got {_short(value_range)}")
+    low, high = (_number(what, "range", v) for v in value_range)
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise AppError(f"{what}: range [{low!r}, {high!r}] must be finite with lo ≤ hi")
+    return low, high
+
+
 def _check_cpu(where: str, cpu: int | None, policy: str) -> None:
     """A CPU this process may run on, and not for SCHED_DEADLINE (the kernel refuses to pin those)."""
     if cpu is None:
@@ -445,15 +524,15 @@ def _check_cpu(where: str, cpu: int | None, policy: str) -> None:
 
 def parse_signal(text: str, app: App, where: str) -> SignalRef:
     """Parse ``task.y[0:2]``, ``task.u[3]`` or ``task.y`` against an app's tasks."""
-    match = re.fullmatch(r"\s*([A-Za-z_]\w*)\.([uy])(?:\[(\d*)(?::(\d*))?\])?\s*", text)
+    match = re.fullmatch(r"\s*([A-Za-z_]\w*)\.([uy])(?:\[(\d{0,9})(?::(\d{0,9}))?\])?\s*", text)
     if not match:
         named = _named_signal(text, app)
         if named is not None:
             return named
-        raise AppError(f"{where}: {text!r} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
+        raise AppError(f"{where}: {_short(text)} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
     task, side, start, stop = match.groups()
     if task not in app.tasks:
-        raise AppError(f"{where}: {text!r} names unknown task {task!r}; tasks are {sorted(app.tasks)}")
+        raise AppError(f"{where}: {_short(text)} names unknown task {_short(task)}; tasks are {sorted(app.tasks)}")
     vector = getattr(app.tasks[task], side)
     if start is None:
         return vector.all

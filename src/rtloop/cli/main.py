@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from rtloop.errors import AppError, RtloopError, TaskFailed
+from rtloop.errors import RtloopError, TaskFailed
 from rtloop.record.summary import RunSummary
 
 EXIT_TASK_FAILED = 1
@@ -69,6 +69,7 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
+    parser.add_argument("--debug", action="store_true", help="show the Python traceback behind an error")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = commands.add_parser("run", help="run an app in real time and record its timing")
@@ -86,11 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
     write.add_argument("app", help="app name (or app file)")
     write.add_argument("port")
     write.add_argument("values", nargs="+", type=float)
-    read = port_commands.add_parser("read", help="print what an output port sends")
+    read = port_commands.add_parser("read", help="print what an output port sends, from now on")
     read.add_argument("app", help="app name (or app file)")
     read.add_argument("port")
     read.add_argument("--count", type=int, default=10, help="rows to print, then exit (default 10)")
+    read.add_argument("--queued", action="store_true",
+                      help="start with the oldest samples still queued instead of the newest")
     port_commands.add_parser("list", help="list running apps and their ports")
+    for sub in (write, read):
+        sub.add_argument("--user", type=int, default=None, metavar="UID",
+                         help="act on the app of this uid (root only; default: your own apps)")
 
     for name, (_module, text) in DELEGATED.items():
         commands.add_parser(name, help=text, add_help=False)
@@ -120,23 +126,46 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
-    except TaskFailed as failure:
-        print(f"rtloop: {failure}", file=sys.stderr)
-        if failure.traceback_text:
-            print(failure.traceback_text.rstrip(), file=sys.stderr)
+    except BaseException as error:
+        if args.debug and not isinstance(error, SystemExit | KeyboardInterrupt):
+            _print_traceback(error)
+        return _exit_code(error, args)
+
+
+def _print_traceback(error: BaseException) -> None:
+    import traceback
+
+    cause = error.__cause__ or error.__context__
+    shown = cause if cause is not None and isinstance(error, RtloopError) else error
+    traceback.print_exception(shown, file=sys.stderr)
+
+
+def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
+    """One line on stderr for an error, and the exit code it means."""
+    if isinstance(error, SystemExit):
+        raise error
+    if isinstance(error, KeyboardInterrupt):
+        print("rtloop: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if isinstance(error, TaskFailed):
+        print(f"rtloop: {error}", file=sys.stderr)
+        if error.traceback_text:
+            print(error.traceback_text.rstrip(), file=sys.stderr)
         out = getattr(args, "out", None)
         if out is not None:
             print(f"rtloop: everything recorded until then is in {out}/", file=sys.stderr)
         return EXIT_TASK_FAILED
-    except AppError as error:
+    if isinstance(error, RtloopError):
         print(f"rtloop: {error}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except RtloopError as error:
-        print(f"rtloop: {error}", file=sys.stderr)
-        return EXIT_BAD_INPUT if isinstance(error, ValueError | LookupError) else EXIT_TASK_FAILED
-    except KeyboardInterrupt:
-        print("rtloop: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        bad_input = isinstance(error, ValueError | PermissionError | LookupError)
+        return EXIT_BAD_INPUT if bad_input else EXIT_TASK_FAILED
+    if isinstance(error, ModuleNotFoundError):
+        print(f"rtloop: {missing_extra(error)}", file=sys.stderr)
+        return EXIT_TASK_FAILED
+    # a bug: still one line; the traceback with --debug
+    print(f"rtloop: internal error: {type(error).__name__}: {str(error)[:200]} "
+          "(run with --debug for the traceback, and please report it)", file=sys.stderr)
+    return EXIT_TASK_FAILED
 
 
 def _dispatch(args: argparse.Namespace) -> int:
@@ -164,7 +193,9 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from rtloop.app.appfile import load_app
+    from rtloop.app.builder import check_duration
 
+    check_duration(args.duration)
     app = load_app(args.app)
     for port, path in args.feed:
         app.feed(port, path)

@@ -47,12 +47,14 @@ class Registry:
     tasks: dict[str, str]
     """Task name → its status segment name."""
     path: Path
+    uid: int = -1
+    """The supervisor's uid: every segment of the app must be owned by it."""
 
 
 def find_apps(app: str | None = None, shm_dir: Path = SHM_DIR) -> list[Registry]:
     """Running apps (supervisor alive), optionally only those named ``app``."""
     return sorted(
-        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path)
+        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path, entry.uid)
          for entry in running_apps(shm_dir) if app is None or entry.name == app),
         key=lambda registry: registry.path,
     )
@@ -160,12 +162,12 @@ class Monitor:
         self.tracked: dict[str, _Tracked] = {}
         self.registries: list[Registry] = []
 
-    def _attach(self, segment_name: str) -> _Tracked | None:
+    def _attach(self, segment_name: str, uid: int = -1) -> _Tracked | None:
         tracked = self.tracked.get(segment_name)
         if tracked is None:
             try:
                 # Segment maps read-write; top only ever reads these words.
-                segment = Segment.attach(segment_name)
+                segment = Segment.attach(segment_name, owner_uid=uid if uid >= 0 else None)
             except (FileNotFoundError, ValueError, OSError):
                 return None
             tracked = self.tracked[segment_name] = _Tracked(WordBlock(segment, 0, STATUS_WORDS), segment)
@@ -182,7 +184,7 @@ class Monitor:
         """Read every task's latest latency (cheap; called between refreshes)."""
         for registry in self.registries:
             for segment_name in registry.tasks.values():
-                tracked = self._attach(segment_name)
+                tracked = self._attach(segment_name, registry.uid)
                 if tracked is not None:
                     latency = tracked.status[StatusWord.LATENCY_LAST_NS]
                     kept = tracked.status[StatusWord.LATENCY_MAX_NS]  # in case a task maintains it
@@ -196,7 +198,7 @@ class Monitor:
         for registry in self.registries:
             view = AppView(registry.app, registry.pid)
             for task, segment_name in registry.tasks.items():
-                tracked = self._attach(segment_name)
+                tracked = self._attach(segment_name, registry.uid)
                 if tracked is not None:
                     view.tasks.append(self._task_view(task, tracked))
             views.append(view)
@@ -209,7 +211,7 @@ class Monitor:
         state_value = status[StatusWord.STATE]
         state = TaskState(state_value).name if state_value in TaskState._value2member_map_ else str(state_value)
         pid = status[StatusWord.PID]
-        ran = state_value in (TaskState.RUNNING, TaskState.STOPPED, TaskState.FAILED) and status[
+        ran = state_value in (TaskState.RUNNING, TaskState.POSTRUN, TaskState.STOPPED, TaskState.FAILED) and status[
             StatusWord.EXEC_LAST_NS] > 0
         cycles = status[StatusWord.CYCLE] + 1 if ran else 0
         rate = None

@@ -7,6 +7,12 @@
 
 A running supervisor describes its ports in a registry file next to its shared memory;
 ``rtloop port write/read/list`` are thin wrappers over this module.
+
+Trust: a registry is believed only when its file is owned by the (effective) uid of the
+live supervisor it names, its name and content agree, and every segment it lists is a
+valid name of that same run owned by that same uid. By default only apps of the
+caller's own uid are considered; root acts on another user's app only when it says so
+(``owner_uid=`` / ``rtloop port --user UID``). See docs/security.md.
 """
 
 from __future__ import annotations
@@ -24,22 +30,47 @@ import numpy as np
 
 from rtloop.errors import PortValueError, RtloopError
 from rtloop.ipc.channels import LatestValue, SampleQueue
-from rtloop.ipc.segments import SHM_DIR, Segment, pid_alive
+from rtloop.ipc.segments import (
+    SEGMENT_NAME,
+    SHM_DIR,
+    Segment,
+    SegmentRefused,
+    open_in_shm,
+    pid_alive,
+    process_uid,
+    shorten,
+)
 from rtloop.ipc.status import STATUS_WORDS, WordBlock
+
+REGISTRY_MAX_BYTES = 1 << 20
 
 
 class AppNotRunning(RtloopError, LookupError):
     """No running app of that name was found."""
 
 
+class AppNotReachable(RtloopError, PermissionError):
+    """An app of that name runs, but this caller may not (or chose not to) act on it."""
+
+
 @dataclass(frozen=True)
 class RunningApp:
-    """A live app found through its registry file."""
+    """A live app found through its registry file (already checked: see the module doc)."""
 
     name: str
     pid: int
     registry: dict[str, Any]
     path: Path
+    uid: int = -1
+    """Owner of the registry and of every segment of the run: the supervisor's uid."""
+
+    def segment(self, name: str) -> Segment:
+        """Attach one of this run's segments, refusing names of other runs or other owners."""
+        prefix = self.path.name.removesuffix("registry.json")
+        if not isinstance(name, str) or not name.startswith(prefix) or not SEGMENT_NAME.fullmatch(name):
+            raise SegmentRefused(f"registry {self.path.name} lists segment {shorten(name)}, "
+                                 "which is not a segment of that run; not used")
+        return Segment.attach(name, owner_uid=self.uid if self.uid >= 0 else None)
 
     @property
     def ports(self) -> dict[str, dict[str, Any]]:
@@ -58,14 +89,19 @@ class RunningApp:
         """Post values to an input port; rejects wrong lengths and NaN/inf (unless allowed)."""
         info = self._port(port, "in")
         array = validate_values(values, info["size"], allow_nonfinite=info["allow_nonfinite"],
-                                where=f"port {port!r} ({info['signal']})")
-        segment = Segment.attach(info["segment"])
-        channel = LatestValue(segment)
-        if channel.fed_by_profile:
-            raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused")
-        with open(segment.path, "rb") as lock:  # writers serialise; the RT reader never waits
-            fcntl.flock(lock, fcntl.LOCK_EX)
+                                where=f"port {port!r} ({info['signal']})", value_range=port_range(info))
+        segment = self.segment(info["segment"])
+        try:
+            channel = LatestValue(segment)
+            if channel.n_values != info["size"]:
+                raise SegmentRefused(f"port {port!r}: its segment holds {channel.n_values} values, "
+                                     f"the registry says {info['size']}; not used")
+            if channel.fed_by_profile:
+                raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused")
+            fcntl.flock(segment.fd, fcntl.LOCK_EX)  # writers serialise; the RT reader never waits
             channel.write(array)
+        finally:
+            segment.close()
 
     def reader(self, port: str) -> PortReader:
         """The single reader of an output port (held until closed)."""
@@ -79,7 +115,7 @@ class RunningApp:
         """PID of each task process (0 until it has started)."""
         pids: dict[str, int] = {}
         for task, segment_name in self.registry["tasks"].items():
-            segment = Segment.attach(segment_name)
+            segment = self.segment(segment_name)
             pids[task] = WordBlock(segment, 0, STATUS_WORDS)[1]
         return pids
 
@@ -89,22 +125,29 @@ class PortReader:
 
     def __init__(self, app: RunningApp, name: str, info: dict[str, Any]) -> None:
         self.name = name
-        self.segment = Segment.attach(info["segment"])
-        self._lock = open(self.segment.path, "rb")  # noqa: SIM115
+        self.segment = app.segment(info["segment"])
         try:
-            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(self.segment.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            self._lock.close()
+            self.segment.close()
             raise PortValueError(f"port {name!r} of app {app.name!r} already has a reader") from None
         self.queue = SampleQueue(self.segment)
         self.period_ns = int(info["period_ns"])
 
     def read(self, max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(ticks, rows) sent since the last read; never blocks."""
+        """(ticks, rows) sent since the last read, oldest first; never blocks."""
         return self.queue.drain(max_rows)
 
+    def skip_to_newest(self, keep_rows: int = 1) -> int:
+        """Discard all but the newest ``keep_rows`` waiting rows (a reader that wants 'now'); returns how many."""
+        waiting = self.queue.sent - self.queue.received
+        skipped = max(0, waiting - keep_rows)
+        if skipped:
+            self.queue.drain(skipped)
+        return skipped
+
     def close(self) -> None:
-        self._lock.close()
+        self.segment.close()  # closing the descriptor releases the flock
 
     def __enter__(self) -> PortReader:
         return self
@@ -113,52 +156,146 @@ class PortReader:
         self.close()
 
 
-def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, where: str = "value") -> np.ndarray:
-    """Check a value for a port: right length, numbers, finite unless allowed."""
+def port_range(info: dict[str, Any]) -> tuple[float, float] | None:
+    value = info.get("range")
+    return (float(value[0]), float(value[1])) if value else None
+
+
+def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, where: str = "value",
+                    value_range: tuple[float, float] | None = None) -> np.ndarray:
+    """Check a value for a port: right length, numbers, finite unless allowed, inside its range."""
     try:
         array = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise PortValueError(f"{where}: {values!r} are not numbers") from None
+    except (TypeError, ValueError, OverflowError):
+        raise PortValueError(f"{where}: {shorten(values)} are not numbers") from None
     if array.size != size:
         raise PortValueError(f"{where}: takes {size} values, got {array.size}")
     if not allow_nonfinite and not np.all(np.isfinite(array)):
         bad = [i for i, v in enumerate(array) if not math.isfinite(v)]
-        raise PortValueError(f"{where}: NaN or infinite value at index {bad} of {array.tolist()}")
+        raise PortValueError(f"{where}: NaN or infinite value at index {shorten(bad)} of {shorten(array.tolist())}")
+    if value_range is not None:
+        low, high = value_range
+        outside = np.flatnonzero(~((array >= low) & (array <= high)) & ~np.isnan(array))
+        if outside.size:
+            first = int(outside[0])
+            raise PortValueError(f"{where}: value {array[first]!r} at index {first} is outside its range "
+                                 f"[{low!r}, {high!r}]")
     return array
 
 
-def app_from_registry(path: Path) -> RunningApp:
-    """The app described by one registry file."""
-    registry = json.loads(path.read_text())
-    return RunningApp(registry["app"], int(registry["pid"]), registry, path)
+def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp:
+    """The app described by one registry file, after the checks of the module doc.
+
+    ``owner_uid``: the uid the app must run as (None: whoever owns the file, provided
+    the live supervisor named in it runs as that same uid). Raises
+    :class:`SegmentRefused` when the registry is not to be believed, ``FileNotFoundError``
+    when it is gone, ``ValueError`` when it is not a registry.
+    """
+    match = SEGMENT_NAME.fullmatch(path.name)
+    if match is None or match.group(4) != "registry.json":
+        raise SegmentRefused(f"{shorten(path.name)} is not an rtloop registry name")
+    fd = open_in_shm(path.name, os.O_RDONLY, owner_uid=owner_uid, shm_dir=path.parent)
+    with os.fdopen(fd, "rb") as file:
+        file_uid = os.fstat(file.fileno()).st_uid
+        text = file.read(REGISTRY_MAX_BYTES + 1)
+    if len(text) > REGISTRY_MAX_BYTES:
+        raise ValueError(f"{path.name}: larger than {REGISTRY_MAX_BYTES} bytes; not a registry")
+    registry = json.loads(text)
+    if not isinstance(registry, dict) or not isinstance(registry.get("ports"), dict) \
+            or not isinstance(registry.get("tasks"), dict):
+        raise ValueError(f"{path.name}: not an rtloop registry")
+    name, pid = registry.get("app"), registry.get("pid")
+    if name != match.group(1) or not isinstance(pid, int) or str(pid) != match.group(2):
+        raise SegmentRefused(f"{path.name}: its content names app {shorten(name)} pid {shorten(pid)}, "
+                             "its file name another; not used")
+    supervisor_uid = process_uid(pid)
+    if supervisor_uid is None or not pid_alive(pid):
+        raise AppNotRunning(f"{path.name}: supervisor pid {pid} is not running")
+    if supervisor_uid != file_uid:
+        raise SegmentRefused(f"{path.name} is owned by uid {file_uid}, but its supervisor pid {pid} runs as "
+                             f"uid {supervisor_uid}; not used")
+    return RunningApp(name, pid, registry, path, file_uid)
 
 
-def running_apps(shm_dir: Path = SHM_DIR) -> list[RunningApp]:
-    """Every app whose supervisor is alive, newest first."""
+@dataclass(frozen=True)
+class Refusal:
+    """A registry found but not believed (or not ours to act on), and why."""
+
+    path: Path
+    app: str
+    reason: str
+
+
+def scan_registries(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> tuple[list[RunningApp], list[Refusal]]:
+    """Apps whose registry passes the checks (newest first), and the registries refused, with why.
+
+    ``owner_uid``: keep only apps of that uid (others become refusals naming their uid).
+    """
     found: list[RunningApp] = []
+    refused: list[Refusal] = []
     for path in shm_dir.glob("rtloop-*-registry.json"):
+        match = SEGMENT_NAME.fullmatch(path.name)
+        claimed = match.group(1) if match else path.name
         try:
             app = app_from_registry(path)
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # being written or removed right now, or not ours
-        if pid_alive(app.pid):
-            found.append(app)
-    found.sort(key=lambda app: app.path.stat().st_mtime if app.path.exists() else 0, reverse=True)
-    return found
+        except (FileNotFoundError, AppNotRunning):
+            continue  # removed right now, or its supervisor has ended: stale, not refused
+        except (OSError, ValueError, KeyError, TypeError, RtloopError) as error:
+            refused.append(Refusal(path, claimed, str(error)))
+            continue
+        if owner_uid is not None and app.uid != owner_uid:
+            refused.append(Refusal(path, app.name, f"app {app.name!r} runs as uid {app.uid}, not uid {owner_uid}"))
+            continue
+        found.append(app)
+    found.sort(key=_mtime, reverse=True)
+    return found, refused
 
 
-def connect_app(name: str, timeout_s: float = 0.0) -> RunningApp:
-    """The running app called ``name`` (an app file's path works too); waits up to ``timeout_s``."""
-    if name.endswith(".toml") and os.path.exists(name):
+def _mtime(app: RunningApp) -> float:
+    try:
+        return app.path.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def running_apps(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> list[RunningApp]:
+    """Every app whose supervisor is alive and whose registry is believed, newest first."""
+    return scan_registries(shm_dir, owner_uid)[0]
+
+
+def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = None) -> RunningApp:
+    """The running app called ``name`` (an app file's path works too); waits up to ``timeout_s``.
+
+    Only apps run by ``owner_uid`` are considered (default: the caller's own uid). Root
+    may name another uid on purpose; any other caller asking for another uid is refused.
+    """
+    if name.endswith(".toml") and os.path.isfile(name):
         import tomllib
 
-        name = tomllib.loads(Path(name).read_text()).get("name", name)
+        try:
+            found = tomllib.loads(Path(name).read_text()).get("name", name)
+            name = found if isinstance(found, str) else name
+        except (OSError, ValueError):
+            pass
+    me = os.geteuid()
+    wanted_uid = me if owner_uid is None else owner_uid
+    if wanted_uid != me and me != 0:
+        raise AppNotReachable(f"you are uid {me}: only root may act on an app of uid {wanted_uid}")
     deadline = time.monotonic() + timeout_s
     while True:
-        matches = [app for app in running_apps() if app.name == name]
+        apps, refused = scan_registries(SHM_DIR)
+        matches = [app for app in apps if app.name == name and app.uid == wanted_uid]
         if matches:
             return matches[0]
         if time.monotonic() >= deadline:
-            running = sorted({app.name for app in running_apps()})
-            raise AppNotRunning(f"no running app named {name!r}; running: {running or 'none'}")
+            break
         time.sleep(0.05)
+    others = [app for app in apps if app.name == name]
+    if others:
+        hint = " (as root: rtloop port --user UID)" if me == 0 else " (run as that user, or as root with --user)"
+        raise AppNotReachable(f"app {name!r} runs as uid {others[0].uid}, not as uid {wanted_uid}{hint}")
+    why = [r.reason for r in refused if r.app == name]
+    if why:
+        raise AppNotReachable(f"app {name!r}: registry refused: {why[0]}")
+    running = sorted({app.name for app in apps if app.uid == wanted_uid})
+    raise AppNotRunning(f"no running app named {shorten(name)}; running: {running or 'none'}")

@@ -1,8 +1,14 @@
 """Shared memory between task processes and the supervisor: segments, fences, rings.
 
-Segments are files in ``/dev/shm`` created with mode 0600 and named
+Segments are files in ``/dev/shm`` created with mode 0600 and ``O_EXCL`` and named
 ``rtloop-<app>-<supervisor pid>-<run token>-<what>``, so a later run can recognise
 and remove what a dead run left behind (:func:`remove_stale_segments`).
+
+Trust: ``/dev/shm`` is writable by every user, so a name found there proves nothing.
+Names must match :data:`SEGMENT_NAME` (no path separators); files are opened relative
+to the directory, never through a symbolic link, must be regular files, and an
+attach can demand an owner (``owner_uid``): a segment of another user is refused
+with a :class:`SegmentRefused` that says whose it is.
 
 Memory ordering uses ``atomic_thread_fence`` from libatomic, so a reader on another
 core of an aarch64 machine never sees a counter before the data it announces. On
@@ -14,18 +20,24 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import errno
 import mmap
 import os
 import platform
 import re
 import secrets
+import stat
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
+from rtloop.errors import RtloopError
+
 SHM_DIR = Path("/dev/shm")
 SEGMENT_PREFIX = "rtloop-"
+SEGMENT_NAME = re.compile(r"rtloop-([A-Za-z0-9_]{1,40})-(\d{1,10})-([0-9a-f]{8})-([A-Za-z0-9_.]{1,80})")
+"""``rtloop-<app>-<supervisor pid>-<token>-<what>``: the only names rtloop creates or opens."""
 _SEQ_CST = 5  # __ATOMIC_SEQ_CST
 
 
@@ -62,23 +74,86 @@ def new_run_token() -> str:
     return secrets.token_hex(4)
 
 
+class SegmentRefused(RtloopError, PermissionError):
+    """A segment or registry was not believed: bad name, a link, not a file, or another user's."""
+
+
+def check_segment_name(name: str) -> re.Match[str]:
+    """The parts of a valid segment name; refuses anything else (e.g. ``../etc/passwd``)."""
+    match = SEGMENT_NAME.fullmatch(name) if isinstance(name, str) else None
+    if match is None or ".." in name:
+        raise SegmentRefused(f"{shorten(name)} is not an rtloop segment name (expected {SEGMENT_NAME.pattern})")
+    return match
+
+
+def shorten(value: object, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for error messages that quote input."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 5] + "…" + text[-4:]
+
+
+def open_in_shm(name: str, flags: int, *, mode: int = 0o600, owner_uid: int | None = None,
+                shm_dir: Path = SHM_DIR) -> int:
+    """Open ``shm_dir/name`` without following links; a regular file owned by ``owner_uid``.
+
+    Returns the file descriptor. Raises :class:`SegmentRefused` for a bad name, a link,
+    a non-file or a file of another owner; ``FileNotFoundError`` if it is not there.
+    """
+    check_segment_name(name)
+    directory = os.open(shm_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        try:
+            fd = os.open(name, flags | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, mode, dir_fd=directory)
+        except OSError as error:
+            if error.errno == errno.ELOOP:  # the name is a symbolic link
+                raise SegmentRefused(f"{shm_dir}/{name} is a symbolic link; rtloop never follows one") from None
+            if isinstance(error, PermissionError):
+                raise SegmentRefused(f"{shm_dir}/{name}: permission denied ({_owner_text(name, directory)}; "
+                                     f"you are uid {os.geteuid()})") from None
+            raise
+    finally:
+        os.close(directory)
+    info = os.fstat(fd)
+    problem = ""
+    if not stat.S_ISREG(info.st_mode):
+        problem = "is not a regular file"
+    elif owner_uid is not None and info.st_uid != owner_uid:
+        problem = f"is owned by uid {info.st_uid}, not by the app's uid {owner_uid}"
+    if problem:
+        os.close(fd)
+        raise SegmentRefused(f"{shm_dir}/{name} {problem}; not used")
+    return fd
+
+
+def _owner_text(name: str, directory: int) -> str:
+    try:
+        return f"owned by uid {os.stat(name, dir_fd=directory, follow_symlinks=False).st_uid}"
+    except OSError:
+        return "owner unknown"
+
+
 class Segment:
     """A named shared-memory file mapped into this process."""
 
-    def __init__(self, name: str, size_bytes: int, *, create: bool) -> None:
+    def __init__(self, name: str, size_bytes: int, *, create: bool, owner_uid: int | None = None) -> None:
         self.name = name
         self.path = SHM_DIR / name
         flags = os.O_RDWR | (os.O_CREAT | os.O_EXCL if create else 0)
-        fd = os.open(self.path, flags, 0o600)
+        fd = open_in_shm(name, flags, owner_uid=owner_uid)
         try:
             if create:
                 os.ftruncate(fd, size_bytes)
             else:
                 size_bytes = os.fstat(fd).st_size
+                if size_bytes <= 0:
+                    raise SegmentRefused(f"{self.path} is empty; not an rtloop segment")
             self.size_bytes = size_bytes
             self._map = mmap.mmap(fd, size_bytes)
-        finally:
+        except BaseException:
             os.close(fd)
+            raise
+        self.fd = fd
+        """Kept open: ``flock`` on it serialises port writers and readers (no reopening by path)."""
         self.buffer = memoryview(self._map)
 
     @classmethod
@@ -87,13 +162,17 @@ class Segment:
         return cls(name, max(size_bytes, 8), create=True)
 
     @classmethod
-    def attach(cls, name: str) -> Segment:
-        return cls(name, 0, create=False)
+    def attach(cls, name: str, owner_uid: int | None = None) -> Segment:
+        """Map an existing segment; with ``owner_uid``, only if that user owns it."""
+        return cls(name, 0, create=False, owner_uid=owner_uid)
 
     def array(self, dtype: npt.DTypeLike, count: int, offset_bytes: int = 0) -> np.ndarray:
         return np.frombuffer(self._map, dtype=dtype, count=count, offset=offset_bytes)
 
     def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
         try:
             self.buffer.release()
             self._map.close()
@@ -101,10 +180,31 @@ class Segment:
             pass  # views of it are still alive; the mapping goes when they do
 
     def unlink(self) -> None:
-        try:
-            self.path.unlink()
-        except FileNotFoundError:
-            pass
+        unlink_in_shm(self.name)
+
+
+def unlink_in_shm(name: str, shm_dir: Path = SHM_DIR) -> None:
+    """Remove ``shm_dir/name`` (a valid segment name; a link is removed, never followed)."""
+    check_segment_name(name)
+    directory = os.open(shm_dir, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        os.unlink(name, dir_fd=directory)
+    except FileNotFoundError:
+        pass
+    finally:
+        os.close(directory)
+
+
+def process_uid(pid: int) -> int | None:
+    """Effective uid of a live process (None if it is gone): whose files it creates."""
+    try:
+        with open(f"/proc/{pid}/status") as file:
+            for line in file:
+                if line.startswith("Uid:"):
+                    return int(line.split()[2])
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def pid_alive(pid: int) -> bool:
@@ -125,16 +225,24 @@ def pid_alive(pid: int) -> bool:
 
 
 def remove_stale_segments() -> list[str]:
-    """Remove segments whose owning supervisor process no longer exists."""
+    """Remove this user's segments whose supervisor process no longer exists.
+
+    Only files owned by the calling user are touched (another user's leftovers are
+    theirs to clean), and only names rtloop itself creates.
+    """
     removed: list[str] = []
+    me = os.geteuid()
     for path in SHM_DIR.glob(f"{SEGMENT_PREFIX}*"):
-        match = re.match(rf"{SEGMENT_PREFIX}.*?-(\d+)-[0-9a-f]{{8}}-", path.name)
-        if match and not pid_alive(int(match.group(1))):
-            try:
-                path.unlink()
-                removed.append(path.name)
-            except FileNotFoundError:
-                pass
+        match = SEGMENT_NAME.fullmatch(path.name)
+        if not match or pid_alive(int(match.group(2))):
+            continue
+        try:
+            if path.lstat().st_uid != me:
+                continue
+            unlink_in_shm(path.name)
+            removed.append(path.name)
+        except OSError:
+            pass
     return removed
 
 
@@ -198,6 +306,11 @@ class RecordRing:
     @property
     def dropped(self) -> int:
         return int(self._header_words[2])
+
+    @property
+    def written_total(self) -> int:
+        """Records the producer has pushed so far (not counting drops)."""
+        return int(self._header_words[0])
 
     def drain(self) -> np.ndarray:
         """Copy out every record written since the last drain (shape: n × width)."""

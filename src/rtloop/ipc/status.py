@@ -19,6 +19,7 @@ class TaskState(enum.IntEnum):
     RUNNING = 2
     STOPPED = 3
     FAILED = 4
+    POSTRUN = 5
 
 
 class ControlWord(enum.IntEnum):

@@ -6,6 +6,7 @@ signals.csv ``t_s`` then one column per recorded signal. A row holds the values 
             from its time on: outputs of the job released at t appear at t + P, the
             initial outputs at 0 (see :class:`SignalsCsv`); with several periods, rows are
             the union of those times and a slower task's columns hold their last value.
+            Values are written with ``repr``: full precision, NaN as ``nan``, ±inf as ``inf``/``-inf``.
 """
 
 from __future__ import annotations
@@ -191,5 +192,5 @@ def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
 
 
 def _csv_line(t_ns: int, row: list[float]) -> str:
-    cells = [repr(t_ns / 1e9)] + ["" if value != value else repr(value) for value in row]
+    cells = [repr(t_ns / 1e9)] + [repr(value) for value in row]  # NaN as nan, ±inf as inf/-inf
     return ",".join(cells) + "\n"

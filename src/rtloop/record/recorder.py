@@ -122,6 +122,7 @@ def give_to_invoking_user(out: Path) -> None:
         return
     for path in [out, *out.iterdir()]:
         try:
-            os.chown(path, int(uid), int(gid))
+            # a link planted in the folder is handed over itself; what it points to is never touched
+            os.chown(path, int(uid), int(gid), follow_symlinks=False)
         except OSError:
             pass

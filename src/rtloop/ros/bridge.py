@@ -27,8 +27,7 @@ from typing import Any
 
 from rtloop.app.builder import RosTopic
 from rtloop.errors import PortValueError
-from rtloop.ipc.ports import RunningApp, app_from_registry, connect_app
-from rtloop.ipc.segments import Segment
+from rtloop.ipc.ports import RunningApp, app_from_registry, connect_app, port_range
 from rtloop.ipc.status import CONTROL_WORDS, ControlWord, WordBlock
 from rtloop.ros.cdr import encoder_for
 from rtloop.ros.dds import RosPublisher, RosSubscriber
@@ -105,7 +104,7 @@ def _wall_offset_ns(app: RunningApp, stop: Any) -> tuple[int, int] | None:
 
     Waits for the app to pick T0; None if the bridge is stopped (or the app dies) first.
     """
-    control = WordBlock(Segment.attach(app.registry["control"]), 0, CONTROL_WORDS)
+    control = WordBlock(app.segment(app.registry["control"]), 0, CONTROL_WORDS)
     while not control[ControlWord.T0_NS]:
         if stop:
             return None
@@ -213,7 +212,8 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> No
     warner = RateLimitedWarner(1.0, emit=lambda text: print(f"rtloop bridge {topic.topic}: {text}",
                                                              file=sys.stderr, flush=True))
     validator = MessageValidator(int(info["size"]), allow_nonfinite=bool(info["allow_nonfinite"]),
-                                 what=f"{topic.topic} → port {topic.port}", warner=warner)
+                                 what=f"{topic.topic} → port {topic.port}", warner=warner,
+                                 value_range=narrowest_range(topic.value_range, port_range(info)))
     refused = 0
     with RosSubscriber(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id) as subscriber:
         while not stop:
@@ -232,12 +232,20 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> No
             subscriber.wait(0.05)
 
 
+def narrowest_range(*ranges: tuple[float, float] | None) -> tuple[float, float] | None:
+    """Where all the given ranges overlap (the topic's and the port's); None if none is given."""
+    given = [r for r in ranges if r is not None]
+    if not given:
+        return None
+    return max(low for low, _ in given), min(high for _, high in given)
+
+
 def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -> None:
     """Entry point of a bridge process started by the supervisor."""
     from rtloop import rt
 
     rt.die_with_parent(signal.SIGTERM)
-    app = app_from_registry(Path(registry_path))
+    app = app_from_registry(Path(registry_path), owner_uid=os.geteuid())
     if os.getppid() != app.pid:  # the supervisor died before we could ask to follow it
         return
     stats = _Stats(topic, pipe)

@@ -21,8 +21,8 @@ from rtloop.errors import PortValueError
 
 logger = logging.getLogger("rtloop.ros")
 
-REASONS = ("type", "shape", "length", "nonfinite")
-"""Why a message can be rejected: not numbers, not flat, wrong length, NaN or inf."""
+REASONS = ("type", "shape", "length", "nonfinite", "range")
+"""Why a message can be rejected: not numbers, not flat, wrong length, NaN or inf, outside the range."""
 
 
 class RejectedValues(PortValueError):
@@ -38,6 +38,7 @@ def validate_values(
     expected_length: int,
     allow_nonfinite: bool = False,
     what: str = "message",
+    value_range: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Return ``values`` as a new flat float64 array, or raise naming what is wrong.
 
@@ -47,6 +48,7 @@ def validate_values(
         allow_nonfinite: accept NaN and ±inf (off by default: one NaN fed back into a
             controller makes every later output NaN).
         what: how to name the values in the error, e.g. ``"/jiwy/setpoint data"``.
+        value_range: ``(lo, hi)``: a value outside it is rejected (NaN, when allowed, passes).
 
     Raises:
         PortValueError: (a :class:`RejectedValues`) the values are not numbers, not
@@ -73,6 +75,13 @@ def validate_values(
             raise RejectedValues("nonfinite", f"{what}: element {first} is "
                                  f"{float(array[first])!r}; {bad.size} non-finite value(s) "
                                  "(NaN/inf are not allowed)")
+    if value_range is not None:
+        low, high = value_range
+        outside = np.flatnonzero(((array < low) | (array > high)) & ~np.isnan(array))
+        if outside.size:
+            first = int(outside[0])
+            raise RejectedValues("range", f"{what}: element {first} is {float(array[first])!r}, outside "
+                                 f"[{low!r}, {high!r}]; {outside.size} value(s) out of range")
     return array
 
 
@@ -156,6 +165,7 @@ class MessageValidator:
         allow_nonfinite: accept NaN and ±inf.
         what: name used in warnings, e.g. the topic.
         warner: shared :class:`RateLimitedWarner`; a new one (1 s interval) if omitted.
+        value_range: ``(lo, hi)`` the values must lie in (counted under ``range`` otherwise).
     """
 
     def __init__(
@@ -164,8 +174,10 @@ class MessageValidator:
         allow_nonfinite: bool = False,
         what: str = "message",
         warner: RateLimitedWarner | None = None,
+        value_range: tuple[float, float] | None = None,
     ) -> None:
         self.expected_length = expected_length
+        self.value_range = value_range
         self.allow_nonfinite = allow_nonfinite
         self.what = what
         self.warner = warner or RateLimitedWarner()
@@ -175,7 +187,7 @@ class MessageValidator:
         """Return the values as a float64 array, or ``None`` if rejected (counted, warned)."""
         try:
             array = validate_values(values, self.expected_length, self.allow_nonfinite,
-                                    self.what)
+                                    self.what, self.value_range)
         except RejectedValues as exc:
             self.counts.rejected[exc.reason] += 1
             self.warner.warn(f"dropped {exc}", key=f"{self.what}:{exc.reason}")

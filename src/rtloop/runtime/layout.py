@@ -18,7 +18,15 @@ import numpy as np
 from rtloop.app.builder import App, PortSpec
 from rtloop.app.profiles import load_profile
 from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
-from rtloop.ipc.segments import SHM_DIR, RecordRing, Segment, new_run_token, remove_stale_segments
+from rtloop.ipc.segments import (
+    SHM_DIR,
+    RecordRing,
+    Segment,
+    new_run_token,
+    open_in_shm,
+    remove_stale_segments,
+    unlink_in_shm,
+)
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.runtime.task import TaskSegments, task_segment_size
 from rtloop.runtime.wiring import InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
@@ -27,6 +35,57 @@ TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
 INPUT_LOG_CAPACITY = 1 << 12
 LET_SLOTS = 8
+
+
+SHM_SHARE_OF_FREE = 0.5
+"""An app may take at most this share of the free space of /dev/shm (other apps live there too)."""
+
+
+def shared_memory_bytes(app: App) -> int:
+    """Bytes of shared memory :meth:`AppLayout.create` will make for ``app`` (before creating any)."""
+    total = CONTROL_WORDS * 8
+    writers = {connection.source.task for connection in app.connections}
+    total += sum(LetChannel.size_bytes(app.tasks[w].runnable.n_outputs, LET_SLOTS) for w in writers)
+    for port in app.ports.values():
+        if port.direction == "out":
+            total += SampleQueue.size_bytes(port.signal.size, port.capacity)
+        else:
+            total += LatestValue.size_bytes(port.signal.size)
+    total += len(app.tasks) * task_segment_size(TIMING_RING_CAPACITY)
+    for name in {ref.task for ref in app.recorded}:
+        runnable = app.tasks[name].runnable
+        total += SampleQueue.size_bytes(runnable.n_outputs + runnable.n_inputs, RECORD_QUEUE_CAPACITY)
+    return total
+
+
+def check_memory(app: App, shm_dir: Path = SHM_DIR, memlock_limit_bytes: int | None = None) -> int:
+    """Refuse an app whose shared memory would not fit: /dev/shm free space, RLIMIT_MEMLOCK.
+
+    ``memlock_limit_bytes``: the limit that applies (default: this process's, unless it may
+    lock any amount). Returns the bytes the app needs.
+    """
+    from rtloop import rt
+    from rtloop.errors import AppError
+
+    needed = shared_memory_bytes(app)
+    stats = os.statvfs(shm_dir)
+    free = stats.f_bavail * stats.f_frsize
+    if needed > free * SHM_SHARE_OF_FREE:
+        raise AppError(f"app {app.name!r} needs {_mb(needed)} of shared memory; {shm_dir} has {_mb(free)} free "
+                       f"and an app may take at most {SHM_SHARE_OF_FREE:.0%} of it (lower port capacities or "
+                       "vector sizes, or record fewer tasks)")
+    if memlock_limit_bytes is None:
+        capabilities = rt.probe()
+        memlock_limit_bytes = capabilities.memlock_limit_bytes if capabilities.may_use_rt else None
+    if memlock_limit_bytes is not None and needed > memlock_limit_bytes:
+        raise AppError(f"app {app.name!r} needs {_mb(needed)} of shared memory, above RLIMIT_MEMLOCK "
+                       f"({_mb(memlock_limit_bytes)}): its tasks could not lock it in memory "
+                       "(raise it: ulimit -l / LimitMEMLOCK=, or lower port capacities)")
+    return needed
+
+
+def _mb(size_bytes: int) -> str:
+    return f"{size_bytes / 1e6:.1f} MB"
 
 
 @dataclass
@@ -55,6 +114,7 @@ class AppLayout:
 
     @classmethod
     def create(cls, app: App) -> AppLayout:
+        check_memory(app)
         remove_stale_segments()
         token = new_run_token()
         owner = os.getpid()
@@ -170,6 +230,7 @@ class AppLayout:
                 "signal": str(spec.signal),
                 "size": spec.signal.size,
                 "allow_nonfinite": spec.allow_nonfinite,
+                "range": list(spec.value_range) if spec.value_range is not None else None,
                 "period_ns": self.app.tasks[spec.signal.task].config.period_ns,
             }
             for name, spec in self.app.ports.items()
@@ -182,7 +243,7 @@ class AppLayout:
             "control": next(iter(self.tasks.values())).segments.control if self.tasks else None,
         }
         path = SHM_DIR / f"rtloop-{self.app.name}-{os.getpid()}-{self.token}-registry.json"
-        fd = os.open(path, os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o600)
+        fd = open_in_shm(path.name, os.O_CREAT | os.O_WRONLY | os.O_EXCL)
         with os.fdopen(fd, "w") as file:
             json.dump(registry, file, indent=1)
         self.registry_path = path
@@ -196,4 +257,4 @@ class AppLayout:
         for created in self.segments:
             created.unlink()
         if self.registry_path is not None:
-            self.registry_path.unlink(missing_ok=True)
+            unlink_in_shm(self.registry_path.name)

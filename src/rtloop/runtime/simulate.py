@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from rtloop import rt
-from rtloop.app.builder import App
-from rtloop.errors import AppError, StopRequested, TaskFailed
+from rtloop.app.builder import App, check_duration
+from rtloop.errors import StopRequested, TaskFailed
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import RunSummary, TaskSummary, signal_names
@@ -87,8 +87,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     """
     out = Path(out)
     app.validate()
-    if not duration_s > 0:
-        raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+    check_duration(duration_s)
     layout = AppLayout.create(app)
     recorder = Recorder(app, out)
     recorder.write_replay_info(duration_s)

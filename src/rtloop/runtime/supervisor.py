@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from rtloop import rt
-from rtloop.app.builder import App
-from rtloop.errors import AppError, TaskFailed
+from rtloop.app.builder import App, check_duration
+from rtloop.errors import TaskFailed
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names
@@ -32,8 +32,9 @@ from rtloop.timing import task_timing
 
 DRAIN_INTERVAL_S = 0.05
 START_MARGIN_NS = 100_000_000
-PRERUN_TIMEOUT_S = 300.0
 STOP_GRACE_S = 5.0
+STARTUP_ALLOWANCE_S = 30.0
+"""Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
 
 
 @dataclass
@@ -50,8 +51,7 @@ class _TaskRun:
 class Supervisor:
     def __init__(self, app: App, duration_s: float, out: Path, *, progress: bool, trim: int) -> None:
         app.validate()
-        if not duration_s > 0:
-            raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+        check_duration(duration_s)
         self.app, self.duration_s, self.out = app, duration_s, out
         self.progress, self.trim = progress, trim
         self.stop_reason = "duration"
@@ -75,6 +75,8 @@ class Supervisor:
         runs: dict[str, _TaskRun] = {}
         previous_handlers = self._install_signal_handlers()
         self.dma_latency = rt.CpuDmaLatency().__enter__()
+        self.dma_latency_held = self.dma_latency.held  # read now: the summary is written after it is let go
+        children_before = _adopt_orphans()
         try:
             self._open_live_view(recorder, layout)
             runs = self._spawn(layout)
@@ -100,6 +102,8 @@ class Supervisor:
             for task_run in runs.values():
                 if task_run.process.is_alive():
                     task_run.process.kill()
+                task_run.process.join()
+            rt.end_strays(keep=children_before | _resource_tracker())  # whatever the tasks left running
             recorder.close()
             summary = self._summary(layout, runs, capabilities, recorder)
             summary.write(self.out / "summary.json")
@@ -139,7 +143,9 @@ class Supervisor:
         return runs
 
     def _wait_until_ready(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
-        deadline = time.monotonic() + PRERUN_TIMEOUT_S
+        """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
+        limit_s = self.duration_s + STARTUP_ALLOWANCE_S
+        deadline = time.monotonic() + limit_s
         while self.failure is None and self.stop_reason == "duration":
             self._poll(layout, runs)
             states = [layout.tasks[name].status[StatusWord.STATE] for name in runs]
@@ -147,7 +153,9 @@ class Supervisor:
                 return
             if time.monotonic() > deadline:
                 slow = [n for n, s in zip(runs, states, strict=True) if s != TaskState.READY]
-                self.failure = TaskFailed(slow[0], None, "prerun", f"not ready after {PRERUN_TIMEOUT_S:.0f} s")
+                reason = (f"prerun did not finish within the run's duration + {STARTUP_ALLOWANCE_S:g} s "
+                          f"of start-up ({limit_s:g} s)")
+                self.failure = TaskFailed(slow[0], None, "prerun", reason)
                 self.stop_reason = "fault"
                 return
             time.sleep(0.005)
@@ -192,10 +200,11 @@ class Supervisor:
                 task_run.process.kill()
                 task_run.process.join()
                 if self.failure is None:
+                    phase, cycle = self._phase_of(layout, task_run.name)
                     self.failure = TaskFailed(
-                        task_run.name, layout.tasks[task_run.name].status[StatusWord.CYCLE], "step",
+                        task_run.name, cycle, phase,
                         f"did not stop within {STOP_GRACE_S:.0f} s of the stop request; killed "
-                        "(is step() blocking or looping?)",
+                        f"(is {phase}() blocking or looping?)",
                     )
                     self.stop_reason = "fault"
         self._poll(layout, runs)
@@ -220,10 +229,7 @@ class Supervisor:
                 continue
             task_run.finished = True
             if task_run.failure is None and process.exitcode != 0:
-                status = layout.tasks[task_run.name].status
-                state = status[StatusWord.STATE]
-                cycle = status[StatusWord.CYCLE] if state == TaskState.RUNNING else None
-                phase = "step" if state == TaskState.RUNNING else "prerun"
+                phase, cycle = self._phase_of(layout, task_run.name)
                 task_run.failure = TaskFailed(
                     task_run.name, cycle, phase, f"task process died: {_describe_exit(process.exitcode)}"
                 )
@@ -231,6 +237,18 @@ class Supervisor:
                 self.failure = task_run.failure
                 self.stop_reason = "fault"
                 layout.control[ControlWord.STOP] = 1
+
+    def _phase_of(self, layout: AppLayout, name: str) -> tuple[str, int | None]:
+        """What a task was doing when it died or hung: its phase and, in step, the cycle in progress."""
+        handles = layout.tasks[name]
+        state = handles.status[StatusWord.STATE]
+        if state in (TaskState.STARTING, TaskState.READY):
+            return "prerun", None
+        if state == TaskState.POSTRUN:
+            return "postrun", None
+        if state == TaskState.STOPPED:
+            return "process", None
+        return "step", cycle_in_progress(handles, self.t0_ns, self.app.tasks[name].config)
 
     def _read_messages(self, task_run: _TaskRun) -> None:
         try:
@@ -308,10 +326,42 @@ class Supervisor:
             ports=port_summaries(layout),
             stopped_by=self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
-            machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency.held},
+            machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
             notes=[note for note in (recorder.mcap_note, self.bridges.note) if note],
             bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
         )
+
+
+def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
+    """The cycle a running task was in: the one after its last completed cycle (the status
+    block holds the last completed one), or after the releases an overrun skipped."""
+    status = handles.status
+    if handles.timing.written_total == 0:
+        return 0
+    last = status[StatusWord.CYCLE]
+    period_ns = config.period_ns
+    last_end_ns = t0_ns + last * period_ns + status[StatusWord.LATENCY_LAST_NS] + status[StatusWord.EXEC_LAST_NS]
+    following = last + 1
+    if config.overrun == "skip" and t0_ns and last_end_ns > t0_ns + following * period_ns:
+        following = (last_end_ns - t0_ns) // period_ns + 1
+    return following
+
+
+def _adopt_orphans() -> set[int]:
+    """Become the subreaper of what the tasks start; returns the children that existed before."""
+    try:
+        rt.become_subreaper()
+    except OSError:
+        pass  # an old kernel: task processes still end their own strays
+    return rt.child_pids()
+
+
+def _resource_tracker() -> set[int]:
+    """multiprocessing's helper process (a child of ours, started with the first task)."""
+    from multiprocessing import resource_tracker
+
+    pid = getattr(resource_tracker._resource_tracker, "_pid", None)
+    return {pid} if pid else set()
 
 
 def port_summaries(layout: AppLayout) -> dict[str, PortSummary]:

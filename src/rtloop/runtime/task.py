@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
+import multiprocessing.util
 import os
 import signal
 import time
@@ -156,6 +157,8 @@ def task_process_main(
     # app the orderly way: the loop sees the stop flag and postrun still runs.
     signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
     rt.die_with_parent(signal.SIGTERM)
+    rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
+    multiprocessing.util.Finalize(None, rt.end_strays, exitpriority=100)
     parent = multiprocessing.parent_process()
     if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
         return
@@ -192,6 +195,7 @@ def task_process_main(
                 control[ControlWord.STOP] = 1
         gc.enable()
         phase = "postrun"
+        status[StatusWord.STATE] = TaskState.POSTRUN
         runnable.postrun()
     except BaseException as error:
         status[StatusWord.STATE] = TaskState.FAILED
