@@ -13,12 +13,14 @@ import datetime as dt
 import heapq
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from . import rt
 from .app import App
 from .errors import AppError, TaskFailed
+from .ipc.hotpath import announce_once, cycle_work
 from .layout import RECORD_QUEUE_CAPACITY, AppLayout
 from .record.recorder import Recorder
 from .runnable import TickInfo
@@ -43,15 +45,22 @@ class _SimTask:
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
+        self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
+
+    def start(self, layout: AppLayout, t0_ns: int, end_ns: int) -> None:
+        self.wiring.stamp_initial(t0_ns)
+        self.io = cycle_work(self.tick, self.wiring, layout.control, self.handles.status, self.handles.timing,
+                             self.period_ns, catch_up=False)
+        self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
-        self.wiring.read_inputs(release_ns, self.u)
+        self.io.read_inputs(release_ns)
         started = time.perf_counter_ns()
         self.runnable.step(self.u, self.y)
         exec_ns = time.perf_counter_ns() - started
-        self.wiring.publish_outputs(cycle, release_ns + self.period_ns, self.y)
+        self.io.publish_outputs(cycle, release_ns + self.period_ns)
         self.records.append((cycle, release_ns, release_ns, release_ns + exec_ns))
 
 
@@ -59,6 +68,7 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
     app.validate()
     if not duration_s > 0:
         raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+    announce_once()
     layout = AppLayout.create(app)
     recorder = Recorder(app, out)
     t0_ns = SIMULATION_T0_NS
@@ -75,7 +85,7 @@ def simulate_app(app: App, duration_s: float, out: Path, *, trim: int = 20) -> R
             tasks[name].runnable.prerun()
             tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
         for task in tasks.values():
-            task.wiring.stamp_initial(t0_ns)
+            task.start(layout, t0_ns, end_ns)
         phase = "step"
         # (release time, task order, cycle, name): a heap of the next release of each task
         order = {name: i for i, name in enumerate(tasks)}

@@ -23,6 +23,7 @@ from . import rt
 from .app import App
 from .bridges import Bridges
 from .errors import AppError, TaskFailed
+from .ipc.hotpath import announce_once
 from .layout import AppLayout
 from .record.recorder import Recorder
 from .status import ControlWord, StatusWord, TaskState
@@ -62,6 +63,7 @@ class Supervisor:
     def run(self) -> RunSummary:
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
+        announce_once()
         layout = AppLayout.create(self.app)
         recorder = Recorder(self.app, self.out)
         self.bridges = Bridges(self.app)
