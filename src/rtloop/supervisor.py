@@ -25,6 +25,7 @@ from .bridges import Bridges
 from .errors import AppError, TaskFailed
 from .ipc.hotpath import announce_once
 from .layout import AppLayout
+from .lean import single_threaded_children
 from .record.recorder import Recorder
 from .status import ControlWord, StatusWord, TaskState
 from .summary import PortSummary, RunSummary, TaskSummary, signal_names
@@ -110,7 +111,8 @@ class Supervisor:
                 args=(spec.config, spec.runnable, handles.plan, handles.segments, writer),
                 name=f"rtloop-{self.app.name}-{name}",
             )
-            process.start()
+            with single_threaded_children():  # a BLAS worker pool has no place in an RT process
+                process.start()
             writer.close()
             runs[name] = _TaskRun(name, process, reader)
         return runs

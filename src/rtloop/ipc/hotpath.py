@@ -34,6 +34,11 @@ PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 _announced = False
 
 
+def c_built() -> bool:
+    """Whether the C hot path was built (pip needs a compiler for it)."""
+    return _hotpath is not None
+
+
 def why_python() -> str:
     """Why the Python hot path is in use here ("" when the C one is)."""
     if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
