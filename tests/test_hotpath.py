@@ -119,8 +119,8 @@ def test_a_writer_stuck_mid_write_costs_one_bounded_stale_read_and_no_torn_input
 
 
 @needs_c
-@pytest.mark.timeout(120)
-def test_c_reader_sees_no_torn_value_in_a_million_reads_across_cores(monkeypatch) -> None:
+@pytest.mark.timeout(240)
+def test_c_reader_sees_no_torn_value_in_300k_reads_across_cores(monkeypatch) -> None:
     monkeypatch.delenv(hotpath.PURE_PYTHON_ENV, raising=False)
     token = new_run_token()
     segment = Segment.create("stress_c", os.getpid(), token, "let", LetChannel.size_bytes(shm_stress.N_VALUES, 2))
@@ -142,11 +142,11 @@ def test_c_reader_sees_no_torn_value_in_a_million_reads_across_cores(monkeypatch
         while LetChannel(segment).words[0] < 1000:
             time.sleep(0.001)
         torn, seen = 0, set()
-        for read in range(1_000_000):
+        for read in range(300_000):
             work.read_inputs(2**61)
             if not shm_stress.is_consistent(wiring.u):
                 torn += 1
-            if read % 1000 == 0:
+            if read % 300 == 0:
                 seen.add(wiring.u[0])
         stop.buffer.cast("q")[0] = 1
         writer.join(10)
