@@ -43,3 +43,17 @@ def find_cyclonedds_cli() -> str | None:
 
     beside_python = Path(sys.executable).parent / "cyclonedds"
     return str(beside_python) if beside_python.exists() else shutil.which("cyclonedds")
+
+
+@pytest.fixture(params=["c", "python"])
+def hot_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run the test under the compiled hot path and under its Python twin (task processes inherit it)."""
+    from rtloop.ipc import hotpath
+
+    if request.param == "c":
+        monkeypatch.delenv(hotpath.PURE_PYTHON_ENV, raising=False)
+        if not hotpath.c_built():
+            pytest.skip(f"the C hot path is not available: {hotpath.why_python()}")
+    else:
+        monkeypatch.setenv(hotpath.PURE_PYTHON_ENV, "1")
+    return request.param

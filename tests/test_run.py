@@ -29,6 +29,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 
 @pytest.mark.rt
+@pytest.mark.usefixtures("hot_path")
 def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     app = App("two_counters")
     a = app.add_task("a", Counter(), period_ns=P, priority=70, cpu=other_cpu())
@@ -74,6 +75,7 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
 
 
 @pytest.mark.rt
+@pytest.mark.usefixtures("hot_path")
 def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(tmp_path: Path) -> None:
     app = App("faulty")
     bad = app.add_task("bad", RaiseAt(cycle=123), period_ns=P, cpu=other_cpu())

@@ -65,6 +65,7 @@ def first_unclean_time_ns(out: Path) -> int:
 
 
 @pytest.mark.rt
+@pytest.mark.usefixtures("hot_path")
 def test_run_reproduces_simulation_value_for_value(tmp_path: Path) -> None:
     profile = tmp_path / "steps.csv"
     profile.write_text("t_s,a,b\n0,0,0\n0.1,1.0,-0.5\n0.35,0.25,2.0\n")
@@ -93,6 +94,7 @@ def test_run_reproduces_simulation_value_for_value(tmp_path: Path) -> None:
     assert float(final[1]) == pytest.approx(0.25, abs=0.075) and float(final[2]) == pytest.approx(2.0, abs=0.25)
 
 
+@pytest.mark.usefixtures("hot_path")
 def test_simulation_is_deterministic_and_feeds_profiles_by_release_time(tmp_path: Path) -> None:
     profile = tmp_path / "p.csv"
     profile.write_text("t_s,a,b\n0,0,0\n0.5,0.5,0.3\n")
@@ -110,6 +112,7 @@ def test_simulation_is_deterministic_and_feeds_profiles_by_release_time(tmp_path
     assert [r[plant] for r in rows] == [r[plant] for r in b_rows]
 
 
+@pytest.mark.usefixtures("hot_path")
 def test_logical_execution_time_one_tick_delay_per_hop(tmp_path: Path) -> None:
     app = App("let")
     counter = app.add_task("counter", Counter(), period_ns=P)
@@ -125,6 +128,7 @@ def test_logical_execution_time_one_tick_delay_per_hop(tmp_path: Path) -> None:
     assert [float(r[1]) for r in rows[:5]] == [0.0, 1.0, 2.0, 3.0, 4.0]
 
 
+@pytest.mark.usefixtures("hot_path")
 def test_multirate_reader_sees_the_newest_value_valid_at_its_release(tmp_path: Path) -> None:
     app = App("multirate")
     fast = app.add_task("fast", Counter(), period_ns=P)
@@ -298,6 +302,7 @@ def _jiwy_cli(tmp_path: Path, duration: float) -> subprocess.Popen:
 
 
 @pytest.mark.rt
+@pytest.mark.usefixtures("hot_path")
 def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path) -> None:
     process = _jiwy_cli(tmp_path, 8)
     try:

@@ -270,6 +270,8 @@ class RecordRing:
         self._header_words = segment.buffer[offset_bytes : data_offset].cast("q")
         self._data_words = segment.buffer[data_offset : data_offset + self.capacity * self.width * 8].cast("q")
         self._written = int(header[0])
+        self.memory = segment.buffer[offset_bytes : data_offset + self.capacity * self.width * 8]
+        """Header and records as one buffer (for the compiled hot path)."""
 
     @staticmethod
     def size_bytes(capacity: int, width: int) -> int:

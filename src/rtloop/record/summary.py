@@ -117,6 +117,8 @@ class RunSummary:
     """Anything the reader should know that has no field of its own."""
     bridges: dict[str, Any] = field(default_factory=dict)
     """ROS 2 bridge processes: state, messages passed, messages rejected (and why)."""
+    hot_path: str = ""
+    """Where the per-cycle framework work ran: ``c`` (compiled) or ``python`` (the fallback)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -132,6 +134,7 @@ class RunSummary:
             "tasks": {name: task.to_json() for name, task in self.tasks.items()},
             "ports": {name: port.to_json() for name, port in self.ports.items()},
             "bridges": self.bridges,
+            "hot_path": self.hot_path,
         }
 
     def write(self, path: Path) -> None:

@@ -13,12 +13,14 @@ import datetime as dt
 import heapq
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import StopRequested, TaskFailed
+from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import RunSummary, TaskSummary, signal_names
@@ -44,15 +46,22 @@ class _SimTask:
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
         self.host_exec = HostExecution()
+        self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
+
+    def start(self, layout: AppLayout, t0_ns: int, end_ns: int) -> None:
+        self.wiring.stamp_initial(t0_ns)
+        self.io = cycle_work(self.tick, self.wiring, layout.control, self.handles.status, self.handles.timing,
+                             self.period_ns, catch_up=False)
+        self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
-        self.wiring.read_inputs(release_ns, self.u)
+        self.io.read_inputs(release_ns)
         started = time.perf_counter_ns()
         self.runnable.step(self.u, self.y)
         self.host_exec.add(time.perf_counter_ns() - started)
-        self.wiring.publish_outputs(cycle, release_ns + self.period_ns, self.y)
+        self.io.publish_outputs(cycle, release_ns + self.period_ns)
         # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
         # What it cost on this host is kept apart (host_exec_ns), never taken for timing.
         self.records.append((cycle, release_ns, release_ns, release_ns))
@@ -88,6 +97,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     out = Path(out)
     app.validate()
     check_duration(duration_s)
+    announce_once()
     layout = AppLayout.create(app)
     recorder = Recorder(app, out)
     recorder.write_replay_info(duration_s)
@@ -107,7 +117,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
             tasks[name].runnable.prerun()
             tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
         for task in tasks.values():
-            task.wiring.stamp_initial(t0_ns)
+            task.start(layout, t0_ns, end_ns)
         phase = "step"
         # (release time, task order, cycle, name): a heap of the next release of each task
         order = {name: i for i, name in enumerate(tasks)}
@@ -178,7 +188,7 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
         )
     capabilities = rt.probe()
     return RunSummary(
-        app=app.name, mode="simulate",
+        app=app.name, mode="simulate", hot_path=hot_path(),
         started=dt.datetime.now(tz=dt.UTC).isoformat(timespec="milliseconds"),
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
         ports=port_summaries(layout), stopped_by="fault" if failure else stopped_by,

@@ -22,7 +22,9 @@ from typing import Any
 from rtloop import rt
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import TaskFailed
+from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState
+from rtloop.lean import single_threaded_children
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names
 from rtloop.runtime.bridges import Bridges
@@ -67,6 +69,7 @@ class Supervisor:
             import_foxglove()
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
+        announce_once()
         layout = AppLayout.create(self.app)
         recorder = Recorder(self.app, self.out)
         recorder.write_replay_info(self.duration_s)
@@ -137,7 +140,8 @@ class Supervisor:
                 args=(spec.config, spec.runnable, handles.plan, handles.segments, writer),
                 name=f"rtloop-{self.app.name}-{name}",
             )
-            process.start()
+            with single_threaded_children():  # a BLAS worker pool has no place in an RT process
+                process.start()
             writer.close()
             runs[name] = _TaskRun(name, process, reader)
         return runs
@@ -319,6 +323,7 @@ class Supervisor:
         return RunSummary(
             app=self.app.name,
             mode="run",
+            hot_path=hot_path(),
             started=_iso(getattr(self, "wall_t0", time.time())),
             duration_s=self.duration_s,
             rt_capable=capabilities.may_use_rt,

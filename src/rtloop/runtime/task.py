@@ -2,7 +2,7 @@
 
 This is the file to read first. ``run_loop`` is the whole real-time part: everything
 else in this module prepares it (scheduling, memory, the wait for the common epoch T0)
-or cleans up after it.
+or cleans up after it. What the framework does in each cycle is in ``ipc/hotpath.py``.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
 from rtloop.errors import StopRequested
+from rtloop.ipc.hotpath import cycle_work
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
 from rtloop.runnable import Runnable, TickInfo
@@ -65,47 +66,29 @@ class RealtimeTask:
         self.timing = timing
         self.u = initial_inputs(runnable)
         self.y = np.zeros(runnable.n_outputs)
-        self.tick = TickInfo(period_ns=config.period_ns)
+        self.tick = TickInfo(cycle=-1, period_ns=config.period_ns)
         runnable.tick = self.tick
-        self.sleeper = rt.AbsoluteSleeper()
-        self.cycle = -1  # the cycle being computed, for fault reports
+
+    @property
+    def cycle(self) -> int:
+        """The cycle being computed (or last computed; -1 before the first), for fault reports."""
+        return self.tick.cycle
 
     def run_loop(self, t0_ns: int, end_ns: int) -> None:
         """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
-        period_ns = self.config.period_ns
-        runnable, wiring, tick, status = self.runnable, self.wiring, self.tick, self.status
-        u, y = self.u, self.y
-        cycle, release_ns = 0, t0_ns
-        while release_ns < end_ns and not self.control[ControlWord.STOP]:
-            self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
-            start_ns = rt.now_ns()
-            self.cycle = tick.cycle = cycle
-            tick.release_ns, tick.start_ns = release_ns, start_ns
-            # Read → step → publish: inputs are those valid at the release, and outputs
-            # become visible at release + P (logical execution time), so the result does
-            # not depend on how fast this cycle ran.
-            wiring.read_inputs(release_ns, u)
+        runnable, u, y = self.runnable, self.u, self.y
+        # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
+        cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
+                           self.config.period_ns, catch_up=self.config.overrun == "catch_up")
+        cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
+        # Read → step → publish: begin() sleeps to the absolute release T0 + k·P (no drift)
+        # and reads the inputs valid at it; finish() publishes the outputs as valid from
+        # release + P (logical execution time), so the result does not depend on how fast
+        # this cycle ran, records its timing and moves to the next release (after an overrun,
+        # as the overrun policy says).
+        while cycle.begin():
             runnable.step(u, y)
-            wiring.publish_outputs(cycle, release_ns + period_ns, y)
-            end_cycle_ns = rt.now_ns()
-            self.timing.push4(cycle, release_ns, start_ns, end_cycle_ns)
-            status[StatusWord.CYCLE] = cycle
-            status[StatusWord.LATENCY_LAST_NS] = start_ns - release_ns
-            status[StatusWord.EXEC_LAST_NS] = end_cycle_ns - start_ns
-            cycle += 1
-            release_ns += period_ns
-            if end_cycle_ns > release_ns:  # overran into the next period
-                cycle, release_ns = self._after_overrun(cycle, release_ns, end_cycle_ns, t0_ns)
-
-    def _after_overrun(self, cycle: int, release_ns: int, now_ns: int, t0_ns: int) -> tuple[int, int]:
-        status, period_ns = self.status, self.config.period_ns
-        status[StatusWord.DEADLINE_MISSES] += 1
-        if self.config.overrun == "catch_up":
-            status[StatusWord.OVERRUNS] += 1
-            return cycle, release_ns
-        next_cycle = (now_ns - t0_ns) // period_ns + 1
-        status[StatusWord.OVERRUNS] += next_cycle - cycle
-        return next_cycle, t0_ns + next_cycle * period_ns
+            cycle.finish()
 
 
 def initial_inputs(runnable: Runnable) -> np.ndarray:

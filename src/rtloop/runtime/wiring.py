@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
 from rtloop.ipc.segments import Segment
 from rtloop.ipc.status import StatusWord, WordBlock
 
@@ -70,18 +70,28 @@ class TaskWiringPlan:
     segments: tuple[str, ...] = field(default=())
 
 
-class _Link:
-    __slots__ = ("channel", "period_ns", "sources", "target")
+class _WriterLink:
+    """Every connection from one writer: one seqlock read per cycle, then a copy per connection."""
 
-    def __init__(self, channel: LetChannel, source: slice, target: np.ndarray, period_ns: int) -> None:
-        self.channel, self.target, self.period_ns = channel, target, period_ns
-        self.sources = channel.source_views(source)
+    __slots__ = ("channel", "copies", "first", "period_ns", "scratch", "sources", "spans")
+
+    def __init__(self, channel: LetChannel, links: list[InputLink], u: np.ndarray) -> None:
+        self.channel, self.period_ns = channel, links[0].writer_period_ns
+        self.first = min(link.source.start for link in links)
+        stop = max(link.source.stop for link in links)
+        self.sources = channel.source_views(slice(self.first, stop))
+        self.scratch = np.zeros(stop - self.first)  # a torn read never reaches u
+        self.spans = tuple(
+            (link.source.start - self.first, link.target.start, link.source.stop - link.source.start) for link in links
+        )
+        self.copies = [(self.scratch[a : a + n], u[b : b + n]) for a, b, n in self.spans]
 
 
 class _ProfileReader:
-    __slots__ = ("index", "t_ns", "target", "values")
+    __slots__ = ("index", "profile", "t_ns", "target", "values")
 
     def __init__(self, profile: Profile, target: np.ndarray) -> None:
+        self.profile = profile
         self.t_ns = [int(t) for t in profile.t_ns]
         self.values = [np.array(row, dtype=np.float64) for row in profile.values]
         self.target = target
@@ -106,10 +116,10 @@ class TaskWiring:
         self.t0_ns = 0
         self.u, self.y = u, y
         self.output = LetChannel(self._segments[plan.output_channel]) if plan.output_channel else None
-        self.links = [
-            _Link(LetChannel(self._segments[link.channel_segment]), link.source, u[link.target], link.writer_period_ns)
-            for link in plan.inputs
-        ]
+        by_writer: dict[str, list[InputLink]] = {}
+        for link in plan.inputs:
+            by_writer.setdefault(link.channel_segment, []).append(link)
+        self.links = [_WriterLink(LetChannel(self._segments[name]), links, u) for name, links in by_writer.items()]
         self.live_ports = [
             (LatestValue(self._segments[port.segment]), u[port.target], float(index))
             for index, port in enumerate(plan.input_ports)
@@ -131,7 +141,10 @@ class TaskWiring:
     def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
         t0_ns = self.t0_ns
         for link in self.links:
-            stamp = link.channel.read_valid_at(release_ns, link.sources, link.target)
+            stamp = link.channel.read_valid_at(release_ns, link.sources, link.scratch)
+            if stamp != NO_STAMP:
+                for source, target in link.copies:
+                    np.copyto(target, source)
             entitled = t0_ns + (release_ns - t0_ns) // link.period_ns * link.period_ns
             if stamp < entitled:  # the writer has not published what we are entitled to
                 self.stale_reads += 1
@@ -150,6 +163,7 @@ class TaskWiring:
         row = self.input_log_row
         row[0] = index
         row[1 : 1 + len(values)] = values
+        row[1 + len(values) :] = 0.0
         self.input_log.push(since_t0_ns, row)  # type: ignore[union-attr]
 
     def publish_outputs(self, cycle: int, publish_ns: int, y: np.ndarray) -> None:

@@ -1,0 +1,18 @@
+"""Builds the optional C hot path; everything else is in pyproject.toml.
+
+``optional=True``: without a compiler the build only warns and rtloop runs its
+pure-Python path (and says so once at run time).
+"""
+
+from setuptools import Extension, setup
+
+setup(
+    ext_modules=[
+        Extension(
+            "rtloop.ipc._hotpath",
+            sources=["src/rtloop/ipc/_hotpath.c"],
+            extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
+            optional=True,
+        )
+    ],
+)

@@ -1,0 +1,716 @@
+/* The per-cycle framework work of one task, compiled: rtloop's hot path.
+ *
+ * This is the C twin of rtloop/ipc/hotpath.py (PythonCycle, which is the reference:
+ * read it first). Same shared-memory layout, same results; only faster. A Core is
+ * built once before the loop: it holds the buffers (PyObject_GetBuffer, released in
+ * dealloc) and precomputed pointers, so a cycle allocates no Python objects except
+ * the three ints it stores in the TickInfo, which the Python twin stores too.
+ *
+ * Memory ordering follows Boehm, "Can seqlocks get along with programming language
+ * memory models?" (HPL-2012-68, fig. 6): the payload is copied with relaxed atomic
+ * loads and an acquire fence orders them before the second sequence load. Acquire and
+ * release make it correct on aarch64 by construction; on x86-64 they cost nothing.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <errno.h>
+#include <stdatomic.h>
+#include <stdint.h>
+#include <string.h>
+#include <time.h>
+
+#if ATOMIC_LLONG_LOCK_FREE != 2
+#error "rtloop's shared memory needs lock-free 64-bit atomics"
+#endif
+
+typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
+
+/* Layout constants shared with the Python modules (hotpath.py checks they agree). */
+#define HEADER_WORDS 8
+#define NO_STAMP (-(INT64_C(1) << 62))
+#define READ_RETRIES 64
+#define CONTROL_STOP 2
+#define STATUS_CYCLE 2
+#define STATUS_OVERRUNS 3
+#define STATUS_DEADLINE_MISSES 4
+#define STATUS_STALE_READS 5
+#define STATUS_LATENCY_LAST_NS 6
+#define STATUS_EXEC_LAST_NS 8
+
+#define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
+#define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
+
+typedef struct {
+    int64_t from, to, count; /* scratch[from:from+count] -> u[to:to+count] */
+} Span;
+
+typedef struct { /* every connection from one writer: one seqlock read per cycle */
+    aword *words;
+    int64_t n_slots, slot_words, period_ns, first, width, n_spans;
+    int64_t *scratch;
+    Span *spans;
+} Input;
+
+typedef struct { /* LatestValue: an input port written by non-RT code */
+    aword *words;
+    int64_t count, to, last_seq;
+    int64_t *scratch;
+    double index; /* its place among the task's input ports, for the input log */
+} LivePort;
+
+typedef struct { /* a setpoint profile, piecewise constant in time since T0 */
+    const int64_t *t_ns;
+    const double *rows;
+    int64_t n_rows, count, to, index;
+} Profile;
+
+typedef struct { /* SampleQueue (or the timing RecordRing, same header) */
+    aword *words;
+    int64_t *ticks; /* NULL for a RecordRing: its records hold everything */
+    int64_t *rows;
+    int64_t width, capacity, written, from;
+} Queue;
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *tick;
+    Py_buffer *views;
+    Py_ssize_t n_views;
+    double *u, *y;
+    int64_t n_u, n_y;
+    aword *control, *status;
+    Queue timing;
+    aword *output; /* LetChannel words, or NULL */
+    int64_t output_slots, output_slot_words, published;
+    Input *inputs;
+    LivePort *live_ports;
+    Profile *profiles;
+    Queue *out_ports;
+    Queue record;
+    int has_record;
+    int64_t *record_row;
+    Queue input_log; /* [port index, values...] each time a live port delivers a new value */
+    int has_input_log;
+    double *input_log_row;
+    Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
+    int64_t period_ns, catch_up, t0_ns, end_ns;
+    int64_t cycle, release_ns, start_ns, stale_reads;
+} Core;
+
+static PyObject *str_cycle, *str_release_ns, *str_start_ns;
+
+static int64_t now_ns(void) {
+    struct timespec now;
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    return (int64_t)now.tv_sec * 1000000000 + now.tv_nsec;
+}
+
+/* ---- setup (once, before the loop): buffers and checked sizes ---------------------- */
+
+static void *hold_buffer(Core *self, PyObject *obj, int writable, Py_ssize_t min_bytes, Py_ssize_t *len) {
+    Py_buffer *views = PyMem_Realloc(self->views, (self->n_views + 1) * sizeof(Py_buffer));
+    if (views == NULL) {
+        PyErr_NoMemory();
+        return NULL;
+    }
+    self->views = views;
+    Py_buffer *view = &views[self->n_views];
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0)) < 0)
+        return NULL;
+    self->n_views++;
+    if ((view->len > 0 && ((uintptr_t)view->buf & 7) != 0) || view->len < min_bytes) {
+        PyErr_Format(PyExc_ValueError, "hot path: buffer of %zd bytes at %p is misaligned or smaller than %zd bytes",
+                     view->len, view->buf, min_bytes);
+        return NULL;
+    }
+    if (len != NULL)
+        *len = view->len;
+    return view->buf;
+}
+
+static int64_t *zeros(int64_t count) {
+    int64_t *memory = PyMem_Calloc(count > 0 ? count : 1, sizeof(int64_t));
+    if (memory == NULL)
+        PyErr_NoMemory();
+    return memory;
+}
+
+static int attach_queue(Core *self, PyObject *buffer, Queue *queue, int with_ticks) {
+    Py_ssize_t len;
+    aword *words = hold_buffer(self, buffer, 1, HEADER_WORDS * 8, &len);
+    if (words == NULL)
+        return -1;
+    queue->words = words;
+    queue->width = LOAD(&words[3], relaxed);
+    queue->capacity = LOAD(&words[4], relaxed);
+    queue->written = LOAD(&words[0], relaxed);
+    int64_t needed = HEADER_WORDS + queue->capacity * (queue->width + (with_ticks ? 1 : 0));
+    if (queue->capacity <= 0 || queue->width < 0 || needed * 8 > len) {
+        PyErr_SetString(PyExc_ValueError, "hot path: queue header does not match its buffer");
+        return -1;
+    }
+    int64_t *data = (int64_t *)(words + HEADER_WORDS);
+    queue->ticks = with_ticks ? data : NULL;
+    queue->rows = with_ticks ? data + queue->capacity : data;
+    return 0;
+}
+
+static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
+    static char *keywords[] = {"tick", "u", "y", "control", "status", "timing", "period_ns", "catch_up", NULL};
+    PyObject *tick, *u, *y, *control, *status, *timing;
+    long long period_ns;
+    int catch_up;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOOOLp", keywords, &tick, &u, &y, &control, &status, &timing,
+                                     &period_ns, &catch_up))
+        return -1;
+    if (self->tick != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "hot path: a Core is built once");
+        return -1;
+    }
+    Py_ssize_t len_u, len_y;
+    Py_INCREF(tick);
+    self->tick = tick;
+    if ((self->u = hold_buffer(self, u, 1, 0, &len_u)) == NULL || (self->y = hold_buffer(self, y, 1, 0, &len_y)) == NULL ||
+        (self->control = hold_buffer(self, control, 1, (CONTROL_STOP + 1) * 8, NULL)) == NULL ||
+        (self->status = hold_buffer(self, status, 1, (STATUS_EXEC_LAST_NS + 1) * 8, NULL)) == NULL ||
+        attach_queue(self, timing, &self->timing, 0) < 0)
+        return -1;
+    if (self->timing.width != 4) {
+        PyErr_SetString(PyExc_ValueError, "hot path: the timing ring must hold 4-word records");
+        return -1;
+    }
+    self->n_u = len_u / 8;
+    self->n_y = len_y / 8;
+    self->period_ns = period_ns;
+    self->catch_up = catch_up;
+    return 0;
+}
+
+static int check_span(int64_t start, int64_t count, int64_t size, const char *what) {
+    if (start < 0 || count < 0 || start + count > size) {
+        PyErr_Format(PyExc_ValueError, "hot path: %s [%lld:%lld] outside 0..%lld", what, (long long)start,
+                     (long long)(start + count), (long long)size);
+        return -1;
+    }
+    return 0;
+}
+
+/* add_input(channel_words, writer_period_ns, first, width, spans): spans = ((from, to, count), ...) */
+static PyObject *Core_add_input(Core *self, PyObject *args) {
+    PyObject *buffer, *spans;
+    long long period_ns, first, width;
+    if (!PyArg_ParseTuple(args, "OLLLO!", &buffer, &period_ns, &first, &width, &PyTuple_Type, &spans))
+        return NULL;
+    Py_ssize_t len;
+    aword *words = hold_buffer(self, buffer, 1, HEADER_WORDS * 8, &len);
+    if (words == NULL)
+        return NULL;
+    Input *inputs = PyMem_Realloc(self->inputs, (self->n_inputs + 1) * sizeof(Input));
+    if (inputs == NULL)
+        return PyErr_NoMemory();
+    self->inputs = inputs;
+    Input *input = &inputs[self->n_inputs];
+    memset(input, 0, sizeof *input);
+    int64_t n_values = LOAD(&words[1], relaxed);
+    input->words = words;
+    input->n_slots = LOAD(&words[2], relaxed);
+    input->slot_words = 2 + n_values;
+    input->period_ns = period_ns;
+    input->first = first;
+    input->width = width;
+    if (input->n_slots <= 0 || period_ns <= 0 || (HEADER_WORDS + input->n_slots * input->slot_words) * 8 > len ||
+        check_span(first, width, n_values, "writer outputs") < 0) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "hot path: channel header does not match its buffer");
+        return NULL;
+    }
+    input->n_spans = PyTuple_GET_SIZE(spans);
+    input->scratch = zeros(width);
+    input->spans = PyMem_Calloc(input->n_spans ? input->n_spans : 1, sizeof(Span));
+    if (input->scratch == NULL || input->spans == NULL)
+        return PyErr_NoMemory();
+    self->n_inputs++; /* from here on dealloc frees it */
+    for (Py_ssize_t i = 0; i < input->n_spans; i++) {
+        Span *span = &input->spans[i];
+        long long from, to, count;
+        if (!PyArg_ParseTuple(PyTuple_GET_ITEM(spans, i), "LLL", &from, &to, &count))
+            return NULL;
+        *span = (Span){from, to, count};
+        if (check_span(from, count, width, "connection source") < 0 || check_span(to, count, self->n_u, "u") < 0)
+            return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
+/* add_live_port(latest_value_words, to, count, last_seq_seen, index) */
+static PyObject *Core_add_live_port(Core *self, PyObject *args) {
+    PyObject *buffer;
+    long long to, count, last_seq;
+    double index;
+    if (!PyArg_ParseTuple(args, "OLLLd", &buffer, &to, &count, &last_seq, &index))
+        return NULL;
+    aword *words = hold_buffer(self, buffer, 1, (HEADER_WORDS + count) * 8, NULL);
+    if (words == NULL || check_span(to, count, self->n_u, "u") < 0)
+        return NULL;
+    if (LOAD(&words[3], relaxed) != count) {
+        PyErr_SetString(PyExc_ValueError, "hot path: port size does not match its header");
+        return NULL;
+    }
+    LivePort *ports = PyMem_Realloc(self->live_ports, (self->n_live_ports + 1) * sizeof(LivePort));
+    if (ports == NULL)
+        return PyErr_NoMemory();
+    self->live_ports = ports;
+    int64_t *scratch = zeros(count);
+    if (scratch == NULL)
+        return NULL;
+    ports[self->n_live_ports++] = (LivePort){words, count, to, last_seq, scratch, index};
+    Py_RETURN_NONE;
+}
+
+/* add_profile(t_ns int64 array, rows float64 array, to, count, index of the row in force) */
+static PyObject *Core_add_profile(Core *self, PyObject *args) {
+    PyObject *t_ns, *rows;
+    long long to, count, index;
+    if (!PyArg_ParseTuple(args, "OOLLL", &t_ns, &rows, &to, &count, &index))
+        return NULL;
+    Py_ssize_t len_t, len_rows;
+    const int64_t *times = hold_buffer(self, t_ns, 0, 0, &len_t);
+    const double *values = times ? hold_buffer(self, rows, 0, 0, &len_rows) : NULL;
+    if (values == NULL || check_span(to, count, self->n_u, "u") < 0)
+        return NULL;
+    if (len_rows != len_t * count) {
+        PyErr_SetString(PyExc_ValueError, "hot path: profile rows do not match its times");
+        return NULL;
+    }
+    Profile *profiles = PyMem_Realloc(self->profiles, (self->n_profiles + 1) * sizeof(Profile));
+    if (profiles == NULL)
+        return PyErr_NoMemory();
+    self->profiles = profiles;
+    profiles[self->n_profiles++] = (Profile){times, values, len_t / 8, count, to, index};
+    Py_RETURN_NONE;
+}
+
+/* set_output(let_channel_words) */
+static PyObject *Core_set_output(Core *self, PyObject *buffer) {
+    Py_ssize_t len;
+    aword *words = hold_buffer(self, buffer, 1, HEADER_WORDS * 8, &len);
+    if (words == NULL)
+        return NULL;
+    int64_t n_values = LOAD(&words[1], relaxed);
+    self->output_slots = LOAD(&words[2], relaxed);
+    self->output_slot_words = 2 + n_values;
+    if (n_values != self->n_y || self->output_slots <= 0 ||
+        (HEADER_WORDS + self->output_slots * self->output_slot_words) * 8 > len) {
+        PyErr_SetString(PyExc_ValueError, "hot path: output channel does not match y");
+        return NULL;
+    }
+    self->published = LOAD(&words[0], relaxed);
+    self->output = words;
+    Py_RETURN_NONE;
+}
+
+/* add_output_port(sample_queue_words, from) */
+static PyObject *Core_add_output_port(Core *self, PyObject *args) {
+    PyObject *buffer;
+    long long from;
+    if (!PyArg_ParseTuple(args, "OL", &buffer, &from))
+        return NULL;
+    Queue *queues = PyMem_Realloc(self->out_ports, (self->n_out_ports + 1) * sizeof(Queue));
+    if (queues == NULL)
+        return PyErr_NoMemory();
+    self->out_ports = queues;
+    Queue *queue = &queues[self->n_out_ports];
+    if (attach_queue(self, buffer, queue, 1) < 0 || check_span(from, queue->width, self->n_y, "y") < 0)
+        return NULL;
+    queue->from = from;
+    self->n_out_ports++;
+    Py_RETURN_NONE;
+}
+
+/* set_record(sample_queue_words): every tick's [y..., u...] for the recorder */
+static PyObject *Core_set_record(Core *self, PyObject *buffer) {
+    if (attach_queue(self, buffer, &self->record, 1) < 0)
+        return NULL;
+    if (self->record.width != self->n_y + self->n_u) {
+        PyErr_SetString(PyExc_ValueError, "hot path: record queue width is not len(y) + len(u)");
+        return NULL;
+    }
+    self->record_row = zeros(self->record.width);
+    if (self->record_row == NULL)
+        return NULL;
+    self->has_record = 1;
+    Py_RETURN_NONE;
+}
+
+/* set_input_log(sample_queue_words): what entered through live ports, for replay */
+static PyObject *Core_set_input_log(Core *self, PyObject *buffer) {
+    if (attach_queue(self, buffer, &self->input_log, 1) < 0)
+        return NULL;
+    if (self->input_log.width < 1) {
+        PyErr_SetString(PyExc_ValueError, "hot path: input log rows need room for the port index");
+        return NULL;
+    }
+    self->input_log_row = (double *)zeros(self->input_log.width);
+    if (self->input_log_row == NULL)
+        return NULL;
+    self->has_input_log = 1;
+    Py_RETURN_NONE;
+}
+
+/* start(t0_ns, end_ns, stale_reads): the timeline and the counts carried over */
+static PyObject *Core_start(Core *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "start(t0_ns, end_ns, stale_reads)");
+        return NULL;
+    }
+    self->t0_ns = PyLong_AsLongLong(args[0]);
+    self->end_ns = PyLong_AsLongLong(args[1]);
+    self->stale_reads = PyLong_AsLongLong(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    self->cycle = 0;
+    self->release_ns = self->t0_ns;
+    Py_RETURN_NONE;
+}
+
+/* ---- the cycle: no allocation, no Python objects but the tick's three ints -------------- */
+
+static int64_t read_channel(Input *input, int64_t time_ns) {
+    aword *words = input->words;
+    int64_t published = LOAD(&words[0], acquire);
+    int64_t back = 1, tries = 0;
+    while (back <= published && back <= input->n_slots && tries < READ_RETRIES * input->n_slots) {
+        tries++;
+        aword *slot = words + HEADER_WORDS + ((published - back) % input->n_slots) * input->slot_words;
+        int64_t seq = LOAD(&slot[0], acquire);
+        if (seq & 1)
+            continue; /* being written: look again */
+        int64_t stamp = LOAD(&slot[1], relaxed);
+        if (stamp <= time_ns) {
+            aword *values = slot + 2 + input->first;
+            for (int64_t i = 0; i < input->width; i++)
+                input->scratch[i] = LOAD(&values[i], relaxed);
+        }
+        atomic_thread_fence(memory_order_acquire);
+        if (LOAD(&slot[0], relaxed) != seq)
+            continue; /* changed under us (the writer may have lapped it): look again */
+        if (stamp <= time_ns)
+            return stamp;
+        back++; /* too new for this reader: the slot before */
+    }
+    return NO_STAMP;
+}
+
+/* 1 when the port delivered a value not seen before (it is then in u), else 0 */
+static int read_live_port(LivePort *port, double *u) {
+    aword *words = port->words;
+    for (int tries = 0; tries < READ_RETRIES; tries++) {
+        int64_t seq = LOAD(&words[0], acquire);
+        if (seq & 1)
+            continue;
+        for (int64_t i = 0; i < port->count; i++)
+            port->scratch[i] = LOAD(&words[HEADER_WORDS + i], relaxed);
+        atomic_thread_fence(memory_order_acquire);
+        if (LOAD(&words[0], relaxed) != seq)
+            continue;
+        memcpy(u + port->to, port->scratch, port->count * 8);
+        if (seq != port->last_seq) {
+            port->last_seq = seq;
+            STORE(&words[2], LOAD(&words[2], relaxed) + 1, relaxed); /* reads: this reader's word */
+            return 1;
+        }
+        return 0;
+    }
+    return 0;
+}
+
+static void push(Queue *queue, int64_t tick, const void *values);
+
+static void log_input(Core *self, LivePort *port, int64_t since_t0_ns) {
+    double *row = self->input_log_row;
+    int64_t width = self->input_log.width, count = port->count < width - 1 ? port->count : width - 1;
+    row[0] = port->index;
+    memcpy(row + 1, self->u + port->to, count * 8);
+    for (int64_t i = 1 + count; i < width; i++)
+        row[i] = 0.0;
+    push(&self->input_log, since_t0_ns, row);
+}
+
+static void read_inputs(Core *self, int64_t release_ns) {
+    int64_t since_t0_ns = release_ns - self->t0_ns;
+    for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
+        Input *input = &self->inputs[i];
+        int64_t stamp = read_channel(input, release_ns);
+        if (stamp != NO_STAMP)
+            for (int64_t s = 0; s < input->n_spans; s++) {
+                Span *span = &input->spans[s];
+                memcpy(self->u + span->to, input->scratch + span->from, span->count * 8);
+            }
+        int64_t entitled = self->t0_ns + since_t0_ns / input->period_ns * input->period_ns;
+        if (stamp < entitled) { /* the writer has not published what we are entitled to */
+            self->stale_reads++;
+            STORE(&self->status[STATUS_STALE_READS], self->stale_reads, relaxed);
+        }
+    }
+    for (Py_ssize_t i = 0; i < self->n_live_ports; i++)
+        if (read_live_port(&self->live_ports[i], self->u) && self->has_input_log)
+            log_input(self, &self->live_ports[i], since_t0_ns);
+    for (Py_ssize_t i = 0; i < self->n_profiles; i++) {
+        Profile *profile = &self->profiles[i];
+        int64_t index = profile->index;
+        while (index + 1 < profile->n_rows && profile->t_ns[index + 1] <= since_t0_ns)
+            index++;
+        if (index != profile->index && index >= 0) {
+            memcpy(self->u + profile->to, profile->rows + index * profile->count, profile->count * 8);
+            profile->index = index;
+        }
+    }
+}
+
+/* A single-producer queue: a full one drops and counts, it never waits. */
+static void push(Queue *queue, int64_t tick, const void *values) {
+    aword *words = queue->words;
+    int64_t written = queue->written;
+    if (written - LOAD(&words[1], acquire) >= queue->capacity) {
+        STORE(&words[2], LOAD(&words[2], relaxed) + 1, relaxed);
+        return;
+    }
+    int64_t index = written % queue->capacity;
+    if (queue->ticks != NULL)
+        queue->ticks[index] = tick;
+    memcpy(queue->rows + index * queue->width, values, queue->width * 8);
+    queue->written = written + 1;
+    STORE(&words[0], written + 1, release); /* the row is visible before the count announcing it */
+}
+
+static void publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
+    if (self->output != NULL) {
+        aword *slot = self->output + HEADER_WORDS + (self->published % self->output_slots) * self->output_slot_words;
+        int64_t seq = LOAD(&slot[0], relaxed) + 1;
+        STORE(&slot[0], seq, relaxed); /* odd: slot being written */
+        atomic_thread_fence(memory_order_release);
+        int64_t *values = (int64_t *)self->y;
+        for (int64_t i = 0; i < self->n_y; i++)
+            STORE(&slot[2 + i], values[i], relaxed);
+        STORE(&slot[1], publish_ns, relaxed);
+        STORE(&slot[0], seq + 1, release); /* even: slot complete */
+        self->published++;
+        STORE(&self->output[0], self->published, release);
+    }
+    for (Py_ssize_t i = 0; i < self->n_out_ports; i++)
+        push(&self->out_ports[i], cycle, self->y + self->out_ports[i].from);
+    if (self->has_record) {
+        memcpy(self->record_row, self->y, self->n_y * 8);
+        memcpy(self->record_row + self->n_y, self->u, self->n_u * 8);
+        push(&self->record, cycle, self->record_row);
+    }
+}
+
+static int set_tick(Core *self, PyObject *name, int64_t value) {
+    PyObject *number = PyLong_FromLongLong(value);
+    if (number == NULL)
+        return -1;
+    int result = PyObject_SetAttr(self->tick, name, number);
+    Py_DECREF(number);
+    return result;
+}
+
+/* begin(): sleep to the release, stamp the start, read the inputs. False: stop. */
+static PyObject *Core_begin(Core *self, PyObject *unused) {
+    int64_t release_ns = self->release_ns;
+    if (release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed))
+        Py_RETURN_FALSE;
+    struct timespec deadline = {release_ns / 1000000000, release_ns % 1000000000};
+    int result;
+    for (;;) {
+        Py_BEGIN_ALLOW_THREADS
+        result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
+        Py_END_ALLOW_THREADS
+        if (result != EINTR)
+            break;
+        if (PyErr_CheckSignals() < 0) /* a handler ran (SIGTERM sets the stop flag); then sleep on */
+            return NULL;
+    }
+    if (result != 0) {
+        errno = result;
+        return PyErr_SetFromErrno(PyExc_OSError);
+    }
+    self->start_ns = now_ns();
+    if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
+        set_tick(self, str_start_ns, self->start_ns) < 0)
+        return NULL;
+    read_inputs(self, release_ns);
+    Py_RETURN_TRUE;
+}
+
+/* finish(): publish the outputs valid from release + P, record the cycle, go to the next release. */
+static PyObject *Core_finish(Core *self, PyObject *unused) {
+    int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
+    int64_t period_ns = self->period_ns;
+    publish_outputs(self, cycle, release_ns + period_ns);
+    int64_t end_ns = now_ns();
+    int64_t record[4] = {cycle, release_ns, start_ns, end_ns};
+    push(&self->timing, 0, record);
+    aword *status = self->status;
+    STORE(&status[STATUS_CYCLE], cycle, relaxed);
+    STORE(&status[STATUS_LATENCY_LAST_NS], start_ns - release_ns, relaxed);
+    STORE(&status[STATUS_EXEC_LAST_NS], end_ns - start_ns, relaxed);
+    cycle++;
+    release_ns += period_ns;
+    if (end_ns > release_ns) { /* overran into the next period */
+        STORE(&status[STATUS_DEADLINE_MISSES], LOAD(&status[STATUS_DEADLINE_MISSES], relaxed) + 1, relaxed);
+        int64_t skipped = 1;
+        if (!self->catch_up) {
+            int64_t next_cycle = (end_ns - self->t0_ns) / period_ns + 1;
+            skipped = next_cycle - cycle;
+            cycle = next_cycle;
+            release_ns = self->t0_ns + next_cycle * period_ns;
+        }
+        STORE(&status[STATUS_OVERRUNS], LOAD(&status[STATUS_OVERRUNS], relaxed) + skipped, relaxed);
+    }
+    self->cycle = cycle;
+    self->release_ns = release_ns;
+    Py_RETURN_NONE;
+}
+
+/* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
+static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
+    int64_t release_ns = PyLong_AsLongLong(arg);
+    if (release_ns == -1 && PyErr_Occurred())
+        return NULL;
+    read_inputs(self, release_ns);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "publish_outputs(cycle, publish_ns)");
+        return NULL;
+    }
+    int64_t cycle = PyLong_AsLongLong(args[0]), publish_ns = PyLong_AsLongLong(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    publish_outputs(self, cycle, publish_ns);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
+
+static int Core_traverse(Core *self, visitproc visit, void *arg) {
+    Py_VISIT(self->tick);
+    for (Py_ssize_t i = 0; i < self->n_views; i++)
+        Py_VISIT(self->views[i].obj);
+    return 0;
+}
+
+static void Core_dealloc(Core *self) {
+    PyObject_GC_UnTrack(self);
+    for (Py_ssize_t i = 0; i < self->n_views; i++)
+        PyBuffer_Release(&self->views[i]);
+    PyMem_Free(self->views);
+    for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
+        PyMem_Free(self->inputs[i].scratch);
+        PyMem_Free(self->inputs[i].spans);
+    }
+    for (Py_ssize_t i = 0; i < self->n_live_ports; i++)
+        PyMem_Free(self->live_ports[i].scratch);
+    PyMem_Free(self->inputs);
+    PyMem_Free(self->live_ports);
+    PyMem_Free(self->profiles);
+    PyMem_Free(self->out_ports);
+    PyMem_Free(self->record_row);
+    PyMem_Free(self->input_log_row);
+    Py_CLEAR(self->tick);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyMethodDef Core_methods[] = {
+    {"add_input", (PyCFunction)Core_add_input, METH_VARARGS, "Attach every connection from one writer."},
+    {"add_live_port", (PyCFunction)Core_add_live_port, METH_VARARGS, "Attach an input port (LatestValue)."},
+    {"set_input_log", (PyCFunction)Core_set_input_log, METH_O, "Attach the input log (SampleQueue) for replay."},
+    {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
+    {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},
+    {"add_output_port", (PyCFunction)Core_add_output_port, METH_VARARGS, "Attach an output port (SampleQueue)."},
+    {"set_record", (PyCFunction)Core_set_record, METH_O, "Attach the recorder's queue."},
+    {"start", (PyCFunction)(void (*)(void))Core_start, METH_FASTCALL, "start(t0_ns, end_ns, stale_reads)"},
+    {"begin", (PyCFunction)Core_begin, METH_NOARGS, "Sleep to the release, read inputs; False: stop."},
+    {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},
+    {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
+    {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
+     "publish_outputs(cycle, publish_ns)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef Core_getset[] = {
+    {"stale_reads", (getter)Core_get_stale_reads, NULL, "Reads that found older data than due.", NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject CoreType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "rtloop.ipc._hotpath.Core",
+    .tp_doc = "The per-cycle framework work of one task (C twin of hotpath.PythonCycle).",
+    .tp_basicsize = sizeof(Core),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Core_init,
+    .tp_dealloc = (destructor)Core_dealloc,
+    .tp_traverse = (traverseproc)Core_traverse,
+    .tp_methods = Core_methods,
+    .tp_getset = Core_getset,
+};
+
+/* sleep_until(deadline_ns): an absolute clock_nanosleep, for measuring its cost alone */
+static PyObject *hotpath_sleep_until(PyObject *module, PyObject *arg) {
+    int64_t deadline_ns = PyLong_AsLongLong(arg);
+    if (deadline_ns == -1 && PyErr_Occurred())
+        return NULL;
+    struct timespec deadline = {deadline_ns / 1000000000, deadline_ns % 1000000000};
+    int result;
+    Py_BEGIN_ALLOW_THREADS
+    result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
+    Py_END_ALLOW_THREADS
+    if (result != 0 && result != EINTR) {
+        errno = result;
+        return PyErr_SetFromErrno(PyExc_OSError);
+    }
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef module_methods[] = {
+    {"sleep_until", hotpath_sleep_until, METH_O, "Absolute clock_nanosleep(CLOCK_MONOTONIC) to deadline_ns."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef hotpath_module = {
+    PyModuleDef_HEAD_INIT, "_hotpath", "rtloop's compiled per-cycle path (see hotpath.py).", -1, module_methods,
+};
+
+PyMODINIT_FUNC PyInit__hotpath(void) {
+    if (PyType_Ready(&CoreType) < 0)
+        return NULL;
+    str_cycle = PyUnicode_InternFromString("cycle");
+    str_release_ns = PyUnicode_InternFromString("release_ns");
+    str_start_ns = PyUnicode_InternFromString("start_ns");
+    if (str_cycle == NULL || str_release_ns == NULL || str_start_ns == NULL)
+        return NULL;
+    PyObject *module = PyModule_Create(&hotpath_module);
+    if (module == NULL)
+        return NULL;
+    Py_INCREF(&CoreType);
+    if (PyModule_AddObject(module, "Core", (PyObject *)&CoreType) < 0 ||
+        PyModule_AddIntConstant(module, "HEADER_WORDS", HEADER_WORDS) < 0 ||
+        PyModule_AddObject(module, "NO_STAMP", PyLong_FromLongLong(NO_STAMP)) < 0 ||
+        PyModule_AddIntConstant(module, "READ_RETRIES", READ_RETRIES) < 0 ||
+        PyModule_AddIntConstant(module, "CONTROL_STOP", CONTROL_STOP) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_CYCLE", STATUS_CYCLE) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_OVERRUNS", STATUS_OVERRUNS) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_DEADLINE_MISSES", STATUS_DEADLINE_MISSES) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_STALE_READS", STATUS_STALE_READS) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_LATENCY_LAST_NS", STATUS_LATENCY_LAST_NS) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    return module;
+}

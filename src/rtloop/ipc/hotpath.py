@@ -1,0 +1,160 @@
+"""The framework's share of every cycle — sleep, read inputs, publish, record — in C or in Python.
+
+A task's loop is ``while cycle.begin(): runnable.step(u, y); cycle.finish()``.
+:class:`PythonCycle` below does that work in plain Python: it is the reference, read it
+to see what happens in a cycle. ``_hotpath.Core`` (``_hotpath.c``) does exactly the same
+over the same shared memory in two C calls, for a fraction of the cost. It is used when
+it was built (pip builds it with the system compiler) unless ``RTLOOP_PURE_PYTHON=1``;
+the tests run both and check they give the same signals (the pattern of CPython's
+``bisect`` and ``_bisect``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+from rtloop.ipc.status import ControlWord, StatusWord
+from rtloop.rt import AbsoluteSleeper, now_ns
+
+try:
+    from rtloop.ipc import _hotpath
+except ImportError as error:  # no compiler when the package was installed
+    _hotpath = None
+    _NOT_BUILT = f"the C hot path rtloop.ipc._hotpath is not built ({error})"
+else:
+    _NOT_BUILT = ""
+    assert (_hotpath.CONTROL_STOP, _hotpath.STATUS_CYCLE, _hotpath.STATUS_OVERRUNS, _hotpath.STATUS_DEADLINE_MISSES,
+            _hotpath.STATUS_STALE_READS, _hotpath.STATUS_LATENCY_LAST_NS, _hotpath.STATUS_EXEC_LAST_NS) == (
+        ControlWord.STOP, StatusWord.CYCLE, StatusWord.OVERRUNS, StatusWord.DEADLINE_MISSES,
+        StatusWord.STALE_READS, StatusWord.LATENCY_LAST_NS, StatusWord.EXEC_LAST_NS), "C and Python layouts differ"
+
+PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
+_announced = False
+
+
+def c_built() -> bool:
+    """Whether the C hot path was built (pip needs a compiler for it)."""
+    return _hotpath is not None
+
+
+def why_python() -> str:
+    """Why the Python hot path is in use here ("" when the C one is)."""
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return f"{PURE_PYTHON_ENV}={os.environ[PURE_PYTHON_ENV]}"
+    return _NOT_BUILT
+
+
+def hot_path() -> str:
+    """``c`` or ``python``: which implementation a task started now would use."""
+    return "python" if why_python() else "c"
+
+
+def announce_once() -> None:
+    """Say, once per process, that the slower Python path is in use and why."""
+    global _announced
+    reason = why_python()
+    if reason and not _announced:
+        _announced = True
+        print(f"rtloop: per-cycle work runs in Python, not C: {reason}", file=sys.stderr)
+
+
+class PythonCycle:
+    """One task's per-cycle framework work, in Python (the reference for ``_hotpath.Core``)."""
+
+    def __init__(self, tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
+                 catch_up: bool) -> None:
+        self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
+        self.period_ns, self.catch_up = period_ns, catch_up
+        self.sleeper = AbsoluteSleeper()
+        self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = 0
+
+    def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None:
+        self.t0_ns, self.end_ns = t0_ns, end_ns
+        self.cycle, self.release_ns = 0, t0_ns
+        self.wiring.stale_reads = stale_reads
+
+    @property
+    def stale_reads(self) -> int:
+        return self.wiring.stale_reads
+
+    def begin(self) -> bool:
+        """Sleep to the release, then read the inputs valid at it. False: time to stop."""
+        release_ns = self.release_ns
+        if release_ns >= self.end_ns or self.control[ControlWord.STOP]:
+            return False
+        self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
+        self.start_ns = now_ns()
+        tick = self.tick
+        tick.cycle, tick.release_ns, tick.start_ns = self.cycle, release_ns, self.start_ns
+        self.wiring.read_inputs(release_ns, self.wiring.u)
+        return True
+
+    def finish(self) -> None:
+        """Publish outputs valid from release + P, record the cycle, move to the next release."""
+        cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
+        self.wiring.publish_outputs(cycle, release_ns + period_ns, self.wiring.y)
+        end_ns = now_ns()
+        self.timing.push4(cycle, release_ns, start_ns, end_ns)
+        status = self.status
+        status[StatusWord.CYCLE] = cycle
+        status[StatusWord.LATENCY_LAST_NS] = start_ns - release_ns
+        status[StatusWord.EXEC_LAST_NS] = end_ns - start_ns
+        cycle += 1
+        release_ns += period_ns
+        if end_ns > release_ns:  # overran into the next period
+            status[StatusWord.DEADLINE_MISSES] += 1
+            skipped = 1
+            if not self.catch_up:  # skip the releases already missed
+                next_cycle = (end_ns - self.t0_ns) // period_ns + 1
+                skipped = next_cycle - cycle
+                cycle, release_ns = next_cycle, self.t0_ns + next_cycle * period_ns
+            status[StatusWord.OVERRUNS] += skipped
+        self.cycle, self.release_ns = cycle, release_ns
+
+    # --- the simulator's steps: no clock ---------------------------------------------------
+    def read_inputs(self, release_ns: int) -> None:
+        self.wiring.read_inputs(release_ns, self.wiring.u)
+
+    def publish_outputs(self, cycle: int, publish_ns: int) -> None:
+        self.wiring.publish_outputs(cycle, publish_ns, self.wiring.y)
+
+
+def _index_in(base: Any, view: Any) -> int:
+    """Where the numpy view ``view`` starts inside ``base`` (in float64 elements)."""
+    return (view.__array_interface__["data"][0] - base.__array_interface__["data"][0]) // 8
+
+
+def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
+                   catch_up: bool) -> Any:
+    """A ``_hotpath.Core`` over the same shared memory as ``wiring`` (a TaskWiring)."""
+    import numpy as np
+
+    assert _hotpath is not None
+    u, y = wiring.u, wiring.y
+    core = _hotpath.Core(tick, u, y, control.words, status.words, timing.memory, period_ns, catch_up)
+    for link in wiring.links:
+        core.add_input(link.channel.words, link.period_ns, link.first, len(link.scratch), link.spans)
+    for port, target, index in wiring.live_ports:
+        core.add_live_port(port.words, _index_in(u, target), len(target), port.last_seq_seen, index)
+    if wiring.input_log is not None:
+        core.set_input_log(wiring.input_log.words)
+    for reader in wiring.profiles:
+        t_ns = np.ascontiguousarray(reader.profile.t_ns, dtype=np.int64)
+        rows = np.ascontiguousarray(reader.profile.values, dtype=np.float64)
+        core.add_profile(t_ns, rows, _index_in(u, reader.target), len(reader.target), reader.index)
+    if wiring.output is not None:
+        core.set_output(wiring.output.words)
+    for queue, source in wiring.output_ports:
+        core.add_output_port(queue.words, _index_in(y, source))
+    if wiring.record is not None:
+        core.set_record(wiring.record.words)
+    return core
+
+
+def cycle_work(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
+               catch_up: bool) -> Any:
+    """The per-cycle work of a task, built once before its loop: C when available, else Python."""
+    kind = compiled_cycle if hot_path() == "c" else PythonCycle
+    return kind(tick, wiring, control, status, timing, period_ns, catch_up)
