@@ -7,8 +7,8 @@
 #   host     install debootstrap, qemu-user-static, binfmt-support (apt-get) when missing
 #   binfmt   mount binfmt_misc and register qemu-aarch64 when missing
 #   root     an arm64 Debian 12 root made by debootstrap, cached in ROOT_DIR (built once)
-#   install  rtloop from this checkout (copied in) into a venv in the root, with [fmu,test]
-#   checks   aarch64 facts inside the root (tools/aarch64/guest_checks.py)
+#   install  rtloop from this checkout (copied in) into a venv in the root, with [fmu,report], mcap, pytest
+#   checks   architecture facts inside the root (tests/test_arch.py)
 #   tests    a part of the test suite inside the root (RTLOOP_AARCH64_TESTS)
 #   compare  JIWY simulated on aarch64 and on this host, signals.csv compared bit for bit
 #
@@ -162,10 +162,10 @@ main() {
         echo "debootstrap --arch=arm64 --variant=minbase $suite $root $mirror"
         debootstrap --arch=arm64 --variant=minbase --include="$packages" "$suite" "$root" "$mirror" \
             > "$out/debootstrap.log" 2>&1 || { tail -30 "$out/debootstrap.log"; fail "debootstrap (log: $out/debootstrap.log)"; }
-        # Trust what this host trusts (an HTTPS proxy's CA, if any), so pip inside reaches the index.
+        # Trust what this host trusts locally (an HTTPS proxy's CA, if any), so pip inside reaches
+        # the index. Appended to the bundle pip reads: update-ca-certificates takes minutes emulated.
         if compgen -G "/usr/local/share/ca-certificates/*.crt" >/dev/null; then
-            cp /usr/local/share/ca-certificates/*.crt "$root/usr/local/share/ca-certificates/"
-            in_root chroot "$root" update-ca-certificates >/dev/null
+            cat /usr/local/share/ca-certificates/*.crt >> "$root/etc/ssl/certs/ca-certificates.crt"
         fi
         cp /etc/resolv.conf "$root/etc/resolv.conf" 2>/dev/null || true
         echo "debian $suite arm64, made $(date -u +%FT%TZ) from $mirror" > "$root/.rtloop-root-ready"
@@ -189,16 +189,21 @@ main() {
     mkdir -p "$root$guest_src"
     # The checkout's files as git sees them (tracked and new, not ignored), with local edits.
     (cd "$repo" && git ls-files -z --cached --others --exclude-standard \
-        | while IFS= read -r -d '' f; do [ -e "$f" ] && printf '%s\0' "$f"; done \
+        | while IFS= read -r -d '' f; do if [ -e "$f" ]; then printf '%s\0' "$f"; fi; done \
         | tar --null -T - -cf -) | tar -xf - -C "$root$guest_src"
     [ -x "$root$venv/bin/python" ] || run_in_root python3 -m venv "$venv"
     # Debian 12's venv brings setuptools 66; the build needs >= 68. Build without isolation so
     # the C extension is compiled by the root's gcc with this venv's setuptools.
     run_in_root "$venv/bin/pip" install -q 'setuptools>=68' wheel
-    if ! run_in_root "$venv/bin/pip" install -q --no-build-isolation "$guest_src[fmu,test]" > "$out/pip.log"; then
+    # [fmu] (FMPy has a pure-Python wheel) and [report], but not [ros]: cyclonedds has no aarch64
+    # wheel. [ros]'s mcap packages are pure Python and every run writes run.mcap, so they go in.
+    # Of [test] only the test runners: its linter is not needed here and pip is slow emulated.
+    test_packages=(mcap mcap-ros2-support pytest pytest-timeout hypothesis)
+    if ! run_in_root "$venv/bin/pip" install -q --no-build-isolation "$guest_src[fmu,report]" "${test_packages[@]}" \
+            > "$out/pip.log"; then
         cat "$out/pip.log"
         echo "aarch64: [fmu] did not install (FMPy), trying without it" >&2
-        run_in_root "$venv/bin/pip" install -q --no-build-isolation "$guest_src[test]" \
+        run_in_root "$venv/bin/pip" install -q --no-build-isolation "$guest_src" "${test_packages[@]}" \
             || fail "pip install of rtloop inside the root"
     fi
     run_in_root "$venv/bin/pip" list 2>/dev/null | grep -iE '^(rtloop|numpy|fmpy|pytest) ' || true
