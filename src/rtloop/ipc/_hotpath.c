@@ -96,6 +96,7 @@ typedef struct {
     Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
     int64_t period_ns, catch_up, t0_ns, end_ns;
     int64_t cycle, release_ns, start_ns, stale_reads;
+    int closed; /* after close(): no shared memory held, every call refused */
 } Core;
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
@@ -518,6 +519,10 @@ static int set_tick(Core *self, PyObject *name, int64_t value) {
 
 /* begin(): sleep to the release, stamp the start, read the inputs. False: stop. */
 static PyObject *Core_begin(Core *self, PyObject *unused) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t release_ns = self->release_ns;
     if (release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed))
         Py_RETURN_FALSE;
@@ -546,6 +551,10 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
 
 /* finish(): publish the outputs valid from release + P, record the cycle, go to the next release. */
 static PyObject *Core_finish(Core *self, PyObject *unused) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
     int64_t period_ns = self->period_ns;
     publish_outputs(self, cycle, release_ns + period_ns);
@@ -576,6 +585,10 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
 
 /* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
 static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t release_ns = PyLong_AsLongLong(arg);
     if (release_ns == -1 && PyErr_Occurred())
         return NULL;
@@ -584,6 +597,10 @@ static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
 }
 
 static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "publish_outputs(cycle, publish_ns)");
         return NULL;
@@ -604,10 +621,27 @@ static int Core_traverse(Core *self, visitproc visit, void *arg) {
     return 0;
 }
 
-static void Core_dealloc(Core *self) {
-    PyObject_GC_UnTrack(self);
+/* Let go of the shared memory and the tick: after this the Core does nothing (close(), or the
+   garbage collector breaking a cycle — a mapping must never outlive the views we hold of it). */
+static int Core_clear(Core *self) {
     for (Py_ssize_t i = 0; i < self->n_views; i++)
         PyBuffer_Release(&self->views[i]);
+    self->n_views = 0;
+    self->closed = 1;
+    self->u = self->y = NULL;
+    self->control = self->status = self->output = NULL;
+    Py_CLEAR(self->tick);
+    return 0;
+}
+
+static PyObject *Core_close(Core *self, PyObject *unused) {
+    Core_clear(self);
+    Py_RETURN_NONE;
+}
+
+static void Core_dealloc(Core *self) {
+    PyObject_GC_UnTrack(self);
+    Core_clear(self);
     PyMem_Free(self->views);
     for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
         PyMem_Free(self->inputs[i].scratch);
@@ -621,7 +655,6 @@ static void Core_dealloc(Core *self) {
     PyMem_Free(self->out_ports);
     PyMem_Free(self->record_row);
     PyMem_Free(self->input_log_row);
-    Py_CLEAR(self->tick);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -629,6 +662,7 @@ static PyMethodDef Core_methods[] = {
     {"add_input", (PyCFunction)Core_add_input, METH_VARARGS, "Attach every connection from one writer."},
     {"add_live_port", (PyCFunction)Core_add_live_port, METH_VARARGS, "Attach an input port (LatestValue)."},
     {"set_input_log", (PyCFunction)Core_set_input_log, METH_O, "Attach the input log (SampleQueue) for replay."},
+    {"close", (PyCFunction)Core_close, METH_NOARGS, "Release the shared memory and the tick (idempotent)."},
     {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
     {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},
     {"add_output_port", (PyCFunction)Core_add_output_port, METH_VARARGS, "Attach an output port (SampleQueue)."},
@@ -656,6 +690,7 @@ static PyTypeObject CoreType = {
     .tp_init = (initproc)Core_init,
     .tp_dealloc = (destructor)Core_dealloc,
     .tp_traverse = (traverseproc)Core_traverse,
+    .tp_clear = (inquiry)Core_clear,
     .tp_methods = Core_methods,
     .tp_getset = Core_getset,
 };

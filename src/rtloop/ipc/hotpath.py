@@ -113,6 +113,9 @@ class PythonCycle:
             status[StatusWord.OVERRUNS] += skipped
         self.cycle, self.release_ns = cycle, release_ns
 
+    def close(self) -> None:
+        """Nothing to let go of here (the C twin releases its hold on the shared memory)."""
+
     # --- the simulator's steps: no clock ---------------------------------------------------
     def read_inputs(self, release_ns: int) -> None:
         self.wiring.read_inputs(release_ns, self.wiring.u)

@@ -153,6 +153,9 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
         if recorder.mcap_note:
             summary.notes.append(recorder.mcap_note)
         summary.write(out / "summary.json")
+        for task in tasks.values():
+            if task.io is not None:
+                task.io.close()  # let go of the shared memory before it is unmapped
         layout.close()
     if failure is not None:
         raise failure

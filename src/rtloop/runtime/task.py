@@ -86,9 +86,12 @@ class RealtimeTask:
         # release + P (logical execution time), so the result does not depend on how fast
         # this cycle ran, records its timing and moves to the next release (after an overrun,
         # as the overrun policy says).
-        while cycle.begin():
-            runnable.step(u, y)
-            cycle.finish()
+        try:
+            while cycle.begin():
+                runnable.step(u, y)
+                cycle.finish()
+        finally:
+            cycle.close()  # let go of the shared memory before it is unmapped
 
 
 def initial_inputs(runnable: Runnable) -> np.ndarray:
