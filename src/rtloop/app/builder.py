@@ -30,6 +30,8 @@ from rtloop.runnable import Runnable
 Side = Literal["u", "y"]
 NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 OVERRUN_POLICIES = ("skip", "catch_up")
+DEFAULT_WATCHDOG_PERIODS = 1000
+WATCHDOG_MIN_S = 1.0
 
 @dataclass(frozen=True, slots=True)
 class TaskConfig:
@@ -47,6 +49,11 @@ class TaskConfig:
     """Scheduling policy: fifo, rr, other or deadline."""
     overrun: str = "skip"
     """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
+    watchdog_periods: int = DEFAULT_WATCHDOG_PERIODS
+    """The supervisor stops the app when no cycle of this task finishes for this many periods
+    (at least ``WATCHDOG_MIN_S``): the step is stuck. 0 turns the watchdog off."""
+    max_consecutive_misses: int | None = None
+    """Stop the app after this many deadline misses in a row (None: count them and go on)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,6 +207,8 @@ class App:
         cpu: int | None = None,
         policy: str = "fifo",
         overrun: str = "skip",
+        watchdog_periods: int = DEFAULT_WATCHDOG_PERIODS,
+        max_consecutive_misses: int | None = None,
     ) -> TaskSpec:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
         where = f"task {name!r}"
@@ -221,13 +230,22 @@ class App:
         _check_cpu(where, cpu, policy)
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
+        if not isinstance(watchdog_periods, int) or isinstance(watchdog_periods, bool) or watchdog_periods < 0:
+            raise AppError(f"{where}: watchdog_periods {watchdog_periods!r}; expected an integer ≥ 0 (0: off)")
+        if max_consecutive_misses is not None and (
+            not isinstance(max_consecutive_misses, int) or isinstance(max_consecutive_misses, bool)
+            or max_consecutive_misses < 1
+        ):
+            raise AppError(f"{where}: max_consecutive_misses {max_consecutive_misses!r}; "
+                           "expected an integer ≥ 1 (or none: count misses and go on)")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or count < 0:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer ≥ 0")
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
-        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun)
+        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, watchdog_periods,
+                            max_consecutive_misses)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
         return spec

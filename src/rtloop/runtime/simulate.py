@@ -21,13 +21,12 @@ from rtloop.app.builder import App
 from rtloop.errors import AppError, TaskFailed
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
-from rtloop.record.summary import RunSummary, TaskSummary, signal_names
+from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_outputs
 from rtloop.runtime.wiring import TaskWiring
-from rtloop.timing import task_timing
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
 
@@ -55,14 +54,19 @@ class _SimTask:
         self.records.append((cycle, release_ns, release_ns, release_ns + exec_ns))
 
 
-def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) -> RunSummary:
+def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
+             keep_s: float | None = None) -> RunSummary:
     """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`."""
     out = Path(out)
     app.validate()
-    if not duration_s > 0:
-        raise AppError(f"duration must be > 0 seconds, got {duration_s}")
+    if duration_s is None or not duration_s > 0:
+        raise AppError(f"a simulation needs a duration > 0 seconds, got {duration_s}")
+    if keep_s is not None and not keep_s > 0:
+        raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
+    out.mkdir(parents=True, exist_ok=True)
+    summary_file = SummaryFile(out)
     layout = AppLayout.create(app)
-    recorder = Recorder(app, out)
+    recorder = Recorder(app, out, keep_s=keep_s, trim=trim)
     t0_ns = SIMULATION_T0_NS
     recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
@@ -102,12 +106,14 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20) ->
                              f"{type(error).__name__}: {error}", traceback.format_exc())
     finally:
         _drain(tasks, recorder)
-        recorder.close()
-        summary = _summary(app, recorder, layout, duration_s, trim, failure)
-        if recorder.mcap_note:
-            summary.notes.append(recorder.mcap_note)
-        summary.write(out / "summary.json")
-        layout.close()
+        try:
+            recorder.close()
+            summary = _summary(app, recorder, layout, duration_s, failure)
+            summary.notes.extend(note for note in (recorder.mcap_note, recorder.stopped) if note)
+            summary_file.write(summary)
+        finally:
+            summary_file.close()
+            layout.close()
     if failure is not None:
         raise failure
     return summary
@@ -123,7 +129,7 @@ def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
     recorder.flush()
 
 
-def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float, trim: int,
+def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
              failure: TaskFailed | None) -> RunSummary:
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
@@ -131,8 +137,7 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
             period_ns=spec.config.period_ns, priority=0, cpu=None, policy="simulated", rt=False,
             rt_reason="offline simulation: logical time, no real-time scheduling",
             memory_locked=False,
-            timing=task_timing(recorder.samples(name), spec.config.period_ns, trim=trim,
-                               overrun_policy=spec.config.overrun),
+            timing=recorder.timing_of(name),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,
             **signal_names(spec.runnable),
@@ -144,4 +149,5 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
         ports=port_summaries(layout), stopped_by="fault" if failure else "duration",
         failure=failure.to_json() if failure else None, machine=machine_facts(capabilities),
+        elapsed_s=recorder.latest_ns / 1e9, recording=recorder.to_json(),
     )

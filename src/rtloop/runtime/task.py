@@ -20,6 +20,7 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
+from rtloop.errors import DeadlineMissesExceeded
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
 from rtloop.runnable import Runnable, TickInfo
@@ -74,6 +75,7 @@ class RealtimeTask:
         runnable, wiring, tick, status = self.runnable, self.wiring, self.tick, self.status
         u, y = self.u, self.y
         cycle, release_ns = 0, t0_ns
+        misses_in_a_row = 0
         while release_ns < end_ns and not self.control[ControlWord.STOP]:
             self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
             start_ns = rt.now_ns()
@@ -93,7 +95,20 @@ class RealtimeTask:
             cycle += 1
             release_ns += period_ns
             if end_cycle_ns > release_ns:  # overran into the next period
+                misses_in_a_row += 1
+                self._check_misses_in_a_row(misses_in_a_row)
                 cycle, release_ns = self._after_overrun(cycle, release_ns, end_cycle_ns, t0_ns)
+            else:
+                misses_in_a_row = 0
+
+    def _check_misses_in_a_row(self, misses: int) -> None:
+        """Apply ``max_consecutive_misses``: count the longest run of misses; stop if asked to."""
+        if misses > self.status[StatusWord.MISSES_IN_A_ROW_MAX]:
+            self.status[StatusWord.MISSES_IN_A_ROW_MAX] = misses
+        limit = self.config.max_consecutive_misses
+        if limit is not None and misses >= limit:
+            raise DeadlineMissesExceeded(
+                f"{misses} deadline misses in a row (max_consecutive_misses = {limit})")
 
     def _after_overrun(self, cycle: int, release_ns: int, now_ns: int, t0_ns: int) -> tuple[int, int]:
         status, period_ns = self.status, self.config.period_ns
@@ -187,7 +202,7 @@ def task_process_main(
             phase=phase,
             cycle=task.cycle if phase == "step" else None,
             reason=f"{type(error).__name__}: {error}",
-            traceback=traceback.format_exc(),
+            traceback="" if isinstance(error, DeadlineMissesExceeded) else traceback.format_exc(),
         )
         if phase != "postrun":
             _postrun_after_failure(runnable, pipe)
