@@ -152,7 +152,7 @@ class RunSummary:
         path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
 
 
-SUMMARY_RESERVE_BYTES = 256 * 1024
+SUMMARY_RESERVE_BYTES = 64 * 1024
 
 
 class SummaryFile:
