@@ -175,7 +175,7 @@ def report(result: dict, warmup_s: float) -> str:
     warm = next((s for s in samples if s["t_s"] >= warmup_s), first)
     lines = ["| | start | after warm-up | end | growth after warm-up |", "|---|---|---|---|---|"]
 
-    def row(label: str, pick) -> None:  # noqa: ANN001
+    def row(label: str, pick) -> None:
         values = [pick(s) for s in (first, warm, last)]
         if None in values:
             return

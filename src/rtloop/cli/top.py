@@ -13,6 +13,7 @@ that is in ``summary.json`` after the run), and *%CPU* is measured between refre
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Iterator
@@ -47,12 +48,15 @@ class Registry:
     tasks: dict[str, str]
     """Task name → its status segment name."""
     path: Path
+    summary: str | None = None
+    """The run's live summary.json (rewritten every few seconds), if the registry names it."""
 
 
 def find_apps(app: str | None = None, shm_dir: Path = SHM_DIR) -> list[Registry]:
     """Running apps (supervisor alive), optionally only those named ``app``."""
     return sorted(
-        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path)
+        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path,
+                  entry.registry.get("summary"))
          for entry in running_apps(shm_dir) if app is None or entry.name == app),
         key=lambda registry: registry.path,
     )
@@ -139,6 +143,8 @@ class AppView:
     app: str
     pid: int
     tasks: list[TaskView] = field(default_factory=list)
+    summary_line: str = ""
+    """What the live summary.json says (true latency maxima, recording), '' if unreadable."""
 
 
 @dataclass
@@ -194,7 +200,7 @@ class Monitor:
         self.poll()
         views = []
         for registry in self.registries:
-            view = AppView(registry.app, registry.pid)
+            view = AppView(registry.app, registry.pid, summary_line=live_summary_line(registry.summary))
             for task, segment_name in registry.tasks.items():
                 tracked = self._attach(segment_name)
                 if tracked is not None:
@@ -247,6 +253,28 @@ class Monitor:
         while (left := end - time.monotonic()) > 0:
             time.sleep(min(left, 1 / POLL_HZ))
             self.poll()
+
+
+def live_summary_line(path: str | None) -> str:
+    """One line from a running app's summary.json: per task p99/max latency, and the recording."""
+    if not path:
+        return ""
+    try:
+        file = Path(path)
+        summary = json.loads(file.read_text())
+        age_s = time.time() - file.stat().st_mtime
+        parts = []
+        for name, task in summary["tasks"].items():
+            latency = task["latency_ns"]
+            if latency.get("max") is not None:
+                parts.append(f"{name} p99 {latency['p99'] / 1e3:,.1f} max {latency['max'] / 1e3:,.1f} µs")
+        recording = summary.get("recording", {})
+        stopped = recording.get("stopped")
+        parts.append(f"recording: {stopped}" if stopped else
+                     f"recording: keep {recording.get('keep_s') or 'all'} s")
+        return f"summary.json ({age_s:.0f} s old): " + "; ".join(parts)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return ""
 
 
 # --- rendering ------------------------------------------------------------------------
@@ -307,6 +335,8 @@ def render(views: list[AppView], width: int = 250) -> RenderableType:
         for row in rows:
             table.add_row(*(row[c] for c in columns))
         tables.append(table)
+        if view.summary_line:
+            tables.append(Text(view.summary_line))
     tables.append(Text(LATENCY_MAX_NOTE + ".\nGC: not readable from outside a task process (rtloop disables "
                        "collection in the loop). cycle: release index (skipped releases included).", style="dim"))
     return Group(*tables)

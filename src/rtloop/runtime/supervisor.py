@@ -75,7 +75,7 @@ class Supervisor:
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
         summary_file = SummaryFile(self.out)  # reserves its disk space first
-        layout = AppLayout.create(self.app)
+        layout = AppLayout.create(self.app, summary_file.path)
         runs: dict[str, _TaskRun] = {}
         try:
             recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
