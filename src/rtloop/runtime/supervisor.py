@@ -33,6 +33,7 @@ from rtloop.runtime.layout import AppLayout
 from rtloop.runtime.task import task_process_main
 
 DRAIN_INTERVAL_S = 0.05
+DRAIN_BATCH_RECORDS = 2048
 START_MARGIN_NS = 100_000_000
 PRERUN_TIMEOUT_S = 300.0
 STOP_GRACE_S = 5.0
@@ -264,11 +265,20 @@ class Supervisor:
     # --- draining and watching ---------------------------------------------------------------
     @staticmethod
     def _drain(layout: AppLayout, recorder: Recorder) -> None:
-        for name, handles in layout.tasks.items():
-            recorder.add_timing(name, handles.timing.drain())
-            if handles.record is not None:
-                recorder.add_signals(name, *handles.record.drain())
-        recorder.flush()
+        """Hand what the tasks recorded to the recorder, in bounded batches: a supervisor that fell
+        behind catches up without a burst of memory (which Python would keep afterwards)."""
+        more = True
+        while more:
+            more = False
+            for name, handles in layout.tasks.items():
+                records = handles.timing.drain(DRAIN_BATCH_RECORDS)
+                recorder.add_timing(name, records)
+                more |= len(records) == DRAIN_BATCH_RECORDS
+                if handles.record is not None:
+                    ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
+                    recorder.add_signals(name, ticks, rows)
+                    more |= len(ticks) == DRAIN_BATCH_RECORDS
+            recorder.flush()
 
     def _poll(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
         """Read task messages; notice failures and dead processes."""
