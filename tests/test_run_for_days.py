@@ -251,7 +251,7 @@ def test_watchdog_stops_the_app_when_a_step_spins(tmp_path: Path) -> None:
     started = time.monotonic()
     with pytest.raises(TaskFailed) as failed:
         rtloop.run(app, 60.0, tmp_path / "out")
-    assert time.monotonic() - started < 20
+    assert time.monotonic() - started < 45  # the watchdog waits at least WATCHDOG_MIN_S (10 s)
     error = failed.value
     assert error.task == "spinner" and error.phase == "step"
     assert error.cycle == int(stuck_file.read_text())

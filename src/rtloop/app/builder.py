@@ -31,7 +31,7 @@ Side = Literal["u", "y"]
 NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 OVERRUN_POLICIES = ("skip", "catch_up")
 DEFAULT_WATCHDOG_PERIODS = 1000
-WATCHDOG_MIN_S = 1.0
+WATCHDOG_MIN_S = 10.0
 
 @dataclass(frozen=True, slots=True)
 class TaskConfig:
