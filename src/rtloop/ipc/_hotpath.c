@@ -37,6 +37,7 @@ typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
 #define STATUS_STALE_READS 5
 #define STATUS_LATENCY_LAST_NS 6
 #define STATUS_EXEC_LAST_NS 8
+#define STATUS_MISSES_IN_A_ROW_MAX 15
 
 #define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
 #define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
@@ -95,6 +96,7 @@ typedef struct {
     double *input_log_row;
     Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
     int64_t period_ns, catch_up, t0_ns, end_ns;
+    int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
     int64_t cycle, release_ns, start_ns, stale_reads;
     int closed; /* after close(): no shared memory held, every call refused */
 } Core;
@@ -158,12 +160,14 @@ static int attach_queue(Core *self, PyObject *buffer, Queue *queue, int with_tic
 }
 
 static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
-    static char *keywords[] = {"tick", "u", "y", "control", "status", "timing", "period_ns", "catch_up", NULL};
+    static char *keywords[] = {"tick", "u", "y", "control", "status", "timing", "period_ns", "catch_up", "max_misses",
+                               NULL};
     PyObject *tick, *u, *y, *control, *status, *timing;
     long long period_ns;
     int catch_up;
-    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOOOLp", keywords, &tick, &u, &y, &control, &status, &timing,
-                                     &period_ns, &catch_up))
+    long long max_misses = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOOOLp|L", keywords, &tick, &u, &y, &control, &status, &timing,
+                                     &period_ns, &catch_up, &max_misses))
         return -1;
     if (self->tick != NULL) {
         PyErr_SetString(PyExc_RuntimeError, "hot path: a Core is built once");
@@ -174,7 +178,7 @@ static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
     self->tick = tick;
     if ((self->u = hold_buffer(self, u, 1, 0, &len_u)) == NULL || (self->y = hold_buffer(self, y, 1, 0, &len_y)) == NULL ||
         (self->control = hold_buffer(self, control, 1, (CONTROL_STOP + 1) * 8, NULL)) == NULL ||
-        (self->status = hold_buffer(self, status, 1, (STATUS_EXEC_LAST_NS + 1) * 8, NULL)) == NULL ||
+        (self->status = hold_buffer(self, status, 1, (STATUS_MISSES_IN_A_ROW_MAX + 1) * 8, NULL)) == NULL ||
         attach_queue(self, timing, &self->timing, 0) < 0)
         return -1;
     if (self->timing.width != 4) {
@@ -185,6 +189,7 @@ static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
     self->n_y = len_y / 8;
     self->period_ns = period_ns;
     self->catch_up = catch_up;
+    self->max_misses = max_misses;
     return 0;
 }
 
@@ -567,8 +572,13 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
     STORE(&status[STATUS_EXEC_LAST_NS], end_ns - start_ns, relaxed);
     cycle++;
     release_ns += period_ns;
+    int go_on = 1;
     if (end_ns > release_ns) { /* overran into the next period */
         STORE(&status[STATUS_DEADLINE_MISSES], LOAD(&status[STATUS_DEADLINE_MISSES], relaxed) + 1, relaxed);
+        self->misses_in_a_row++;
+        if (self->misses_in_a_row > LOAD(&status[STATUS_MISSES_IN_A_ROW_MAX], relaxed))
+            STORE(&status[STATUS_MISSES_IN_A_ROW_MAX], self->misses_in_a_row, relaxed);
+        go_on = self->max_misses == 0 || self->misses_in_a_row < self->max_misses;
         int64_t skipped = 1;
         if (!self->catch_up) {
             int64_t next_cycle = (end_ns - self->t0_ns) / period_ns + 1;
@@ -577,10 +587,12 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
             release_ns = self->t0_ns + next_cycle * period_ns;
         }
         STORE(&status[STATUS_OVERRUNS], LOAD(&status[STATUS_OVERRUNS], relaxed) + skipped, relaxed);
+    } else {
+        self->misses_in_a_row = 0;
     }
     self->cycle = cycle;
     self->release_ns = release_ns;
-    Py_RETURN_NONE;
+    return PyBool_FromLong(go_on); /* False: max_misses deadline misses in a row */
 }
 
 /* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
@@ -743,7 +755,8 @@ PyMODINIT_FUNC PyInit__hotpath(void) {
         PyModule_AddIntConstant(module, "STATUS_DEADLINE_MISSES", STATUS_DEADLINE_MISSES) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_STALE_READS", STATUS_STALE_READS) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_LATENCY_LAST_NS", STATUS_LATENCY_LAST_NS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0) {
+        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_MISSES_IN_A_ROW_MAX", STATUS_MISSES_IN_A_ROW_MAX) < 0) {
         Py_DECREF(module);
         return NULL;
     }
