@@ -147,7 +147,7 @@ def main() -> int:
     cyclic_result = read_summary(cyclictest_json) or {}
     result = {
         "label": args.label,
-        "command": " ".join(command),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),  # no machine paths in results
         "cyclictest_command": " ".join(cyclictest),
         "minutes": args.minutes,
         "cpu": args.cpu,
