@@ -197,3 +197,23 @@ class Fault(Runnable):
     def postrun(self) -> None:
         if self.phase == "postrun":
             self._misbehave()
+
+
+class MatrixProduct(Runnable):
+    """Multiplies two 3×3 matrices each step; y[0] = minor page faults the product took."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def prerun(self) -> None:
+        import numpy as np
+
+        self.a = np.arange(9.0).reshape(3, 3)
+        self.b = np.eye(3)
+
+    def step(self, u, y) -> None:
+        import resource
+
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        self.a @ self.b  # noqa: B018 (a level-3 BLAS call: packs into OpenBLAS's work buffer)
+        y[0] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before

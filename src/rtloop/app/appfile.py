@@ -11,6 +11,7 @@
     cpu = 1
     policy = "fifo"                            # fifo, rr, other, deadline
     overrun = "skip"                           # skip or catch_up
+    lock_blas_buffer = false                   # true: lock OpenBLAS's 32 MB buffer too (large matrix products)
 
     [[connect]]
     from = "plant.y[0:2]"
@@ -66,6 +67,7 @@ ROS_TOPIC_KEYS = {
 TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
     "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict,
+    "lock_blas_buffer": bool,
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
@@ -140,6 +142,7 @@ def load_app(path: str | Path) -> App:
                 task_name, runnable, period_ns=table["period_ns"],
                 priority=table.get("priority", 80), cpu=table.get("cpu"),
                 policy=table.get("policy", "fifo"), overrun=table.get("overrun", "skip"),
+                lock_blas_buffer=table.get("lock_blas_buffer", False),
             )
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None

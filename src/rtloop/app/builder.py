@@ -59,6 +59,8 @@ class TaskConfig:
     """Scheduling policy: fifo, rr, other or deadline."""
     overrun: str = "skip"
     """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
+    lock_blas_buffer: bool = False
+    """Keep OpenBLAS's 32 MB work buffer locked in memory (for steps doing large matrix products)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,6 +231,7 @@ class App:
         cpu: int | None = None,
         policy: str = "fifo",
         overrun: str = "skip",
+        lock_blas_buffer: bool = False,
     ) -> TaskSpec:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
         where = f"task {name!r}"
@@ -252,6 +255,8 @@ class App:
         _check_cpu(where, cpu, policy)
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
+        if not isinstance(lock_blas_buffer, bool):
+            raise AppError(f"{where}: lock_blas_buffer must be true or false, got {_short(lock_blas_buffer)}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_VECTOR_SIZE:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer from 0 to "
@@ -259,7 +264,7 @@ class App:
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
-        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun)
+        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, lock_blas_buffer)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
         return spec
