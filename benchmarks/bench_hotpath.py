@@ -173,6 +173,12 @@ def hop_reader(names: dict[str, Any], plan: list[str], block_cycles: int, period
 
 
 def run_hops(args: argparse.Namespace) -> dict[str, Any]:
+    hops = collect_hops(args)
+    return {kind: {"samples": int(hops[kind].size), "hop_us": stats_us(hops[kind])} for kind in KINDS}
+
+
+def collect_hops(args: argparse.Namespace) -> dict[str, np.ndarray]:
+    """One-way hops in ns per kind, blocks alternating over ``args.rounds`` rounds."""
     period_ns = args.hop_period_us * 1000
     block_cycles = max(1, round(args.block_s * 1e9 / period_ns))
     plan = [KINDS[(i + r) % 3] for r in range(args.rounds) for i in range(3)]
@@ -203,7 +209,7 @@ def run_hops(args: argparse.Namespace) -> dict[str, Any]:
             if process.is_alive():
                 process.kill()
         rig.close()
-    return {kind: {"samples": int(hops[kind].size), "hop_us": stats_us(hops[kind])} for kind in KINDS}
+    return hops
 
 
 # --- 2.–4. costs in one process ----------------------------------------------------------------------
