@@ -1,4 +1,4 @@
-"""rtloop's hop next to a peer a Python user could pick, in one run: iceoryx2 (PyPI).
+"""rtloop's hop next to the peers a Python user could pick, in one run: iceoryx2 and dora-rs.
 
 One-way hop latency, writer on one CPU, reader on another, both SCHED_FIFO, a sample every
 period: the writer sleeps to just before its send time and spins to it, stamps the sample
@@ -6,8 +6,13 @@ with CLOCK_MONOTONIC and sends; the reader busy-polls and takes ``now − stamp`
 ``raw numpy``, ``rtloop python``, ``rtloop C`` (benchmarks/bench_hotpath.py) and
 ``iceoryx2`` (publisher → subscriber, a ctypes payload of one int64 stamp and two doubles,
 ``loan_uninit``/``write_payload``/``send`` and ``receive``) alternate, round after round.
+Then, in the same run, ``dora-rs`` Python nodes (``dora run``, no coordinator, the daemon
+and both nodes under ``chrt -f PRIORITY``, sender and receiver pinned like the others): a
+1 ms dora timer → sender node → receiver node; the sender stamps each tick's sample, the
+receiver takes ``now − stamp`` and the arrival times (period jitter = arrival_k −
+arrival_k−1 − P). Nodes: ``benchmarks/peers/dora_*.py``.
 
-Usage (as root, ``pip install iceoryx2``)::
+Usage (as root, ``pip install iceoryx2 dora-rs dora-rs-cli``)::
 
     python benchmarks/bench_peers.py --rounds 4 --block-s 5
 """
@@ -18,7 +23,10 @@ import argparse
 import ctypes
 import multiprocessing
 import os
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -105,6 +113,39 @@ def run_iceoryx2(args: argparse.Namespace, block: int) -> np.ndarray:
                 process.kill()
 
 
+PEERS = Path(__file__).resolve().parent / "peers"
+
+
+def run_dora(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
+    """(hops, period jitter) in ns of one dora-rs block, or empty arrays with the reason printed."""
+    cycles = max(1, round(args.block_s * 1e6 / args.hop_period_us))
+    if args.hop_period_us % 1000:
+        raise SystemExit("dora's timer ticks in whole milliseconds: use --hop-period-us 1000, 2000, ...")
+    work = Path(tempfile.mkdtemp(prefix="bench-peers-dora-"))
+    try:
+        (work / "dataflow.yml").write_text(
+            "nodes:\n"
+            f"  - id: sender\n    path: {PEERS / 'dora_sender.py'}\n"
+            f"    args: {cycles} {args.writer_cpu} {work / 'ticks.npy'}\n"
+            f"    inputs:\n      tick: dora/timer/millis/{args.hop_period_us // 1000}\n    outputs:\n      - stamp\n"
+            f"  - id: receiver\n    path: {PEERS / 'dora_receiver.py'}\n"
+            f"    args: {cycles} {args.reader_cpu} {work / 'hops.npz'}\n"
+            "    inputs:\n      stamp: sender/stamp\n"
+        )
+        dora = shutil.which("dora", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
+        if dora is None:
+            raise SystemExit("dora-rs-cli is not installed (pip install dora-rs dora-rs-cli)")
+        env = {**os.environ, "PATH": os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]])}
+        subprocess.run(["chrt", "-f", str(args.priority), dora, "run", str(work / "dataflow.yml")], cwd=work,
+                       env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                       timeout=args.block_s + 60)
+        with np.load(work / "hops.npz") as data:
+            hops, arrivals = data["hops"], data["arrivals"]
+        return hops, np.diff(arrivals) - args.hop_period_us * 1000
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=4)
@@ -115,12 +156,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--priority", type=int, default=80)
     args = parser.parse_args(argv)
     hops: dict[str, list[np.ndarray]] = {}
+    jitter: list[np.ndarray] = []
     with PmQos(True):
         for block in range(args.rounds):
             one_round = argparse.Namespace(**{**vars(args), "rounds": 1})
             for kind, result in collect_hops(one_round).items():
                 hops.setdefault(kind, []).append(result)
             hops.setdefault("iceoryx2", []).append(run_iceoryx2(args, block))
+            dora_hops, dora_jitter = run_dora(args)
+            hops.setdefault("dora-rs", []).append(dora_hops)
+            jitter.append(dora_jitter)
     rows = []
     for kind, blocks in hops.items():
         everything = np.concatenate(blocks)
@@ -129,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"One-way hop, {args.rounds} rounds × {args.block_s:g} s blocks per contender, "
           f"a sample every {args.hop_period_us} µs, writer CPU {args.writer_cpu} → reader CPU {args.reader_cpu}\n")
     print(markdown_table(["contender", "samples", "hop p50 µs", "p99 µs", "max µs"], rows))
+    period_jitter = stats_us(np.abs(np.concatenate(jitter)))
+    print(f"\ndora-rs period jitter at the receiver, |arrival_k − arrival_k−1 − P|: p50 {period_jitter['p50']:.1f} µs, "
+          f"p99 {period_jitter['p99']:.1f} µs, max {period_jitter['max']:.1f} µs")
     return 0
 
 

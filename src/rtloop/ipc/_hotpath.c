@@ -96,6 +96,9 @@ typedef struct {
     Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
     int64_t period_ns, catch_up, t0_ns, end_ns;
     int64_t cycle, release_ns, start_ns, stale_reads;
+    /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
+    int measure_busy;
+    int64_t busy_ns, busy_cycles, busy_max_ns;
 } Core;
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
@@ -523,6 +526,13 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         Py_RETURN_FALSE;
     struct timespec deadline = {release_ns / 1000000000, release_ns % 1000000000};
     int result;
+    if (self->measure_busy && self->start_ns) { /* the whole iteration since the last wake-up */
+        int64_t busy_ns = now_ns() - self->start_ns;
+        self->busy_ns += busy_ns;
+        self->busy_cycles++;
+        if (busy_ns > self->busy_max_ns)
+            self->busy_max_ns = busy_ns;
+    }
     for (;;) {
         Py_BEGIN_ALLOW_THREADS
         result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
@@ -597,6 +607,18 @@ static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssiz
 
 static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
 
+/* measure_busy(): from now on, sum the time from each wake-up to the next sleep (a benchmark's probe) */
+static PyObject *Core_measure_busy(Core *self, PyObject *unused) {
+    self->measure_busy = 1;
+    self->busy_ns = self->busy_cycles = self->busy_max_ns = 0;
+    Py_RETURN_NONE;
+}
+
+static PyObject *Core_get_busy(Core *self, void *closure) {
+    return Py_BuildValue("(LLL)", (long long)self->busy_ns, (long long)self->busy_cycles,
+                         (long long)self->busy_max_ns);
+}
+
 static int Core_traverse(Core *self, visitproc visit, void *arg) {
     Py_VISIT(self->tick);
     for (Py_ssize_t i = 0; i < self->n_views; i++)
@@ -637,6 +659,7 @@ static PyMethodDef Core_methods[] = {
     {"begin", (PyCFunction)Core_begin, METH_NOARGS, "Sleep to the release, read inputs; False: stop."},
     {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},
     {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
+    {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
     {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
      "publish_outputs(cycle, publish_ns)"},
     {NULL, NULL, 0, NULL},
@@ -644,6 +667,7 @@ static PyMethodDef Core_methods[] = {
 
 static PyGetSetDef Core_getset[] = {
     {"stale_reads", (getter)Core_get_stale_reads, NULL, "Reads that found older data than due.", NULL},
+    {"busy", (getter)Core_get_busy, NULL, "(total ns, iterations, max ns) wake-up → next sleep.", NULL},
     {NULL, NULL, NULL, NULL, NULL},
 };
 
