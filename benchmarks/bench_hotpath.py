@@ -217,14 +217,20 @@ def collect_hops(args: argparse.Namespace) -> dict[str, np.ndarray]:
 # --- 2.–4. costs in one process ----------------------------------------------------------------------
 
 
-def busy_us(cycle: Any, iterate: Any, iterations: int, blocks: int = 20) -> float:
-    """Mean time from a wake-up to the next sleep, measured by the C core itself (the least of
-    ``blocks`` block means: a block a neighbour preempted does not count)."""
+def busy_us(cycle: Any, step: Any, period_ns: int, first_release_ns: int, iterations: int,
+            blocks: int) -> float:
+    """Mean time from a wake-up to the next sleep, measured by the C core itself, over the
+    task's own loop (``while begin(): step(u, y); finish()``, as ``run_loop``); the least of
+    ``blocks`` block means, so that a block a neighbour preempted does not count."""
+    u = y = np.zeros(0)
     means = []
-    for _ in range(blocks):
+    for block in range(blocks):
+        t0_ns = first_release_ns(block)
+        cycle.start(t0_ns, t0_ns + iterations * period_ns, 0)
         cycle.measure_busy()
-        for _ in range(iterations + 1):
-            iterate()
+        while cycle.begin():
+            step(u, y)
+            cycle.finish()
         total_ns, count, _ = cycle.busy
         means.append(total_ns / max(count, 1) / 1000)
     return min(means)
@@ -297,21 +303,14 @@ def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
                                "clock_nanosleep, deadline past": sleep_us,
                                "iteration, sleep excluded": whole - sleep_us}
             if kind == "rtloop C":
-                iteration[kind]["iteration, wake-up → next sleep, measured in C (releases past)"] = \
-                    busy_us(noop, iterate, min(args.op_repeats, 5000))
+                iteration[kind]["iteration, wake-up → next sleep, measured in C (releases past)"] = busy_us(
+                    noop, step, 1000, lambda _: rt.now_ns() - 10_000_000_000, 5000, 20)
                 # 10 kHz with real sleeps: caches and branch predictors cool down while the loop sleeps
                 paced, _, segments = task_io(names, kind, inputs=[], output=None, n_inputs=0, n_outputs=0,
                                              period_ns=100_000)
                 made += segments
-                paced.start(rt.now_ns() + 1_000_000, 2**62, 0)
-
-                def iterate_paced(paced=paced, step=step, u=u, y=y) -> None:
-                    paced.begin()
-                    step(u, y)
-                    paced.finish()
-
-                iteration[kind]["iteration, wake-up → next sleep, measured in C (10 kHz, real sleeps)"] = \
-                    busy_us(paced, iterate_paced, 2000, blocks=10)
+                iteration[kind]["iteration, wake-up → next sleep, measured in C (10 kHz, real sleeps)"] = busy_us(
+                    paced, step, 100_000, lambda _: rt.now_ns() + 1_000_000, 2000, 10)
             operations[kind] = {
                 "read_inputs, 1 connection (2 values)": connections[kind]["1 connections"],
                 "publish_outputs, 1 channel (2 values)": median_cost_us(

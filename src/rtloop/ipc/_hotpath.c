@@ -98,7 +98,7 @@ typedef struct {
     int64_t cycle, release_ns, start_ns, stale_reads;
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
-    int64_t busy_ns, busy_cycles, busy_max_ns;
+    int64_t busy_ns, busy_cycles, busy_max_ns, busy_wake_ns;
 } Core;
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
@@ -526,8 +526,8 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         Py_RETURN_FALSE;
     struct timespec deadline = {release_ns / 1000000000, release_ns % 1000000000};
     int result;
-    if (self->measure_busy && self->start_ns) { /* the whole iteration since the last wake-up */
-        int64_t busy_ns = now_ns() - self->start_ns;
+    if (self->measure_busy && self->busy_wake_ns) { /* the whole iteration since the last wake-up */
+        int64_t busy_ns = now_ns() - self->busy_wake_ns;
         self->busy_ns += busy_ns;
         self->busy_cycles++;
         if (busy_ns > self->busy_max_ns)
@@ -547,6 +547,8 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         return PyErr_SetFromErrno(PyExc_OSError);
     }
     self->start_ns = now_ns();
+    if (self->measure_busy)
+        self->busy_wake_ns = self->start_ns;
     if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
         set_tick(self, str_start_ns, self->start_ns) < 0)
         return NULL;
@@ -610,7 +612,7 @@ static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong
 /* measure_busy(): from now on, sum the time from each wake-up to the next sleep (a benchmark's probe) */
 static PyObject *Core_measure_busy(Core *self, PyObject *unused) {
     self->measure_busy = 1;
-    self->busy_ns = self->busy_cycles = self->busy_max_ns = 0;
+    self->busy_ns = self->busy_cycles = self->busy_max_ns = self->busy_wake_ns = 0;
     Py_RETURN_NONE;
 }
 
