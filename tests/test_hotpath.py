@@ -193,7 +193,7 @@ def test_task_processes_run_one_thread_and_lock_less_memory(tmp_path: Path, rtlo
     locked_mb = int(status["VmLck"].split()[0]) / 1024
     mapped_mb = int(status["VmSize"].split()[0]) / 1024
     # 148 MB with OpenBLAS's worker pool, 111 MB with one thread and everything locked, 69 MB
-    # here now: numpy and OpenBLAS's code alone are ~45 MB (BENCHMARKS.md, "Memory locked").
+    # here now: numpy and its libraries alone are ~39 MB (BENCHMARKS.md, "Memory locked").
     assert 20 < locked_mb < 75, f"VmLck {locked_mb:.0f} MB"
     # OpenBLAS's work buffer (32 MB on x86_64, 16–32 MB on arm64 builds) is mapped but not locked.
     assert mapped_mb - locked_mb > 15, f"VmSize {mapped_mb:.0f} MB, VmLck {locked_mb:.0f} MB"
