@@ -199,6 +199,59 @@ class Fault(Runnable):
             self._misbehave()
 
 
+class SpinFrom(Runnable):
+    """From a given cycle on, never returns from step (an endless loop, as a bug would make);
+    first writes the cycle it got stuck in to ``path``."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, cycle: int, path: str) -> None:
+        self.stuck_cycle, self.path = cycle, path
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle >= self.stuck_cycle:
+            Path(self.path).write_text(str(self.tick.cycle))
+            while True:
+                pass
+
+
+class LateFrom(Runnable):
+    """From a given cycle on, every step takes 1.5 periods: a deadline miss every cycle."""
+
+    n_inputs = 0
+    n_outputs = 0
+
+    def __init__(self, cycle: int) -> None:
+        self.late_cycle = cycle
+
+    def step(self, u, y) -> None:
+        if self.tick.cycle >= self.late_cycle:
+            end_ns = self.tick.release_ns + self.tick.period_ns * 3 // 2
+            while time.monotonic_ns() < end_ns:
+                pass
+
+
+class LateOnce(Runnable):
+    """The first step from a given cycle on ends 3 periods after its release (a deadline miss)."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, cycle: int) -> None:
+        self.late_cycle = cycle
+        self.done = False
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle >= self.late_cycle and not self.done:
+            self.done = True
+            end_ns = self.tick.release_ns + self.tick.period_ns * 3
+            while time.monotonic_ns() < end_ns:
+                pass
+
+
 class MatrixProduct(Runnable):
     """Multiplies two 3×3 matrices each step; y[0] = minor page faults the product took."""
 

@@ -87,8 +87,8 @@ def test_fastdds_peer_with_ros2_default_qos_gets_angles_and_moves_the_gimbal(tmp
     # ... and the app followed the setpoint the peer published
     header, rows = signals_of(out)
     final = rows[-50:]
-    assert np.allclose(final[:, header.index("controller.u[2]")], 0.4)
-    assert np.allclose(final[:, header.index("controller.u[3]")], -0.2)
+    assert np.allclose(final[:, header.index("controller.SetPointPan")], 0.4)
+    assert np.allclose(final[:, header.index("controller.SetPointTilt")], -0.2)
     pans = [float(a["pan"]) for a in angles]
     assert min(abs(pan - 0.4) for pan in pans[-50:]) < 0.05, pans[-5:]  # the peer saw the gimbal get there
     assert summary_of(out)["bridges"]["subscribe /jiwy/setpoint"]["accepted"] >= 1

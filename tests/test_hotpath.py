@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gc
 import json
 import os
 import subprocess
@@ -16,7 +17,7 @@ import pytest
 import rtloop
 import shm_stress
 from conftest import other_cpu
-from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController
+from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController, RaiseAt
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
@@ -248,6 +249,40 @@ def test_a_build_without_a_compiler_only_warns(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert "_hotpath" in result.stderr and "building" in result.stderr.lower()
     assert not list((tmp_path / "lib").rglob("_hotpath*.so"))
+
+
+@needs_c
+def test_a_closed_core_holds_no_shared_memory_and_refuses_work(monkeypatch) -> None:
+    monkeypatch.delenv(hotpath.PURE_PYTHON_ENV, raising=False)
+    writer = Segment.create("hotpath", os.getpid(), new_run_token(), "chan", LetChannel.size_bytes(2, 3))
+    LetChannel.initialise(writer, 2, 3)
+    _wiring, work, _status, segments = _reader_of(writer, 2, [(slice(0, 2), slice(0, 2))], P)
+    work.start(0, P, 0)
+    work.close()
+    work.close()  # twice is fine
+    with pytest.raises(ValueError, match="closed"):
+        work.read_inputs(0)
+    for segment in [writer, *segments]:
+        segment.close()
+        segment.unlink()
+
+
+@needs_c
+def test_failed_simulations_kept_in_reference_cycles_do_not_corrupt_memory(tmp_path: Path, monkeypatch) -> None:
+    """A failure's traceback keeps the task (and its C core) in a cycle; the collector must not free
+    the shared memory under the core's views (this crashed the interpreter later, at random)."""
+    monkeypatch.delenv(hotpath.PURE_PYTHON_ENV, raising=False)
+    kept = []
+    for i in range(25):
+        app = App(f"hotpath_cycle_{os.getpid()}_{i}")
+        app.record(app.add_task("bad", RaiseAt(cycle=7), period_ns=P).y)
+        with pytest.raises(rtloop.TaskFailed) as failure:
+            rtloop.simulate(app, 1.0, tmp_path / str(i))
+        kept.append(failure.value)
+    kept.clear()
+    gc.collect()
+    junk = [bytearray(4096) for _ in range(20_000)]  # reuse what was freed; a dangling view would show
+    assert sum(len(b) for b in junk) == 4096 * 20_000
 
 
 @pytest.mark.rt

@@ -270,9 +270,9 @@ def test_setpoint_published_on_ros2_moves_the_gimbal(tmp_path: Path) -> None:
     assert code == 0, stderr
     header, rows = signals_of(out)
     final = rows[-50:]
-    pan, tilt = header.index("plant.y[0]"), header.index("plant.y[1]")
-    assert np.allclose(final[:, header.index("controller.u[2]")], 0.4)
-    assert np.allclose(final[:, header.index("controller.u[3]")], -0.2)
+    pan, tilt = header.index("plant.AnglePan"), header.index("plant.AngleTilt")
+    assert np.allclose(final[:, header.index("controller.SetPointPan")], 0.4)
+    assert np.allclose(final[:, header.index("controller.SetPointTilt")], -0.2)
     assert np.abs(final[:, pan] - 0.4).max() < 0.02, final[-1]
     assert np.abs(final[:, tilt] + 0.2).max() < 0.02, final[-1]
     bridge = summary_of(out)["bridges"]["subscribe /jiwy/setpoint"]
@@ -304,7 +304,7 @@ def test_bad_setpoints_are_rejected_counted_and_never_reach_the_port(tmp_path: P
     assert bridge["refused_by_port"] == 0
     assert summary["ports"]["setpoint"]["sent"] == bridge["accepted"]
     header, rows = signals_of(out)
-    setpoints = rows[:, [header.index("controller.u[2]"), header.index("controller.u[3]")]]
+    setpoints = rows[:, [header.index("controller.SetPointPan"), header.index("controller.SetPointTilt")]]
     assert np.isfinite(setpoints).all(), "a non-finite setpoint reached the controller"
     assert {tuple(r) for r in setpoints.tolist()} <= {(0.0, 0.0), (0.3, -0.1), (0.4, -0.2)}
     assert tuple(setpoints[-1]) == (0.4, -0.2)

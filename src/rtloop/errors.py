@@ -79,6 +79,10 @@ class TaskFailed(RtloopError, RuntimeError):
         }
 
 
+class DeadlineMissesExceeded(RtloopError, RuntimeError):
+    """A task missed more consecutive deadlines than its ``max_consecutive_misses`` allows."""
+
+
 class PortValueError(RtloopError, ValueError):
     """A value written to a port was rejected (wrong length, NaN/inf)."""
 

@@ -11,6 +11,8 @@
     cpu = 1
     policy = "fifo"                            # fifo, rr, other, deadline
     overrun = "skip"                           # skip or catch_up
+    watchdog_periods = 1000                    # stop the app if no cycle ends for this long (0: off)
+    max_consecutive_misses = 5                 # stop the app after 5 misses in a row (absent: go on)
     lock_blas_buffer = false                   # true: lock OpenBLAS's 32 MB buffer too (large matrix products)
 
     [[connect]]
@@ -47,7 +49,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from rtloop.app.builder import App, _clip, _short, parse_signal
+from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, _clip, _short, parse_signal
 from rtloop.app.modules import ModuleRefused, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, RtloopError
 from rtloop.runnable import Runnable
@@ -66,7 +68,8 @@ ROS_TOPIC_KEYS = {
 }
 TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
-    "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict,
+    "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict, "watchdog_periods": int,
+    "max_consecutive_misses": int,
     "lock_blas_buffer": bool,
 }
 PORT_KEYS = {
@@ -142,6 +145,8 @@ def load_app(path: str | Path) -> App:
                 task_name, runnable, period_ns=table["period_ns"],
                 priority=table.get("priority", 80), cpu=table.get("cpu"),
                 policy=table.get("policy", "fifo"), overrun=table.get("overrun", "skip"),
+                watchdog_periods=table.get("watchdog_periods", DEFAULT_WATCHDOG_PERIODS),
+                max_consecutive_misses=table.get("max_consecutive_misses"),
                 lock_blas_buffer=table.get("lock_blas_buffer", False),
             )
         except AppError as error:

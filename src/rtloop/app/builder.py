@@ -42,6 +42,8 @@ MAX_PORT_CAPACITY = 1 << 20
 """Samples an output port may queue."""
 MAX_DURATION_S = 1e8
 """About three years: a longer run is a controller that runs until stopped."""
+DEFAULT_WATCHDOG_PERIODS = 1000
+WATCHDOG_MIN_S = 10.0
 
 @dataclass(frozen=True, slots=True)
 class TaskConfig:
@@ -59,6 +61,11 @@ class TaskConfig:
     """Scheduling policy: fifo, rr, other or deadline."""
     overrun: str = "skip"
     """After an overrun: ``skip`` the missed releases or ``catch_up`` on them."""
+    watchdog_periods: int = DEFAULT_WATCHDOG_PERIODS
+    """The supervisor stops the app when no cycle of this task finishes for this many periods
+    (at least ``WATCHDOG_MIN_S``): the step is stuck. 0 turns the watchdog off."""
+    max_consecutive_misses: int | None = None
+    """Stop the app after this many deadline misses in a row (None: count them and go on)."""
     lock_blas_buffer: bool = False
     """Keep OpenBLAS's 32 MB work buffer locked in memory (for steps doing large matrix products)."""
 
@@ -231,6 +238,8 @@ class App:
         cpu: int | None = None,
         policy: str = "fifo",
         overrun: str = "skip",
+        watchdog_periods: int = DEFAULT_WATCHDOG_PERIODS,
+        max_consecutive_misses: int | None = None,
         lock_blas_buffer: bool = False,
     ) -> TaskSpec:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
@@ -255,6 +264,14 @@ class App:
         _check_cpu(where, cpu, policy)
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
+        if not isinstance(watchdog_periods, int) or isinstance(watchdog_periods, bool) or watchdog_periods < 0:
+            raise AppError(f"{where}: watchdog_periods {watchdog_periods!r}; expected an integer ≥ 0 (0: off)")
+        if max_consecutive_misses is not None and (
+            not isinstance(max_consecutive_misses, int) or isinstance(max_consecutive_misses, bool)
+            or max_consecutive_misses < 1
+        ):
+            raise AppError(f"{where}: max_consecutive_misses {max_consecutive_misses!r}; "
+                           "expected an integer ≥ 1 (or none: count misses and go on)")
         if not isinstance(lock_blas_buffer, bool):
             raise AppError(f"{where}: lock_blas_buffer must be true or false, got {_short(lock_blas_buffer)}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
@@ -264,7 +281,8 @@ class App:
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
-        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, lock_blas_buffer)
+        config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, watchdog_periods,
+                            max_consecutive_misses, lock_blas_buffer)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
         return spec

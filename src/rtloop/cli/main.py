@@ -6,12 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from rtloop.errors import RtloopError, TaskFailed
+from rtloop.errors import AppError, RtloopError, TaskFailed
 from rtloop.record.summary import RunSummary
 
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # as a shell reports death by SIGINT
+DEFAULT_KEEP_S = 60.0  # --keep of a run without --duration
 ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
 # Commands with parsers of their own: `rtloop NAME ARGS...` is `python -m rtloop.MODULE ARGS...`.
 DELEGATED = {
@@ -52,9 +53,24 @@ def _parse_host_port(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected seconds > 0, got {text!r}")
+    return value
+
+
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("app", help="app file (TOML)")
-    parser.add_argument("--duration", type=float, required=True, metavar="S", help="seconds to run")
+    parser.add_argument("--duration", type=_positive_seconds, default=None, metavar="S",
+                        help="seconds to run (run: default until Ctrl-C or SIGTERM; simulate: required)")
+    parser.add_argument("--keep", type=_positive_seconds, default=None, metavar="S",
+                        help="keep only the last S seconds of timing.csv, signals.csv and run.mcap, plus the "
+                             "cycles around every deadline miss, stale read or fault (default: "
+                             f"{DEFAULT_KEEP_S:g} without --duration, everything with it)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the artifacts")
     parser.add_argument("--feed", type=_parse_feed, action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile (t_s, values...)")
@@ -195,7 +211,10 @@ def _run(args: argparse.Namespace) -> int:
     from rtloop.app.appfile import load_app
     from rtloop.app.builder import check_duration
 
-    check_duration(args.duration)
+    if args.duration is not None:  # without one, a run lasts until SIGINT or SIGTERM
+        check_duration(args.duration)
+    elif args.command == "simulate":
+        raise AppError("rtloop simulate needs --duration S (a simulation runs as fast as it can)")
     app = load_app(args.app)
     for port, path in args.feed:
         app.feed(port, path)
@@ -205,14 +224,15 @@ def _run(args: argparse.Namespace) -> int:
         host, port = args.foxglove
         app.serve_foxglove(port, host=host, inputs=app.live_view.inputs if app.live_view else ())
     interactive = not args.quiet and sys.stderr.isatty()
+    keep_s = args.keep if args.keep is not None or args.duration is not None else DEFAULT_KEEP_S
     if args.command == "run":
         from rtloop.runtime.supervisor import run
 
-        summary = run(app, args.duration, args.out, progress=interactive, trim=args.trim)
+        summary = run(app, args.duration, args.out, progress=interactive, trim=args.trim, keep_s=keep_s)
     else:
         from rtloop.runtime.simulate import simulate
 
-        summary = simulate(app, args.duration, args.out, trim=args.trim)
+        summary = simulate(app, args.duration, args.out, trim=args.trim, keep_s=keep_s)
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0
@@ -240,7 +260,7 @@ def format_summary(summary: RunSummary, out: Path) -> str:
             lines.append(f"WARNING: task {name!r} did NOT run real-time ({task.policy}): {task.rt_reason}")
     header = (f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}"
               f"{'misses':>7}{'overruns':>9}{'stale':>6}")
-    lines.append(f"{summary.app}: {summary.mode} for {summary.duration_s:g} s, stopped by {summary.stopped_by}")
+    lines.append(f"{summary.app}: {summary.mode} for {summary.elapsed_s:.1f} s, stopped by {summary.stopped_by}")
     lines.append(header)
     for name, task in summary.tasks.items():
         t = task.timing

@@ -13,6 +13,7 @@ that is in ``summary.json`` after the run), and *%CPU* is measured between refre
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Iterator
@@ -49,12 +50,15 @@ class Registry:
     path: Path
     uid: int = -1
     """The supervisor's uid: every segment of the app must be owned by it."""
+    summary: str | None = None
+    """The run's live summary.json (rewritten every few seconds), if the registry names it."""
 
 
 def find_apps(app: str | None = None, shm_dir: Path = SHM_DIR) -> list[Registry]:
     """Running apps (supervisor alive), optionally only those named ``app``."""
     return sorted(
-        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path, entry.uid)
+        (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path, entry.uid,
+                  entry.registry.get("summary"))
          for entry in running_apps(shm_dir) if app is None or entry.name == app),
         key=lambda registry: registry.path,
     )
@@ -141,6 +145,8 @@ class AppView:
     app: str
     pid: int
     tasks: list[TaskView] = field(default_factory=list)
+    summary_line: str = ""
+    """What the live summary.json says (true latency maxima, recording), '' if unreadable."""
 
 
 @dataclass
@@ -196,7 +202,7 @@ class Monitor:
         self.poll()
         views = []
         for registry in self.registries:
-            view = AppView(registry.app, registry.pid)
+            view = AppView(registry.app, registry.pid, summary_line=live_summary_line(registry.summary))
             for task, segment_name in registry.tasks.items():
                 tracked = self._attach(segment_name, registry.uid)
                 if tracked is not None:
@@ -249,6 +255,28 @@ class Monitor:
         while (left := end - time.monotonic()) > 0:
             time.sleep(min(left, 1 / POLL_HZ))
             self.poll()
+
+
+def live_summary_line(path: str | None) -> str:
+    """One line from a running app's summary.json: per task p99/max latency, and the recording."""
+    if not path:
+        return ""
+    try:
+        file = Path(path)
+        summary = json.loads(file.read_text())
+        age_s = time.time() - file.stat().st_mtime
+        parts = []
+        for name, task in summary["tasks"].items():
+            latency = task["latency_ns"]
+            if latency.get("max") is not None:
+                parts.append(f"{name} p99 {latency['p99'] / 1e3:,.1f} max {latency['max'] / 1e3:,.1f} µs")
+        recording = summary.get("recording", {})
+        stopped = recording.get("stopped")
+        parts.append(f"recording: {stopped}" if stopped else
+                     f"recording: keep {recording.get('keep_s') or 'all'} s")
+        return f"summary.json ({age_s:.0f} s old): " + "; ".join(parts)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return ""
 
 
 # --- rendering ------------------------------------------------------------------------
@@ -309,6 +337,8 @@ def render(views: list[AppView], width: int = 250) -> RenderableType:
         for row in rows:
             table.add_row(*(row[c] for c in columns))
         tables.append(table)
+        if view.summary_line:
+            tables.append(Text(view.summary_line))
     tables.append(Text(LATENCY_MAX_NOTE + ".\nGC: not readable from outside a task process (rtloop disables "
                        "collection in the loop). cycle: release index (skipped releases included).", style="dim"))
     return Group(*tables)

@@ -37,6 +37,7 @@ typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
 #define STATUS_STALE_READS 5
 #define STATUS_LATENCY_LAST_NS 6
 #define STATUS_EXEC_LAST_NS 8
+#define STATUS_MISSES_IN_A_ROW_MAX 15
 
 #define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
 #define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
@@ -95,7 +96,9 @@ typedef struct {
     double *input_log_row;
     Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
     int64_t period_ns, catch_up, t0_ns, end_ns;
+    int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
     int64_t cycle, release_ns, start_ns, stale_reads;
+    int closed; /* after close(): no shared memory held, every call refused */
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
     int64_t busy_ns, busy_cycles, busy_max_ns, busy_wake_ns;
@@ -160,12 +163,14 @@ static int attach_queue(Core *self, PyObject *buffer, Queue *queue, int with_tic
 }
 
 static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
-    static char *keywords[] = {"tick", "u", "y", "control", "status", "timing", "period_ns", "catch_up", NULL};
+    static char *keywords[] = {"tick", "u", "y", "control", "status", "timing", "period_ns", "catch_up", "max_misses",
+                               NULL};
     PyObject *tick, *u, *y, *control, *status, *timing;
     long long period_ns;
     int catch_up;
-    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOOOLp", keywords, &tick, &u, &y, &control, &status, &timing,
-                                     &period_ns, &catch_up))
+    long long max_misses = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOOOLp|L", keywords, &tick, &u, &y, &control, &status, &timing,
+                                     &period_ns, &catch_up, &max_misses))
         return -1;
     if (self->tick != NULL) {
         PyErr_SetString(PyExc_RuntimeError, "hot path: a Core is built once");
@@ -176,7 +181,7 @@ static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
     self->tick = tick;
     if ((self->u = hold_buffer(self, u, 1, 0, &len_u)) == NULL || (self->y = hold_buffer(self, y, 1, 0, &len_y)) == NULL ||
         (self->control = hold_buffer(self, control, 1, (CONTROL_STOP + 1) * 8, NULL)) == NULL ||
-        (self->status = hold_buffer(self, status, 1, (STATUS_EXEC_LAST_NS + 1) * 8, NULL)) == NULL ||
+        (self->status = hold_buffer(self, status, 1, (STATUS_MISSES_IN_A_ROW_MAX + 1) * 8, NULL)) == NULL ||
         attach_queue(self, timing, &self->timing, 0) < 0)
         return -1;
     if (self->timing.width != 4) {
@@ -187,6 +192,7 @@ static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
     self->n_y = len_y / 8;
     self->period_ns = period_ns;
     self->catch_up = catch_up;
+    self->max_misses = max_misses;
     return 0;
 }
 
@@ -521,6 +527,10 @@ static int set_tick(Core *self, PyObject *name, int64_t value) {
 
 /* begin(): sleep to the release, stamp the start, read the inputs. False: stop. */
 static PyObject *Core_begin(Core *self, PyObject *unused) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t release_ns = self->release_ns;
     if (release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed))
         Py_RETURN_FALSE;
@@ -558,6 +568,10 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
 
 /* finish(): publish the outputs valid from release + P, record the cycle, go to the next release. */
 static PyObject *Core_finish(Core *self, PyObject *unused) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
     int64_t period_ns = self->period_ns;
     publish_outputs(self, cycle, release_ns + period_ns);
@@ -570,8 +584,13 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
     STORE(&status[STATUS_EXEC_LAST_NS], end_ns - start_ns, relaxed);
     cycle++;
     release_ns += period_ns;
+    int go_on = 1;
     if (end_ns > release_ns) { /* overran into the next period */
         STORE(&status[STATUS_DEADLINE_MISSES], LOAD(&status[STATUS_DEADLINE_MISSES], relaxed) + 1, relaxed);
+        self->misses_in_a_row++;
+        if (self->misses_in_a_row > LOAD(&status[STATUS_MISSES_IN_A_ROW_MAX], relaxed))
+            STORE(&status[STATUS_MISSES_IN_A_ROW_MAX], self->misses_in_a_row, relaxed);
+        go_on = self->max_misses == 0 || self->misses_in_a_row < self->max_misses;
         int64_t skipped = 1;
         if (!self->catch_up) {
             int64_t next_cycle = (end_ns - self->t0_ns) / period_ns + 1;
@@ -580,14 +599,20 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
             release_ns = self->t0_ns + next_cycle * period_ns;
         }
         STORE(&status[STATUS_OVERRUNS], LOAD(&status[STATUS_OVERRUNS], relaxed) + skipped, relaxed);
+    } else {
+        self->misses_in_a_row = 0;
     }
     self->cycle = cycle;
     self->release_ns = release_ns;
-    Py_RETURN_NONE;
+    return PyBool_FromLong(go_on); /* False: max_misses deadline misses in a row */
 }
 
 /* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
 static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     int64_t release_ns = PyLong_AsLongLong(arg);
     if (release_ns == -1 && PyErr_Occurred())
         return NULL;
@@ -596,6 +621,10 @@ static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
 }
 
 static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (self->closed) {
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+        return NULL;
+    }
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "publish_outputs(cycle, publish_ns)");
         return NULL;
@@ -628,10 +657,27 @@ static int Core_traverse(Core *self, visitproc visit, void *arg) {
     return 0;
 }
 
-static void Core_dealloc(Core *self) {
-    PyObject_GC_UnTrack(self);
+/* Let go of the shared memory and the tick: after this the Core does nothing (close(), or the
+   garbage collector breaking a cycle — a mapping must never outlive the views we hold of it). */
+static int Core_clear(Core *self) {
     for (Py_ssize_t i = 0; i < self->n_views; i++)
         PyBuffer_Release(&self->views[i]);
+    self->n_views = 0;
+    self->closed = 1;
+    self->u = self->y = NULL;
+    self->control = self->status = self->output = NULL;
+    Py_CLEAR(self->tick);
+    return 0;
+}
+
+static PyObject *Core_close(Core *self, PyObject *unused) {
+    Core_clear(self);
+    Py_RETURN_NONE;
+}
+
+static void Core_dealloc(Core *self) {
+    PyObject_GC_UnTrack(self);
+    Core_clear(self);
     PyMem_Free(self->views);
     for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
         PyMem_Free(self->inputs[i].scratch);
@@ -645,7 +691,6 @@ static void Core_dealloc(Core *self) {
     PyMem_Free(self->out_ports);
     PyMem_Free(self->record_row);
     PyMem_Free(self->input_log_row);
-    Py_CLEAR(self->tick);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -653,6 +698,7 @@ static PyMethodDef Core_methods[] = {
     {"add_input", (PyCFunction)Core_add_input, METH_VARARGS, "Attach every connection from one writer."},
     {"add_live_port", (PyCFunction)Core_add_live_port, METH_VARARGS, "Attach an input port (LatestValue)."},
     {"set_input_log", (PyCFunction)Core_set_input_log, METH_O, "Attach the input log (SampleQueue) for replay."},
+    {"close", (PyCFunction)Core_close, METH_NOARGS, "Release the shared memory and the tick (idempotent)."},
     {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
     {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},
     {"add_output_port", (PyCFunction)Core_add_output_port, METH_VARARGS, "Attach an output port (SampleQueue)."},
@@ -682,6 +728,7 @@ static PyTypeObject CoreType = {
     .tp_init = (initproc)Core_init,
     .tp_dealloc = (destructor)Core_dealloc,
     .tp_traverse = (traverseproc)Core_traverse,
+    .tp_clear = (inquiry)Core_clear,
     .tp_methods = Core_methods,
     .tp_getset = Core_getset,
 };
@@ -734,7 +781,8 @@ PyMODINIT_FUNC PyInit__hotpath(void) {
         PyModule_AddIntConstant(module, "STATUS_DEADLINE_MISSES", STATUS_DEADLINE_MISSES) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_STALE_READS", STATUS_STALE_READS) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_LATENCY_LAST_NS", STATUS_LATENCY_LAST_NS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0) {
+        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0 ||
+        PyModule_AddIntConstant(module, "STATUS_MISSES_IN_A_ROW_MAX", STATUS_MISSES_IN_A_ROW_MAX) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -26,9 +26,11 @@ except ImportError as error:  # no compiler when the package was installed
 else:
     _NOT_BUILT = ""
     assert (_hotpath.CONTROL_STOP, _hotpath.STATUS_CYCLE, _hotpath.STATUS_OVERRUNS, _hotpath.STATUS_DEADLINE_MISSES,
-            _hotpath.STATUS_STALE_READS, _hotpath.STATUS_LATENCY_LAST_NS, _hotpath.STATUS_EXEC_LAST_NS) == (
+            _hotpath.STATUS_STALE_READS, _hotpath.STATUS_LATENCY_LAST_NS, _hotpath.STATUS_EXEC_LAST_NS,
+            _hotpath.STATUS_MISSES_IN_A_ROW_MAX) == (
         ControlWord.STOP, StatusWord.CYCLE, StatusWord.OVERRUNS, StatusWord.DEADLINE_MISSES,
-        StatusWord.STALE_READS, StatusWord.LATENCY_LAST_NS, StatusWord.EXEC_LAST_NS), "C and Python layouts differ"
+        StatusWord.STALE_READS, StatusWord.LATENCY_LAST_NS, StatusWord.EXEC_LAST_NS,
+        StatusWord.MISSES_IN_A_ROW_MAX), "C and Python layouts differ"
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 _announced = False
@@ -64,9 +66,10 @@ class PythonCycle:
     """One task's per-cycle framework work, in Python (the reference for ``_hotpath.Core``)."""
 
     def __init__(self, tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-                 catch_up: bool) -> None:
+                 catch_up: bool, max_misses: int | None = None) -> None:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
-        self.period_ns, self.catch_up = period_ns, catch_up
+        self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
+        self.misses_in_a_row = 0
         self.sleeper = AbsoluteSleeper()
         self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = 0
 
@@ -91,8 +94,10 @@ class PythonCycle:
         self.wiring.read_inputs(release_ns, self.wiring.u)
         return True
 
-    def finish(self) -> None:
-        """Publish outputs valid from release + P, record the cycle, move to the next release."""
+    def finish(self) -> bool:
+        """Publish outputs valid from release + P, record the cycle, move to the next release.
+
+        False: this was the ``max_misses``-th deadline miss in a row (the task should stop)."""
         cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
         self.wiring.publish_outputs(cycle, release_ns + period_ns, self.wiring.y)
         end_ns = now_ns()
@@ -103,15 +108,26 @@ class PythonCycle:
         status[StatusWord.EXEC_LAST_NS] = end_ns - start_ns
         cycle += 1
         release_ns += period_ns
+        go_on = True
         if end_ns > release_ns:  # overran into the next period
             status[StatusWord.DEADLINE_MISSES] += 1
+            self.misses_in_a_row += 1
+            if self.misses_in_a_row > status[StatusWord.MISSES_IN_A_ROW_MAX]:
+                status[StatusWord.MISSES_IN_A_ROW_MAX] = self.misses_in_a_row
+            go_on = self.max_misses is None or self.misses_in_a_row < self.max_misses
             skipped = 1
             if not self.catch_up:  # skip the releases already missed
                 next_cycle = (end_ns - self.t0_ns) // period_ns + 1
                 skipped = next_cycle - cycle
                 cycle, release_ns = next_cycle, self.t0_ns + next_cycle * period_ns
             status[StatusWord.OVERRUNS] += skipped
+        else:
+            self.misses_in_a_row = 0
         self.cycle, self.release_ns = cycle, release_ns
+        return go_on
+
+    def close(self) -> None:
+        """Nothing to let go of here (the C twin releases its hold on the shared memory)."""
 
     # --- the simulator's steps: no clock ---------------------------------------------------
     def read_inputs(self, release_ns: int) -> None:
@@ -127,13 +143,14 @@ def _index_in(base: Any, view: Any) -> int:
 
 
 def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-                   catch_up: bool) -> Any:
+                   catch_up: bool, max_misses: int | None = None) -> Any:
     """A ``_hotpath.Core`` over the same shared memory as ``wiring`` (a TaskWiring)."""
     import numpy as np
 
     assert _hotpath is not None
     u, y = wiring.u, wiring.y
-    core = _hotpath.Core(tick, u, y, control.words, status.words, timing.memory, period_ns, catch_up)
+    core = _hotpath.Core(tick, u, y, control.words, status.words, timing.memory, period_ns, catch_up,
+                         max_misses or 0)
     for link in wiring.links:
         core.add_input(link.channel.words, link.period_ns, link.first, len(link.scratch), link.spans)
     for port, target, index in wiring.live_ports:
@@ -154,7 +171,7 @@ def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: An
 
 
 def cycle_work(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-               catch_up: bool) -> Any:
+               catch_up: bool, max_misses: int | None = None) -> Any:
     """The per-cycle work of a task, built once before its loop: C when available, else Python."""
     kind = compiled_cycle if hot_path() == "c" else PythonCycle
-    return kind(tick, wiring, control, status, timing, period_ns, catch_up)
+    return kind(tick, wiring, control, status, timing, period_ns, catch_up, max_misses)

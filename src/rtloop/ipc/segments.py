@@ -313,18 +313,20 @@ class RecordRing:
         """Records the producer has pushed so far (not counting drops)."""
         return int(self._header_words[0])
 
-    def drain(self) -> np.ndarray:
-        """Copy out every record written since the last drain (shape: n × width)."""
+    def drain(self, max_records: int | None = None) -> np.ndarray:
+        """Copy out the records written since the last drain, at most ``max_records`` (shape: n × width)."""
         words = self._header_words
         written = words[0]
         fence()
         read = words[1]
         count = written - read
+        if max_records is not None:
+            count = min(count, max_records)
         if count <= 0:
             return np.empty((0, self.width), dtype=np.int64)
         start = read % self.capacity
         indices = (start + np.arange(count)) % self.capacity
         records = self._data[indices].copy()
         fence()  # finish copying before handing the slots back to the producer
-        words[1] = written
+        words[1] = read + count
         return records

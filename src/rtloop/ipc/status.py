@@ -44,6 +44,7 @@ class StatusWord(enum.IntEnum):
     CPU = 12
     RT = 13
     TIMING_DROPPED = 14
+    MISSES_IN_A_ROW_MAX = 15
 
 
 CONTROL_WORDS = 8

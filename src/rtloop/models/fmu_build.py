@@ -1,7 +1,8 @@
 """Build a small co-simulation FMU from C sources (tests, examples, benchmarks).
 
 Layout of ``src_dir``: ``modelDescription.xml`` and ``sources/*.c``. The sources are
-compiled with ``gcc -O2 -fPIC -shared`` into
+compiled with ``gcc -O2 -ffp-contract=off -fPIC -shared`` (no fused multiply-add, so
+the same bits on x86-64 and aarch64) into
 ``binaries/<platform>/<modelIdentifier>.so`` (FMI 2: ``linux64``; FMI 3:
 ``x86_64-linux`` / ``aarch64-linux``) and zipped with the description and the sources.
 """
@@ -55,7 +56,7 @@ def build_fmu(src_dir: str | os.PathLike[str], out_path: str | os.PathLike[str])
         binary = Path(tmp) / "binaries" / _platform_dir(fmi_version) / f"{identifier}.so"
         binary.parent.mkdir(parents=True)
         command = [
-            compiler, "-O2", "-fPIC", "-shared", "-fvisibility=hidden",
+            compiler, "-O2", "-ffp-contract=off", "-fPIC", "-shared", "-fvisibility=hidden",
             f"-I{src / 'sources'}", *map(str, sources), "-o", str(binary), "-lm",
         ]  # fmt: skip
         done = subprocess.run(command, capture_output=True, text=True)

@@ -21,9 +21,20 @@ from rtloop.app.builder import SignalRef
 
 
 class TimingCsv:
+    HEADER = "task,cycle,release_ns,start_ns,end_ns\n"
+
     def __init__(self, path: Path) -> None:
-        self.file: TextIO = open(path, "w", buffering=1 << 16)  # noqa: SIM115
-        self.file.write("task,cycle,release_ns,start_ns,end_ns\n")
+        self.file: TextIO = self._open(path)
+
+    def _open(self, path: Path) -> TextIO:
+        file = open(path, "w", buffering=1 << 16)  # noqa: SIM115
+        file.write(self.HEADER)
+        return file
+
+    def switch_to(self, path: Path) -> None:
+        """Go on in a new file (a recording segment), which starts with the header."""
+        self.file.close()
+        self.file = self._open(path)
 
     def append(self, task: str, records: np.ndarray) -> None:
         if len(records):
@@ -119,9 +130,18 @@ class SignalsCsv:
         self.pending: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = {s: [] for s in self.streams}
         self.delivered_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
         self.held: dict[tuple[str, str], np.ndarray | None] = dict.fromkeys(self.streams)
-        self.file: TextIO = open(path, "w", buffering=1 << 16)  # noqa: SIM115
-        self.file.write(",".join(["t_s", *names]) + "\n")
         self.rows_written = 0
+        self.file: TextIO = self._open(path)
+
+    def _open(self, path: Path) -> TextIO:
+        file = open(path, "w", buffering=1 << 16)  # noqa: SIM115
+        file.write(",".join(["t_s", *self.names]) + "\n")
+        return file
+
+    def switch_to(self, path: Path) -> None:
+        """Go on in a new file (a recording segment); the rows still pending go there."""
+        self.file.close()
+        self.path, self.file = path, self._open(path)
 
     def add(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
         if not len(ticks):

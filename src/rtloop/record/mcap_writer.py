@@ -210,9 +210,11 @@ class RunMcapWriter:
         """Write the index and summary; the file is complete after this. Safe twice."""
         if not self._closed:
             self._closed = True
-            self._writer.finish()
-            if self._file is not None:
-                self._file.close()
+            try:
+                self._writer.finish()
+            finally:  # a full disk makes finish() fail: the file is closed all the same
+                if self._file is not None:
+                    self._file.close()
 
     def __enter__(self) -> RunMcapWriter:
         return self
@@ -247,3 +249,41 @@ def write_run_mcap(
         for task, records in timing.items():
             writer.add_timing(task, records)
     return writer.messages_written
+
+
+def merge_mcap_files(sources: Sequence[str | PathLike[str]], target: str | PathLike[str]) -> int:
+    """Write the messages of several ``RunMcapWriter`` files into one, in order; return their count.
+
+    The messages are copied as they are (no decoding); schemas and channels are matched by
+    name and topic, the ``rtloop`` metadata is taken from the first file.
+    """
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    count = 0
+    with open(target, "wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        schemas: dict[str, int] = {}
+        channels: dict[str, int] = {}
+        for number, source in enumerate(sources):
+            with open(source, "rb") as file:
+                reader = make_reader(file)
+                if number == 0:
+                    writer.start(profile=reader.get_header().profile, library=reader.get_header().library)
+                    for record in reader.iter_metadata():
+                        writer.add_metadata(record.name, dict(record.metadata))
+                for schema, channel, message in reader.iter_messages(log_time_order=False):
+                    if channel.topic not in channels:
+                        if schema is None:
+                            raise ValueError(f"{source}: channel {channel.topic!r} has no schema")
+                        if schema.name not in schemas:
+                            schemas[schema.name] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                        channels[channel.topic] = writer.register_channel(
+                            channel.topic, channel.message_encoding, schemas[schema.name], dict(channel.metadata))
+                    writer.add_message(channels[channel.topic], message.log_time, message.data,
+                                       message.publish_time, message.sequence)
+                    count += 1
+        if not sources:
+            writer.start(profile="ros2")
+        writer.finish()
+    return count

@@ -1,12 +1,23 @@
 """All of a run's recordings behind one object, shared by ``run`` and ``simulate``.
 
-timing.csv and signals.csv are always written; run.mcap too when the ``mcap`` packages
-are installed (``pip install 'rtloop[ros]'``), else the summary says why it is missing.
-Beside run.mcap, metadata.yaml makes the run directory a ROS 2 bag (``ros2 bag info``).
+Statistics stream into fixed-size histograms (:mod:`rtloop.timing_stream`), so the
+recorder's memory does not grow with the run. Files: timing.csv and signals.csv always;
+run.mcap too when the ``mcap`` packages are installed (``pip install 'rtloop[ros]'``), else
+the summary says why it is missing; beside run.mcap, metadata.yaml makes the run
+directory a ROS 2 bag (``ros2 bag info``); inputs.csv logs what entered through live
+ports (for ``rtloop replay``). ``keep_s=None`` writes everything straight into those
+files; ``keep_s=S`` writes segments that a :class:`~rtloop.record.flight.FlightWindow`
+prunes to the last S seconds plus what surrounds every event, stitched at :meth:`close`.
+
+A recording that fails (disk full, I/O error, folder removed) stops; the run does not:
+the statistics go on, and :attr:`Recorder.stopped` says what happened.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -15,50 +26,64 @@ import numpy as np
 
 from rtloop.app.builder import App
 from rtloop.record.csvfiles import InputsCsv, SignalsCsv, TimingCsv
-from rtloop.record.rosbag2 import write_metadata
-from rtloop.timing import TimingSamples
+from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
+from rtloop.record.rosbag2 import bag_contents_of, write_metadata
+from rtloop.timing import DEFAULT_TRIM, TaskTiming
+from rtloop.timing_stream import StreamingTaskTiming
+
+FILE_NAMES = ["timing.csv", "signals.csv", "run.mcap"]
 
 
 class Recorder:
-    def __init__(self, app: App, out: Path) -> None:
+    def __init__(self, app: App, out: Path, *, keep_s: float | None = None, trim: int = DEFAULT_TRIM) -> None:
         out.mkdir(parents=True, exist_ok=True)
-        self.out = out
-        self.timing = TimingCsv(out / "timing.csv")
-        self.signals = (
-            SignalsCsv(out / "signals.csv", app.recorded,
-                       {n: t.config.period_ns for n, t in app.tasks.items()},
-                       {n: t.runnable.n_outputs for n, t in app.tasks.items()},
-                       {n: (t.runnable.input_names, t.runnable.output_names) for n, t in app.tasks.items()})
-            if app.recorded else None
-        )
+        self.out, self.app = out, app
+        self.periods_ns = {name: task.config.period_ns for name, task in app.tasks.items()}
+        self.statistics = {
+            name: StreamingTaskTiming(task.config.period_ns, trim=trim, overrun_policy=task.config.overrun)
+            for name, task in app.tasks.items()
+        }
+        self.last_record: dict[str, tuple[int, int, int, int] | None] = dict.fromkeys(app.tasks)
+        """Per task, the newest (cycle, release_ns, start_ns, end_ns) drained."""
+        self.keep_s = keep_s
+        self.window: FlightWindow | None = None
+        self.stopped = ""
+        """Why the recording stopped before the run did ('' while it records)."""
+        self.mcap_note = ""
+        self.t0_ns = 0
+        self.latest_ns = 0  # run time (since T0) of the newest release drained
+        self.timing: TimingCsv | None = None
+        self.signals: SignalsCsv | None = None
+        self.mcap = None
+        self.live: Any = None
+        """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
         live_ports = [p for p in app.ports.values() if p.direction == "in"]
-        self.inputs = InputsCsv(out / "inputs.csv") if live_ports else None
+        self.inputs: InputsCsv | None = None
+        self._has_live_ports = bool(live_ports)
         self._port_order = {
             name: [(link.name, link.signal.size) for link in live_ports if link.signal.task == name]
             for name in app.tasks
         }
-        self.mcap = None
-        self.mcap_note = ""
-        self.live: Any = None
-        """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
-        self.app = app
-        self._timing_records: dict[str, list[np.ndarray]] = {name: [] for name in app.tasks}
+        self._guard(self._open_first_files)
 
-    def start(self, t0_ns: int, wall_t0_ns: int) -> None:
-        """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
-        from rtloop.record.mcap_writer import RunMcapWriter
+    # --- files ---------------------------------------------------------------------------------
+    def _path(self, name: str) -> Path:
+        return self.window.path(name) if self.window is not None else self.out / name
 
-        names = self.signals.names if self.signals is not None else []
-        try:
-            self.mcap = RunMcapWriter(self.out / "run.mcap", names, t0_ns, wall_t0_ns,
-                                      metadata={"app": self.app.name, "source": self.app.source})
-        except ModuleNotFoundError as error:
-            self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
+    def _open_first_files(self) -> None:
+        if self.keep_s is not None:
+            self.window = FlightWindow(self.out, self.keep_s)
+        self.timing = TimingCsv(self._path("timing.csv"))
+        if self.app.recorded:
+            self.signals = SignalsCsv(
+                self._path("signals.csv"), self.app.recorded, self.periods_ns,
+                {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
+                {n: (t.runnable.input_names, t.runnable.output_names) for n, t in self.app.tasks.items()})
+        if self._has_live_ports:  # small (one row per value that came in): never rotated
+            self.inputs = InputsCsv(self.out / "inputs.csv")
 
-    def write_replay_info(self, duration_s: float) -> None:
+    def write_replay_info(self, duration_s: float | None) -> None:
         """``replay.json``: what ``rtloop replay`` needs besides inputs.csv to rebuild the run."""
-        import json
-
         source = self.app.source
         if source != "<python>":
             source = str(Path(source).resolve())
@@ -66,33 +91,102 @@ class Recorder:
             "app": self.app.name, "source": source, "duration_s": duration_s,
             "feeds": {name: str(Path(p.feed).resolve()) for name, p in self.app.ports.items() if p.feed is not None},
         }
-        (self.out / "replay.json").write_text(json.dumps(info, indent=1) + "\n")
+        self._guard((self.out / "replay.json").write_text, json.dumps(info, indent=1) + "\n")
 
+    def start(self, t0_ns: int, wall_t0_ns: int) -> None:
+        """Open run.mcap once the epoch is known (its messages carry wall-clock stamps)."""
+        self.t0_ns, self.wall_t0_ns = t0_ns, wall_t0_ns
+        self._guard(self._open_mcap)
+
+    def _open_mcap(self) -> None:
+        if self.stopped:
+            return
+        from rtloop.record.mcap_writer import RunMcapWriter
+
+        names = self.signals.names if self.signals is not None else []
+        try:
+            self.mcap = RunMcapWriter(self._path("run.mcap"), names, self.t0_ns, self.wall_t0_ns,
+                                      metadata={"app": self.app.name, "source": self.app.source})
+        except ModuleNotFoundError as error:
+            self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
+
+    def _rotate(self) -> None:
+        assert self.window is not None
+        if self.mcap is not None:
+            self.mcap.close()
+            self.mcap = None
+        self.window.rotate(self.latest_ns, FILE_NAMES)
+        if self.timing is not None:
+            self.timing.switch_to(self._path("timing.csv"))
+        if self.signals is not None:
+            self.signals.switch_to(self._path("signals.csv"))
+        if not self.mcap_note:
+            self._open_mcap()
+
+    def _guard(self, action, *args) -> None:
+        """Run a file operation; if it fails, stop the recording (never the run)."""
+        if self.stopped:
+            return
+        try:
+            action(*args)
+        except OSError as error:
+            self._stop_recording(error)
+
+    def _stop_recording(self, error: OSError) -> None:
+        where = f" ({error.filename})" if error.filename else ""
+        what = errno.errorcode.get(error.errno or 0, "error")
+        self.stopped = (f"recording stopped at {self.latest_ns / 1e9:.1f} s of run time: "
+                        f"{what} {error.strerror or error}{where}; the run went on")
+        for writer in (self.mcap, self.timing, self.signals, self.inputs):
+            if writer is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    writer.close()
+        self.mcap = self.timing = self.signals = self.inputs = None
+
+    # --- data ----------------------------------------------------------------------------------
     def add_inputs(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
         """Port values ``task`` took (ticks: ns since T0; rows: [index into the task's input ports, values…])."""
         if self.inputs is not None and len(ticks):
-            self.inputs.append(task, self.app.tasks[task].config.period_ns, self._port_order[task], ticks, rows)
+            self._guard(self.inputs.append, task, self.periods_ns[task], self._port_order[task], ticks, rows)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
-        if len(records):
-            self._timing_records[task].append(records)
-            self.timing.append(task, records)
-            if self.mcap is not None:
-                self.mcap.add_timing(task, records)
-            if self.live is not None:
-                self.live.add_timing(task, records)
+        if not len(records):
+            return
+        self.statistics[task].add(records)
+        last = records[-1].tolist()
+        self.last_record[task] = (last[0], last[1], last[2], last[3])
+        self.latest_ns = max(self.latest_ns, last[1] - self.t0_ns)
+        if np.any(records[:, 3] > records[:, 1] + self.periods_ns[task]):
+            self.mark_event()
+        self._guard(self._write_timing, task, records)
 
-    def samples(self, task: str) -> TimingSamples:
-        """Every timing record of ``task`` added so far (for the statistics)."""
-        records = self._timing_records[task]
-        return TimingSamples.from_records(np.concatenate(records) if records else np.empty((0, 4), np.int64))
+    def _write_timing(self, task: str, records: np.ndarray) -> None:
+        if self.timing is not None:
+            self.timing.append(task, records)
+        if self.mcap is not None:
+            self.mcap.add_timing(task, records)
+        if self.live is not None:
+            self.live.add_timing(task, records)
+
+    def mark_event(self) -> None:
+        """Something worth keeping happened now (a miss, a stale read, a fault)."""
+        if self.window is not None:
+            self.window.mark_event()
+
+    def timing_of(self, task: str) -> TaskTiming:
+        """The statistics of ``task`` so far."""
+        return self.statistics[task].task_timing()
 
     def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
         if self.signals is not None:
             self.signals.add(task, ticks, rows)
 
     def flush(self, final: bool = False) -> None:
-        self.timing.flush()
+        self._guard(self._flush, final)
+
+    def _flush(self, final: bool) -> None:
+        if self.timing is not None:
+            self.timing.flush()
         if self.inputs is not None:
             self.inputs.flush()
         if self.signals is not None:
@@ -101,18 +195,40 @@ class Recorder:
                 self.mcap.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
             if self.live is not None and times:
                 self.live.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
+        if self.window is not None and not final and self.window.due(self.latest_ns):
+            self._rotate()
 
     def close(self) -> None:
         self.flush(final=True)
-        self.timing.close()
-        if self.inputs is not None:
-            self.inputs.close()
-        if self.signals is not None:
-            self.signals.close()  # its last rows were flushed just above
-        if self.mcap is not None:
-            self.mcap.close()
-            write_metadata(self.out, self.mcap.bag_contents())
+        self._guard(self._close_files)
+        if self.window is not None:
+            try:
+                self.window.stitch(self.out, FILE_NAMES)
+            except Exception as error:  # a full disk, or mcap's own errors on a damaged segment
+                reason = error.strerror if isinstance(error, OSError) else error
+                problem = f"the kept segments could not be joined ({reason}); they are in {SEGMENTS_DIR}/"
+                self.stopped = f"{self.stopped}; {problem}" if self.stopped else problem
+        self._guard(self._write_bag_metadata)
         give_to_invoking_user(self.out)
+
+    def _close_files(self) -> None:
+        for writer in (self.timing, self.signals, self.mcap, self.inputs):
+            if writer is not None:
+                writer.close()
+
+    def _write_bag_metadata(self) -> None:
+        """metadata.yaml beside the final run.mcap (read back from it when segments were joined)."""
+        if self.mcap_note or self.stopped or not (self.out / "run.mcap").exists():
+            return
+        if self.window is None and self.mcap is not None:
+            write_metadata(self.out, self.mcap.bag_contents())
+        else:
+            write_metadata(self.out, bag_contents_of(self.out / "run.mcap"))
+
+    def to_json(self) -> dict[str, object]:
+        """What the summary says about the recording."""
+        window = self.window.to_json() if self.window is not None else {}
+        return {"keep_s": self.keep_s, "stopped": self.stopped or None, **window}
 
 
 def give_to_invoking_user(out: Path) -> None:
@@ -120,7 +236,11 @@ def give_to_invoking_user(out: Path) -> None:
     uid, gid = os.environ.get("SUDO_UID"), os.environ.get("SUDO_GID")
     if os.geteuid() != 0 or not uid or not gid:
         return
-    for path in [out, *out.iterdir()]:
+    try:
+        paths = [out, *out.iterdir()]
+    except OSError:
+        return
+    for path in paths:
         try:
             # a link planted in the folder is handed over itself; what it points to is never touched
             os.chown(path, int(uid), int(gid), follow_symlinks=False)

@@ -153,3 +153,23 @@ def write_metadata(bag_dir: Path, contents: BagContents) -> Path:
         temporary.unlink(missing_ok=True)
     return path
 
+
+
+def bag_contents_of(mcap_path: Path) -> BagContents:
+    """What ``metadata.yaml`` says of an existing, complete run.mcap (from its summary section)."""
+    from mcap.reader import make_reader
+
+    with open(mcap_path, "rb") as file:
+        summary = make_reader(file).get_summary()
+    if summary is None or summary.statistics is None:
+        raise OSError(f"{mcap_path.name} has no summary section")
+    statistics = summary.statistics
+    topics = []
+    for channel_id, channel in sorted(summary.channels.items()):
+        schema = summary.schemas.get(channel.schema_id)
+        topics.append(BagTopic(channel.topic, schema.name if schema else "",
+                               statistics.channel_message_counts.get(channel_id, 0),
+                               channel.metadata.get("offered_qos_profiles", offered_qos_profiles())))
+    first = statistics.message_start_time if statistics.message_count else 0
+    last = statistics.message_end_time if statistics.message_count else 0
+    return BagContents(mcap_path.name, tuple(topics), first, last - first)

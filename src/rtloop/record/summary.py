@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +37,8 @@ class TaskSummary:
     """Connection reads that found an older value than the tick was entitled to."""
     timing_samples_dropped: int
     """Timing samples lost because the supervisor did not drain fast enough."""
+    misses_in_a_row_max: int = 0
+    """The longest run of consecutive deadline misses (what ``max_consecutive_misses`` limits)."""
     input_names: tuple[str, ...] | None = None
     """Names of u[0], u[1], ... if the runnable gives them (a model's .info file, say)."""
     output_names: tuple[str, ...] | None = None
@@ -54,6 +59,7 @@ class TaskSummary:
             **{k: v for k, v in timing.items() if k != "period_ns"},
             "stale_reads": self.stale_reads,
             "timing_samples_dropped": self.timing_samples_dropped,
+            "misses_in_a_row_max": self.misses_in_a_row_max,
             "input_names": list(self.input_names) if self.input_names else None,
             "output_names": list(self.output_names) if self.output_names else None,
             **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
@@ -99,8 +105,8 @@ class RunSummary:
     """``run`` (real time) or ``simulate`` (lock-step, offline)."""
     started: str
     """ISO 8601 wall-clock time of T0."""
-    duration_s: float
-    """Requested duration."""
+    duration_s: float | None
+    """Requested duration (None: until stopped)."""
     rt_capable: bool
     """Whether the supervisor's probe found real-time scheduling allowed."""
     tasks: dict[str, TaskSummary]
@@ -108,7 +114,8 @@ class RunSummary:
     ports: dict[str, PortSummary] = field(default_factory=dict)
     """Per-port traffic."""
     stopped_by: str = "duration"
-    """``duration``, ``signal`` (Ctrl-C/SIGTERM) or ``fault``."""
+    """``duration``, ``signal`` (Ctrl-C/SIGTERM), ``fault`` (a task failed) or ``watchdog``
+    (a task stopped making progress); ``running`` while the run goes on."""
     failure: dict[str, Any] | None = None
     """The task failure that stopped the run, if any (task, cycle, phase, reason, traceback)."""
     machine: dict[str, Any] = field(default_factory=dict)
@@ -119,6 +126,13 @@ class RunSummary:
     """ROS 2 bridge processes: state, messages passed, messages rejected (and why)."""
     hot_path: str = ""
     """Where the per-cycle framework work ran: ``c`` (compiled) or ``python`` (the fallback)."""
+    elapsed_s: float = 0.0
+    """Run time from T0 to the newest cycle recorded."""
+    running: bool = False
+    """True in the summaries rewritten while the run goes on; False in the final one."""
+    recording: dict[str, Any] = field(default_factory=dict)
+    """The recording: ``keep_s`` (None: everything), ``stopped`` (why it stopped early, or None),
+    and with ``keep_s`` the flight recorder's segment length, events and events not kept."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -126,6 +140,8 @@ class RunSummary:
             "mode": self.mode,
             "started": self.started,
             "duration_s": self.duration_s,
+            "elapsed_s": round(self.elapsed_s, 3),
+            "running": self.running,
             "rt_capable": self.rt_capable,
             "stopped_by": self.stopped_by,
             "failure": self.failure,
@@ -135,7 +151,75 @@ class RunSummary:
             "ports": {name: port.to_json() for name, port in self.ports.items()},
             "bridges": self.bridges,
             "hot_path": self.hot_path,
+            "recording": self.recording,
         }
 
     def write(self, path: Path) -> None:
         path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+
+SUMMARY_RESERVE_BYTES = 64 * 1024
+
+
+class SummaryFile:
+    """``summary.json`` rewritten during a run: whole or not at all, even on a full disk.
+
+    Each write goes to a temporary file that then replaces the summary (a rename is atomic),
+    so a reader, a crash or a kill -9 sees the previous summary or the new one, never half
+    of one. A reserve file holds disk space from the start; when the disk is full it is given
+    up so the summary can still be written. A removed folder is made again.
+    """
+
+    def __init__(self, out: Path) -> None:
+        self.path = out / "summary.json"
+        self.reserve = out / ".summary-reserve"
+        self.problem = ""
+        """Why the last write failed ('' if it worked)."""
+        try:
+            fd = os.open(self.reserve, os.O_CREAT | os.O_WRONLY | os.O_TRUNC, 0o600)
+            try:
+                os.posix_fallocate(fd, 0, SUMMARY_RESERVE_BYTES)
+            finally:
+                os.close(fd)
+        except OSError:
+            self.reserve.unlink(missing_ok=True)  # no room even now: writes will try their luck
+
+    def write(self, summary: RunSummary) -> bool:
+        """Replace summary.json; returns whether it worked (failures are kept in ``problem``)."""
+        text = json.dumps(summary.to_json(), indent=2) + "\n"
+        for attempt in range(3):
+            try:
+                self._replace(text)
+                self.problem = ""
+                return True
+            except OSError as error:
+                self.problem = f"summary.json not written: {error.strerror or error}"
+                if attempt == 0 and error.errno in (errno.ENOSPC, errno.EDQUOT):
+                    self.reserve.unlink(missing_ok=True)
+                elif attempt == 0 and error.errno == errno.ENOENT:
+                    with contextlib.suppress(OSError):
+                        self.path.parent.mkdir(parents=True, exist_ok=True)
+                elif error.errno in (errno.ENOSPC, errno.EDQUOT):
+                    with contextlib.suppress(OSError):  # last resort: overwrite in place
+                        self.path.write_text(text)
+                        self.problem = ""
+                        return True
+        return False
+
+    def _replace(self, text: str) -> None:
+        temporary = self.path.with_name(".summary.json.tmp")
+        try:
+            with open(temporary, "w") as file:
+                file.write(text)
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(temporary, self.path)
+        except OSError:
+            with contextlib.suppress(OSError):
+                temporary.unlink()
+            raise
+
+    def close(self) -> None:
+        """Give the reserved space back."""
+        with contextlib.suppress(OSError):
+            self.reserve.unlink()

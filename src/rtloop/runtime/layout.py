@@ -113,7 +113,8 @@ class AppLayout:
     registry_path: Path | None = None
 
     @classmethod
-    def create(cls, app: App) -> AppLayout:
+    def create(cls, app: App, summary_path: Path | None = None) -> AppLayout:
+        """Every segment of a run; ``summary_path`` (the live summary.json) goes into the registry."""
         check_memory(app)
         remove_stale_segments()
         token = new_run_token()
@@ -126,14 +127,15 @@ class AppLayout:
             return created
 
         try:
-            return cls._build(app, token, segment, segments)
+            return cls._build(app, token, segment, segments, summary_path)
         except BaseException:
             for created in segments:
                 created.unlink()
             raise
 
     @classmethod
-    def _build(cls, app: App, token: str, segment, segments: list[Segment]) -> AppLayout:
+    def _build(cls, app: App, token: str, segment, segments: list[Segment],
+               summary_path: Path | None) -> AppLayout:
         control_segment = segment("control", CONTROL_WORDS * 8)
         control = WordBlock(control_segment, 0, CONTROL_WORDS)
 
@@ -200,7 +202,7 @@ class AppLayout:
             segments_of_task = TaskSegments(control_segment.name, task_segment.name)
             tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log)
         layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
-        layout._write_registry()
+        layout._write_registry(summary_path)
         return layout
 
     @staticmethod
@@ -222,7 +224,7 @@ class AppLayout:
         return created, InputPortLink(port.name, created.name, ref.slice, profile)
 
     # --- registry: how `rtloop port` and bridges find a running app's ports -------------
-    def _write_registry(self) -> None:
+    def _write_registry(self, summary_path: Path | None) -> None:
         ports = {
             name: {
                 "direction": spec.direction,
@@ -241,6 +243,7 @@ class AppLayout:
             "ports": ports,
             "tasks": {name: handles.segments.task for name, handles in self.tasks.items()},
             "control": next(iter(self.tasks.values())).segments.control if self.tasks else None,
+            "summary": str(summary_path.resolve()) if summary_path is not None else None,
         }
         path = SHM_DIR / f"rtloop-{self.app.name}-{os.getpid()}-{self.token}-registry.json"
         fd = open_in_shm(path.name, os.O_CREAT | os.O_WRONLY | os.O_EXCL)

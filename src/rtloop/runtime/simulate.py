@@ -19,17 +19,16 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import App, check_duration
-from rtloop.errors import StopRequested, TaskFailed
+from rtloop.errors import AppError, StopRequested, TaskFailed
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
-from rtloop.record.summary import RunSummary, TaskSummary, signal_names
+from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
 from rtloop.runtime.wiring import TaskWiring
-from rtloop.timing import task_timing
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
 
@@ -88,7 +87,7 @@ PortWrites = dict[tuple[str, int], list[tuple[str, list[float]]]]
 
 
 def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
-             port_writes: PortWrites | None = None) -> RunSummary:
+             port_writes: PortWrites | None = None, keep_s: float | None = None) -> RunSummary:
     """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`.
 
     ``port_writes`` replays what entered a real run from outside: each value is written
@@ -96,10 +95,16 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     """
     out = Path(out)
     app.validate()
+    if duration_s is None:
+        raise AppError("a simulation needs a duration (--duration S): logical time cannot be stopped by Ctrl-C")
     check_duration(duration_s)
+    if keep_s is not None and not keep_s > 0:
+        raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
     announce_once()
+    out.mkdir(parents=True, exist_ok=True)
+    summary_file = SummaryFile(out)
     layout = AppLayout.create(app)
-    recorder = Recorder(app, out)
+    recorder = Recorder(app, out, keep_s=keep_s, trim=trim)
     recorder.write_replay_info(duration_s)
     t0_ns = SIMULATION_T0_NS
     port_writes = port_writes or {}
@@ -148,12 +153,17 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
                              f"{type(error).__name__}: {error}", traceback.format_exc())
     finally:
         _drain(tasks, recorder)
-        recorder.close()
-        summary = _summary(app, recorder, layout, duration_s, trim, failure, tasks, stopped_by)
-        if recorder.mcap_note:
-            summary.notes.append(recorder.mcap_note)
-        summary.write(out / "summary.json")
-        layout.close()
+        try:
+            recorder.close()
+            summary = _summary(app, recorder, layout, duration_s, failure, tasks, stopped_by)
+            summary.notes.extend(note for note in (recorder.mcap_note, recorder.stopped) if note)
+            summary_file.write(summary)
+        finally:
+            summary_file.close()
+            for task in tasks.values():
+                if task.io is not None:
+                    task.io.close()  # let go of the shared memory before it is unmapped
+            layout.close()
     if failure is not None:
         raise failure
     return summary
@@ -171,7 +181,7 @@ def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
     recorder.flush()
 
 
-def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float, trim: int,
+def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
              failure: TaskFailed | None, sim_tasks: dict[str, _SimTask], stopped_by: str) -> RunSummary:
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
@@ -179,8 +189,7 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
             period_ns=spec.config.period_ns, priority=0, cpu=None, policy="simulated", rt=False,
             rt_reason="offline simulation: logical time, no real-time scheduling",
             memory_locked=False,
-            timing=task_timing(recorder.samples(name), spec.config.period_ns, trim=trim,
-                               overrun_policy=spec.config.overrun),
+            timing=recorder.timing_of(name),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,
             host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
@@ -193,4 +202,5 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
         ports=port_summaries(layout), stopped_by="fault" if failure else stopped_by,
         failure=failure.to_json() if failure else None, machine=machine_facts(capabilities),
+        elapsed_s=recorder.latest_ns / 1e9, recording=recorder.to_json(),
     )

@@ -2,15 +2,18 @@
 
 It runs in the ``rtloop run`` process (non-real-time). The order of a run:
 create shared memory → spawn tasks → wait until every task has finished ``prerun`` →
-pick the common epoch T0 → drain timing and recordings until the tasks end → write
-the artifacts → remove shared memory. Ctrl-C, SIGTERM, a task that raises and a task
-process that dies all take the same way out, so nothing recorded is lost.
+pick the common epoch T0 → drain timing and recordings until the tasks end (rewriting
+summary.json every few seconds, watching that every task makes progress) → write the
+artifacts → remove shared memory. Ctrl-C, SIGTERM, a task that raises, a task process that
+dies and a task the watchdog finds stuck all take the same way out, so nothing recorded is
+lost. Without a duration the run goes on until Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import multiprocessing
+import os
 import signal
 import sys
 import threading
@@ -20,23 +23,26 @@ from pathlib import Path
 from typing import Any
 
 from rtloop import rt
-from rtloop.app.builder import App, check_duration
-from rtloop.errors import TaskFailed
+from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
+from rtloop.errors import AppError, TaskFailed
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState
 from rtloop.lean import single_threaded_children
 from rtloop.record.recorder import Recorder
-from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names
+from rtloop.record.summary import PortSummary, RunSummary, SummaryFile, TaskSummary, signal_names
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
 from rtloop.runtime.task import task_process_main
-from rtloop.timing import task_timing
 
 DRAIN_INTERVAL_S = 0.05
+DRAIN_BATCH_RECORDS = 2048
 START_MARGIN_NS = 100_000_000
 STOP_GRACE_S = 5.0
 STARTUP_ALLOWANCE_S = 30.0
 """Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
+WATCHDOG_GRACE_S = 2.0  # between SIGTERM and SIGKILL of a task the watchdog found stuck
+SUMMARY_INTERVAL_S = 2.0
+UNTIL_STOPPED_NS = 1 << 62  # the end time of a run without a duration: never
 
 
 @dataclass
@@ -48,13 +54,21 @@ class _TaskRun:
     failure: TaskFailed | None = None
     finished: bool = False
     stop_request: str | None = None
+    progress_cycle: int = -1  # the CYCLE status word when the watchdog last saw it change
+    progress_ns: int = 0  # and when that was
+    stuck: bool = False  # the watchdog gave up on it: SIGTERM sent, SIGKILL follows
 
 
 class Supervisor:
-    def __init__(self, app: App, duration_s: float, out: Path, *, progress: bool, trim: int) -> None:
+    def __init__(self, app: App, duration_s: float | None, out: Path, *, progress: bool, trim: int,
+                 keep_s: float | None = None) -> None:
         app.validate()
-        check_duration(duration_s)
+        if duration_s is not None:
+            check_duration(duration_s)
+        if keep_s is not None and not keep_s > 0:
+            raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
         self.app, self.duration_s, self.out = app, duration_s, out
+        self.keep_s = keep_s
         self.progress, self.trim = progress, trim
         self.stop_reason = "duration"
         self.failure: TaskFailed | None = None
@@ -70,47 +84,57 @@ class Supervisor:
         self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
         announce_once()
-        layout = AppLayout.create(self.app)
-        recorder = Recorder(self.app, self.out)
-        recorder.write_replay_info(self.duration_s)
-        self.bridges = Bridges(self.app)
-        self.live: Any = None
+        summary_file = SummaryFile(self.out)  # reserves its disk space first
+        layout = AppLayout.create(self.app, summary_file.path)
         runs: dict[str, _TaskRun] = {}
-        previous_handlers = self._install_signal_handlers()
-        self.dma_latency = rt.CpuDmaLatency().__enter__()
-        self.dma_latency_held = self.dma_latency.held  # read now: the summary is written after it is let go
-        children_before = _adopt_orphans()
+        self.live: Any = None
         try:
-            self._open_live_view(recorder, layout)
-            runs = self._spawn(layout)
-            assert layout.registry_path is not None
-            self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
-            self._wait_until_ready(layout, runs)
-            if self.failure is None and self.stop_reason == "duration":
-                self._start_epoch(layout, recorder)
+            recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
+            recorder.write_replay_info(self.duration_s)
+            self.bridges = Bridges(self.app)
+            previous_handlers = self._install_signal_handlers()
+            self.dma_latency = rt.CpuDmaLatency().__enter__()
+            self.dma_latency_held = self.dma_latency.held  # read now: the summary is written after it is let go
+            children_before = _adopt_orphans()
+            try:
+                self._open_live_view(recorder, layout)
+                runs = self._spawn(layout)
+                assert layout.registry_path is not None
+                self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
+                self._wait_until_ready(layout, runs)
+                if self.failure is None and self.stop_reason == "duration":
+                    self._start_epoch(layout, recorder)
+                    if self.live is not None:
+                        self.live.start(self.t0_ns, self.wall_t0_ns)
+                    self._drain_until_done(layout, runs, recorder, capabilities, summary_file)
+                else:
+                    layout.control[ControlWord.STOP] = 1
+                self._join(layout, runs)
+                self._drain(layout, recorder)
+            finally:
+                self.bridges.stop()
                 if self.live is not None:
-                    self.live.start(self.t0_ns, self.wall_t0_ns)
-                self._drain_until_done(layout, runs, recorder)
-            else:
+                    self.live.close()
+                self.dma_latency.__exit__()
+                self._restore_signal_handlers(previous_handlers)
                 layout.control[ControlWord.STOP] = 1
-            self._join(layout, runs)
-            self._drain(layout, recorder)
+                for task_run in runs.values():
+                    if task_run.process.is_alive():
+                        task_run.process.kill()
+                    task_run.process.join()
+                rt.end_strays(keep=children_before | _resource_tracker())  # whatever the tasks left running
+                try:
+                    recorder.close()
+                except Exception as error:
+                    recorder.stopped = recorder.stopped or f"recording not closed: {error}"
+                summary = self._summary(layout, runs, capabilities, recorder, running=False)
+                summary_file.write(summary)
+                summary_file.close()
         finally:
-            self.bridges.stop()
-            if self.live is not None:
-                self.live.close()
-            self.dma_latency.__exit__()
-            self._restore_signal_handlers(previous_handlers)
-            layout.control[ControlWord.STOP] = 1
-            for task_run in runs.values():
-                if task_run.process.is_alive():
-                    task_run.process.kill()
-                task_run.process.join()
-            rt.end_strays(keep=children_before | _resource_tracker())  # whatever the tasks left running
-            recorder.close()
-            summary = self._summary(layout, runs, capabilities, recorder)
-            summary.write(self.out / "summary.json")
-            layout.close()
+            layout.close()  # whatever happened above: no shared memory is left behind
+            summary_file.close()
+        if summary_file.problem:
+            sys.stderr.write(f"rtloop: {summary_file.problem}\n")
         if self.failure is not None:
             raise self.failure
         return summary
@@ -148,7 +172,7 @@ class Supervisor:
 
     def _wait_until_ready(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
         """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
-        limit_s = self.duration_s + STARTUP_ALLOWANCE_S
+        limit_s = float("inf") if self.duration_s is None else self.duration_s + STARTUP_ALLOWANCE_S
         deadline = time.monotonic() + limit_s
         while self.failure is None and self.stop_reason == "duration":
             self._poll(layout, runs)
@@ -167,42 +191,108 @@ class Supervisor:
     def _start_epoch(self, layout: AppLayout, recorder: Recorder) -> None:
         wall_now_ns, now_ns = time.time_ns(), rt.now_ns()
         self.t0_ns = now_ns + START_MARGIN_NS
-        self.end_ns = self.t0_ns + round(self.duration_s * 1e9)
+        self.end_ns = UNTIL_STOPPED_NS if self.duration_s is None else self.t0_ns + round(self.duration_s * 1e9)
         self.wall_t0 = (wall_now_ns + START_MARGIN_NS) / 1e9
         self.wall_t0_ns = wall_now_ns + START_MARGIN_NS
         recorder.start(self.t0_ns, wall_now_ns + START_MARGIN_NS)
         layout.control[ControlWord.END_NS] = self.end_ns
         layout.control[ControlWord.T0_NS] = self.t0_ns  # last: tasks start when they see it
 
-    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
+    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder,
+                          capabilities: rt.Capabilities, summary_file: SummaryFile) -> None:
         give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
+        next_summary_s = time.monotonic()
+        stale_reads = dict.fromkeys(runs, 0)
+        recording_stopped = ""
         while not all(r.finished for r in runs.values()):
             time.sleep(DRAIN_INTERVAL_S)
             self._poll(layout, runs)
             if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
                 self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
             self._drain(layout, recorder)
+            self._poll(layout, runs)
+            self._watch(layout, runs, recorder)
             self.bridges.poll()
+            for name in runs:  # a stale read is an event the flight recorder keeps
+                count = layout.tasks[name].status[StatusWord.STALE_READS]
+                if count != stale_reads[name]:
+                    stale_reads[name] = count
+                    recorder.mark_event()
+            if recorder.stopped != recording_stopped:
+                recording_stopped = recorder.stopped
+                sys.stderr.write(f"\nrtloop: {recording_stopped}\n")
             if self.failure is not None or self.stop_reason != "duration":
+                recorder.mark_event()
                 layout.control[ControlWord.STOP] = 1
-                return
+                break
             if rt.now_ns() > give_up_ns:
                 layout.control[ControlWord.STOP] = 1
-                return
+                break
+            if time.monotonic() >= next_summary_s:
+                next_summary_s = time.monotonic() + SUMMARY_INTERVAL_S
+                summary_file.write(self._summary(layout, runs, capabilities, recorder, running=True))
             if self.progress:
-                self._show_progress(layout)
+                self._show_progress(layout, recorder)
         if self.progress:
             sys.stderr.write("\n")
+
+    def _watch(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
+        """The watchdog: a running task whose cycle count stands still too long is stuck."""
+        now_ns = rt.now_ns()
+        for task_run in runs.values():
+            status = layout.tasks[task_run.name].status
+            if task_run.finished or task_run.stuck or status[StatusWord.STATE] != TaskState.RUNNING:
+                continue
+            cycle = status[StatusWord.CYCLE]
+            if cycle != task_run.progress_cycle:
+                task_run.progress_cycle, task_run.progress_ns = cycle, now_ns
+                continue
+            config = self.app.tasks[task_run.name].config
+            if not config.watchdog_periods:
+                continue
+            limit_ns = max(config.watchdog_periods * config.period_ns, round(WATCHDOG_MIN_S * 1e9))
+            quiet_ns = now_ns - max(task_run.progress_ns, self.t0_ns)
+            if quiet_ns <= limit_ns or self.failure is not None:
+                continue
+            task_run.stuck = True
+            self.failure = TaskFailed(
+                task_run.name, self._cycle_after(task_run.name, recorder), "step",
+                f"watchdog: no cycle finished for {quiet_ns / 1e9:.1f} s ({config.watchdog_periods} periods); "
+                "the step is stuck (a blocking call or an endless loop)",
+            )
+            self.stop_reason = "watchdog"
+            layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
+            try:
+                os.kill(task_run.process.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+
+    def _cycle_after(self, name: str, recorder: Recorder) -> int:
+        """The cycle a task works on: the one after its newest timing record."""
+        last = recorder.last_record[name]
+        if last is None:
+            return 0
+        cycle, release_ns, _start_ns, end_ns = last
+        config = self.app.tasks[name].config
+        if end_ns <= release_ns + config.period_ns or config.overrun == "catch_up":
+            return cycle + 1
+        return (end_ns - self.t0_ns) // config.period_ns + 1  # skip: the next release after it ended
 
     def _join(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
         deadline = time.monotonic() + STOP_GRACE_S + max(
             t.config.period_ns for t in self.app.tasks.values()
         ) / 1e9
+        stuck_deadline = time.monotonic() + WATCHDOG_GRACE_S
         for task_run in runs.values():
-            task_run.process.join(max(0.0, deadline - time.monotonic()))
+            task_run.process.join(max(0.0, (stuck_deadline if task_run.stuck else deadline) - time.monotonic()))
             if task_run.process.is_alive():
                 task_run.process.kill()
                 task_run.process.join()
+                if task_run.stuck and self.failure is not None:
+                    self.failure = TaskFailed(
+                        task_run.name, self.failure.cycle, self.failure.phase,
+                        f"{self.failure.reason}; it ignored SIGTERM and was killed (SIGKILL) after "
+                        f"{WATCHDOG_GRACE_S:.0f} s, so its postrun did not run")
                 if self.failure is None:
                     phase, cycle = self._phase_of(layout, task_run.name)
                     self.failure = TaskFailed(
@@ -216,13 +306,22 @@ class Supervisor:
     # --- draining and watching ---------------------------------------------------------------
     @staticmethod
     def _drain(layout: AppLayout, recorder: Recorder) -> None:
-        for name, handles in layout.tasks.items():
-            recorder.add_timing(name, handles.timing.drain())
-            if handles.input_log is not None:
-                recorder.add_inputs(name, *handles.input_log.drain())
-            if handles.record is not None:
-                recorder.add_signals(name, *handles.record.drain())
-        recorder.flush()
+        """Hand what the tasks recorded to the recorder, in bounded batches: a supervisor that fell
+        behind catches up without a burst of memory (which Python would keep afterwards)."""
+        more = True
+        while more:
+            more = False
+            for name, handles in layout.tasks.items():
+                records = handles.timing.drain(DRAIN_BATCH_RECORDS)
+                recorder.add_timing(name, records)
+                more |= len(records) == DRAIN_BATCH_RECORDS
+                if handles.input_log is not None:
+                    recorder.add_inputs(name, *handles.input_log.drain())
+                if handles.record is not None:
+                    ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
+                    recorder.add_signals(name, ticks, rows)
+                    more |= len(ticks) == DRAIN_BATCH_RECORDS
+            recorder.flush()
 
     def _poll(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
         """Read task messages; notice failures and dead processes."""
@@ -273,13 +372,16 @@ class Supervisor:
         if task_run.stop_request and self.stop_reason == "duration":
             self.stop_reason = task_run.stop_request
 
-    def _show_progress(self, layout: AppLayout) -> None:
+    def _show_progress(self, layout: AppLayout, recorder: Recorder) -> None:
         elapsed_s = max(0.0, (rt.now_ns() - self.t0_ns) / 1e9)
         misses = sum(h.status[StatusWord.DEADLINE_MISSES] for h in layout.tasks.values())
         worst_us = max(h.status[StatusWord.LATENCY_LAST_NS] for h in layout.tasks.values()) / 1e3
+        until = "  (Ctrl-C stops)" if self.duration_s is None else f" / {self.duration_s:.1f} s"
+        if self.duration_s is not None:
+            elapsed_s = min(elapsed_s, self.duration_s)
+        recording = "   RECORDING STOPPED" if recorder.stopped else ""
         sys.stderr.write(
-            f"\r  {min(elapsed_s, self.duration_s):7.1f} / {self.duration_s:.1f} s   "
-            f"deadline misses {misses}   latency now {worst_us:7.1f} µs  "
+            f"\r  {elapsed_s:7.1f} s{until}   deadline misses {misses}   latency now {worst_us:7.1f} µs{recording}  "
         )
         sys.stderr.flush()
 
@@ -300,12 +402,11 @@ class Supervisor:
 
     # --- results --------------------------------------------------------------------------------
     def _summary(self, layout: AppLayout, runs: dict[str, _TaskRun], capabilities: rt.Capabilities,
-                 recorder: Recorder) -> RunSummary:
+                 recorder: Recorder, *, running: bool) -> RunSummary:
         tasks: dict[str, TaskSummary] = {}
         for name, spec in self.app.tasks.items():
             task_run = runs.get(name)
             status = layout.tasks[name].status
-            samples = recorder.samples(name)
             settings = task_run.settings if task_run else None
             tasks[name] = TaskSummary(
                 period_ns=spec.config.period_ns,
@@ -315,8 +416,9 @@ class Supervisor:
                 rt=settings.rt if settings else False,
                 rt_reason="; ".join(settings.reasons) if settings else "the task never started",
                 memory_locked=settings.memory_locked if settings else False,
-                timing=task_timing(samples, spec.config.period_ns, trim=self.trim, overrun_policy=spec.config.overrun),
+                timing=recorder.timing_of(name),
                 stale_reads=status[StatusWord.STALE_READS],
+                misses_in_a_row_max=status[StatusWord.MISSES_IN_A_ROW_MAX],
                 timing_samples_dropped=layout.tasks[name].timing.dropped,
                 **signal_names(spec.runnable),
             )
@@ -329,11 +431,14 @@ class Supervisor:
             rt_capable=capabilities.may_use_rt,
             tasks=tasks,
             ports=port_summaries(layout),
-            stopped_by=self.stop_reason,
+            stopped_by="running" if running else self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
-            notes=[note for note in (recorder.mcap_note, self.bridges.note) if note],
+            notes=[note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note],
             bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
+            elapsed_s=recorder.latest_ns / 1e9,
+            running=running,
+            recording=recorder.to_json(),
         )
 
 
@@ -406,6 +511,11 @@ def _describe_exit(exitcode: int) -> str:
     return f"exit code {exitcode}"
 
 
-def run(app: App, duration_s: float, out: str | Path, *, progress: bool = False, trim: int = 20) -> RunSummary:
-    """Run ``app`` in real time for ``duration_s``; write the run's artifacts into ``out``."""
-    return Supervisor(app, duration_s, Path(out), progress=progress, trim=trim).run()
+def run(app: App, duration_s: float | None, out: str | Path, *, progress: bool = False, trim: int = 20,
+        keep_s: float | None = None) -> RunSummary:
+    """Run ``app`` in real time for ``duration_s`` (None: until SIGINT/SIGTERM); artifacts go into ``out``.
+
+    ``keep_s``: keep only the last ``keep_s`` seconds of timing.csv, signals.csv and run.mcap,
+    plus the cycles around every deadline miss, stale read or fault (None: keep everything).
+    """
+    return Supervisor(app, duration_s, Path(out), progress=progress, trim=trim, keep_s=keep_s).run()

@@ -21,7 +21,7 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
-from rtloop.errors import StopRequested
+from rtloop.errors import DeadlineMissesExceeded, StopRequested
 from rtloop.ipc.hotpath import cycle_work
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
@@ -78,18 +78,23 @@ class RealtimeTask:
     def run_loop(self, t0_ns: int, end_ns: int) -> None:
         """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
         runnable, u, y = self.runnable, self.u, self.y
+        limit = self.config.max_consecutive_misses
         # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
         cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
-                           self.config.period_ns, catch_up=self.config.overrun == "catch_up")
+                           self.config.period_ns, catch_up=self.config.overrun == "catch_up", max_misses=limit)
         cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
         # Read → step → publish: begin() sleeps to the absolute release T0 + k·P (no drift)
         # and reads the inputs valid at it; finish() publishes the outputs as valid from
         # release + P (logical execution time), so the result does not depend on how fast
         # this cycle ran, records its timing and moves to the next release (after an overrun,
         # as the overrun policy says).
-        while cycle.begin():
-            runnable.step(u, y)
-            cycle.finish()
+        try:
+            while cycle.begin():
+                runnable.step(u, y)
+                if not cycle.finish():  # too many deadline misses in a row (max_consecutive_misses)
+                    raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
+        finally:
+            cycle.close()  # let go of the shared memory before it is unmapped
 
 
 def initial_inputs(runnable: Runnable) -> np.ndarray:
@@ -191,7 +196,7 @@ def task_process_main(
             phase=phase,
             cycle=task.cycle if phase == "step" else None,
             reason=f"{type(error).__name__}: {error}",
-            traceback=traceback.format_exc(),
+            traceback="" if isinstance(error, DeadlineMissesExceeded) else traceback.format_exc(),
         )
         if phase != "postrun":
             _postrun_after_failure(runnable, pipe)
