@@ -301,3 +301,15 @@ def test_a_matrix_product_in_the_loop_does_not_map_a_new_blas_buffer(tmp_path: P
     assert len(faults) > 50
     # Unlocked, the product faults in the few pages it packs into, once; locked, none at all.
     assert max(faults) <= (0 if lock_blas_buffer else 16), faults[:5]
+
+
+def test_a_task_process_imports_neither_the_supervisor_nor_the_recorder(rtloop_env) -> None:
+    # Every task process imports rtloop.runtime.task (it unpickles its entry point); whatever
+    # that drags in is mapped, and locked by mlockall, in each of them.
+    code = ("import sys, rtloop.runtime.task\n"
+            "heavy = ['rtloop.runtime.supervisor', 'rtloop.record.recorder', 'rtloop.record.summary', 'hashlib']\n"
+            "print([name for name in heavy if name in sys.modules])\n"
+            "import rtloop\nprint(rtloop.run.__module__, rtloop.RunSummary.__name__)")
+    result = subprocess.run([sys.executable, "-c", code], env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["[]", "rtloop.runtime.supervisor RunSummary"]
