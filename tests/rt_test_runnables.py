@@ -250,3 +250,23 @@ class LateOnce(Runnable):
             end_ns = self.tick.release_ns + self.tick.period_ns * 3
             while time.monotonic_ns() < end_ns:
                 pass
+
+
+class MatrixProduct(Runnable):
+    """Multiplies two 3×3 matrices each step; y[0] = minor page faults the product took."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def prerun(self) -> None:
+        import numpy as np
+
+        self.a = np.arange(9.0).reshape(3, 3)
+        self.b = np.eye(3)
+
+    def step(self, u, y) -> None:
+        import resource
+
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        self.a @ self.b
+        y[0] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before

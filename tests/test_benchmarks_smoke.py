@@ -93,3 +93,37 @@ def test_bench_channels_prints_its_tables(tmp_path: Path) -> None:
 
     result = json.loads(out.read_text())
     assert set(result["hops"]) == {"LetChannel", "SampleQueue", "raw numpy"}
+
+
+@pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
+def test_bench_jiwy_sweeps_rates_next_to_cyclictest() -> None:
+    stdout = run_script("bench_jiwy.py", "--duration", "0.3", "--rounds", "1", "--rates", "1000,2000",
+                        "--models", "python", "--cyclictest")
+    misses = table_rows(stdout, "| rate | python misses / releases | cyclictest misses / releases |")
+    assert [row[0] for row in misses] == ["1000 Hz", "2000 Hz"]
+    for row in misses:
+        for cell in row[1:]:
+            missed, releases = (int(n) for n in cell.split(" (")[0].split(" / "))
+            assert 0 <= missed <= releases and releases > 100
+
+
+def test_bench_peers_puts_iceoryx2_and_dora_beside_rtloop() -> None:
+    pytest.importorskip("iceoryx2", reason="iceoryx2 is not installed (pip install iceoryx2)")
+    if shutil.which("dora", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]])) is None:
+        pytest.skip("dora-rs-cli is not installed (pip install dora-rs dora-rs-cli)")
+    stdout = run_script("bench_peers.py", "--rounds", "1", "--block-s", "0.5")
+    hops = table_rows(stdout, "| contender | samples | hop p50 µs | p99 µs | max µs |")
+    assert [row[0] for row in hops] == ["raw numpy", "rtloop python", "rtloop C", "iceoryx2", "dora-rs"]
+    assert all(int(row[1]) > 0 for row in hops), hops  # how many arrive in time depends on the load
+    assert "dora-rs period jitter" in stdout
+
+
+def test_bench_hotpath_measures_the_iteration_in_c(tmp_path: Path) -> None:
+    out = tmp_path / "hotpath.json"
+    stdout = run_script("bench_hotpath.py", "--rounds", "1", "--block-s", "0.3", "--op-repeats", "200",
+                        "--json", str(out))
+    iteration = {row[0]: row[1:] for row in table_rows(stdout, "|  | rtloop python | rtloop C |")}
+    measured = iteration["iteration, wake-up → next sleep, measured in C (releases past)"]
+    assert measured[0] == "n/a" and 0 < float(measured[1]) < 1000
+    result = json.loads(out.read_text())
+    assert result["task_process"]["VmLck_MB"] > 0

@@ -79,6 +79,8 @@ CASES = {
                        "ports.p: port 'p': range [1.0, -1.0] must be finite with lo ≤ hi"),
     "long name": (f'name = "{"n" * 100}"\n' + GOOD_TASK, "at most 32"),
     "tasks not a table": ('name = "x"\ntasks = 3\n', "tasks: expected a table"),
+    "lock_blas_buffer not a bool": ('name = "x"\n' + GOOD_TASK + 'lock_blas_buffer = "yes"\n',
+                                    "tasks.t.lock_blas_buffer: expected true or false"),
 }
 
 

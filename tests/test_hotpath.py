@@ -17,7 +17,7 @@ import pytest
 import rtloop
 import shm_stress
 from conftest import other_cpu
-from rt_test_runnables import Counter, Gain, Integrator, PiController, RaiseAt
+from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController, RaiseAt
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
@@ -192,8 +192,12 @@ def test_task_processes_run_one_thread_and_lock_less_memory(tmp_path: Path, rtlo
     assert process.returncode == 0
     assert status["Threads"] == "1", "no BLAS or OpenMP worker threads beside the loop"
     locked_mb = int(status["VmLck"].split()[0]) / 1024
-    # With numpy's OpenBLAS pool (one worker per extra CPU, with its stack and buffer) it was 148 MB here.
-    assert 20 < locked_mb < 125, f"VmLck {locked_mb:.0f} MB"
+    mapped_mb = int(status["VmSize"].split()[0]) / 1024
+    # 148 MB with OpenBLAS's worker pool, 111 MB with one thread and everything locked, 69 MB
+    # here now: numpy and its libraries alone are ~39 MB (BENCHMARKS.md, "Memory locked").
+    assert 20 < locked_mb < 75, f"VmLck {locked_mb:.0f} MB"
+    # OpenBLAS's work buffer (32 MB on x86_64, 16–32 MB on arm64 builds) is mapped but not locked.
+    assert mapped_mb - locked_mb > 15, f"VmSize {mapped_mb:.0f} MB, VmLck {locked_mb:.0f} MB"
 
 
 def _simulate_cli(tmp_path: Path, env: dict[str, str], prelude: str = "") -> subprocess.CompletedProcess:
@@ -279,3 +283,33 @@ def test_failed_simulations_kept_in_reference_cycles_do_not_corrupt_memory(tmp_p
     gc.collect()
     junk = [bytearray(4096) for _ in range(20_000)]  # reuse what was freed; a dangling view would show
     assert sum(len(b) for b in junk) == 4096 * 20_000
+
+
+@pytest.mark.rt
+@pytest.mark.parametrize("lock_blas_buffer", [False, True])
+def test_a_matrix_product_in_the_loop_does_not_map_a_new_blas_buffer(tmp_path: Path, lock_blas_buffer: bool) -> None:
+    # Before: OpenBLAS mapped a second 32 MB buffer on the first product, and mlockall faulted
+    # it all in inside the loop (8,192 faults). Now the one buffer exists before the loop.
+    app = App(f"blas_{os.getpid()}_{int(lock_blas_buffer)}")
+    product = app.add_task("product", MatrixProduct(), period_ns=2_000_000, cpu=other_cpu(),
+                           lock_blas_buffer=lock_blas_buffer)
+    app.record(product.y)
+    summary = rtloop.run(app, 0.2, tmp_path)
+    assert summary.rt_capable
+    header, *rows = rows_of(tmp_path / "signals.csv")
+    faults = [float(row[header.index("product.y[0]")]) for row in rows[1:]]  # row 0: initial outputs
+    assert len(faults) > 50
+    # Unlocked, the product faults in the few pages it packs into, once; locked, none at all.
+    assert max(faults) <= (0 if lock_blas_buffer else 16), faults[:5]
+
+
+def test_a_task_process_imports_neither_the_supervisor_nor_the_recorder(rtloop_env) -> None:
+    # Every task process imports rtloop.runtime.task (it unpickles its entry point); whatever
+    # that drags in is mapped, and locked by mlockall, in each of them.
+    code = ("import sys, rtloop.runtime.task\n"
+            "heavy = ['rtloop.runtime.supervisor', 'rtloop.record.recorder', 'rtloop.record.summary', 'hashlib']\n"
+            "print([name for name in heavy if name in sys.modules])\n"
+            "import rtloop\nprint(rtloop.run.__module__, rtloop.RunSummary.__name__)")
+    result = subprocess.run([sys.executable, "-c", code], env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["[]", "rtloop.runtime.supervisor RunSummary"]

@@ -1,4 +1,4 @@
-"""Keep task processes lean: one thread each.
+"""Keep task processes lean: one thread each, and only what the loop needs locked in memory.
 
 A BLAS or OpenMP worker pool in a real-time process is a priority-inversion trap: the
 loop's thread waits on workers that run at whatever priority they inherited, and the
@@ -9,9 +9,13 @@ environment a task process starts with.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
 
 SINGLE_THREADED = {
     "OPENBLAS_NUM_THREADS": "1",
@@ -33,3 +37,109 @@ def single_threaded_children() -> Iterator[None]:
     finally:
         for name in added:
             os.environ.pop(name, None)
+
+
+# --- memory locking --------------------------------------------------------------------
+# mlockall(MCL_CURRENT|MCL_FUTURE) locks every mapping of the process, whether the loop can
+# touch it or not. Two kinds it provably never needs (VmLck counts mappings, not pages):
+
+_libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+_libc.munlock.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+_libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+MADV_DONTNEED = 4
+
+
+@dataclass(frozen=True, slots=True)
+class Mapping:
+    """One line of ``/proc/self/maps``."""
+
+    start: int
+    end: int
+    permissions: str
+    path: str
+
+    @property
+    def size_bytes(self) -> int:
+        return self.end - self.start
+
+
+def mappings() -> list[Mapping]:
+    found = []
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        fields = line.split(maxsplit=5)
+        start, end = (int(address, 16) for address in fields[0].split("-"))
+        found.append(Mapping(start, end, fields[1], fields[5] if len(fields) > 5 else ""))
+    return found
+
+
+def openblas_work_buffer(found: list[Mapping]) -> Mapping | None:
+    """Make OpenBLAS keep a single work buffer, and return its mapping (None: not OpenBLAS, or threaded).
+
+    OpenBLAS reserves a 32 MB buffer (x86_64) for its thread pool when it loads, and the first
+    level-3 product (``A @ B``; ``A @ x`` packs on the stack) on the calling thread maps
+    another one: under mlockall that faulted in 32 MB inside the loop (14.6 ms and 8,192
+    faults for a 3×3 product, measured). With one thread the pool never runs; shutting it
+    down puts its buffer back in OpenBLAS's allocator, which then hands it to the caller:
+    one buffer, mapped before the loop. Taking it and giving it back tells us where it is.
+    """
+    paths = {m.path for m in found if "openblas" in Path(m.path).name}
+    for path in paths:
+        try:
+            library = ctypes.CDLL(path)
+            allocate, free = library.blas_memory_alloc, library.blas_memory_free
+            shutdown, threads = library.blas_thread_shutdown_, _openblas_threads(library)
+        except (OSError, AttributeError):
+            continue
+        if threads != 1:
+            continue  # the user chose a thread pool: leave its memory as it is
+        allocate.restype, allocate.argtypes = ctypes.c_void_p, (ctypes.c_int,)
+        free.restype, free.argtypes = None, (ctypes.c_void_p,)
+        shutdown()
+        address = allocate(0)
+        if not address:
+            continue
+        free(address)
+        for mapping in mappings():
+            if mapping.start <= address < mapping.end and not mapping.path and "rw" in mapping.permissions:
+                return mapping
+    return None
+
+
+def _openblas_threads(library: ctypes.CDLL) -> int:
+    for name in ("openblas_get_num_threads", "openblas_get_num_threads64_", "scipy_openblas_get_num_threads64_"):
+        function = getattr(library, name, None)
+        if function is not None:
+            function.restype = ctypes.c_int
+            return int(function())
+    raise AttributeError("openblas_get_num_threads")
+
+
+@dataclass(frozen=True, slots=True)
+class Unlocked:
+    """What :func:`unlock_what_the_loop_never_needs` released from the lock."""
+
+    guard_bytes: int
+    """PROT_NONE reservations (gaps between a library's segments): a touch would be a crash."""
+    blas_buffer_bytes: int
+    """OpenBLAS's work buffer (0 when kept locked or not found)."""
+
+
+def unlock_what_the_loop_never_needs(lock_blas_buffer: bool) -> Unlocked:
+    """After mlockall: unlock PROT_NONE reservations and, unless asked to keep it, the BLAS buffer.
+
+    OpenBLAS is first made to keep one work buffer (see :func:`openblas_work_buffer`). That
+    buffer is also given back (MADV_DONTNEED: mlockall had faulted in all 32 MB).
+    A step that multiplies matrices then faults in, once, the pages it packs into (two 4 KiB
+    pages for 3×3 @ 3×3, measured) and they stay; with swap enabled they are not pinned.
+    """
+    found = mappings()
+    guard_bytes = 0
+    for mapping in found:
+        if mapping.permissions.startswith("---") and _libc.munlock(mapping.start, mapping.size_bytes) == 0:
+            guard_bytes += mapping.size_bytes
+    blas_bytes = 0
+    buffer = openblas_work_buffer(found)
+    if buffer is not None and not lock_blas_buffer and _libc.munlock(buffer.start, buffer.size_bytes) == 0:
+        _libc.madvise(buffer.start, buffer.size_bytes, MADV_DONTNEED)
+        blas_bytes = buffer.size_bytes
+    return Unlocked(guard_bytes, blas_bytes)

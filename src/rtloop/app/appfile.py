@@ -13,6 +13,7 @@
     overrun = "skip"                           # skip or catch_up
     watchdog_periods = 1000                    # stop the app if no cycle ends for this long (0: off)
     max_consecutive_misses = 5                 # stop the app after 5 misses in a row (absent: go on)
+    lock_blas_buffer = false                   # true: lock OpenBLAS's 32 MB buffer too (large matrix products)
 
     [[connect]]
     from = "plant.y[0:2]"
@@ -69,6 +70,7 @@ TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
     "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict, "watchdog_periods": int,
     "max_consecutive_misses": int,
+    "lock_blas_buffer": bool,
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
@@ -145,6 +147,7 @@ def load_app(path: str | Path) -> App:
                 policy=table.get("policy", "fifo"), overrun=table.get("overrun", "skip"),
                 watchdog_periods=table.get("watchdog_periods", DEFAULT_WATCHDOG_PERIODS),
                 max_consecutive_misses=table.get("max_consecutive_misses"),
+                lock_blas_buffer=table.get("lock_blas_buffer", False),
             )
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None

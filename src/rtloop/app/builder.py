@@ -66,6 +66,8 @@ class TaskConfig:
     (at least ``WATCHDOG_MIN_S``): the step is stuck. 0 turns the watchdog off."""
     max_consecutive_misses: int | None = None
     """Stop the app after this many deadline misses in a row (None: count them and go on)."""
+    lock_blas_buffer: bool = False
+    """Keep OpenBLAS's 32 MB work buffer locked in memory (for steps doing large matrix products)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -238,6 +240,7 @@ class App:
         overrun: str = "skip",
         watchdog_periods: int = DEFAULT_WATCHDOG_PERIODS,
         max_consecutive_misses: int | None = None,
+        lock_blas_buffer: bool = False,
     ) -> TaskSpec:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
         where = f"task {name!r}"
@@ -269,6 +272,8 @@ class App:
         ):
             raise AppError(f"{where}: max_consecutive_misses {max_consecutive_misses!r}; "
                            "expected an integer ≥ 1 (or none: count misses and go on)")
+        if not isinstance(lock_blas_buffer, bool):
+            raise AppError(f"{where}: lock_blas_buffer must be true or false, got {_short(lock_blas_buffer)}")
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_VECTOR_SIZE:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer from 0 to "
@@ -277,7 +282,7 @@ class App:
         if callable(check_period):
             check_period(period_ns)
         config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, watchdog_periods,
-                            max_consecutive_misses)
+                            max_consecutive_misses, lock_blas_buffer)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
         return spec

@@ -99,6 +99,9 @@ typedef struct {
     int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
     int64_t cycle, release_ns, start_ns, stale_reads;
     int closed; /* after close(): no shared memory held, every call refused */
+    /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
+    int measure_busy;
+    int64_t busy_ns, busy_cycles, busy_max_ns, busy_wake_ns;
 } Core;
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
@@ -533,6 +536,13 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         Py_RETURN_FALSE;
     struct timespec deadline = {release_ns / 1000000000, release_ns % 1000000000};
     int result;
+    if (self->measure_busy && self->busy_wake_ns) { /* the whole iteration since the last wake-up */
+        int64_t busy_ns = now_ns() - self->busy_wake_ns;
+        self->busy_ns += busy_ns;
+        self->busy_cycles++;
+        if (busy_ns > self->busy_max_ns)
+            self->busy_max_ns = busy_ns;
+    }
     for (;;) {
         Py_BEGIN_ALLOW_THREADS
         result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
@@ -547,6 +557,8 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         return PyErr_SetFromErrno(PyExc_OSError);
     }
     self->start_ns = now_ns();
+    if (self->measure_busy)
+        self->busy_wake_ns = self->start_ns;
     if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
         set_tick(self, str_start_ns, self->start_ns) < 0)
         return NULL;
@@ -626,6 +638,18 @@ static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssiz
 
 static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
 
+/* measure_busy(): from now on, sum the time from each wake-up to the next sleep (a benchmark's probe) */
+static PyObject *Core_measure_busy(Core *self, PyObject *unused) {
+    self->measure_busy = 1;
+    self->busy_ns = self->busy_cycles = self->busy_max_ns = self->busy_wake_ns = 0;
+    Py_RETURN_NONE;
+}
+
+static PyObject *Core_get_busy(Core *self, void *closure) {
+    return Py_BuildValue("(LLL)", (long long)self->busy_ns, (long long)self->busy_cycles,
+                         (long long)self->busy_max_ns);
+}
+
 static int Core_traverse(Core *self, visitproc visit, void *arg) {
     Py_VISIT(self->tick);
     for (Py_ssize_t i = 0; i < self->n_views; i++)
@@ -683,6 +707,7 @@ static PyMethodDef Core_methods[] = {
     {"begin", (PyCFunction)Core_begin, METH_NOARGS, "Sleep to the release, read inputs; False: stop."},
     {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},
     {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
+    {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
     {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
      "publish_outputs(cycle, publish_ns)"},
     {NULL, NULL, 0, NULL},
@@ -690,6 +715,7 @@ static PyMethodDef Core_methods[] = {
 
 static PyGetSetDef Core_getset[] = {
     {"stale_reads", (getter)Core_get_stale_reads, NULL, "Reads that found older data than due.", NULL},
+    {"busy", (getter)Core_get_busy, NULL, "(total ns, iterations, max ns) wake-up → next sleep.", NULL},
     {NULL, NULL, NULL, NULL, NULL},
 };
 

@@ -25,7 +25,6 @@ import mmap
 import os
 import platform
 import re
-import secrets
 import stat
 from pathlib import Path
 
@@ -71,7 +70,7 @@ def _sanitize(text: str) -> str:
 
 
 def new_run_token() -> str:
-    return secrets.token_hex(4)
+    return os.urandom(4).hex()  # not `secrets`: it drags hashlib and libcrypto into every task process
 
 
 class SegmentRefused(RtloopError, PermissionError):

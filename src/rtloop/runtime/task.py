@@ -25,6 +25,7 @@ from rtloop.errors import DeadlineMissesExceeded, StopRequested
 from rtloop.ipc.hotpath import cycle_work
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
+from rtloop.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
 from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
 
@@ -155,6 +156,8 @@ def task_process_main(
     status[StatusWord.PID] = os.getpid()
 
     settings = rt.apply_realtime(config.cpu, config.policy, config.priority, config.period_ns)
+    if settings.memory_locked:  # mlockall locked every mapping; keep only what the loop may touch
+        unlock_what_the_loop_never_needs(config.lock_blas_buffer)
     status[StatusWord.POLICY] = rt.POLICIES.get(settings.policy, -1)
     status[StatusWord.PRIORITY] = settings.priority
     status[StatusWord.CPU] = config.cpu if config.cpu is not None else -1
