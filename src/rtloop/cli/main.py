@@ -65,7 +65,7 @@ def _positive_seconds(text: str) -> float:
 
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("app", help="app file (TOML)")
-    parser.add_argument("--duration", type=_positive_seconds, default=None, metavar="S",
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="seconds to run (run: default until Ctrl-C or SIGTERM; simulate: required)")
     parser.add_argument("--keep", type=_positive_seconds, default=None, metavar="S",
                         help="keep only the last S seconds of timing.csv, signals.csv and run.mcap, plus the "
