@@ -147,7 +147,9 @@ def _compiled_modules() -> list[Path]:
 def test_compiled_modules_of_the_package_are_built_for_this_machine_and_import() -> None:
     modules = _compiled_modules()
     if not modules:
-        pytest.skip("this rtloop declares no C extension (the C hot path is not in this checkout)")
+        from rtloop.ipc import hotpath
+
+        pytest.skip(f"no compiled module in this rtloop: {hotpath.why_python()}")
     package_parent = Path(rtloop.__file__).parent.parent
     for path in modules:
         assert _elf_machine(path) == ELF_MACHINE[MACHINE], f"{path} is built for another CPU"
