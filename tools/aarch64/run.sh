@@ -252,7 +252,7 @@ main() {
     # The host side with its own C hot path too, built in a copy so the checkout is left as it is.
     host_copy=$out/host-checkout
     rm -rf "$host_copy" && mkdir -p "$host_copy"
-    cp -r "$repo/src" "$repo/setup.py" "$repo/pyproject.toml" "$host_copy/"
+    cp -r "$repo/src" "$repo/setup.py" "$repo/pyproject.toml" "$repo/README.md" "$host_copy/"
     find "$host_copy/src" -name '*.so' -delete
     (cd "$host_copy" && "$host_python" setup.py -q build_ext --inplace > "$out/host-build.log" 2>&1) \
         || echo "note: the host's C hot path did not build (see $out/host-build.log); the host side runs in Python"
