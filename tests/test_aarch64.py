@@ -40,5 +40,7 @@ def test_rtloop_builds_tests_and_simulates_jiwy_identically_on_aarch64(tmp_path:
     checks = (tmp_path / "checks.txt").read_text()
     assert "sched_setattr_number_is_the_one_of_the_c_headers PASSED" in checks
     assert "c11_acquire_release_compile_to_aarch64_ordered_instructions PASSED" in checks
+    assert "the_compiled_hot_path_orders_its_seqlocks_with_aarch64_acquire_release PASSED" in checks
+    assert "compiled_modules_of_the_package_are_built_for_this_machine_and_import PASSED" in checks
     comparison = (tmp_path / "compare.txt").read_text().splitlines()
     assert sorted(line.split(":")[0] for line in comparison[1:]) == ["same 20sim", "same fmu", "same python"]

@@ -102,6 +102,43 @@ def test_c11_acquire_release_compile_to_aarch64_ordered_instructions(tmp_path: P
     assert "ldar" in listing and "stlr" in listing and "dmb\tish" in listing
 
 
+def _instructions(listing: str) -> list[tuple[str, str]]:
+    """(mnemonic, operands) of each instruction in ``objdump -d --no-show-raw-insn`` output."""
+    found = []
+    for line in listing.splitlines():
+        address, tab, instruction = line.partition(":\t")
+        if tab and address.strip() and instruction:
+            mnemonic, _, operands = instruction.partition("\t")
+            found.append((mnemonic.strip(), operands.split("//")[0].strip()))
+    return found
+
+
+@pytest.mark.skipif(MACHINE != "aarch64", reason="the instructions checked are aarch64's")
+def test_the_compiled_hot_path_orders_its_seqlocks_with_aarch64_acquire_release() -> None:
+    """The built _hotpath itself, not a probe: acquire loads (LDAR, or LDAPR with RCpc), release
+    stores (STLR), the seqlock reader's acquire fence (DMB ISHLD) and the writer's release fence
+    (DMB ISH), all inline: no call to libatomic's __atomic_* functions."""
+    from rtloop.ipc import hotpath
+
+    if not hotpath.c_built():
+        pytest.skip(hotpath.why_python())
+    if shutil.which("objdump") is None:
+        pytest.skip("needs objdump (binutils)")
+    library = Path(hotpath._hotpath.__file__)
+    assert _elf_machine(library) == ELF_MACHINE["aarch64"]
+    listing = subprocess.run(
+        ["objdump", "-d", "--no-show-raw-insn", str(library)], check=True, capture_output=True, text=True
+    ).stdout
+    instructions = _instructions(listing)
+    mnemonics = [mnemonic for mnemonic, _ in instructions]
+    assert len(instructions) > 500, "objdump listed too little: the format was not understood"
+    assert mnemonics.count("ldar") + mnemonics.count("ldapr") > 0, "no acquire load"
+    assert mnemonics.count("stlr") > 0, "no release store"
+    assert ("dmb", "ishld") in instructions, "no acquire fence (seqlock read)"
+    assert ("dmb", "ish") in instructions, "no release fence (seqlock write)"
+    assert "__atomic_" not in listing, "an atomic went through libatomic: not lock-free inline"
+
+
 def _compiled_modules() -> list[Path]:
     package = Path(rtloop.__file__).parent
     return sorted(package.rglob("*.so"))
@@ -110,7 +147,9 @@ def _compiled_modules() -> list[Path]:
 def test_compiled_modules_of_the_package_are_built_for_this_machine_and_import() -> None:
     modules = _compiled_modules()
     if not modules:
-        pytest.skip("this rtloop declares no C extension (the C hot path is not in this checkout)")
+        from rtloop.ipc import hotpath
+
+        pytest.skip(f"no compiled module in this rtloop: {hotpath.why_python()}")
     package_parent = Path(rtloop.__file__).parent.parent
     for path in modules:
         assert _elf_machine(path) == ELF_MACHINE[MACHINE], f"{path} is built for another CPU"

@@ -11,6 +11,7 @@ variant differs or is missing. Standard library only (runs with the host's pytho
 from __future__ import annotations
 
 import csv
+import json
 import sys
 from pathlib import Path
 
@@ -20,6 +21,17 @@ def _rows(path: Path) -> tuple[list[str], list[list[str]]]:
         reader = csv.reader(file)
         header = next(reader)
         return header, list(reader)
+
+
+def _hot_paths(a: Path, b: Path, name: str) -> str:
+    """Which per-cycle path each run took (summary.json's hot_path: "c" or "python")."""
+    kinds = []
+    for folder in (a, b):
+        try:
+            kinds.append(json.loads((folder / name / "summary.json").read_text()).get("hot_path") or "?")
+        except (OSError, ValueError):
+            kinds.append("?")
+    return f"hot path {kinds[0]} / {kinds[1]}"
 
 
 def compare(a: Path, b: Path, name: str) -> bool:
@@ -32,7 +44,7 @@ def compare(a: Path, b: Path, name: str) -> bool:
     header_b, rows_b = _rows(file_b)
     shape = f"{len(rows_a)} rows x {len(header_a)} columns"
     if file_a.read_bytes() == file_b.read_bytes():
-        print(f"same {name}: {shape}, identical bytes")
+        print(f"same {name}: {shape}, identical bytes ({_hot_paths(a, b, name)})")
         return True
     if header_a != header_b or len(rows_a) != len(rows_b):
         print(f"DIFFER {name}: columns {header_a} vs {header_b}, rows {len(rows_a)} vs {len(rows_b)}")

@@ -146,7 +146,10 @@ def task_process_main(
     # app the orderly way: the loop sees the stop flag and postrun still runs.
     signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
     rt.die_with_parent(signal.SIGTERM)
-    rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
+    try:
+        rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
+    except OSError:
+        pass  # refused (an old kernel, qemu-user 7.2): its direct children still end here
     multiprocessing.util.Finalize(None, rt.end_strays, exitpriority=100)
     parent = multiprocessing.parent_process()
     if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
