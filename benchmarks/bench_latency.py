@@ -172,12 +172,13 @@ class _NoSleep:
 
 
 def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
-    """Per-iteration cost of ``RealtimeTask.run_loop`` with a no-op sleep, in ns (start_k+1 − start_k).
+    """Per-iteration cost of the task loop (Python hot path) with a no-op sleep, in ns (start_k+1 − start_k).
 
     Uses the real loop, status block and timing ring (shared memory); runs in this
     process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
     from rtloop import rt
+    from rtloop.ipc.hotpath import PythonCycle
     from rtloop.ipc.segments import RecordRing, Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
     from rtloop.runtime.task import RealtimeTask, TaskConfig, task_segment_size
@@ -195,9 +196,15 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
         period_ns = 1_000_000
         task = RealtimeTask(TaskConfig("noop", period_ns), NoOp(), control, status, timing)
         task.wiring = TaskWiring(TaskWiringPlan(), task.u, task.y, status)
-        task.sleeper = _NoSleep()  # type: ignore[assignment]
+        # The loop of the Python hot path (the readable twin; bench_hotpath.py times the C one),
+        # with a sleep that returns at once.
+        cycle = PythonCycle(task.tick, task.wiring, control, status, timing, period_ns, catch_up=False)
+        cycle.sleeper = _NoSleep()  # type: ignore[assignment]
         t0_ns = rt.now_ns() + 10**15  # releases in the far future: never an overrun path
-        task.run_loop(t0_ns, t0_ns + cycles * period_ns)
+        cycle.start(t0_ns, t0_ns + cycles * period_ns, 0)
+        while cycle.begin():
+            task.runnable.step(task.u, task.y)
+            cycle.finish()
         records = timing.drain()
         return np.diff(records[:, 2])
     finally:
