@@ -418,11 +418,11 @@ def test_two_apps_exchange_a_signal_over_ros2(tmp_path: Path) -> None:
     sensor_header, sensor_rows = signals_of(tmp_path / "sensor")
     sent = {
         round(t, 9): value
-        for t, value in zip(sensor_rows[:, sensor_header.index("sine.y[1]")],
-                            sensor_rows[:, sensor_header.index("sine.y[0]")], strict=True)
+        for t, value in zip(sensor_rows[:, sensor_header.index("sine.t_s")],
+                            sensor_rows[:, sensor_header.index("sine.value")], strict=True)
     }
     header, rows = signals_of(tmp_path / "controller")
-    value, stamp = rows[:, header.index("monitor.u[0]")], rows[:, header.index("monitor.u[1]")]
+    value, stamp = rows[:, header.index("monitor.value")], rows[:, header.index("monitor.t_s")]
     received = stamp > 0
     assert received.sum() > 500, "the controller received (almost) nothing"
     pairs = set(zip(stamp[received].round(9).tolist(), value[received].tolist(), strict=True))

@@ -102,16 +102,16 @@ def test_two_apps_in_two_network_namespaces(tmp_path: Path, two_hosts: list[str]
             _, stderr = run.communicate()
         assert run.returncode == 0, stderr
     header, rows = signals_of(tmp_path / "controller")
-    stamps = rows[:, header.index("monitor.u[1]")]
+    stamps = rows[:, header.index("monitor.t_s")]
     received = stamps[stamps > 0]
     if discovery_range == "LOCALHOST":
         assert len(received) == 0, "LOCALHOST discovery must not reach the other namespace"
         return
     assert len(np.unique(received)) > 100, f"only {len(np.unique(received))} samples crossed"
     sensor_header, sensor_rows = signals_of(tmp_path / "sensor")
-    sent = set(zip(sensor_rows[:, sensor_header.index("sine.y[1]")].round(9).tolist(),
-                   sensor_rows[:, sensor_header.index("sine.y[0]")].tolist(), strict=True))
-    values = rows[:, header.index("monitor.u[0]")][stamps > 0]
+    sent = set(zip(sensor_rows[:, sensor_header.index("sine.t_s")].round(9).tolist(),
+                   sensor_rows[:, sensor_header.index("sine.value")].tolist(), strict=True))
+    values = rows[:, header.index("monitor.value")][stamps > 0]
     pairs = set(zip(received.round(9).tolist(), values.tolist(), strict=True))
     assert pairs <= sent, "the controller recorded samples the sensor never sent"
     bridge = summary_of(tmp_path / "controller")["bridges"]["subscribe /two_apps/sensor"]
