@@ -3,7 +3,8 @@
     from rtloop.ipc.ports import connect_app
     app = connect_app("jiwy")
     app.write("setpoint", [0.5, 0.3])          # validated here; the task never sees a bad value
-    ticks, rows = app.read("log")              # every tick since the last read (one reader at a time)
+    with app.reader("angles") as reader:        # one reader at a time per output port
+        ticks, rows = reader.read(100)         # up to 100 ticks since the last read
 
 A running supervisor describes its ports in a registry file next to its shared memory;
 ``rtloop port write/read/list`` are thin wrappers over this module.

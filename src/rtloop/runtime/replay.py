@@ -50,7 +50,17 @@ def load_replay_app(run_dir: Path) -> tuple[App, float]:
     app = load_app(info["source"])
     for port, feed in info.get("feeds", {}).items():
         app.feed(port, feed)
-    return app, float(info["duration_s"])
+    duration_s = info.get("duration_s")
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    if (summary.get("recording") or {}).get("keep_s") is not None:
+        raise AppError(f"{run_dir}: recorded with --keep, so signals.csv holds a window, not the run from t = 0; "
+                       "replay needs a run recorded whole (--duration without --keep)")
+    if duration_s is None:  # a run until stopped: replay as long as it ran
+        duration_s = summary.get("elapsed_s") or 0.0
+        if not duration_s:
+            raise AppError(f"{run_dir}: the run had no --duration and its summary.json does not say how long it ran")
+    return app, float(duration_s)
 
 
 def port_writes(run_dir: Path) -> PortWrites:
@@ -112,7 +122,7 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None) -> Repl
     if app is None:
         app, duration_s = load_replay_app(run_dir)
     else:
-        duration_s = float(json.loads((run_dir / "replay.json").read_text())["duration_s"])
+        duration_s = float(json.loads((run_dir / "replay.json").read_text())["duration_s"] or 0.0) or 1e8
     summary = json.loads((run_dir / "summary.json").read_text())
     cycles = max((t.get("cycles", 0) + t.get("overruns", 0)) * t["period_ns"] for t in summary["tasks"].values())
     duration_s = min(duration_s, cycles / 1e9) if cycles else duration_s  # a run stopped early
