@@ -78,7 +78,8 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
 @pytest.mark.usefixtures("hot_path")
 def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(tmp_path: Path) -> None:
     app = App("faulty")
-    bad = app.add_task("bad", RaiseAt(cycle=123), period_ns=P, cpu=other_cpu())
+    # catch_up: every cycle up to the fault runs even if this loaded machine stalls the task once
+    bad = app.add_task("bad", RaiseAt(cycle=123), period_ns=P, cpu=other_cpu(), overrun="catch_up")
     app.add_task("good", Counter(), period_ns=P, cpu=other_cpu(), priority=70)
     app.record(bad.y)
     with pytest.raises(TaskFailed) as caught:
