@@ -319,23 +319,27 @@ CYCLONEDDS_CLI = find_cyclonedds_cli()
 @pytest.mark.skipif(CYCLONEDDS_CLI is None, reason="the cyclonedds CLI is not installed")
 def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
     domain = random_domain()
-    run = start_app(JIWY, tmp_path / "out", domain, duration_s=7)
+    run = start_app(JIWY, tmp_path / "out", domain, duration_s=12)
     try:
-        # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
-        cli = subprocess.Popen(
-            [CYCLONEDDS_CLI, "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
-             "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
-        )
-        try:
-            output, _ = cli.communicate(timeout=5)
-        except subprocess.TimeoutExpired:
-            cli.send_signal(signal.SIGINT)
+        output = ""
+        for _attempt in range(3):  # the CLI gives up if the bridge's writer is not up yet: ask again
+            # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
+            cli = subprocess.Popen(
+                [CYCLONEDDS_CLI, "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
+                 "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
+            )
             try:
                 output, _ = cli.communicate(timeout=3)
             except subprocess.TimeoutExpired:
-                cli.kill()
-                output, _ = cli.communicate()
+                cli.send_signal(signal.SIGINT)
+                try:
+                    output, _ = cli.communicate(timeout=3)
+                except subprocess.TimeoutExpired:
+                    cli.kill()
+                    output, _ = cli.communicate()
+            if "JointState_(" in output:
+                break
     finally:
         code, stderr = finish(run)
     assert code == 0, stderr
