@@ -38,6 +38,7 @@ import numpy as np
 
 from rtloop import rt, timing
 from rtloop.app.builder import App
+from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import RtloopError
 from rtloop.runnable import Runnable
 from rtloop.runtime.supervisor import run
@@ -456,16 +457,6 @@ RUNS_PER_EXPERIMENT = {"affinity": 2, "stress": 2, "cyclictest": 2}
 
 
 # --- command line --------------------------------------------------------------------------------
-def _duration(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
-    return value
-
-
 def _stressors(text: str) -> tuple[str, ...]:
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     unknown = [n for n in names if n not in STRESSORS]
@@ -478,7 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rtloop bench", description=(__doc__ or "").replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("experiment", choices=(*EXPERIMENTS, "all"), help="which experiment (all: the three)")
-    parser.add_argument("--duration", type=_duration, default=10.0, metavar="S", help="seconds per run (default 10)")
+    parser.add_argument("--duration", type=positive_seconds, default=10.0, metavar="S",
+                        help="seconds per run (default 10)")
     parser.add_argument("--out", type=Path, metavar="DIR",
                         help="output directory (default runs/bench-EXPERIMENT; with all, one subdirectory each)")
     parser.add_argument("--cpu", type=int, metavar="N", help="the measured core (default: the highest one)")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import AppError, RtloopError, TaskFailed
 from rtloop.record.summary import RunSummary
 
@@ -53,21 +54,11 @@ def _parse_host_port(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
-def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected seconds > 0, got {text!r}")
-    return value
-
-
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("app", help="app file (TOML)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="seconds to run (run: default until Ctrl-C or SIGTERM; simulate: required)")
-    parser.add_argument("--keep", type=_positive_seconds, default=None, metavar="S",
+    parser.add_argument("--keep", type=positive_seconds, default=None, metavar="S",
                         help="keep only the last S seconds of timing.csv, signals.csv and run.mcap, plus the "
                              "cycles around every deadline miss, stale read or fault (default: "
                              f"{DEFAULT_KEEP_S:g} without --duration, everything with it)")
