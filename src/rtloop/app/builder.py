@@ -274,6 +274,7 @@ class App:
                            "expected an integer ≥ 1 (or none: count misses and go on)")
         if not isinstance(lock_blas_buffer, bool):
             raise AppError(f"{where}: lock_blas_buffer must be true or false, got {_short(lock_blas_buffer)}")
+        runnable.add_parameter_inputs()  # live parameters become inputs after the declared ones
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_VECTOR_SIZE:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer from 0 to "
@@ -568,7 +569,7 @@ def _named_signal(text: str, app: App) -> SignalRef | None:
     """``plant.AnglePan``: one element named by the task's model (output names first)."""
     task, dot, name = text.strip().partition(".")
     spec = app.tasks.get(task)
-    if not dot or spec is None:
+    if not dot or not name or spec is None:
         return None
     for side in ("y", "u"):
         names = list(getattr(spec.runnable, "output_names" if side == "y" else "input_names", None) or ())

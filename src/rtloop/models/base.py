@@ -145,6 +145,8 @@ class ModelRunnable(Runnable):
     :attr:`catch_up_steps`.
     """
 
+    parameters_are_inputs = False  # a model's parameters are set before the run (set_parameters)
+
     def __init__(self, model: Model | None = None) -> None:
         self.model: Model = self if model is None else model  # type: ignore[assignment]
         self.n_inputs = self.model.n_inputs
@@ -219,7 +221,9 @@ def apply_parameters(runnable: object, parameters: dict[str, object], where: str
     """Set declared parameters of a Python model by name (``parameters = {…}`` in an app file)."""
     declared = getattr(runnable, "parameters", None)
     if not isinstance(declared, dict) or not declared:
-        raise ModelError(f"{where}: {type(runnable).__name__} declares no parameters")
+        example = ", ".join(f'"{name}": 0.0' for name in list(parameters)[:3] if isinstance(name, str))
+        raise ModelError(f"{where}: {type(runnable).__name__} declares no parameters; declare them in its class "
+                         f"with their defaults, in one line: parameters = {{{example}}} (then self.NAME in step)")
     for name, value in parameters.items():
         if name not in declared:
             raise ModelError(f"{where}: unknown parameter {name!r}; parameters are {sorted(declared)}")

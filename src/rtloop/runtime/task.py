@@ -103,6 +103,7 @@ def initial_inputs(runnable: Runnable) -> np.ndarray:
     starts = getattr(runnable, "input_start_values", None)
     if starts is not None:
         u[:] = starts
+    runnable.bind_inputs(u)  # live parameters (self.kp) read their slots of u
     return u
 
 
