@@ -25,12 +25,13 @@ ALLOWED: dict[str, set[str]] = {
     "ros.types": set(),
     "ipc": {FLOOR},
     "models": {FLOOR},
-    "app": {FLOOR, "models", "ros.types"},
+    "io": {FLOOR},
+    "app": {FLOOR, "models", "ros.types", "io"},
     "record": {FLOOR, "app", "ros.types"},
     "ros": {FLOOR, "ros.types", "app", "ipc"},
-    "runtime": {FLOOR, "app", "ipc", "models", "record", "ros", "ros.types"},
+    "runtime": {FLOOR, "app", "io", "ipc", "models", "record", "ros", "ros.types"},
     "report": {FLOOR, "record"},
-    "cli": {FLOOR, "app", "ipc", "models", "record", "ros", "ros.types", "runtime", "report", "cli"},
+    "cli": {FLOOR, "app", "io", "ipc", "models", "record", "ros", "ros.types", "runtime", "report", "cli"},
 }
 
 

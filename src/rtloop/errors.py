@@ -94,3 +94,24 @@ class StopRequested(RtloopError):
     task publishes nothing for that step, runs ``postrun``, and the app stops with
     ``stopped_by`` naming the task and this reason.
     """
+
+
+class DeviceError(AppError):
+    """A device cannot be used as declared: a bad setting, a missing interface, no permission.
+
+    Found before any task starts (the app file is checked, then each device is checked and
+    configured before T0); names the device, the app file and the key.
+    """
+
+    def __init__(self, device: str, source: str, key: str, problem: str) -> None:
+        self.device, self.source, self.key, self.problem = device, source, key, problem
+        where = f"devices.{device}.{key}" if key else f"devices.{device}"
+        super().__init__(f"{source}: {where}: {problem}")
+
+
+class DeviceFault(RtloopError, RuntimeError):
+    """A device failed while the app ran (a read timed out, a non-finite command was refused).
+
+    The task stops, every device of the app is put in its safe state; the message names the
+    task, the cycle and the device's signal.
+    """

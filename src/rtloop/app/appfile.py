@@ -15,6 +15,18 @@
     max_consecutive_misses = 5                 # stop the app after 5 misses in a row (absent: go on)
     lock_blas_buffer = false                   # true: lock OpenBLAS's 32 MB buffer too (large matrix products)
 
+    [devices.motor]                            # hardware the task "controller" reads and writes
+    kind = "serial"                            # gpio, can, spi, serial, i2c (their settings follow)
+    task = "controller"                        # runs in that task's process, at its period
+    io = "let"                                 # commands written at t + P (default), or "immediate"
+    twin = "motor_model:MotorDriverTwin"       # answers as the device does, in rtloop simulate
+    port = "/dev/ttyUSB0"                      # ... the kind's own settings
+    [devices.motor.limits.voltage]             # per command: clamp, rate limit, safe value
+    min = -12.0
+    max = 12.0
+    safe = 0.0
+    rate_per_s = 2400.0
+
     [[connect]]
     from = "plant.y[0:2]"
     to = "controller.u[0:2]"
@@ -51,15 +63,20 @@ from typing import Any
 
 from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, _clip, _short, parse_signal
 from rtloop.app.modules import ModuleRefused, installed_origin, load_module_file, module_beside
-from rtloop.errors import AppError, AppFileError, RtloopError
+from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
+from rtloop.io.device import build_device
 from rtloop.runnable import Runnable
 
 MAX_APP_FILE_BYTES = 1 << 20
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
-    "foxglove": dict,
+    "foxglove": dict, "devices": dict,
 }
+DEVICE_KEYS = {
+    "kind": str, "task": str, "io": str, "twin": str, "twin_args": dict, "limits": dict, "description": str,
+}
+"""Keys every ``[devices.NAME]`` table may hold; the rest are the kind's own settings."""
 FOXGLOVE_KEYS = {"host": str, "port": int, "inputs": list, "description": str}
 ROS_KEYS = {"domain_id": int, "publish": list, "subscribe": list}
 ROS_TOPIC_KEYS = {
@@ -152,6 +169,8 @@ def load_app(path: str | Path) -> App:
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None
 
+    _load_devices(shown, data.get("devices", {}), app, base_dir)
+
     for index, table in enumerate(data.get("connect", [])):
         where = f"connect[{index}]"
         if not isinstance(table, dict):
@@ -196,6 +215,34 @@ def load_app(path: str | Path) -> App:
         except AppError as error:
             raise AppFileError(shown, f"record.signals[{index}]", str(error)) from None
     return app
+
+
+def _load_devices(shown: str, devices: dict[str, Any], app: App, base_dir: Path) -> None:
+    """``[devices.NAME]``: kind, task, io, twin, limits, then the kind's own settings."""
+    for name, table in devices.items():
+        where = f"devices.{_clip(name, 40)}"
+        if not isinstance(table, dict):
+            raise AppFileError(shown, where, "expected a table [devices.NAME]")
+        common = {key: value for key, value in table.items() if key in DEVICE_KEYS}
+        _check_keys(shown, where, common, DEVICE_KEYS)
+        for key in ("kind", "task"):
+            if key not in table:
+                raise AppFileError(shown, f"{where}.{key}", "missing; a device needs kind and task")
+        if "twin_args" in table and "twin" not in table:
+            raise AppFileError(shown, f"{where}.twin_args", "given without twin")
+        twin = None
+        if "twin" in table:
+            twin = _build_runnable(shown, where, {"runnable": table["twin"], "args": table.get("twin_args", {})},
+                                   base_dir, key="twin")
+        settings = {key: value for key, value in table.items() if key not in DEVICE_KEYS}
+        try:
+            device = build_device(table["kind"], name, settings, shown)
+            app.add_device(name, device, task=table["task"], io=table.get("io", "let"), twin=twin,
+                           limits=table.get("limits", {}))
+        except DeviceError:
+            raise
+        except AppError as error:
+            raise AppFileError(shown, where, str(error)) from None
 
 
 def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
@@ -244,7 +291,7 @@ def _load_foxglove(shown: str, table: dict[str, Any], app: App) -> None:
         raise AppFileError(shown, "foxglove", str(error)) from None
 
 
-def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path) -> Runnable:
+def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path, key: str = "runnable") -> Runnable:
     has_runnable, has_model = "runnable" in table, "model" in table
     if has_runnable == has_model:
         raise AppFileError(shown, where, 'give exactly one of runnable = "module:Class" or model = "kind:path"')
@@ -268,7 +315,8 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
                                f"{_clip(str(error), 200)}") from error
     target = table["runnable"]
     module_name, _, class_name = target.partition(":")
-    key = f"{where}.runnable"
+    args_key = f"{where}.{'args' if key == 'runnable' else key + '_args'}"
+    key = f"{where}.{key}"
     if not _is_dotted_name(module_name) or not class_name.isidentifier():
         raise AppFileError(shown, key, f'{_short(target)}: expected "module:Class"')
     module = _import_runnable_module(shown, key, module_name, base_dir)
@@ -279,10 +327,10 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     try:
         runnable = cls(**args)
     except Exception as error:  # the constructor is user code: whatever it raises is a bad app
-        raise AppFileError(shown, f"{where}.args", f"{_clip(target)}({_short(args, 60)}) failed: "
+        raise AppFileError(shown, args_key, f"{_clip(target)}({_short(args, 60)}) failed: "
                            f"{type(error).__name__}: {_clip(str(error), 120)}") from error
     if not isinstance(runnable, Runnable):
-        raise AppFileError(shown, f"{where}.runnable", f"{target} is not a subclass of rtloop.Runnable")
+        raise AppFileError(shown, key, f"{target} is not a subclass of rtloop.Runnable")
     if parameters is not None:
         from rtloop.models.base import apply_parameters
 

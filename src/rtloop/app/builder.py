@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from rtloop.errors import AppError, ConnectionSizeError
+from rtloop.errors import AppError, ConnectionSizeError, DeviceError
+from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
 from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
 
@@ -152,6 +153,33 @@ class TaskSpec:
         return SignalVector(self.name, "y", self.runnable.n_outputs)
 
 
+@dataclass(slots=True)
+class DeviceSpec:
+    """A device as added to the app: its driver, the task whose process runs it, its limits."""
+
+    device: Device
+    task: str
+    """The task that owns it: the device runs in that task's process, at its period."""
+    io: str = "let"
+    """``let``: commands of the job released at t are written at t + P; ``immediate``: after step."""
+    limits: tuple[CommandLimit, ...] = ()
+    """One per command (``u``), in order."""
+    twin: Runnable | None = None
+    """The model that answers as the device does (``rtloop simulate`` runs it in its place)."""
+
+    @property
+    def name(self) -> str:
+        return self.device.name
+
+    @property
+    def u(self) -> SignalVector:
+        return SignalVector(self.name, "u", self.device.n_inputs)
+
+    @property
+    def y(self) -> SignalVector:
+        return SignalVector(self.name, "y", self.device.n_outputs)
+
+
 @dataclass(frozen=True, slots=True)
 class Connection:
     source: SignalRef
@@ -220,6 +248,9 @@ class App:
     recorded: list[SignalRef] = field(default_factory=list)
     ros_topics: list[RosTopic] = field(default_factory=list)
     live_view: LiveViewSpec | None = None
+    devices: dict[str, DeviceSpec] = field(default_factory=dict)
+    device_links: list[Connection] = field(default_factory=list)
+    """Connections between a device and the task that owns it (in that task's process)."""
     source: str = "<python>"
     """Where the app was described (an app file's path, for messages)."""
 
@@ -295,16 +326,63 @@ class App:
         for spec in self.tasks.values():
             spec.config = dataclasses.replace(spec.config, cpu=cpu)
 
-    def _resolve(self, signal: SignalRef | SignalVector, role: str) -> SignalRef:
+    def add_device(
+        self,
+        name: str,
+        kind: str | type[Device] | Device,
+        *,
+        task: str,
+        io: str = "let",
+        twin: Runnable | None = None,
+        limits: dict[str, CommandLimit | dict[str, float]] | None = None,
+        **settings: object,
+    ) -> DeviceSpec:
+        """Add a device run by ``task``'s process; returns its handle (``.u`` commands, ``.y`` readings).
+
+        ``kind``: ``"serial"``, ``"gpio"``, … (its ``settings`` as keyword arguments), a Device
+        subclass, or a Device already built. ``limits``: per command name, ``CommandLimit`` or
+        ``{"min":, "max":, "safe":, "rate_per_s":}``; every command needs min, max and safe.
+        """
+        source = self.source
+        if not isinstance(name, str) or not NAME_PATTERN.match(name):
+            raise AppError(f"device {_short(name)}: a device name uses letters, digits and underscores, at most 32")
+        if name in self.devices or name in self.tasks:
+            raise DeviceError(name, source, "", "the name is taken (task and device names share one namespace)")
+        if task not in self.tasks:
+            raise DeviceError(name, source, "task", f"unknown task {_short(task)}; tasks are {sorted(self.tasks)}")
+        if io not in IO_MODES:
+            raise DeviceError(name, source, "io", f"{_short(io)}; expected one of {list(IO_MODES)}")
+        if isinstance(kind, Device):
+            if settings:
+                raise DeviceError(name, source, "", "settings go to the Device's constructor when it is built already")
+            if kind.name != name:
+                raise DeviceError(name, source, "", f"the Device was built with the name {kind.name!r}")
+            device = kind
+        else:
+            device = build_device(kind, name, settings, source)
+        if twin is not None:
+            _check_twin(name, source, device, twin)
+        spec = DeviceSpec(device, task, io, _resolve_limits(name, source, device, limits or {}), twin)
+        self.devices[name] = spec
+        return spec
+
+    def block(self, name: str) -> TaskSpec | DeviceSpec | None:
+        """The task or device called ``name`` (both have ``.u`` and ``.y``)."""
+        return self.tasks.get(name) or self.devices.get(name)
+
+    def _resolve(self, signal: SignalRef | SignalVector, role: str, devices: bool = False) -> SignalRef:
         ref = signal.all if isinstance(signal, SignalVector) else signal
         if not isinstance(ref, SignalRef):
             raise AppError(f"{role}: expected a signal such as plant.y[0:2], got {signal!r}")
-        if ref.task not in self.tasks:
+        if ref.task in self.devices and not devices:
+            raise AppError(f"{role} {ref}: {ref.task!r} is a device; only connections reach devices "
+                           "(use the task signals it is connected to)")
+        if ref.task not in self.tasks and ref.task not in self.devices:
             raise AppError(f"{role} {ref}: unknown task {ref.task!r}; tasks are {sorted(self.tasks)}")
         return ref
 
     def _check_single_writer(self, target: SignalRef, what: str) -> None:
-        for existing in self.connections:
+        for existing in self.connections + self.device_links:
             if existing.target.overlaps(target):
                 raise AppError(
                     f"{what}: {target} already receives {existing.source} → {existing.target}; "
@@ -318,9 +396,13 @@ class App:
                 )
 
     def connect(self, source: SignalRef | SignalVector, target: SignalRef | SignalVector) -> Connection:
-        """Wire a task output slice to a task input slice of the same size."""
-        src = self._resolve(source, "connect from")
-        dst = self._resolve(target, "connect to")
+        """Wire an output slice (``y``) to an input slice (``u``) of the same size.
+
+        Either end may be a device, wired to the task that owns it: ``motor.y[0]`` (a reading)
+        → ``controller.u[1]``, ``controller.y[0]`` → ``motor.u[0]`` (a command).
+        """
+        src = self._resolve(source, "connect from", devices=True)
+        dst = self._resolve(target, "connect to", devices=True)
         what = f"connect {src} → {dst}"
         if src.side != "y":
             raise AppError(f"{what}: the source must be an output (y), not {src.side}")
@@ -330,7 +412,15 @@ class App:
             raise ConnectionSizeError(f"{what}: {src} has {src.size} values but {dst} has {dst.size}")
         self._check_single_writer(dst, what)
         connection = Connection(src, dst)
-        self.connections.append(connection)
+        device = self.devices.get(src.task) or self.devices.get(dst.task)
+        if device is None:
+            self.connections.append(connection)
+            return connection
+        other = dst.task if device.name == src.task else src.task
+        if other != device.task:
+            raise AppError(f"{what}: device {device.name!r} runs in task {device.task!r}'s process and is wired "
+                           f"to that task only; route {other!r}'s signals through {device.task!r}")
+        self.device_links.append(connection)
         return connection
 
     def port(
@@ -493,6 +583,57 @@ class App:
                     f"task {name!r}: its runnable cannot be sent to the task process ({error}); "
                     "define its class at module level and open devices/libraries in prerun(), not __init__"
                 ) from None
+        for name, device in self.devices.items():
+            try:
+                pickle.dumps((device.device, device.twin))
+            except Exception as error:
+                raise DeviceError(name, self.source, "", f"cannot be sent to task {device.task!r}'s process "
+                                  f"({error}); a driver opens its interface in configure(), not __init__") from None
+
+
+def _check_twin(name: str, source: str, device: Device, twin: object) -> None:
+    if not isinstance(twin, Runnable):
+        raise DeviceError(name, source, "twin", f"{_short(twin)} is not an rtloop.Runnable")
+    if (twin.n_inputs, twin.n_outputs) != (device.n_inputs, device.n_outputs):
+        raise DeviceError(name, source, "twin", f"{type(twin).__name__} has {twin.n_inputs} inputs and "
+                          f"{twin.n_outputs} outputs; the device writes {device.n_inputs} and reads "
+                          f"{device.n_outputs} (a twin takes the commands and answers the readings)")
+
+
+LIMIT_KEYS = ("min", "max", "safe", "rate_per_s")
+
+
+def _resolve_limits(name: str, source: str, device: Device,
+                    given: dict[str, CommandLimit | dict[str, float]]) -> tuple[CommandLimit, ...]:
+    """One CommandLimit per command: the app's, else the driver's default; a safe value for each."""
+    commands = device.command_names()
+    if not isinstance(given, dict):
+        raise DeviceError(name, source, "limits", f"expected a table of commands {list(commands)}")
+    limits = dict(device.default_limits())
+    for command, limit in given.items():
+        key = f"limits.{_clip(str(command), 40)}"
+        if command not in commands:
+            raise DeviceError(name, source, key, f"no such command; the device writes {list(commands)}")
+        if isinstance(limit, dict):
+            unknown = sorted(set(limit) - set(LIMIT_KEYS))
+            if unknown:
+                raise DeviceError(name, source, f"{key}.{_clip(str(unknown[0]), 40)}",
+                                  f"unknown key; expected {list(LIMIT_KEYS)}")
+            missing = [k for k in ("min", "max", "safe") if k not in limit]
+            if missing:
+                raise DeviceError(name, source, f"{key}.{missing[0]}", "missing; a command needs min, max and safe")
+            limit = CommandLimit(limit["min"], limit["max"], limit["safe"], limit.get("rate_per_s", math.inf))
+        if not isinstance(limit, CommandLimit):
+            raise DeviceError(name, source, key, f"expected a table with {list(LIMIT_KEYS)}, got {_short(limit)}")
+        problem = limit.problem()
+        if problem:
+            raise DeviceError(name, source, key, problem)
+        limits[command] = limit
+    missing_commands = [c for c in commands if c not in limits]
+    if missing_commands:
+        raise DeviceError(name, source, f"limits.{missing_commands[0]}",
+                          "missing; every command needs min, max and a safe value (written when the run ends)")
+    return tuple(limits[c] for c in commands)
 
 
 def check_duration(duration_s: float) -> float:
@@ -555,9 +696,10 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
             return named
         raise AppError(f"{where}: {_short(text)} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
     task, side, start, stop = match.groups()
-    if task not in app.tasks:
+    block = app.block(task)
+    if block is None:
         raise AppError(f"{where}: {_short(text)} names unknown task {_short(task)}; tasks are {sorted(app.tasks)}")
-    vector = getattr(app.tasks[task], side)
+    vector = getattr(block, side)
     if start is None:
         return vector.all
     if stop is None and ":" not in text:
@@ -568,11 +710,12 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
 def _named_signal(text: str, app: App) -> SignalRef | None:
     """``plant.AnglePan``: one element named by the task's model (output names first)."""
     task, dot, name = text.strip().partition(".")
-    spec = app.tasks.get(task)
+    spec = app.block(task)
     if not dot or not name or spec is None:
         return None
+    named = spec.runnable if isinstance(spec, TaskSpec) else spec.device
     for side in ("y", "u"):
-        names = list(getattr(spec.runnable, "output_names" if side == "y" else "input_names", None) or ())
+        names = list(getattr(named, "output_names" if side == "y" else "input_names", None) or ())
         if names.count(name) == 1:
             return getattr(spec, side)[names.index(name)]
     return None

@@ -1,0 +1,55 @@
+"""The guard between a task's outputs and a device: finite, clamped, rate limited.
+
+Every command passes here before a driver sees it, in this order:
+
+1. a non-finite value (NaN, ±inf) is a fault (:class:`DeviceFault` naming the task, the
+   cycle and the command): it never reaches a wire, and the run ends with safe values;
+2. clamped to ``[min, max]``;
+3. moved towards it by at most ``rate_per_s · P`` per cycle (from the safe value at T0,
+   the state a device is left in before activation).
+
+All of it works in arrays allocated once: nothing is allocated per cycle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from rtloop.io.device import CommandLimit, FloatVector, fault
+
+
+class CommandGuard:
+    """Limits for the ``n`` commands of one device, at one task period."""
+
+    def __init__(self, limits: Sequence[CommandLimit], period_ns: int, labels: Sequence[str]) -> None:
+        self.low = np.array([limit.min for limit in limits], dtype=np.float64)
+        self.high = np.array([limit.max for limit in limits], dtype=np.float64)
+        self.safe = np.array([limit.safe for limit in limits], dtype=np.float64)
+        self.step_max = np.array([limit.rate_per_s * period_ns * 1e-9 for limit in limits], dtype=np.float64)
+        self.step_min = -self.step_max
+        self.last = self.safe.copy()  # what was written last: the safe state before T0
+        self.out = np.zeros(len(limits))
+        self._delta = np.zeros(len(limits))
+        self._finite = np.zeros(len(limits), dtype=bool)
+        self.labels = tuple(labels)
+
+    def apply(self, u: FloatVector, task: str, cycle: int) -> FloatVector:
+        """The command to write for ``u``: checked, clamped, rate limited (in ``self.out``)."""
+        np.isfinite(u, out=self._finite)
+        if not self._finite.all():
+            index = int(np.argmin(self._finite))
+            raise fault(task, cycle, self.labels[index], f"command {u[index]!r} is not finite; "
+                        "it was not sent (the device gets its safe value)")
+        np.clip(u, self.low, self.high, out=self.out)
+        np.subtract(self.out, self.last, out=self._delta)
+        np.clip(self._delta, self.step_min, self.step_max, out=self._delta)
+        np.add(self.last, self._delta, out=self.out)
+        self.last[:] = self.out
+        return self.out
+
+    def safe_values(self) -> FloatVector:
+        """The safe values (remembered as the last command written)."""
+        self.last[:] = self.safe
+        return self.safe

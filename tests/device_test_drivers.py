@@ -1,0 +1,98 @@
+"""A device driver for the tests: it mirrors its commands into its readings (as ros2_control's
+mock GenericSystem does) and logs every lifecycle call and write to a file, so a test can read,
+after the run, what reached the "wire" and in which order. Importable by spawned task processes."""
+
+from __future__ import annotations
+
+import os
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rtloop import Runnable
+from rtloop.errors import DeviceError
+from rtloop.io.device import Device, Setting
+
+
+def _positive(value: int) -> str | None:
+    return None if value >= 0 else "must be ≥ 0"
+
+
+class LogDevice(Device):
+    kind = "test_log"
+    settings: ClassVar[dict[str, Setting]] = {
+        "log": Setting(str, doc="file every call is logged to"),
+        "n_commands": Setting(int, 1, "commands it writes", check=_positive),
+        "n_readings": Setting(int, 1, "readings it reads", check=_positive),
+        "gain": Setting(float, 1.0, "reading = gain × last command"),
+        "fail_in": Setting(str, "", "lifecycle call that raises (configure, activate, read, write)"),
+    }
+
+    def __init__(self, name: str, **settings: Any) -> None:
+        super().__init__(name, **settings)
+        self.n_inputs, self.n_outputs = settings["n_commands"], settings["n_readings"]
+        self.input_names = tuple(f"c{i}" for i in range(self.n_inputs))
+        self.fd = -1
+        self.last = np.zeros(self.n_inputs)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "fd": -1}
+
+    def _log(self, text: str) -> None:
+        if self.fd >= 0:
+            os.write(self.fd, (text + "\n").encode())
+
+    def check(self) -> None:
+        if not os.path.isdir(os.path.dirname(self.config["log"]) or "."):
+            raise DeviceError(self.name, "", "log", "its folder does not exist")
+
+    def configure(self) -> None:
+        self.fd = os.open(self.config["log"], os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+        self._log("configure")
+        if self.config["fail_in"] == "configure":
+            raise DeviceError(self.name, "", "fail_in", "the device did not answer (as asked)")
+
+    def activate(self) -> None:
+        self._log("activate")
+        if self.config["fail_in"] == "activate":
+            raise OSError("activate failed (as asked)")
+
+    def read(self, y: np.ndarray) -> None:
+        if self.config["fail_in"] == "read":
+            raise OSError("read failed (as asked)")
+        n = min(len(y), len(self.last))
+        y[:n] = self.last[:n] * self.config["gain"]
+
+    def write(self, u: np.ndarray) -> None:
+        if self.config["fail_in"] == "write":
+            raise OSError("write failed (as asked)")
+        self.last[:] = u
+        self._log("write " + " ".join(repr(float(v)) for v in u))
+
+    def write_safe(self, u: np.ndarray) -> None:
+        self.last[:] = u
+        self._log("safe " + " ".join(repr(float(v)) for v in u))
+
+    def deactivate(self) -> None:
+        self._log("deactivate")
+
+    def close(self) -> None:
+        self._log("close")
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+class MirrorTwin(Runnable):
+    """The LogDevice's twin: reading = gain × command."""
+
+    def __init__(self, n: int = 1, gain: float = 1.0) -> None:
+        self.n_inputs = self.n_outputs = n
+        self.gain = gain
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        np.multiply(u, self.gain, out=y)
+
+
+def read_log(path: str | os.PathLike[str]) -> list[str]:
+    return open(path).read().splitlines() if os.path.exists(path) else []
