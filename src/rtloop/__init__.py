@@ -24,6 +24,8 @@ from rtloop.timing import TaskTiming as TaskTiming
 from rtloop.version import __version__ as __version__
 
 if TYPE_CHECKING:
+    from rtloop.record.load import RunData as RunData
+    from rtloop.record.load import load as load
     from rtloop.record.summary import RunSummary as RunSummary
     from rtloop.record.summary import TaskSummary as TaskSummary
     from rtloop.runtime.simulate import simulate as simulate
@@ -33,6 +35,8 @@ if TYPE_CHECKING:
 # rtloop.runtime.task), and the supervisor, the recorder and their dependencies would
 # otherwise be loaded, and locked into memory by mlockall, in each of them.
 _LAZY = {
+    "RunData": "rtloop.record.load",
+    "load": "rtloop.record.load",
     "RunSummary": "rtloop.record.summary",
     "TaskSummary": "rtloop.record.summary",
     "simulate": "rtloop.runtime.simulate",
@@ -56,6 +60,7 @@ __all__ = [
     "LibcError",
     "PortValueError",
     "RtloopError",
+    "RunData",
     "RunSummary",
     "Runnable",
     "SignalRef",
@@ -64,6 +69,7 @@ __all__ = [
     "TaskSummary",
     "TaskTiming",
     "TickInfo",
+    "load",
     "run",
     "simulate",
 ]

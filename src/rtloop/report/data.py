@@ -1,17 +1,15 @@
 """Run artifacts → the numbers a report plots (pure functions, no plotting).
 
-Everything here reads the files of one run directory (``summary.json``, ``timing.csv``,
-``signals.csv``) and recomputes the distributions with the *same* functions and the
+Runs are read by :func:`rtloop.load` (numpy arrays, memory-mapped when large); everything
+here recomputes the distributions with the *same* functions and the
 same trimming as ``summary.json`` (:mod:`rtloop.timing`), so a histogram's extremes and
 sample count agree with the summary table printed beside it.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ import numpy.typing as npt
 
 from rtloop import timing
 from rtloop.errors import RtloopError
+from rtloop.record.load import LoadError, RunData, Signals, load
 
 FloatArray = npt.NDArray[np.float64]
 HISTOGRAM_BINS = 100
@@ -32,41 +31,52 @@ class ReportError(RtloopError, ValueError):
 
 
 @dataclass(frozen=True)
-class Signals:
-    """``signals.csv``: release times and one column per recorded signal."""
-
-    t_s: FloatArray
-    """Release time of each row, seconds since T0."""
-    columns: dict[str, FloatArray]
-    """Signal name (e.g. ``plant.y[0]``) → values (NaN where not yet computed)."""
-
-
-@dataclass(frozen=True)
 class Run:
-    """One run directory, loaded."""
+    """One run directory, loaded by :func:`rtloop.load`, with the label the report gives it."""
 
-    path: Path
-    """The run directory."""
+    data: RunData
+    """The run as :func:`rtloop.load` returns it."""
     label: str
     """Short name for legends and table headers (the directory name, made unique)."""
-    summary: dict[str, Any]
-    """``summary.json`` as parsed."""
-    samples: dict[str, timing.TimingSamples]
-    """Per task, every cycle of ``timing.csv`` (untrimmed)."""
-    signals: Signals | None
-    """``signals.csv`` if present and non-empty."""
-    problems: list[str] = field(default_factory=list)
-    """Things a reader should know (empty timing.csv, row counts that disagree, ...)."""
+
+    @property
+    def path(self) -> Path:
+        """The run directory."""
+        return self.data.path
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        """``summary.json`` as parsed."""
+        return self.data.summary
+
+    @property
+    def samples(self) -> dict[str, timing.TimingSamples]:
+        """Per task, every cycle of ``timing.csv`` (untrimmed)."""
+        return self.data.timing
+
+    @property
+    def signals(self) -> Signals | None:
+        """``signals.csv`` if present and non-empty."""
+        signals = self.data.signals
+        return signals if signals is not None and signals.rows else None
+
+    @property
+    def problems(self) -> list[str]:
+        """Things a reader should know (empty timing.csv, row counts that disagree, ...)."""
+        problems = list(self.data.problems)
+        if self.data.signals is not None and not self.data.signals.rows:
+            problems.append("signals.csv has no rows")
+        return problems
 
     @property
     def failure(self) -> dict[str, Any] | None:
         """The failure that stopped the run, if any."""
-        return self.summary.get("failure")
+        return self.data.failure
 
     @property
     def tasks(self) -> dict[str, dict[str, Any]]:
         """Per-task entries of ``summary.json``."""
-        return self.summary.get("tasks", {})
+        return self.data.tasks
 
     @property
     def non_rt_tasks(self) -> list[str]:
@@ -78,67 +88,11 @@ class Run:
 
 def load_run(path: Path, label: str | None = None) -> Run:
     """Load one run directory; raise :class:`ReportError` naming what is missing."""
-    path = Path(path)
-    if not path.is_dir():
-        raise ReportError(f"{path}: no such run directory")
-    summary_path = path / "summary.json"
-    if not summary_path.is_file():
-        raise ReportError(f"{path}: no summary.json (is this the --out directory of `rtloop run`?)")
     try:
-        summary = json.loads(summary_path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ReportError(f"{summary_path}: unreadable: {error}") from None
-    if not isinstance(summary, dict) or not isinstance(summary.get("tasks"), dict):
-        raise ReportError(f"{summary_path}: no 'tasks' object; not an rtloop summary")
-    problems: list[str] = []
-    samples = _load_timing(path / "timing.csv", problems)
-    for name, task in summary["tasks"].items():
-        recorded = len(samples.get(name, ()))
-        if recorded != task.get("cycles", recorded):
-            problems.append(f"task {name}: timing.csv has {recorded} rows but summary.json counts "
-                            f"{task.get('cycles')} cycles")
-    signals = _load_signals(path / "signals.csv", problems)
-    return Run(path, label or path.resolve().name, summary, samples, signals, problems)
-
-
-def _load_timing(path: Path, problems: list[str]) -> dict[str, timing.TimingSamples]:
-    if not path.is_file():
-        problems.append("no timing.csv: no histograms")
-        return {}
-    rows: dict[str, list[list[int]]] = {}
-    with path.open(newline="") as file:
-        reader = csv.reader(file)
-        header = next(reader, None)
-        if not header:
-            problems.append("timing.csv is empty: the run recorded no cycle")
-            return {}
-        if header != ["task", "cycle", "release_ns", "start_ns", "end_ns"]:
-            problems.append(f"timing.csv: unexpected header {header}")
-            return {}
-        for line_number, row in enumerate(reader, start=2):
-            try:
-                rows.setdefault(row[0], []).append([int(cell) for cell in row[1:5]])
-            except (ValueError, IndexError):
-                problems.append(f"timing.csv line {line_number}: unreadable row {row!r} (skipped)")
-    if not rows:
-        problems.append("timing.csv has no rows: the run recorded no cycle")
-    return {task: timing.TimingSamples.from_records(np.array(r, dtype=np.int64)) for task, r in rows.items()}
-
-
-def _load_signals(path: Path, problems: list[str]) -> Signals | None:
-    if not path.is_file():
-        return None
-    with path.open(newline="") as file:
-        reader = csv.reader(file)
-        header = next(reader, None)
-        rows = [row for row in reader if row]
-    if not header or header[0] != "t_s" or len(header) < 2:
-        return None
-    if not rows:
-        problems.append("signals.csv has no rows")
-        return None
-    table = np.array([[float(cell) if cell else math.nan for cell in row] for row in rows], dtype=np.float64)
-    return Signals(table[:, 0], {name: table[:, i] for i, name in enumerate(header[1:], start=1)})
+        data = load(path)
+    except LoadError as error:
+        raise ReportError(str(error)) from None
+    return Run(data, label or Path(path).resolve().name)
 
 
 # --- what a task's figures show ---------------------------------------------------------
