@@ -129,6 +129,10 @@ class ByteLayout:
     def __len__(self) -> int:
         return len(self.fields)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # compiled struct codecs do not pickle: a layout travels to the task process as its declaration
+        return ByteLayout, (self.fields, self.size_bytes, self.where)
+
     @property
     def names(self) -> list[str]:
         return [field.name for field in self.fields]

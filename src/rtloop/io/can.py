@@ -1,0 +1,147 @@
+"""CAN devices: the frames an app file declares, sent and received on a SocketCAN interface.
+
+    [devices.drive]
+    kind = "can"
+    interface = "can0"                       # or vcan0 (virtual, for tests)
+    heartbeat = { id = 0x700 }               # one byte counting up every cycle
+    send = [{ id = 0x200, signals = [{ name = "torque", start_byte = 0, type = "i16", scale = 0.01 }] }]
+    receive = [{ id = 0x180, timeout_ms = 2, on_missing = "fault",
+                 signals = [{ name = "position", start_byte = 0, type = "i32", scale = 1e-4 }] }]
+
+The device's ``u`` is every signal of ``send`` in order; its ``y`` every signal of ``receive``.
+Each cycle ``write`` sends every declared frame and the heartbeat; ``read`` takes the newest
+copy of each received frame, waiting at most its ``timeout_ms`` (counted from the start of
+the read) for one that has not come this cycle. A frame still missing then is a fault
+(``on_missing = "fault"``) or keeps its last values and counts a stale read (``"stale"``).
+
+The heartbeat lets a drive stop by itself: when rtloop stops sending it — the task ends,
+is killed, the machine hangs — the drive's own watchdog (CANopen heartbeat consumer, ODrive
+``watchdog_timeout``, moteus ``timeout_mode``) sees the counter stop and goes to its safe state.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, ClassVar
+
+from rtloop.errors import DeviceError, DeviceFault
+from rtloop.io.bytelayout import LayoutError
+from rtloop.io.canframes import DATA_AT, CanFrame, HeartbeatCounter, check_ids, frame_from_table, heartbeat_from_table
+from rtloop.io.device import Device, FloatVector, Setting
+
+__all__ = ["CanDevice"]
+
+
+def _list_of_tables(value: list[Any]) -> str | None:
+    if not all(isinstance(item, dict) for item in value):
+        return "expected an array of tables ({ id = ..., signals = [...] })"
+    return None
+
+
+class CanDevice(Device):
+    """Declared CAN frames on one SocketCAN interface (raw ``AF_CAN`` socket)."""
+
+    kind: ClassVar[str] = "can"
+    settings: ClassVar[dict[str, Setting]] = {
+        "interface": Setting(str, doc="the SocketCAN interface (can0, vcan0)"),
+        "fd": Setting(bool, False, "CAN FD frames (up to 64 bytes) on this bus"),
+        "send": Setting(list, [], "frames sent every cycle: [{ id, signals = [...] }]", _list_of_tables),
+        "receive": Setting(list, [], "frames read every cycle: [{ id, timeout_ms, on_missing, signals }]",
+                           _list_of_tables),
+        "heartbeat": Setting(dict, {}, "a frame sent every cycle so a drive can go safe by itself: { id = ... }"),
+    }
+
+    def __init__(self, name: str, **settings: Any) -> None:
+        super().__init__(name, **settings)
+        self.interface: str = settings["interface"]
+        self.fd: bool = settings["fd"]
+        try:
+            self.sent = tuple(frame_from_table(table, f"send[{i}]", self.fd, receive=False)
+                              for i, table in enumerate(settings["send"]))
+            self.received = tuple(frame_from_table(table, f"receive[{i}]", self.fd, receive=True)
+                                  for i, table in enumerate(settings["receive"]))
+            beat = settings["heartbeat"]
+            self.heartbeat_frame = heartbeat_from_table(beat, "heartbeat") if beat else None
+            check_ids([*self.sent, *self.received], self.heartbeat_frame)
+        except LayoutError as error:
+            key, _, problem = str(error).partition(": ")
+            raise DeviceError(name, "", key, problem) from None
+        self.input_names = tuple(n for frame in self.sent for n in frame.layout.names)
+        self.output_names = tuple(n for frame in self.received for n in frame.layout.names)
+        self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
+        self.socket: Any = None
+        self.stale_reads = 0
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "socket": None}  # travels to the task process unopened
+
+    # --- supervisor ---------------------------------------------------------------------------
+    def check(self) -> None:
+        from rtloop.io.cansocket import CanInterfaceError, can_supported, check_interface
+
+        unsupported = can_supported()
+        if unsupported:
+            raise DeviceError(self.name, "", "interface", f"{self.interface!r}: {unsupported}")
+        try:
+            check_interface(self.interface, self.fd, "interface")
+        except CanInterfaceError as error:
+            raise DeviceError(self.name, "", "interface", str(error).partition(": ")[2]) from None
+
+    # --- task process ---------------------------------------------------------------------------
+    def configure(self) -> None:
+        from rtloop.io.cansocket import CanInterfaceError, CanSocket
+
+        try:
+            self.socket = CanSocket(self.interface, self.fd, self.received, f"devices.{self.name}")
+        except CanInterfaceError as error:
+            raise DeviceError(self.name, "", "interface", str(error).partition(": ")[2]) from None
+        # Wire frames built once; write() only rewrites their data bytes.
+        self._sent_buffers = [frame.new_buffer() for frame in self.sent]
+        self._heartbeat = HeartbeatCounter(self.heartbeat_frame) if self.heartbeat_frame else None
+        self._plan_read = [(frame, latest, first) for frame, latest, first in
+                           zip(self.received, self.socket.latest, _starts(self.received), strict=True)]
+        self._plan_write = list(zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True))
+
+    def write(self, u: FloatVector) -> None:
+        sock = self.socket
+        for frame, buffer, first in self._plan_write:
+            frame.layout.pack_into(buffer, DATA_AT, u, first)
+            sock.send(buffer)
+        if self._heartbeat is not None:
+            sock.send(self._heartbeat.next())
+
+    def read(self, y: FloatVector) -> None:
+        sock = self.socket
+        sock.receive_cycle(time.monotonic_ns())
+        fresh = sock.fresh
+        for index, (frame, latest, first) in enumerate(self._plan_read):
+            if fresh[index]:
+                frame.layout.unpack_from(latest, DATA_AT, y, first)
+            elif frame.on_missing == "stale":
+                self.stale_reads += 1  # y keeps the values of the last frame that came
+            else:
+                raise DeviceFault(_missing(self.name, frame))
+
+    def write_safe(self, u: FloatVector) -> None:
+        """The safe values, in the declared frames; the heartbeat goes on until ``deactivate``."""
+        if self.socket is not None:
+            self.write(u)
+
+    def close(self) -> None:
+        if self.socket is not None:
+            self.socket.close()
+            self.socket = None
+
+
+def _starts(frames: tuple[CanFrame, ...]) -> list[int]:
+    """Where each frame's signals start in the device's ``u`` (or ``y``)."""
+    starts, at = [], 0
+    for frame in frames:
+        starts.append(at)
+        at += len(frame.layout)
+    return starts
+
+
+def _missing(device: str, frame: CanFrame) -> str:
+    return (f"devices.{device}.{frame.where} (id 0x{frame.can_id:X}): no frame within "
+            f"{frame.timeout_ns / 1e6:g} ms (on_missing = \"fault\")")
