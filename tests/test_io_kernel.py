@@ -24,10 +24,11 @@ int main(void) {
            (unsigned long)SPI_IOC_WR_MAX_SPEED_HZ, (unsigned long)SPI_IOC_RD_MODE);
     printf("%zu %lu %lu %zu\n", sizeof(struct gpio_v2_line_values), (unsigned long)GPIO_V2_LINE_GET_VALUES_IOCTL,
            (unsigned long)GPIO_V2_LINE_SET_VALUES_IOCTL, sizeof(struct gpio_v2_line_event));
-    printf("%zu %zu %zu %lu %lu %lu\n", sizeof(struct i2c_smbus_ioctl_data), offsetof(struct i2c_smbus_ioctl_data, data),
-           sizeof(union i2c_smbus_data), (unsigned long)I2C_SLAVE, (unsigned long)I2C_SMBUS, (unsigned long)I2C_FUNCS);
-    printf("%zu %zu %zu %lu\n", sizeof(struct can_frame), sizeof(struct canfd_frame), offsetof(struct canfd_frame, data),
-           (unsigned long)FIONREAD);
+    printf("%zu %zu %zu %lu %lu %lu\n", sizeof(struct i2c_smbus_ioctl_data),
+           offsetof(struct i2c_smbus_ioctl_data, data), sizeof(union i2c_smbus_data),
+           (unsigned long)I2C_SLAVE, (unsigned long)I2C_SMBUS, (unsigned long)I2C_FUNCS);
+    printf("%zu %zu %zu %lu\n", sizeof(struct can_frame), sizeof(struct canfd_frame),
+           offsetof(struct canfd_frame, data), (unsigned long)FIONREAD);
     return 0;
 }
 """

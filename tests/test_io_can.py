@@ -1,0 +1,127 @@
+"""CAN driver on vcan0 and on the emulated kvaser_pci pair (can0 ↔ can1) in the test guest."""
+
+from __future__ import annotations
+
+import socket
+import struct
+
+import numpy as np
+import pytest
+
+from io_guest_devices import guest_device
+from rtloop.errors import DeviceError, DeviceFault
+from rtloop.io.device import build_device
+
+SEND = [{"id": 0x200, "signals": [{"name": "torque", "start_byte": 0, "type": "i16", "scale": 0.01},
+                                  {"name": "mode", "start_byte": 2, "type": "u8"}]}]
+RECEIVE = [{"id": 0x180, "timeout_ms": 50, "signals": [{"name": "position", "start_byte": 0, "type": "i32",
+                                                       "scale": 1e-3}]}]
+
+
+def raw_socket(interface, fd=False):
+    sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    if fd:
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
+    sock.bind((interface,))
+    sock.settimeout(5.0)
+    return sock
+
+
+def frame(can_id, data):
+    return struct.pack("=IB3x8s", can_id, len(data), data)
+
+
+def drive(interface, **settings):
+    table = {"interface": interface, "send": SEND, "receive": RECEIVE, "heartbeat": {"id": 0x700}, **settings}
+    return build_device("can", "drive", table, "app.toml")
+
+
+@pytest.mark.parametrize("bus", ["vcan", "can"])
+def test_frames_go_out_every_cycle_with_the_heartbeat_and_come_in(bus):
+    entry = guest_device(bus)
+    ours, theirs = (entry["interface"], entry["interface"]) if bus == "vcan" else entry["interfaces"]
+    device = drive(ours)
+    device.check()
+    peer = raw_socket(theirs)
+    device.configure()
+    try:
+        y = np.zeros(1)
+        for cycle in range(3):
+            device.write(np.array([-1.5 + cycle, 3.0]))
+            command = peer.recv(16)
+            assert struct.unpack_from("=IB", command) == (0x200, 8)
+            assert struct.unpack_from("<hB", command, 8) == (-150 + 100 * cycle, 3)
+            beat = peer.recv(16)
+            assert struct.unpack_from("=IB", beat) == (0x700, 1) and beat[8] == cycle
+            peer.send(frame(0x180, struct.pack("<i", 1234 + cycle)))
+            device.read(y)
+            assert y[0] == pytest.approx(1.234 + cycle * 1e-3)
+    finally:
+        device.close()
+        peer.close()
+
+
+def test_a_missing_frame_is_a_fault_or_a_stale_read():
+    entry = guest_device("vcan")
+    device = drive(entry["interface"])
+    device.configure()
+    try:
+        with pytest.raises(DeviceFault, match=r"devices\.drive\.receive\[0\] \(id 0x180\): no frame within 50 ms"):
+            device.read(np.zeros(1))
+    finally:
+        device.close()
+    stale = drive(entry["interface"], receive=[{**RECEIVE[0], "on_missing": "stale"}])
+    stale.configure()
+    peer = raw_socket(entry["interface"])
+    try:
+        y = np.zeros(1)
+        peer.send(frame(0x180, struct.pack("<i", 42)))
+        stale.read(y)
+        stale.read(y)  # nothing new: the last value stays, counted
+        assert y[0] == pytest.approx(0.042) and stale.stale_reads == 1
+    finally:
+        stale.close()
+        peer.close()
+
+
+def test_the_newest_frame_of_an_id_wins_and_other_ids_are_filtered_out():
+    entry = guest_device("vcan")
+    device = drive(entry["interface"])
+    device.configure()
+    peer = raw_socket(entry["interface"])
+    try:
+        for value in (1, 2, 3):
+            peer.send(frame(0x180, struct.pack("<i", value)))
+        peer.send(frame(0x181, struct.pack("<i", 99)))
+        y = np.zeros(1)
+        device.read(y)
+        assert y[0] == pytest.approx(0.003)
+    finally:
+        device.close()
+        peer.close()
+
+
+def test_fd_frames_on_vcan():
+    entry = guest_device("vcan")
+    signals = [{"name": f"s{i}", "start_byte": 8 * i, "type": "f64"} for i in range(8)]
+    device = build_device("can", "fd", {"interface": entry["interface"], "fd": True,
+                                        "send": [{"id": 0x300, "length": 64, "signals": signals}]}, "app.toml")
+    device.check()
+    peer = raw_socket(entry["interface"], fd=True)
+    device.configure()
+    try:
+        values = np.arange(8) * 1.25
+        device.write(values)
+        received = peer.recv(72)
+        assert len(received) == 72 and struct.unpack_from("=IB", received) == (0x300, 64)
+        assert struct.unpack_from("<8d", received, 8) == tuple(values)
+    finally:
+        device.close()
+        peer.close()
+
+
+def test_a_missing_interface_is_one_line():
+    guest_device("vcan")
+    with pytest.raises(DeviceError, match=r"devices\.drive\.interface: no network interface 'can7' \(CAN interfaces "
+                                          r"here: .*vcan0"):
+        drive("can7").check()
