@@ -30,7 +30,7 @@ def test_a_frame_goes_out_and_comes_back_counter_and_crc_checked():
             u = np.array([0.5 - cycle * 0.001, -0.25, 1.0])
             device.write(u)
             device.read(y)
-            assert list(y) == [round(u[0] * 1000) / 1000, -0.25, 1.0]
+            assert list(y) == [round(u[0] / 0.001) * 0.001, -0.25, 1.0]  # value = raw * scale
             assert device._tx[0] == cycle & 0xFF and device._rx == device._tx
         assert device.transfers_rejected == 0
     finally:
