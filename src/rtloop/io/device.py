@@ -216,8 +216,8 @@ def build_device(kind: str | type[Device], name: str, settings: Mapping[str, Any
             values[key] = setting.default
     try:
         device = cls(name, **values)
-    except DeviceError:
-        raise
+    except DeviceError as error:  # a driver checks its settings without knowing the app file: name it
+        raise DeviceError(name, error.source or source, error.key, error.problem) from None
     except (ValueError, TypeError) as error:
         raise DeviceError(name, source, "", f"{type(error).__name__}: {error}") from None
     for side in ("n_inputs", "n_outputs"):

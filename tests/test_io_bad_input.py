@@ -1,0 +1,55 @@
+"""Bad device declarations: one line naming the file and key, exit 2, nothing started.
+
+Frame declarations are checked when the app loads (anywhere); an interface that is not
+there, a busy GPIO line or a device this user may not open need the guest's devices and
+are checked there too (``tests/test_io_gpio.py``, ``test_io_can.py``, ``test_io_spi.py``)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+APP = """name = "{name}"
+[tasks.ctl]
+runnable = "rt_test_runnables:Gain"
+period_ns = 10_000_000
+[devices.drive]
+kind = "can"
+task = "ctl"
+interface = "vcan0"
+{settings}
+"""
+
+CASES = {
+    "id_clash": ('send = [{ id = 0x200 }]\nreceive = [{ id = 0x200, timeout_ms = 5 }]',
+                 "devices.drive.receive[0].id: frame id clash: 0x200 is also the id of send[0]"),
+    "does_not_fit": ('send = [{ id = 0x200, signals = [{ name = "torque", start_byte = 6, type = "i32" }] }]',
+                     "devices.drive.send[0].signals[0] ('torque'): a i32 at byte 6 ends at byte 10, past the "
+                     "frame's 8 bytes: the layout does not fit the frame"),
+    "fd_length": ('fd = true\nsend = [{ id = 0x200, length = 33 }]',
+                  "devices.drive.send[0].length: a CAN FD frame carries one of"),
+    "heartbeat_clash": ('heartbeat = { id = 0x200 }\nsend = [{ id = 0x200 }]',
+                        "devices.drive.heartbeat.id: frame id clash"),
+    "unknown_key": ('send = [{ id = 0x200, signals = [{ name = "a", start_byte = 0, sclae = 2.0 }] }]',
+                    "devices.drive.send[0].signals[0]: unknown key 'sclae'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_a_bad_frame_declaration_is_one_line_exit_2_nothing_started(case, tmp_path):
+    settings, message = CASES[case]
+    app = tmp_path / "app.toml"
+    app.write_text(APP.format(name=f"bad_{case}_{os.getpid()}", settings=settings))
+    out = tmp_path / "run"
+    tests = Path(__file__).resolve().parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "0.1", "--out", str(out)],
+                         capture_output=True, text=True, timeout=60, env=env)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and str(app) in lines[0], run.stderr
+    assert not out.exists()
