@@ -4,7 +4,9 @@ after the run, what reached the "wire" and in which order. Importable by spawned
 
 from __future__ import annotations
 
+import math
 import os
+import time
 from typing import Any, ClassVar
 
 import numpy as np
@@ -95,4 +97,28 @@ class MirrorTwin(Runnable):
 
 
 def read_log(path: str | os.PathLike[str]) -> list[str]:
-    return open(path).read().splitlines() if os.path.exists(path) else []
+    if not os.path.exists(path):
+        return []
+    with open(path) as stream:
+        return stream.read().splitlines()
+
+
+class Echo(Runnable):
+    """y[0] = u[0] + 1 (its device mirrors y back into u); NaN at ``nan_at``; stuck or slow on request."""
+
+    n_inputs = 1
+    n_outputs = 1
+
+    def __init__(self, nan_at: int = -1, raise_at: int = -1, stuck_at: int = -1, slow_s: float = 0.0) -> None:
+        self.nan_at, self.raise_at, self.stuck_at, self.slow_s = nan_at, raise_at, stuck_at, slow_s
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        cycle = self.tick.cycle
+        y[0] = math.nan if cycle == self.nan_at else u[0] + 1.0
+        if cycle == self.raise_at:
+            raise ZeroDivisionError("step raised (as asked)")
+        if cycle == self.stuck_at:
+            while True:
+                pass
+        if self.slow_s:
+            time.sleep(self.slow_s)

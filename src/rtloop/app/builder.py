@@ -26,6 +26,7 @@ from typing import Literal
 
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
+from rtloop.io.host import DeviceWiring
 from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
 
@@ -365,6 +366,26 @@ class App:
         spec = DeviceSpec(device, task, io, _resolve_limits(name, source, device, limits or {}), twin)
         self.devices[name] = spec
         return spec
+
+    def device_wiring(self, task: str, *, twins: bool = False) -> tuple[DeviceWiring, ...]:
+        """The devices ``task`` owns, with their connections to it (``twins``: each twin in its device's place)."""
+        from rtloop.io.twin import TwinDevice
+
+        wirings = []
+        for spec in self.devices.values():
+            if spec.task != task:
+                continue
+            device = spec.device
+            if twins:
+                if spec.twin is None:
+                    raise DeviceError(spec.name, self.source, "twin", "missing: a simulation runs every device's "
+                                      'twin in its place (twin = "module:Class", a Runnable)')
+                device = TwinDevice(spec.name, spec.twin, spec.device, [limit.safe for limit in spec.limits])
+            links = [c for c in self.device_links if spec.name in (c.source.task, c.target.task)]
+            commands = tuple((c.source.slice, c.target.slice) for c in links if c.target.task == spec.name)
+            readings = tuple((c.source.slice, c.target.slice) for c in links if c.source.task == spec.name)
+            wirings.append(DeviceWiring(device, spec.io, spec.limits, commands, readings, self.source))
+        return tuple(wirings)
 
     def block(self, name: str) -> TaskSpec | DeviceSpec | None:
         """The task or device called ``name`` (both have ``.u`` and ``.y``)."""

@@ -228,6 +228,16 @@ def build_device(kind: str | type[Device], name: str, settings: Mapping[str, Any
     return device
 
 
+def check_device(device: Device, source: str) -> None:
+    """``device.check()``, its failures as a :class:`DeviceError` naming the app file."""
+    try:
+        device.check()
+    except DeviceError as error:
+        raise DeviceError(device.name, source, error.key, error.problem) from None
+    except Exception as error:
+        raise DeviceError(device.name, source, "", f"check failed: {type(error).__name__}: {error}") from None
+
+
 def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -> Any:
     expected = setting.type
     ok = isinstance(value, expected) and not (expected in (int, float) and isinstance(value, bool))

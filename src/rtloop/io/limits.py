@@ -40,7 +40,7 @@ class CommandGuard:
         np.isfinite(u, out=self._finite)
         if not self._finite.all():
             index = int(np.argmin(self._finite))
-            raise fault(task, cycle, self.labels[index], f"command {u[index]!r} is not finite; "
+            raise fault(task, cycle, self.labels[index], f"command {float(u[index])!r} is not finite; "
                         "it was not sent (the device gets its safe value)")
         np.clip(u, self.low, self.high, out=self.out)
         np.subtract(self.out, self.last, out=self._delta)

@@ -19,7 +19,8 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import App, check_duration
-from rtloop.errors import AppError, StopRequested, TaskFailed
+from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
+from rtloop.io.host import TaskDevices
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
@@ -43,6 +44,10 @@ class _SimTask:
         self.runnable.tick = self.tick
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
+        wirings = app.device_wiring(name, twins=True)  # each device's twin in its place
+        for wiring in wirings:
+            wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]
+        self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
         self.host_exec = HostExecution()
         self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
@@ -52,13 +57,18 @@ class _SimTask:
         self.io = cycle_work(self.tick, self.wiring, layout.control, self.handles.status, self.handles.timing,
                              self.period_ns, catch_up=False)
         self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
+        self.devices.activate()
 
     def step(self, cycle: int, release_ns: int) -> None:
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
         self.io.read_inputs(release_ns)
         started = time.perf_counter_ns()
+        if self.devices:  # as in the task's loop: commands that hold from now, then readings
+            self.devices.at_release(cycle)
         self.runnable.step(self.u, self.y)
+        if self.devices:
+            self.devices.after_step(cycle)
         self.host_exec.add(time.perf_counter_ns() - started)
         self.io.publish_outputs(cycle, release_ns + self.period_ns)
         # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
@@ -100,6 +110,8 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     check_duration(duration_s)
     if keep_s is not None and not keep_s > 0:
         raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
+    for name in app.tasks:  # every device needs a twin: found before anything is written
+        app.device_wiring(name, twins=True)
     announce_once()
     out.mkdir(parents=True, exist_ok=True)
     summary_file = SummaryFile(out)
@@ -119,6 +131,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
         for name in app.tasks:
             current = name
             tasks[name] = _SimTask(name, app, layout)
+            tasks[name].devices.configure()
             tasks[name].runnable.prerun()
             tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
         for task in tasks.values():
@@ -143,15 +156,21 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
             if steps % (RECORD_QUEUE_CAPACITY // 2) == 0:
                 _drain(tasks, recorder)
         phase = "postrun"
+        for task in tasks.values():  # safe values first, as in a real run
+            task.devices.stop()
         for name, task in tasks.items():
             current = name
             task.runnable.postrun()
+    except DeviceError:  # a twin that does not configure: bad input, like a device in a real run
+        raise
     except Exception as error:  # the user's code raised: report it like a real run does
         import traceback
 
         failure = TaskFailed(current, cycle if phase == "step" else None, phase,
                              f"{type(error).__name__}: {error}", traceback.format_exc())
     finally:
+        for task in tasks.values():
+            task.devices.stop()  # the twins see the safe values on every way out too
         _drain(tasks, recorder)
         try:
             recorder.close()

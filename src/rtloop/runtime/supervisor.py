@@ -24,7 +24,8 @@ from typing import Any
 
 from rtloop import rt
 from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
-from rtloop.errors import AppError, TaskFailed
+from rtloop.errors import AppError, DeviceError, TaskFailed
+from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState
 from rtloop.lean import single_threaded_children
@@ -67,6 +68,10 @@ class Supervisor:
             check_duration(duration_s)
         if keep_s is not None and not keep_s > 0:
             raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
+        for device in app.devices.values():  # a missing interface or permission: exit 2, nothing started
+            check_device(device.device, app.source)
+        self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
+        self.device_problems: list[str] = []
         self.app, self.duration_s, self.out = app, duration_s, out
         self.keep_s = keep_s
         self.progress, self.trim = progress, trim
@@ -135,6 +140,8 @@ class Supervisor:
             summary_file.close()
         if summary_file.problem:
             sys.stderr.write(f"rtloop: {summary_file.problem}\n")
+        if self.refused is not None:
+            raise self.refused
         if self.failure is not None:
             raise self.failure
         return summary
@@ -161,7 +168,7 @@ class Supervisor:
             handles = layout.tasks[name]
             process = context.Process(
                 target=task_process_main,
-                args=(spec.config, spec.runnable, handles.plan, handles.segments, writer),
+                args=(spec.config, spec.runnable, handles.plan, handles.segments, writer, self.app.device_wiring(name)),
                 name=f"rtloop-{self.app.name}-{name}",
             )
             with single_threaded_children():  # a BLAS worker pool has no place in an RT process
@@ -362,6 +369,11 @@ class Supervisor:
                     task_run.settings = message["settings"]
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
+                elif kind == "device_error":
+                    self.refused = DeviceError(message["device"], message["source"], message["key"],
+                                               message["problem"])
+                elif kind == "device_problems":
+                    self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
                 elif kind == "failed":
                     task_run.failure = TaskFailed(
                         task_run.name, message["cycle"], message["phase"], message["reason"],
@@ -434,7 +446,8 @@ class Supervisor:
             stopped_by="running" if running else self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
-            notes=[note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note],
+            notes=[note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note]
+            + self.device_problems,
             bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,

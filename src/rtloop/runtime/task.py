@@ -21,7 +21,8 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
-from rtloop.errors import DeadlineMissesExceeded, StopRequested
+from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
+from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import cycle_work
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
@@ -69,6 +70,8 @@ class RealtimeTask:
         self.y = np.zeros(runnable.n_outputs)
         self.tick = TickInfo(cycle=-1, period_ns=config.period_ns)
         runnable.tick = self.tick
+        self.devices = TaskDevices(config.name, config.period_ns, (), self.u, self.y)
+        self.in_loop = False
 
     @property
     def cycle(self) -> int:
@@ -77,7 +80,7 @@ class RealtimeTask:
 
     def run_loop(self, t0_ns: int, end_ns: int) -> None:
         """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
-        runnable, u, y = self.runnable, self.u, self.y
+        runnable, u, y, tick, devices = self.runnable, self.u, self.y, self.tick, self.devices
         limit = self.config.max_consecutive_misses
         # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
         cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
@@ -87,13 +90,21 @@ class RealtimeTask:
         # and reads the inputs valid at it; finish() publishes the outputs as valid from
         # release + P (logical execution time), so the result does not depend on how fast
         # this cycle ran, records its timing and moves to the next release (after an overrun,
-        # as the overrun policy says).
+        # as the overrun policy says). Devices (docs/devices.md) are read at the release too, and
+        # written with the commands that hold from it: those of the job before (the same LET).
+        self.in_loop = True
         try:
             while cycle.begin():
+                if devices:
+                    devices.at_release(tick.cycle)  # write the commands that hold from now, then read
                 runnable.step(u, y)
+                if devices:
+                    devices.after_step(tick.cycle)  # io = "immediate" devices write at once
                 if not cycle.finish():  # too many deadline misses in a row (max_consecutive_misses)
                     raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
         finally:
+            self.in_loop = False
+            devices.stop()  # safe values first, on every way out of the loop
             cycle.close()  # let go of the shared memory before it is unmapped
 
 
@@ -136,6 +147,7 @@ def task_process_main(
     plan: TaskWiringPlan,
     segments: TaskSegments,
     pipe: Any,
+    devices: tuple[DeviceWiring, ...] = (),
 ) -> None:
     """Entry point of a task process (spawned by the supervisor)."""
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
@@ -145,7 +157,8 @@ def task_process_main(
     control = WordBlock(control_segment, 0, CONTROL_WORDS)
     # SIGTERM (from a user, or from the kernel when the supervisor dies) stops the whole
     # app the orderly way: the loop sees the stop flag and postrun still runs.
-    signal.signal(signal.SIGTERM, lambda _signum, _frame: control.__setitem__(ControlWord.STOP, 1))
+    task: RealtimeTask | None = None
+    signal.signal(signal.SIGTERM, lambda _signum, _frame: _on_sigterm(control, task))
     rt.die_with_parent(signal.SIGTERM)
     try:
         rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
@@ -170,8 +183,11 @@ def task_process_main(
 
     task = RealtimeTask(config, runnable, control, status, timing)
     wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
-    phase = "prerun"
+    task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y)
+    phase = "configure"
     try:
+        task.devices.configure()  # open and check the devices: a DeviceError is bad input (exit 2)
+        phase = "prerun"
         runnable.prerun()
         wiring.publish_initial(initial_outputs(runnable, task.y))
         status[StatusWord.STATE] = TaskState.READY
@@ -183,6 +199,7 @@ def task_process_main(
         gc.disable()  # and no collection pauses inside the loop
         status[StatusWord.STATE] = TaskState.RUNNING
         if t0_ns:
+            task.devices.activate()
             try:
                 task.run_loop(t0_ns, end_ns)
             except StopRequested as request:  # the runnable ended the run (a model's end): stop in order
@@ -193,7 +210,12 @@ def task_process_main(
         status[StatusWord.STATE] = TaskState.POSTRUN
         runnable.postrun()
     except BaseException as error:
+        task.devices.stop()  # safe values before anything else
+        _report_device_problems(pipe, task.devices.problems)
         status[StatusWord.STATE] = TaskState.FAILED
+        if isinstance(error, DeviceError) and phase == "configure":
+            _report(pipe, kind="device_error", device=error.device, source=error.source, key=error.key,
+                    problem=error.problem)
         _report(
             pipe,
             kind="failed",
@@ -208,7 +230,22 @@ def task_process_main(
         raise SystemExit(1) from None
     status[StatusWord.TIMING_DROPPED] = timing.dropped
     status[StatusWord.STATE] = TaskState.STOPPED
+    task.devices.stop()  # done already unless the stop came before T0
+    _report_device_problems(pipe, task.devices.problems)
     _report(pipe, kind="stopped", cycles=task.cycle + 1)
+
+
+def _on_sigterm(control: WordBlock, task: RealtimeTask | None) -> None:
+    """Stop the app in order; a second request while a step with devices is stuck breaks the step
+    (the watchdog's SIGTERM comes after the stop flag) so the devices still get their safe values."""
+    if control[ControlWord.STOP] and task is not None and task.devices and task.in_loop:
+        raise TimeoutError("stopped by SIGTERM while its step did not return (the devices were made safe)")
+    control[ControlWord.STOP] = 1
+
+
+def _report_device_problems(pipe: Any, problems: list[str]) -> None:
+    if problems:
+        _report(pipe, kind="device_problems", problems=problems)
 
 
 def _postrun_after_failure(runnable: Runnable, pipe: Any) -> None:

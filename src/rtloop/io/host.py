@@ -1,0 +1,147 @@
+"""A task's devices, run inside the task's process: when they are read and written, and how they stop.
+
+Per cycle (the task's loop calls these; ``docs/devices.md`` has the timeline):
+
+- :meth:`TaskDevices.at_release`, right after the sleep to release t, before ``step``:
+  ``let`` devices write the commands of the job released at t − P (held in the task's
+  ``y`` since then: logical execution time), then every device is read and its readings
+  are copied into the task's inputs;
+- :meth:`TaskDevices.after_step`: ``immediate`` devices write the job's commands now.
+
+Every command goes through the device's :class:`~rtloop.io.limits.CommandGuard` first.
+:meth:`TaskDevices.stop` writes each device's safe values, then deactivates and closes it;
+the task calls it on every way out of its loop, before anything else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtloop.errors import DeviceError, DeviceFault
+from rtloop.io.device import CommandLimit, Device, FloatVector
+from rtloop.io.limits import CommandGuard
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceWiring:
+    """One device of a task, as the task process needs it (picklable)."""
+
+    device: Device
+    io: str
+    """``let`` or ``immediate``."""
+    limits: tuple[CommandLimit, ...]
+    commands: tuple[tuple[slice, slice], ...]
+    """(task ``y`` slice → device ``u`` slice) for each connection into the device."""
+    readings: tuple[tuple[slice, slice], ...]
+    """(device ``y`` slice → task ``u`` slice) for each connection out of it."""
+    source: str = "<python>"
+    """The app file (for errors)."""
+
+
+class _Slot:
+    """One device with its vectors, its guard and its copies from and to the task's vectors."""
+
+    __slots__ = ("command_copies", "device", "guard", "reading_copies", "u", "y")
+
+    def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector) -> None:
+        device = self.device = wiring.device
+        name = device.name
+        labels = [f"{name}.u[{i}] ({command})" for i, command in enumerate(device.command_names())]
+        self.guard = CommandGuard(wiring.limits, period_ns, labels)
+        self.u = self.guard.safe.copy()  # a command nothing is wired to stays at its safe value
+        self.y = np.zeros(device.n_outputs)
+        self.command_copies = [(task_y[source], self.u[target]) for source, target in wiring.commands]
+        self.reading_copies = [(self.y[source], task_u[target]) for source, target in wiring.readings]
+
+    def send(self, task: str, cycle: int) -> None:
+        for source, target in self.command_copies:
+            np.copyto(target, source)
+        self.device.write(self.guard.apply(self.u, task, cycle))
+
+    def receive(self) -> None:
+        self.device.read(self.y)
+        for source, target in self.reading_copies:
+            np.copyto(target, source)
+
+
+class TaskDevices:
+    """The devices one task owns. ``bool(devices)`` is False when it owns none."""
+
+    def __init__(self, task: str, period_ns: int, wirings: Sequence[DeviceWiring],
+                 task_u: FloatVector, task_y: FloatVector) -> None:
+        self.task = task
+        self.sources = {w.device.name: w.source for w in wirings}
+        self.slots = [_Slot(w, period_ns, task_u, task_y) for w in wirings]
+        self.let = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "let"]
+        self.immediate = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "immediate"]
+        self.configured: list[_Slot] = []
+        self.active = False
+        self.problems: list[str] = []
+        """What went wrong while stopping (the task reports it; the run's summary lists it)."""
+
+    def __bool__(self) -> bool:
+        return bool(self.slots)
+
+    # --- before T0 --------------------------------------------------------------------------------
+    def configure(self) -> None:
+        """Open and check every device, then write its safe values (before T0); a failure closes
+        those already open."""
+        for slot in self.slots:
+            device = slot.device
+            try:
+                device.configure()
+            except Exception as error:
+                try:
+                    device.close()  # let go of whatever the half-done configure opened
+                except Exception:  # the configure error is the one to report
+                    pass
+                self.stop()
+                if isinstance(error, DeviceError):
+                    raise DeviceError(device.name, self.sources[device.name], error.key, error.problem) from None
+                raise DeviceError(device.name, self.sources[device.name], "",
+                                  f"configure failed: {type(error).__name__}: {error}") from None
+            self.configured.append(slot)
+            device.write_safe(slot.guard.safe_values())  # held safe until T0: where the rate limit starts
+
+    def activate(self) -> None:
+        """At T0: enable the outputs (the first write follows at once)."""
+        self.active = True
+        for slot in self.configured:
+            slot.device.activate()
+
+    # --- every cycle ------------------------------------------------------------------------------
+    def at_release(self, cycle: int) -> None:
+        for slot in self.let:  # the commands that hold from this release (computed by the job before)
+            slot.send(self.task, cycle)
+        for slot in self.slots:
+            slot.receive()
+
+    def after_step(self, cycle: int) -> None:
+        for slot in self.immediate:
+            slot.send(self.task, cycle)
+
+    # --- every way out ----------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Safe values to every configured device, then deactivate and close it. Never raises:
+        each device gets its turn whatever the others do (see ``problems``)."""
+        for slot in self.configured:
+            device = slot.device
+            for action in ("write_safe", "deactivate", "close"):
+                try:
+                    if action == "write_safe":
+                        device.write_safe(slot.guard.safe_values())
+                    elif action == "deactivate":
+                        if self.active:
+                            device.deactivate()
+                    else:
+                        device.close()
+                except Exception as error:  # every device must get its safe values
+                    self.problems.append(f"device {device.name!r}: {action} failed: {type(error).__name__}: {error}")
+        self.configured = []
+        self.active = False
+
+
+__all__ = ["DeviceFault", "DeviceWiring", "TaskDevices"]

@@ -1,0 +1,40 @@
+"""A twin in a device's place: the model that answers as the hardware does.
+
+``rtloop simulate`` runs an app with every device replaced by its twin (a
+:class:`~rtloop.Runnable` whose inputs are the device's commands and whose outputs are its
+readings). The twin goes through the same :class:`~rtloop.io.host.TaskDevices` as the
+device, so commands are guarded and timed exactly as in a real run; a twin's ``step`` is one
+exchange with the device: it takes the commands written last and answers the readings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtloop.io.device import Device, FloatVector
+from rtloop.runnable import Runnable
+
+
+class TwinDevice(Device):
+    """Stands in for ``name``: ``write`` keeps the commands, ``read`` steps the twin once."""
+
+    kind = "twin"
+
+    def __init__(self, name: str, twin: Runnable, like: Device, safe: FloatVector) -> None:
+        super().__init__(name)
+        self.twin = twin
+        self.n_inputs, self.n_outputs = like.n_inputs, like.n_outputs
+        self.input_names, self.output_names = like.input_names, like.output_names
+        self.commands = np.array(safe, dtype=np.float64)  # the device's state before any write
+
+    def configure(self) -> None:
+        self.twin.prerun()
+
+    def read(self, y: FloatVector) -> None:
+        self.twin.step(self.commands, y)
+
+    def write(self, u: FloatVector) -> None:
+        self.commands[:] = u
+
+    def close(self) -> None:
+        self.twin.postrun()
