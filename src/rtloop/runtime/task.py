@@ -80,7 +80,8 @@ class RealtimeTask:
 
     def run_loop(self, t0_ns: int, end_ns: int) -> None:
         """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
-        runnable, u, y, tick, devices = self.runnable, self.u, self.y, self.tick, self.devices
+        runnable, u, y, tick = self.runnable, self.u, self.y, self.tick
+        devices = self.devices or None  # None: a task without devices pays one test of None per call
         limit = self.config.max_consecutive_misses
         # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
         cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
@@ -104,7 +105,7 @@ class RealtimeTask:
                     raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
         finally:
             self.in_loop = False
-            devices.stop()  # safe values first, on every way out of the loop
+            self.devices.stop()  # safe values first, on every way out of the loop
             cycle.close()  # let go of the shared memory before it is unmapped
 
 
