@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from io_guest_devices import guest_device
+from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import build_device
 
@@ -125,3 +125,56 @@ def test_a_missing_interface_is_one_line():
     with pytest.raises(DeviceError, match=r"devices\.drive\.interface: no network interface 'can7' \(CAN interfaces "
                                           r"here: .*vcan0"):
         drive("can7").check()
+
+
+def test_no_allocation_in_the_loop():
+    entry = guest_device("vcan")
+    device = drive(entry["interface"])
+    device.configure()
+    peer = raw_socket(entry["interface"])
+    answer = bytearray(frame(0x180, struct.pack("<i", 7)))
+    incoming = bytearray(16)
+    try:
+        u, y = np.array([0.5, 1.0]), np.zeros(1)
+
+        def cycle():
+            device.write(u)
+            peer.recv_into(incoming)  # the command
+            peer.recv_into(incoming)  # the heartbeat
+            peer.send(answer)
+            device.read(y)
+
+        assert bytes_kept_by(cycle, 10_000) <= KEPT_BYTES_ALLOWED
+        assert y[0] == pytest.approx(0.007)
+    finally:
+        device.close()
+        peer.close()
+
+
+def test_the_driver_loop_over_a_unix_socket_pair_allocates_nothing():
+    """Anywhere: the driver's own per-cycle work, over the same socket calls (send, poll, recv_into)
+    on a UNIX datagram pair in place of a CAN socket (this kernel may have no CAN)."""
+    from rtloop.io.cansocket import CanSocket
+
+    device = drive("vcan0")
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    answer = bytearray(frame(0x180, struct.pack("<i", -9)))
+    incoming = bytearray(72)
+    try:
+        u, y = np.array([0.5, 1.0]), np.zeros(1)
+
+        def cycle():
+            device.write(u)
+            peer.recv_into(incoming)
+            peer.recv_into(incoming)
+            peer.send(answer)
+            device.read(y)
+
+        assert bytes_kept_by(cycle, 10_000) <= KEPT_BYTES_ALLOWED
+        assert y[0] == pytest.approx(-0.009)
+        assert struct.unpack_from("=IB", incoming) == (0x700, 1)  # the cycle's last frame: the heartbeat
+        assert incoming[8] == (2_000 + 10_000 - 1) & 0xFF
+    finally:
+        device.close()
+        peer.close()

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import math
 import struct
-import tracemalloc
 
 import numpy as np
 import pytest
 
+from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by
 from rtloop.io.bytelayout import ByteLayout, Field, LayoutError, field_from_table
 from rtloop.io.canframes import (
     CAN_EFF_FLAG,
@@ -193,25 +193,6 @@ def test_spi_frame_check_counter_and_crc():
     previous.after(1)
     seal(frame, view, 0)  # the device did not see the frame before
     assert not previous.accept(frame, view)
-
-
-# A loop that keeps one object per cycle keeps >= 240,000 bytes over 10,000 cycles; what the
-# interpreter's free lists happen to hold at the end is a few dozen bytes, whatever the count.
-KEPT_BYTES_ALLOWED = 256
-
-
-def bytes_kept_by(cycle, cycles):
-    """Memory that ``cycles`` calls of ``cycle`` leave allocated (tracemalloc; after a warm-up under it)."""
-    tracemalloc.start()
-    try:
-        for _ in range(2_000):  # first calls fill caches and free lists (floats, struct codes): not growth
-            cycle()
-        before = tracemalloc.get_traced_memory()[0]
-        for _ in range(cycles):
-            cycle()
-        return tracemalloc.get_traced_memory()[0] - before
-    finally:
-        tracemalloc.stop()
 
 
 def test_packing_allocates_nothing_that_stays():

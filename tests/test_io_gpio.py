@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from io_guest_devices import SimLine, guest_device
+from io_guest_devices import KEPT_BYTES_ALLOWED, SimLine, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError
 from rtloop.io.device import build_device
 from rtloop.io.gpio import EmergencyStop
@@ -114,5 +114,22 @@ def test_scope_line_is_the_scope_pins_bit(gpio):
             GPIO_V2_LINE_VALUES.pack_into(values, 0, level << bit, 1 << bit)
             fcntl.ioctl(fd, GPIO_V2_LINE_SET_VALUES_IOCTL, values, True)
             assert scope.value == level and led.value == 0
+    finally:
+        panel.close()
+
+
+def test_no_allocation_in_the_loop(gpio):
+    panel = device(gpio, outputs=["led", "enable"], inputs=["button", "fault"], estop="estop")
+    SimLine(gpio, "estop").pull(True)
+    panel.configure()
+    try:
+        u, y = np.array([1.0, 0.0]), np.zeros(2)
+
+        def cycle():
+            u[0] = 1.0 - u[0]
+            panel.write(u)
+            panel.read(y)
+
+        assert bytes_kept_by(cycle, 10_000) <= KEPT_BYTES_ALLOWED
     finally:
         panel.close()

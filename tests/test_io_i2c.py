@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from io_guest_devices import guest_device
+from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError
 from rtloop.io.device import build_device
 
@@ -49,3 +49,22 @@ def test_a_missing_bus_or_silent_chip_is_one_line():
                                             "reads": [{"name": "x", "register": 1}]}, "app.toml")
     with pytest.raises(DeviceError, match=r"devices\.sensor\.address: no answer from 0x33"):
         silent.configure()
+
+
+def test_no_allocation_in_the_loop():
+    i2c = guest_device("i2c")
+    pytest.importorskip("smbus2", reason="I2C needs smbus2")
+    registers = [{"name": "duty", "register": 0x10, "type": "u8"}, {"name": "speed", "register": 0x20, "type": "i16"}]
+    device = chip(i2c, writes=registers, reads=registers)
+    device.configure()
+    try:
+        u, y = np.array([7.0, -300.0]), np.zeros(2)
+
+        def cycle():
+            device.write(u)
+            device.read(y)
+
+        assert bytes_kept_by(cycle, 10_000) <= KEPT_BYTES_ALLOWED
+        assert list(y) == [7.0, -300.0]
+    finally:
+        device.close()

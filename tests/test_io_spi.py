@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from io_guest_devices import guest_device
+from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import build_device
 
@@ -95,3 +95,20 @@ def test_a_missing_device_or_no_permission_is_one_line(tmp_path):
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, user=nobody.pw_uid,
                          group=nobody.pw_gid, cwd=tmp_path, env={**os.environ, "HOME": str(tmp_path)})
     assert "no permission to open" in run.stderr
+
+
+def test_no_allocation_in_the_loop():
+    spi = guest_device("spi")
+    device = fpga(spi["devices"][0])
+    device.configure()
+    try:
+        u, y = np.array([0.25, -0.5, 1.0]), np.zeros(3)
+
+        def cycle():
+            device.write(u)
+            device.read(y)
+
+        assert bytes_kept_by(cycle, 10_000) <= KEPT_BYTES_ALLOWED
+        assert list(y) == [0.25, -0.5, 1.0] and device.transfers_rejected == 0
+    finally:
+        device.close()

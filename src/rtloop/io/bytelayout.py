@@ -175,3 +175,22 @@ class ByteLayout:
 
     def _not_finite(self, index: int, value: float) -> str:
         return f"{self.where}: {self.fields[index].name!r} is {value!r}: a non-finite value is never sent"
+
+
+class FloatView:
+    """A memoryview of the vector a driver is handed every cycle, made again only when the vector changes.
+
+    A driver gets the same numpy arrays each cycle; indexing a memoryview of one gives a Python
+    float in a third of the time numpy takes to make a numpy scalar, and nothing is left behind."""
+
+    __slots__ = ("array", "view")
+
+    def __init__(self) -> None:
+        self.array: Any = None
+        self.view: Any = None
+
+    def of(self, array: Any) -> Any:
+        if array is not self.array:
+            self.array = array
+            self.view = memoryview(array) if getattr(array, "dtype", None) == "float64" else array
+        return self.view

@@ -25,7 +25,7 @@ import time
 from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError, DeviceFault
-from rtloop.io.bytelayout import LayoutError
+from rtloop.io.bytelayout import FloatView, LayoutError
 from rtloop.io.canframes import DATA_AT, CanFrame, HeartbeatCounter, check_ids, frame_from_table, heartbeat_from_table
 from rtloop.io.device import Device, FloatVector, Setting
 
@@ -71,6 +71,7 @@ class CanDevice(Device):
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         self.socket: Any = None
         self.stale_reads = 0
+        self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "socket": None}  # travels to the task process unopened
@@ -92,9 +93,13 @@ class CanDevice(Device):
         from rtloop.io.cansocket import CanInterfaceError, CanSocket
 
         try:
-            self.socket = CanSocket(self.interface, self.fd, self.received, f"devices.{self.name}")
+            self.attach(CanSocket(self.interface, self.fd, self.received, f"devices.{self.name}"))
         except CanInterfaceError as error:
             raise DeviceError(self.name, "", "interface", str(error).partition(": ")[2]) from None
+
+    def attach(self, sock: Any) -> None:
+        """Use the open :class:`~rtloop.io.cansocket.CanSocket` ``sock`` and build the per-cycle plans."""
+        self.socket = sock
         # Wire frames built once; write() only rewrites their data bytes.
         self._sent_buffers = [frame.new_buffer() for frame in self.sent]
         self._heartbeat = HeartbeatCounter(self.heartbeat_frame) if self.heartbeat_frame else None
@@ -103,7 +108,7 @@ class CanDevice(Device):
         self._plan_write = list(zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True))
 
     def write(self, u: FloatVector) -> None:
-        sock = self.socket
+        sock, u = self.socket, self._u.of(u)
         for frame, buffer, first in self._plan_write:
             frame.layout.pack_into(buffer, DATA_AT, u, first)
             sock.send(buffer)
@@ -111,7 +116,7 @@ class CanDevice(Device):
             sock.send(self._heartbeat.next())
 
     def read(self, y: FloatVector) -> None:
-        sock = self.socket
+        sock, y = self.socket, self._y.of(y)
         sock.receive_cycle(time.monotonic_ns())
         fresh = sock.fresh
         for index, (frame, latest, first) in enumerate(self._plan_read):

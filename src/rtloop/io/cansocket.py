@@ -65,22 +65,14 @@ def _read(path: Path) -> str:
 class CanSocket:
     """One raw CAN socket on one interface, for the declared frames of one device."""
 
-    def __init__(self, interface: str, fd: bool, receive: Sequence[CanFrame], where: str) -> None:
+    def __init__(self, interface: str, fd: bool, receive: Sequence[CanFrame], where: str,
+                 sock: socket.socket | None = None) -> None:
+        """``sock``: an already open datagram socket to use instead (the benchmark's stand-in where
+        the kernel has no CAN: same send, poll and recv_into calls, on a UNIX socket pair)."""
         self.interface = interface
         self.where = where
         self.receive = tuple(receive)
-        self.sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
-        try:
-            if fd:
-                self.sock.setsockopt(SOL_CAN_RAW, CAN_RAW_FD_FRAMES, 1)
-            filters = b"".join(CAN_FILTER.pack(frame.wire_id, (CAN_EFF_FLAG | CAN_EFF_MASK) if frame.extended
-                                               else (CAN_EFF_FLAG | CAN_SFF_MASK)) for frame in self.receive)
-            # no receive frame declared: an empty filter list receives nothing
-            self.sock.setsockopt(SOL_CAN_RAW, CAN_RAW_FILTER, filters)
-            self.sock.bind((interface,))
-        except OSError as error:
-            self.sock.close()
-            raise CanInterfaceError(f"{where}: cannot open CAN interface {interface!r}: {error.strerror}") from None
+        self.sock = sock if sock is not None else self._open(interface, fd, where)
         self.sock.setblocking(False)
         self.fileno = self.sock.fileno()
         self.poller = select.poll()
@@ -90,7 +82,21 @@ class CanSocket:
         self.index_of = {frame.wire_id: index for index, frame in enumerate(self.receive)}
         self.latest = [bytearray(frame.mtu) for frame in self.receive]
         self.fresh = [False] * len(self.receive)
-        self.deadlines_ns = [0] * len(self.receive)
+
+    def _open(self, interface: str, fd: bool, where: str) -> socket.socket:
+        sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        try:
+            if fd:
+                sock.setsockopt(SOL_CAN_RAW, CAN_RAW_FD_FRAMES, 1)
+            filters = b"".join(CAN_FILTER.pack(frame.wire_id, (CAN_EFF_FLAG | CAN_EFF_MASK) if frame.extended
+                                               else (CAN_EFF_FLAG | CAN_SFF_MASK)) for frame in self.receive)
+            # no receive frame declared: an empty filter list receives nothing
+            sock.setsockopt(SOL_CAN_RAW, CAN_RAW_FILTER, filters)
+            sock.bind((interface,))
+        except OSError as error:
+            sock.close()
+            raise CanInterfaceError(f"{where}: cannot open CAN interface {interface!r}: {error.strerror}") from None
+        return sock
 
     def send(self, frame: bytearray) -> None:
         """Send one prebuilt wire frame (a full transmit queue is an error, not a wait)."""

@@ -35,6 +35,7 @@ import select
 from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError, StopRequested
+from rtloop.io.bytelayout import FloatView
 from rtloop.io.device import CommandLimit, Device, FloatVector, Setting
 from rtloop.io.kernel import (
     GPIO_V2_LINE_EVENT,
@@ -123,6 +124,7 @@ class GpioDevice(Device):
         self.input_names = tuple(str(line) for line in self.outputs)
         self.output_names = tuple(str(line) for line in self.inputs)
         self._requests: list[Any] = []
+        self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_requests": []}
@@ -243,7 +245,7 @@ class GpioDevice(Device):
     def write(self, u: FloatVector) -> None:
         if self._out_fd < 0 or not self._out_bits:
             return
-        bits = 0
+        bits, u = 0, self._u.of(u)
         for index, bit in enumerate(self._out_bits):
             if u[index] >= 0.5:
                 bits |= 1 << bit
@@ -257,7 +259,7 @@ class GpioDevice(Device):
             return
         values = self._in_values
         fcntl.ioctl(self._in_fd, GPIO_V2_LINE_GET_VALUES_IOCTL, values, True)
-        bits = GPIO_V2_LINE_VALUES.unpack_from(values, 0)[0]
+        bits, y = GPIO_V2_LINE_VALUES.unpack_from(values, 0)[0], self._y.of(y)
         for index, bit in enumerate(self._in_bits):
             y[index] = 1.0 if bits >> bit & 1 else 0.0
         # the kernel wrote the bits; the mask it read must stay for the next call

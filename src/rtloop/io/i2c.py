@@ -22,7 +22,7 @@ import os
 from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError
-from rtloop.io.bytelayout import ByteLayout, Field, LayoutError, field_from_table
+from rtloop.io.bytelayout import ByteLayout, Field, FloatView, LayoutError, field_from_table
 from rtloop.io.device import Device, FloatVector, Setting
 from rtloop.io.kernel import (
     I2C_FUNC_SMBUS_READ_BYTE_DATA,
@@ -90,6 +90,7 @@ class I2cDevice(Device):
         self.n_inputs, self.n_outputs = len(self.writes), len(self.reads)
         self.path = f"/dev/i2c-{self.bus}"
         self._bus: Any = None
+        self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_bus": None, "_messages": None}
@@ -164,13 +165,13 @@ class I2cDevice(Device):
         return message, data, ByteLayout([field], 2, where)
 
     def write(self, u: FloatVector) -> None:
-        fd = self._fd
+        fd, u = self._fd, self._u.of(u)
         for index, (message, data, layout) in enumerate(self._write_plan):
             layout.pack_into(data, 0, u, index)
             fcntl.ioctl(fd, I2C_SMBUS, message, True)
 
     def read(self, y: FloatVector) -> None:
-        fd = self._fd
+        fd, y = self._fd, self._y.of(y)
         for index, (message, data, layout) in enumerate(self._read_plan):
             fcntl.ioctl(fd, I2C_SMBUS, message, True)
             layout.unpack_from(data, 0, y, index)

@@ -29,7 +29,7 @@ import os
 from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError, DeviceFault
-from rtloop.io.bytelayout import LayoutError, field_from_table
+from rtloop.io.bytelayout import FloatView, LayoutError, field_from_table
 from rtloop.io.device import Device, FloatVector, Setting
 from rtloop.io.kernel import (
     SPI_IOC_MESSAGE_1,
@@ -96,6 +96,7 @@ class SpiDevice(Device):
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         self.fd = -1
         self.stale_reads = 0
+        self._u, self._y = FloatView(), FloatView()
 
     # --- supervisor ---------------------------------------------------------------------------
     def check(self) -> None:
@@ -153,7 +154,7 @@ class SpiDevice(Device):
         self._fresh = True
 
     def write(self, u: FloatVector) -> None:
-        self.tx_layout.pack_into(self._tx, 0, u)
+        self.tx_layout.pack_into(self._tx, 0, self._u.of(u))
         self._exchange()
 
     def read(self, y: FloatVector) -> None:
@@ -161,7 +162,7 @@ class SpiDevice(Device):
             self._exchange()
         self._fresh = False
         if self._answered:
-            self.rx_layout.unpack_from(self._rx, 0, y)
+            self.rx_layout.unpack_from(self._rx, 0, self._y.of(y))
         elif self.on_error == "stale":
             self.stale_reads += 1
         else:
