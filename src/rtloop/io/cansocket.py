@@ -82,6 +82,10 @@ class CanSocket:
         self.index_of = {frame.wire_id: index for index, frame in enumerate(self.receive)}
         self.latest = [bytearray(frame.mtu) for frame in self.receive]
         self.fresh = [False] * len(self.receive)
+        self.none_fresh = [False] * len(self.receive)
+        self.unexpected = 0
+        """Frames that passed the filter but are not a declared frame's size (an FD frame where a
+        classic one was declared, or the stand-in socket's strays): counted, never decoded."""
 
     def _open(self, interface: str, fd: bool, where: str) -> socket.socket:
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
@@ -107,37 +111,38 @@ class CanSocket:
                     if error.errno in (errno.ENOBUFS, errno.EAGAIN) else "")
             raise OSError(error.errno, f"{self.where}: sending on {self.interface}: {error.strerror}{hint}") from None
 
-    def _drain(self) -> None:
-        """Take every frame already queued, keeping the newest of each id."""
-        sock, incoming, poller = self.sock, self.incoming, self.poller
+    def _drain(self) -> int:
+        """Take every frame already queued, keeping the newest of each id; how many expected ones came."""
+        sock, incoming, poller, latest, fresh = self.sock, self.incoming, self.poller, self.latest, self.fresh
+        came = 0
         while poller.poll(0):
             size = sock.recv_into(incoming)
             index = self.index_of.get(CAN_ID.unpack_from(incoming, 0)[0], -1)
-            if index >= 0 and size == len(self.latest[index]):
-                self.latest[index][:] = self.incoming_view[:size]
-                self.fresh[index] = True
+            if index < 0 or size != len(latest[index]):  # not declared, or FD where classic was declared
+                self.unexpected += 1
+                continue
+            latest[index][:] = self.incoming_view[:size]
+            if not fresh[index]:
+                fresh[index] = True
+                came += 1
+        return came
 
     def receive_cycle(self, start_ns: int) -> None:
         """Drain, then wait while an expected frame is still missing and its timeout has not passed.
 
         After it, ``fresh[i]`` says whether frame i came this cycle and ``latest[i]`` holds its newest copy."""
         fresh = self.fresh
-        for index in range(len(fresh)):
-            fresh[index] = False
-        self._drain()
-        while True:
+        fresh[:] = self.none_fresh
+        missing = len(fresh) - self._drain()
+        while missing:
             wait_ns = 0
+            now_ns = time.monotonic_ns()
             for index, frame in enumerate(self.receive):
-                if not fresh[index]:
-                    left = start_ns + frame.timeout_ns - time.monotonic_ns()
-                    if left > wait_ns:
-                        wait_ns = left
-            if wait_ns <= 0:
-                return
-            if self.poller.poll(math.ceil(wait_ns / 1_000_000)):
-                self._drain()
-            else:
-                return
+                if not fresh[index] and start_ns + frame.timeout_ns - now_ns > wait_ns:
+                    wait_ns = start_ns + frame.timeout_ns - now_ns
+            if wait_ns <= 0 or not self.poller.poll(math.ceil(wait_ns / 1_000_000)):
+                return  # what is still missing stays so: the device counts it or faults
+            missing -= self._drain()
 
     def close(self) -> None:
         self.sock.close()

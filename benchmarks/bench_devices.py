@@ -1,0 +1,248 @@
+"""Each driver's read + write per cycle next to the bare system call doing the same transfer, in one run.
+
+For every device kind that this kernel offers, two loops run interleaved in batches, each cycle
+timed around the device's part only:
+
+- ``driver``  ``device.write(u)`` then ``device.read(y)``, as the task's loop calls them
+              (values packed and unpacked through the declared layout, checks included);
+- ``bare``    the same transfer with the same system calls on bytes prepared beforehand
+              (no layout, no check): the floor any driver pays.
+
+Where it runs:
+
+- anywhere: CAN's per-cycle work over a UNIX datagram socket pair (the same send, poll and
+  recv_into calls as on a CAN socket; the kernel's CAN stack itself is not in the figure);
+- in the PREEMPT_RT test guest (``tools/rtkernel-vm.sh``): GPIO (gpio-sim), CAN (vcan0), SPI
+  (loopback spidev), I2C (i2c-stub). The guest is emulated (TCG, 15-18x slower than the
+  host, unevenly): its microseconds mean nothing; only the ratio in one run is compared.
+
+The target is driver ≤ 1.3 × bare + 1 µs (host figures). Usage::
+
+    python benchmarks/bench_devices.py                   # what this machine has
+    tools/rtkernel-vm.sh .venv/bin/python benchmarks/bench_devices.py --cycles 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import json
+import os
+import platform
+import select
+import socket
+import struct
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from rtloop.io.device import build_device
+
+Pair = tuple[Callable[[], None], Callable[[], None]]  # (setup-free per-cycle peer work, cleanup)
+
+
+def timed(work: Callable[[], None], peer: Callable[[], None], cycles: int) -> int:
+    """Nanoseconds spent in ``work`` over ``cycles`` cycles (``peer`` runs between, untimed)."""
+    clock = time.perf_counter_ns
+    total = 0
+    for _ in range(cycles):
+        start = clock()
+        work()
+        total += clock() - start
+        peer()
+    return total
+
+
+def compare(driver: Callable[[], None], bare: Callable[[], None], peer: Callable[[], None],
+            cycles: int, rounds: int) -> dict[str, float]:
+    for _ in range(200):  # warm-up: caches, free lists, branch predictors
+        driver(); peer(); bare(); peer()  # noqa: E702
+    driver_ns, bare_ns = [], []
+    for _ in range(rounds):
+        driver_ns.append(timed(driver, peer, cycles) / cycles)
+        bare_ns.append(timed(bare, peer, cycles) / cycles)
+    d, b = float(np.median(driver_ns)), float(np.median(bare_ns))
+    return {"driver_us": d / 1000, "bare_us": b / 1000, "ratio": d / b, "target_us": (1.3 * b + 1000) / 1000,
+            "within_target": d <= 1.3 * b + 1000}
+
+
+# --- CAN -------------------------------------------------------------------------------------------
+CAN_SETTINGS = {
+    "send": [{"id": 0x200, "signals": [{"name": "torque", "start_byte": 0, "type": "i16", "scale": 0.01},
+                                       {"name": "mode", "start_byte": 2, "type": "u8"}]}],
+    "receive": [{"id": 0x180, "timeout_ms": 100, "signals": [
+        {"name": "position", "start_byte": 0, "type": "i32", "scale": 1e-4},
+        {"name": "speed", "start_byte": 4, "type": "i16", "scale": 0.01}]}],
+}
+CAN_FRAME = struct.Struct("=IB3x8s")
+
+
+def bench_can(ours: socket.socket, peer: socket.socket, device, cycles: int, rounds: int) -> dict[str, float]:
+    from rtloop.io.cansocket import CanSocket
+
+    device.attach(CanSocket("bench", False, device.received, "bench", sock=ours))
+    answer = bytearray(CAN_FRAME.pack(0x180, 8, struct.pack("<ih2x", 12345, -250)))
+    command = bytearray(CAN_FRAME.pack(0x200, 8, struct.pack("<hB5x", 50, 1)))
+    incoming, mine = bytearray(72), bytearray(72)
+    u, y = np.array([0.5, 1.0]), np.zeros(2)
+    poller = select.poll()
+    poller.register(ours.fileno(), select.POLLIN)
+
+    def driver() -> None:
+        device.write(u)
+        device.read(y)
+
+    def bare() -> None:  # the same calls: one send, drain with poll + recv_into
+        ours.send(command)
+        while poller.poll(0):
+            ours.recv_into(mine)
+
+    def answer_it() -> None:  # the drive: take the command, answer
+        peer.recv_into(incoming)
+        peer.send(answer)
+
+    # the driver's read waits for an answer that came after its write: answer first, untimed
+    peer.send(answer)
+    result = compare(driver, bare, answer_it, cycles, rounds)
+    assert abs(y[0] - 1.2345) < 1e-12 and y[1] == -2.5, y  # the answers were decoded
+    return result
+
+
+def can_on_socket_pair(cycles: int, rounds: int) -> dict[str, float]:
+    device = build_device("can", "bench", {"interface": "pair", **CAN_SETTINGS}, "bench")
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        return bench_can(ours, peer, device, cycles, rounds)
+    finally:
+        ours.close()
+        peer.close()
+
+
+def can_on_vcan(interface: str, cycles: int, rounds: int) -> dict[str, float]:
+    device = build_device("can", "bench", {"interface": interface, **CAN_SETTINGS}, "bench")
+    from rtloop.io.cansocket import CanSocket
+
+    ours = CanSocket(interface, False, device.received, "bench").sock
+    peer = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    peer.bind((interface,))
+    try:
+        return bench_can(ours, peer, device, cycles, rounds)
+    finally:
+        ours.close()
+        peer.close()
+
+
+# --- GPIO, SPI, I2C (guest) ------------------------------------------------------------------------
+def gpio(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
+    from rtloop.io.kernel import GPIO_V2_LINE_GET_VALUES_IOCTL, GPIO_V2_LINE_SET_VALUES_IOCTL, GPIO_V2_LINE_VALUES
+
+    device = build_device("gpio", "bench", {"chip": entry["device"], "outputs": ["led", "enable"],
+                                            "inputs": ["button", "fault"]}, "bench")
+    device.configure()
+    u, y = np.array([1.0, 0.0]), np.zeros(2)
+    out_fd, in_fd = device._out_fd, device._in_fd
+    set_values = bytearray(GPIO_V2_LINE_VALUES.pack(0b01, 0b11))
+    get_values = bytearray(GPIO_V2_LINE_VALUES.pack(0, 0b11))
+
+    def driver() -> None:
+        device.write(u)
+        device.read(y)
+
+    def bare() -> None:
+        fcntl.ioctl(out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, set_values, True)
+        fcntl.ioctl(in_fd, GPIO_V2_LINE_GET_VALUES_IOCTL, get_values, True)
+
+    try:
+        return compare(driver, bare, lambda: None, cycles, rounds)
+    finally:
+        device.close()
+
+
+def spi(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
+    from rtloop.io.kernel import SPI_IOC_MESSAGE_1
+
+    signals = [{"name": "pwm_pan", "start_byte": 1, "type": "i16", "scale": 0.001},
+               {"name": "pwm_tilt", "start_byte": 3, "type": "i16", "scale": 0.001}]
+    device = build_device("spi", "bench", {"device": entry["devices"][0], "length": 8, "send": signals,
+                                           "receive": signals, "counter": "echo"}, "bench")
+    device.configure()
+    u, y = np.array([0.25, -0.5]), np.zeros(2)
+    transfer = device._transfer  # the same prebuilt struct spi_ioc_transfer and buffers
+
+    def driver() -> None:
+        device.write(u)
+        device.read(y)
+
+    def bare() -> None:
+        fcntl.ioctl(device.fd, SPI_IOC_MESSAGE_1, transfer, True)
+
+    try:
+        return compare(driver, bare, lambda: None, cycles, rounds)
+    finally:
+        device.close()
+
+
+def i2c(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
+    from smbus2 import SMBus
+
+    registers = [{"name": "duty", "register": 0x10, "type": "u8"}, {"name": "speed", "register": 0x20, "type": "i16"}]
+    device = build_device("i2c", "bench", {"bus": entry["bus"], "address": entry["addresses"][0],
+                                           "writes": registers, "reads": registers}, "bench")
+    device.configure()
+    u, y = np.array([7.0, -300.0]), np.zeros(2)
+    bus = SMBus(entry["bus"])
+    address = entry["addresses"][0]
+
+    def driver() -> None:
+        device.write(u)
+        device.read(y)
+
+    def bare() -> None:  # smbus2's own calls for the same four transfers
+        bus.write_byte_data(address, 0x10, 7)
+        bus.write_word_data(address, 0x20, 0xFED4)
+        bus.read_byte_data(address, 0x10)
+        bus.read_word_data(address, 0x20)
+
+    try:
+        return compare(driver, bare, lambda: None, cycles, rounds)
+    finally:
+        device.close()
+        bus.close()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cycles", type=int, default=10_000, help="cycles per batch")
+    parser.add_argument("--rounds", type=int, default=5, help="batches of each contender (medians)")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    in_guest = bool(os.environ.get("RTLOOP_GUEST_DEVICES"))
+    results: dict[str, dict[str, float]] = {}
+    results["can (UNIX socket pair)"] = can_on_socket_pair(args.cycles, args.rounds)
+    if in_guest:
+        devices = json.loads(Path(os.environ["RTLOOP_GUEST_DEVICES"]).read_text())["devices"]
+        for kind, label, run in (("gpio", "gpio-sim", gpio), ("spi", "loopback spidev", spi),
+                                 ("i2c", "i2c-stub", i2c)):
+            if devices.get(kind, {}).get("present"):
+                results[f"{kind} ({label})"] = run(devices[kind], args.cycles, args.rounds)
+        if devices.get("vcan", {}).get("present"):
+            results["can (vcan0)"] = can_on_vcan(devices["vcan"]["interface"], args.cycles, args.rounds)
+    where = ("PREEMPT_RT test guest under TCG emulation: µs mean nothing, compare the ratio" if in_guest
+             else f"{platform.node()}: {platform.release()}")
+    print(f"# bench_devices: {where}; {args.rounds} x {args.cycles} cycles each, medians\n")
+    print("| device | driver write+read µs | bare calls µs | ratio | 1.3 x bare + 1 µs | within |")
+    print("|---|---:|---:|---:|---:|---|")
+    for name, r in results.items():
+        print(f"| {name} | {r['driver_us']:.2f} | {r['bare_us']:.2f} | {r['ratio']:.2f} | {r['target_us']:.2f} | "
+              f"{'yes' if r['within_target'] else 'no'} |")
+    if args.json:
+        args.json.write_text(json.dumps({"where": where, "python": sys.version.split()[0], "results": results},
+                                        indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
