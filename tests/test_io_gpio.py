@@ -108,11 +108,12 @@ def test_scope_line_is_the_scope_pins_bit(gpio):
     scope, led = SimLine(gpio, "scope"), SimLine(gpio, "led")
     panel.configure()
     try:
-        fd, bit = panel.scope_line()
+        fd, request, bit, mode = panel.scope_output()
+        assert (request, mode) == (GPIO_V2_LINE_SET_VALUES_IOCTL, 1)
         values = bytearray(GPIO_V2_LINE_VALUES.size)
         for level in (1, 0, 1):
             GPIO_V2_LINE_VALUES.pack_into(values, 0, level << bit, 1 << bit)
-            fcntl.ioctl(fd, GPIO_V2_LINE_SET_VALUES_IOCTL, values, True)
+            fcntl.ioctl(fd, request, values, True)
             assert scope.value == level and led.value == 0
     finally:
         panel.close()

@@ -274,11 +274,13 @@ class GpioDevice(Device):
         raise EmergencyStop(self.name, str(self.estop), edge, timestamp_ns)
 
     # --- the scope pin, for the hot path ---------------------------------------------------------
-    def scope_line(self) -> tuple[int, int] | None:
-        """(file descriptor, bit) of the scope pin in its request, for the per-cycle toggle; None without one."""
+    def scope_output(self) -> tuple[int, int, int, int] | None:
+        """The scope pin for the task's hot path (``set_scope_pin``): (line request fd, its
+        SET_VALUES ioctl number, the pin's bit in the request, mode 1 toggle / 2 high during step);
+        None without a scope pin."""
         if self.scope_pin is None or self._out is None:
             return None
-        return self._out_fd, self._scope_bit
+        return self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._scope_bit, SCOPE_MODES.index(self.scope_mode) + 1
 
     def close(self) -> None:
         for request in self._requests:

@@ -18,6 +18,7 @@
 #include <stdatomic.h>
 #include <stdint.h>
 #include <string.h>
+#include <sys/ioctl.h>
 #include <time.h>
 
 #if ATOMIC_LLONG_LOCK_FREE != 2
@@ -102,7 +103,21 @@ typedef struct {
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
     int64_t busy_ns, busy_cycles, busy_max_ns, busy_wake_ns;
+    /* set_scope_pin(): a GPIO line toggled at every release, or high while step() runs */
+    int scope_mode; /* SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP */
+    int scope_fd;
+    unsigned long scope_request; /* GPIO_V2_LINE_SET_VALUES_IOCTL, from the caller */
+    uint64_t scope_mask, scope_level;
 } Core;
+
+enum { SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP };
+
+/* One ioctl on the line request: struct gpio_v2_line_values { u64 bits; u64 mask; }. A failed
+   write of a diagnostic pin must not stop the loop: the result is not checked. */
+static void scope_write(Core *self, uint64_t high) {
+    uint64_t values[2] = {high ? self->scope_mask : 0, self->scope_mask};
+    (void)ioctl(self->scope_fd, self->scope_request, values);
+}
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
 
@@ -557,12 +572,18 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         return PyErr_SetFromErrno(PyExc_OSError);
     }
     self->start_ns = now_ns();
+    if (self->scope_mode == SCOPE_TOGGLE) { /* an edge at every release */
+        self->scope_level ^= 1;
+        scope_write(self, self->scope_level);
+    }
     if (self->measure_busy)
         self->busy_wake_ns = self->start_ns;
     if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
         set_tick(self, str_start_ns, self->start_ns) < 0)
         return NULL;
     read_inputs(self, release_ns);
+    if (self->scope_mode == SCOPE_STEP)
+        scope_write(self, 1);
     Py_RETURN_TRUE;
 }
 
@@ -572,6 +593,8 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
         PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
         return NULL;
     }
+    if (self->scope_mode == SCOPE_STEP)
+        scope_write(self, 0);
     int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
     int64_t period_ns = self->period_ns;
     publish_outputs(self, cycle, release_ns + period_ns);
@@ -637,6 +660,25 @@ static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssiz
 }
 
 static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
+
+/* set_scope_pin(fd, request, bit, mode): mode 1 toggles the line at every release, 2 holds it high
+   while step() runs, 0 stops; fd is a GPIO line request, request its SET_VALUES ioctl number. */
+static PyObject *Core_set_scope_pin(Core *self, PyObject *args) {
+    int fd, mode, bit;
+    unsigned long request;
+    if (!PyArg_ParseTuple(args, "ikii", &fd, &request, &bit, &mode))
+        return NULL;
+    if (mode < SCOPE_OFF || mode > SCOPE_STEP || bit < 0 || bit > 63) {
+        PyErr_SetString(PyExc_ValueError, "set_scope_pin: mode 0..2 and bit 0..63");
+        return NULL;
+    }
+    self->scope_fd = fd;
+    self->scope_request = request;
+    self->scope_mask = (uint64_t)1 << bit;
+    self->scope_level = 0;
+    self->scope_mode = mode;
+    Py_RETURN_NONE;
+}
 
 /* measure_busy(): from now on, sum the time from each wake-up to the next sleep (a benchmark's probe) */
 static PyObject *Core_measure_busy(Core *self, PyObject *unused) {
@@ -708,6 +750,8 @@ static PyMethodDef Core_methods[] = {
     {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},
     {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
     {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
+    {"set_scope_pin", (PyCFunction)Core_set_scope_pin, METH_VARARGS,
+     "set_scope_pin(fd, request, bit, mode): toggle a GPIO line at every release (1) or high during step (2)."},
     {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
      "publish_outputs(cycle, publish_ns)"},
     {NULL, NULL, 0, NULL},

@@ -11,7 +11,9 @@ the tests run both and check they give the same signals (the pattern of CPython'
 
 from __future__ import annotations
 
+import fcntl
 import os
+import struct
 import sys
 from typing import Any
 
@@ -33,6 +35,9 @@ else:
         StatusWord.MISSES_IN_A_ROW_MAX), "C and Python layouts differ"
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
+SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = 0, 1, 2
+"""Scope pin modes (``set_scope_pin``): none, toggle at every release, high while step() runs."""
+_SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
 _announced = False
 
 
@@ -70,8 +75,25 @@ class PythonCycle:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
         self.misses_in_a_row = 0
+        self.scope_mode = SCOPE_OFF
         self.sleeper = AbsoluteSleeper()
         self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = 0
+
+    def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None:
+        """Toggle a GPIO line at every release (mode 1) or hold it high while step() runs (mode 2).
+
+        ``fd`` is the line request's file descriptor, ``request`` its GPIO_V2_LINE_SET_VALUES_IOCTL
+        number: one ioctl with ``struct gpio_v2_line_values {bits, mask}`` built once here."""
+        self.scope_fd, self.scope_request, self.scope_mode = fd, request, mode
+        self.scope_mask, self.scope_level = 1 << bit, 0
+        self.scope_values = bytearray(16)
+
+    def _scope(self, high: int) -> None:
+        _SCOPE_VALUES.pack_into(self.scope_values, 0, self.scope_mask if high else 0, self.scope_mask)
+        try:
+            fcntl.ioctl(self.scope_fd, self.scope_request, self.scope_values, True)
+        except OSError:
+            pass  # a diagnostic pin never stops the loop (as in C)
 
     def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None:
         self.t0_ns, self.end_ns = t0_ns, end_ns
@@ -89,15 +111,22 @@ class PythonCycle:
             return False
         self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
         self.start_ns = now_ns()
+        if self.scope_mode == SCOPE_TOGGLE:  # an edge at every release
+            self.scope_level ^= 1
+            self._scope(self.scope_level)
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = self.cycle, release_ns, self.start_ns
         self.wiring.read_inputs(release_ns, self.wiring.u)
+        if self.scope_mode == SCOPE_STEP:
+            self._scope(1)
         return True
 
     def finish(self) -> bool:
         """Publish outputs valid from release + P, record the cycle, move to the next release.
 
         False: this was the ``max_misses``-th deadline miss in a row (the task should stop)."""
+        if self.scope_mode == SCOPE_STEP:
+            self._scope(0)
         cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
         self.wiring.publish_outputs(cycle, release_ns + period_ns, self.wiring.y)
         end_ns = now_ns()
