@@ -112,6 +112,15 @@ class TaskDevices:
         for slot in self.configured:
             slot.device.activate()
 
+    def scope_output(self) -> tuple[int, int, int, int] | None:
+        """The scope pin of the first device that has one (a GPIO device's ``scope_pin``), for the hot path."""
+        for slot in self.configured:
+            scope = getattr(slot.device, "scope_output", None)
+            pin = scope() if scope is not None else None
+            if pin is not None:
+                return pin
+        return None
+
     # --- every cycle ------------------------------------------------------------------------------
     def at_release(self, cycle: int) -> None:
         for slot in self.let:  # the commands that hold from this release (computed by the job before)

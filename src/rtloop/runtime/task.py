@@ -72,6 +72,7 @@ class RealtimeTask:
         runnable.tick = self.tick
         self.devices = TaskDevices(config.name, config.period_ns, (), self.u, self.y)
         self.in_loop = False
+        self.safe_ns = 0
 
     @property
     def cycle(self) -> int:
@@ -87,6 +88,9 @@ class RealtimeTask:
         cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
                            self.config.period_ns, catch_up=self.config.overrun == "catch_up", max_misses=limit)
         cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
+        scope = devices.scope_output() if devices else None
+        if scope is not None:  # a GPIO line toggled at every release, in the hot path (docs/devices.md)
+            cycle.set_scope_pin(*scope)
         # Read → step → publish: begin() sleeps to the absolute release T0 + k·P (no drift)
         # and reads the inputs valid at it; finish() publishes the outputs as valid from
         # release + P (logical execution time), so the result does not depend on how fast
@@ -106,6 +110,7 @@ class RealtimeTask:
         finally:
             self.in_loop = False
             self.devices.stop()  # safe values first, on every way out of the loop
+            self.safe_ns = rt.now_ns() if devices is not None else 0  # when they were written (an E-stop says it)
             cycle.close()  # let go of the shared memory before it is unmapped
 
 
@@ -204,7 +209,8 @@ def task_process_main(
             try:
                 task.run_loop(t0_ns, end_ns)
             except StopRequested as request:  # the runnable ended the run (a model's end): stop in order
-                _report(pipe, kind="finished", cycle=task.cycle, reason=str(request))
+                _report(pipe, kind="finished", cycle=task.cycle, reason=str(request), safe_ns=task.safe_ns,
+                        edge_ns=getattr(request, "timestamp_ns", None))
                 control[ControlWord.STOP] = 1
         gc.enable()
         phase = "postrun"

@@ -1,0 +1,187 @@
+"""The scope pin and the E-stop in whole runs, on gpio-sim in the PREEMPT_RT test guest.
+
+- The scope pin toggles exactly once per cycle: every value the kernel sets on the line is
+  counted through its ``gpio:gpio_value`` trace event (exact, whatever the guest's speed),
+  for the compiled hot path and its Python twin.
+- An E-stop edge stops the app: every output at its safe value, within one period of the
+  edge's kernel timestamp plus the task's wake-up, said in summary.json.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from io_guest_devices import SimLine, guest_device
+
+TRACING = Path("/sys/kernel/tracing")
+
+APP = """name = "{name}"
+[tasks.ctl]
+runnable = "rt_test_runnables:Gain"
+args = {{ n = 2, gain = 0.0, offset = 1.0 }}
+period_ns = {period_ns}
+priority = 70
+
+[devices.panel]
+kind = "gpio"
+task = "ctl"
+chip = "{chip}"
+outputs = ["led", "enable"]
+{extra}
+
+[[connect]]
+from = "ctl.y[0:2]"
+to = "panel.u[0:2]"
+"""
+
+
+def tracefs() -> Path:
+    if not (TRACING / "trace").exists():
+        subprocess.run(["mount", "-t", "tracefs", "nodev", str(TRACING)], capture_output=True)
+    if not (TRACING / "events" / "gpio" / "gpio_value").exists():
+        pytest.skip("no tracefs with gpio events here (needed to count the scope pin's edges exactly)")
+    return TRACING
+
+
+def gpio_number(tracing: Path, chip: str, line: str) -> int:
+    """The kernel's global number of ``line`` (the trace events name lines by it): set it once and look."""
+    import gpiod
+
+    (tracing / "trace").write_text("")
+    with gpiod.Chip(chip) as gpio_chip:
+        request = gpio_chip.request_lines({line: gpiod.LineSettings(direction=gpiod.line.Direction.OUTPUT)})
+        request.set_value(line, gpiod.line.Value.ACTIVE)
+        request.set_value(line, gpiod.line.Value.INACTIVE)
+        request.release()
+    numbers = {int(n) for n in re.findall(r"gpio_value: (\d+) set", (tracing / "trace").read_text())}
+    assert len(numbers) == 1, numbers
+    return numbers.pop()
+
+
+def run_app(tmp_path: Path, text: str, *args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    app = tmp_path / "app.toml"
+    app.write_text(text)
+    tests = str(Path(__file__).resolve().parent)
+    env = {**os.environ, **(env or {}), "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--out", str(tmp_path / "run"), "-q",
+                           *args], capture_output=True, text=True, timeout=600, env=env)
+
+
+@pytest.mark.parametrize("hot_path", ["c", "python"])
+@pytest.mark.parametrize("mode", ["toggle", "step"])
+def test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say(tmp_path, hot_path, mode):
+    gpio = guest_device("gpio")
+    pytest.importorskip("gpiod")
+    tracing = tracefs()
+    scope = gpio_number(tracing, gpio["device"], "scope")
+    (tracing / "trace_clock").write_text("mono")
+    (tracing / "trace").write_text("")
+    (tracing / "events" / "gpio" / "gpio_value" / "enable").write_text("1")
+    try:
+        text = APP.format(name=f"scope_{mode}_{hot_path}_{os.getpid()}", period_ns=20_000_000, chip=gpio["device"],
+                          extra=f'scope_pin = "scope"\nscope_mode = "{mode}"')
+        run = run_app(tmp_path, text, "--duration", "2",
+                      env={"RTLOOP_PURE_PYTHON": "1" if hot_path == "python" else "0"})
+        assert run.returncode == 0, run.stderr
+    finally:
+        (tracing / "events" / "gpio" / "gpio_value" / "enable").write_text("0")
+    values = [int(v) for n, v in re.findall(r"gpio_value: (\d+) set (\d+)", (tracing / "trace").read_text())
+              if int(n) == scope]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    cycles = summary["tasks"]["ctl"]["cycles"]
+    assert summary["hot_path"] == hot_path
+    assert cycles > 20
+    if mode == "toggle":  # one edge per release, alternating
+        assert len(values) == cycles and values == [(i + 1) % 2 for i in range(cycles)]
+    else:  # high at the start of step, low when it ended
+        assert values == [1, 0] * cycles
+
+
+def test_an_estop_edge_stops_the_app_with_every_output_safe(tmp_path):
+    gpio = guest_device("gpio")
+    pytest.importorskip("gpiod")
+    estop, led, enable = (SimLine(gpio, n) for n in ("estop", "led", "enable"))
+    estop.pull(True)  # released
+    period_ns = 50_000_000
+    text = APP.format(name=f"estop_{os.getpid()}", period_ns=period_ns, chip=gpio["device"],
+                      extra='estop = "estop"\nestop_edge = "falling"')
+    app = tmp_path / "app.toml"
+    app.write_text(text)
+    tests = str(Path(__file__).resolve().parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    process = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "300", "--out",
+                                str(tmp_path / "run"), "-q"], env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        assert led.wait_value(1, timeout_s=120) == 1 and enable.value == 1, "the app never drove its outputs"
+        time.sleep(0.5)
+        estop.pull(False)  # pressed
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        estop.pull(True)
+    assert process.returncode == 0, stderr
+    assert (led.value, enable.value) == (0, 0)  # safe
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert "E-stop: falling edge on line 'estop' of device 'panel'" in summary["stopped_by"]
+    note = next(n for n in summary["notes"] if n.startswith("E-stop: edge at"))
+    edge_ns, safe_ns = map(int, re.search(r"edge at (\d+) ns.*safe at (\d+) ns", note).groups())
+    wake_ns = summary["tasks"]["ctl"]["latency_ns"]["max"]
+    assert 0 < safe_ns - edge_ns <= period_ns + wake_ns + 50_000_000, (note, wake_ns)  # + reading and writing
+
+
+def test_bad_input_in_the_guest_is_one_line_exit_2_nothing_started(tmp_path):
+    gpio = guest_device("gpio")
+    import gpiod
+
+    text = APP.format(name=f"busy_{os.getpid()}", period_ns=20_000_000, chip=gpio["device"], extra="")
+    with gpiod.Chip(gpio["device"]) as chip:
+        holder = chip.request_lines({"led": None}, consumer="another-program")
+        try:
+            run = run_app(tmp_path, text, "--duration", "1")
+        finally:
+            holder.release()
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert "devices.panel.outputs: line 'led'" in run.stderr and "busy" in run.stderr
+    assert not (tmp_path / "run").exists()
+
+    vcan = guest_device("vcan")
+    can_app = (f'name = "nocan_{os.getpid()}"\n[tasks.ctl]\nrunnable = "rt_test_runnables:Gain"\n'
+               'period_ns = 20_000_000\n[devices.drive]\nkind = "can"\ntask = "ctl"\ninterface = "can9"\n'
+               'send = [{ id = 0x200 }]\n')
+    run = run_app(tmp_path, can_app, "--duration", "1")
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert "devices.drive.interface: no network interface 'can9'" in run.stderr and vcan["interface"] in run.stderr
+    assert not (tmp_path / "run").exists()
+
+    spi = guest_device("spi")
+    import pwd
+
+    try:
+        nobody = pwd.getpwnam("nobody")
+    except KeyError:
+        pytest.skip("no user 'nobody' to try a device without permission")
+    spi_app = (f'name = "noperm_{os.getpid()}"\n[tasks.ctl]\nrunnable = "rt_test_runnables:Gain"\n'
+               f'period_ns = 20_000_000\n[devices.fpga]\nkind = "spi"\ntask = "ctl"\ndevice = "{spi["devices"][0]}"\n'
+               'length = 8\n')
+    folder = tmp_path / "nobody"
+    folder.mkdir()
+    os.chown(folder, nobody.pw_uid, nobody.pw_gid)
+    (folder / "app.toml").write_text(spi_app)
+    tests = str(Path(__file__).resolve().parent)
+    env = {**os.environ, "HOME": str(folder), "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(folder / "app.toml"), "--duration", "1",
+                          "--out", str(folder / "run"), "-q"], capture_output=True, text=True, timeout=600, env=env,
+                         user=nobody.pw_uid, group=nobody.pw_gid, cwd=folder)
+    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert f"devices.fpga.device: no permission to open {spi['devices'][0]}" in run.stderr
+    assert not (folder / "run").exists()
