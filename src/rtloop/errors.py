@@ -54,7 +54,7 @@ class TaskFailed(RtloopError, RuntimeError):
     Attributes:
         task: name of the task.
         cycle: cycle number at which it failed (``None`` if before the first cycle).
-        phase: ``"prerun"``, ``"step"``, ``"postrun"`` or ``"process"``.
+        phase: ``"loading"`` (its class, in the task process), ``"prerun"``, ``"step"``, ``"postrun"`` or ``"process"``.
         traceback_text: the original traceback, formatted in the task process.
     """
 

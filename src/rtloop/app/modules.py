@@ -10,18 +10,25 @@ inherit it) would let any file in it shadow an installed or standard module: a
 - the file must be owned by the caller or by root;
 - task processes receive instances of its classes with a note to load that same file
   first (:func:`_reduce_by_file`), so unpickling works without touching ``sys.path``.
+
+Modules beside the app file import each other as they would in a script
+(``from motor import PiSpeed`` in ``faulty.py``): once a module of a folder is loaded,
+:class:`SiblingFinder` serves that folder's other ``<name>.py`` files by the same rules —
+it sits *last* among the import finders, so an installed or standard module of the
+same name always wins, and the owner check applies to each file.
 """
 
 from __future__ import annotations
 
 import copyreg
+import importlib.abc
 import importlib.machinery
 import importlib.util
 import os
 import sys
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, ClassVar
 
 from rtloop.errors import AppError
 
@@ -64,6 +71,7 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
     if loaded is not None and getattr(loaded, "__file__", None) == str(path):
         return loaded
     check_owner(path)
+    SiblingFinder.serve(path.parent)  # before it runs: its own imports may name its neighbours
     spec = importlib.util.spec_from_file_location(module_name, path)
     if spec is None or spec.loader is None:
         raise ModuleRefused(f"{path}: not a Python module")
@@ -74,10 +82,50 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
     except BaseException:
         del sys.modules[module_name]
         raise
-    for value in vars(module).values():
-        if isinstance(value, type) and value.__module__ == module_name:
-            copyreg.pickle(value, _reduce_by_file)
+    _send_classes_by_file(module)
     return module
+
+
+def _send_classes_by_file(module: ModuleType) -> None:
+    for value in vars(module).values():
+        if isinstance(value, type) and value.__module__ == module.__name__:
+            copyreg.pickle(value, _reduce_by_file)
+
+
+class SiblingFinder(importlib.abc.MetaPathFinder):
+    """Finds ``<folder>/<name>.py`` for a top-level import nothing installed answers.
+
+    Appended to the end of ``sys.meta_path``: Python asks it only after the standard,
+    built-in and installed modules said no, so a file here never shadows one of them.
+    """
+
+    folders: ClassVar[list[Path]] = []
+
+    @classmethod
+    def serve(cls, folder: Path) -> None:
+        """Let the modules in ``folder`` import each other (once per folder and process)."""
+        folder = folder.resolve()
+        if folder not in cls.folders:
+            cls.folders.append(folder)
+        if not any(isinstance(finder, cls) for finder in sys.meta_path):
+            sys.meta_path.append(cls())
+
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> importlib.machinery.ModuleSpec | None:
+        if path is not None or "." in fullname:
+            return None  # submodules of packages are their package's business
+        for folder in self.folders:
+            candidate = module_beside(folder, fullname)
+            if candidate is not None:
+                check_owner(candidate)
+                loader = _SiblingLoader(fullname, str(candidate))
+                return importlib.util.spec_from_file_location(fullname, candidate, loader=loader)
+        return None
+
+
+class _SiblingLoader(importlib.machinery.SourceFileLoader):
+    def exec_module(self, module: ModuleType) -> None:
+        super().exec_module(module)
+        _send_classes_by_file(module)  # its classes travel to task processes like the named module's
 
 
 def _reduce_by_file(obj: Any) -> tuple[Any, ...]:

@@ -24,6 +24,7 @@ from typing import Any
 
 from rtloop import rt
 from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
+from rtloop.app.byvalue import children_without_main, dumps_runnable
 from rtloop.errors import AppError, DeviceError, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
@@ -163,15 +164,18 @@ class Supervisor:
         # spawn, not fork: a forked child of a threaded parent can inherit held locks.
         context = multiprocessing.get_context("spawn")
         runs: dict[str, _TaskRun] = {}
+        # Pickled here, unpickled by the task (a failure there is reported as "loading");
+        # classes from a script, notebook or stdin travel by value (app/byvalue.py).
+        runnables = {name: dumps_runnable(spec.runnable, name) for name, spec in self.app.tasks.items()}
         for name, spec in self.app.tasks.items():
             reader, writer = context.Pipe(duplex=False)
             handles = layout.tasks[name]
             process = context.Process(
                 target=task_process_main,
-                args=(spec.config, spec.runnable, handles.plan, handles.segments, writer, self.app.device_wiring(name)),
+                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, self.app.device_wiring(name)),
                 name=f"rtloop-{self.app.name}-{name}",
             )
-            with single_threaded_children():  # a BLAS worker pool has no place in an RT process
+            with single_threaded_children(), children_without_main():  # no BLAS pool in an RT process
                 process.start()
             writer.close()
             runs[name] = _TaskRun(name, process, reader)

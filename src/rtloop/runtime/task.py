@@ -21,6 +21,7 @@ import numpy as np
 
 from rtloop import rt
 from rtloop.app.builder import TaskConfig
+from rtloop.app.byvalue import loads_runnable
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import cycle_work
@@ -149,7 +150,7 @@ def _wait_for_epoch(control: WordBlock) -> tuple[int, int]:
 
 def task_process_main(
     config: TaskConfig,
-    runnable: Runnable,
+    runnable_bytes: bytes,
     plan: TaskWiringPlan,
     segments: TaskSegments,
     pipe: Any,
@@ -177,6 +178,13 @@ def task_process_main(
     status = WordBlock(task_segment, 0, STATUS_WORDS)
     timing = RecordRing(task_segment, STATUS_WORDS * 8)
     status[StatusWord.PID] = os.getpid()
+    try:  # the runnable's class and modules load here: a failure is "loading", not prerun
+        runnable: Runnable = loads_runnable(runnable_bytes)
+    except BaseException as error:
+        status[StatusWord.STATE] = TaskState.FAILED
+        _report(pipe, kind="failed", phase="loading", cycle=None, reason=f"{type(error).__name__}: {error}",
+                traceback=traceback.format_exc())
+        raise SystemExit(1) from None
 
     settings = rt.apply_realtime(config.cpu, config.policy, config.priority, config.period_ns)
     if settings.memory_locked:  # mlockall locked every mapping; keep only what the loop may touch
