@@ -33,7 +33,12 @@
 
     [ports.setpoint]
     to = "controller.u[2:4]"                   # or source = "plant.y" for a port out of a task
-    feed = "step.csv"                          # optional profile, relative to this file
+    initial = [0.0, 0.0]                       # what the task reads until the first write (default: 0)
+    feed = "step.csv"                          # optional profile, relative to this file: t_s, then one
+                                               # column per value; each row holds until the next
+    nudge = "offset"                           # with a feed, live writes add to it ("override": a write
+                                               # holds until the next row); without nudge they are refused
+    range = [-1.0, 1.0]                        # writes outside it are refused and counted (or value_range)
 
     [record]
     signals = ["plant.y", "controller.y"]
@@ -91,7 +96,7 @@ TASK_KEYS = {
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
-    "feed": str, "description": str, "range": list,
+    "feed": str, "description": str, "range": list, "value_range": list, "nudge": str,
 }
 CONNECT_KEYS = {"from": str, "to": str}
 RECORD_KEYS = {"signals": list}
@@ -189,6 +194,8 @@ def load_app(path: str | Path) -> App:
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [ports.NAME]")
         _check_keys(shown, where, table, PORT_KEYS)
+        if "range" in table and "value_range" in table:
+            raise AppFileError(shown, f"{where}.value_range", "give range or value_range (the same), not both")
         try:
             app.port(
                 port_name,
@@ -198,7 +205,8 @@ def load_app(path: str | Path) -> App:
                 allow_nonfinite=table.get("allow_nonfinite", False),
                 capacity=table.get("capacity", 4096),
                 feed=(base_dir / table["feed"]) if "feed" in table else None,
-                value_range=table.get("range"),
+                value_range=table.get("range", table.get("value_range")),
+                nudge=table.get("nudge"),
             )
         except (AppError, TypeError, ValueError) as error:
             raise AppFileError(shown, where, str(error)) from None

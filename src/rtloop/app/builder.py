@@ -18,12 +18,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import pickle
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from rtloop.app.byvalue import dumps_runnable
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
 from rtloop.io.host import DeviceWiring
@@ -200,6 +200,12 @@ class PortSpec:
     feed: Path | None = None
     value_range: tuple[float, float] | None = None
     """``[lo, hi]``: values written to an input port outside it are refused (like NaN)."""
+    nudge: str | None = None
+    """A port fed from a profile takes live writes too: ``offset`` (the task sees the profile
+    plus the latest value written) or ``override`` (a write holds until the profile's next row)."""
+
+
+NUDGE_MODES = ("offset", "override")
 
 
 @dataclass(frozen=True, slots=True)
@@ -455,13 +461,25 @@ class App:
         capacity: int = 4096,
         feed: str | Path | None = None,
         value_range: tuple[float, float] | list[float] | None = None,
+        nudge: str | None = None,
+        range: tuple[float, float] | list[float] | None = None,  # the app file's key, accepted here too
     ) -> PortSpec:
         """A port into a task (``to=``, latest value) or out of one (``source=``, every tick).
 
-        ``value_range=(lo, hi)`` (input ports): values written from outside that fall
-        outside it are refused and counted, like NaN.
+        Input ports: ``initial=[...]`` is what the task reads until the first write (default:
+        zeros, or a model's input start values). ``feed="profile.csv"`` plays a profile into
+        it (``t_s`` then one column per value, each row held until the next: zero-order
+        hold); live writes are then refused unless ``nudge="offset"`` (the task reads the
+        row plus the latest value written, 0 until then) or ``nudge="override"`` (a write
+        holds until the next row starts). ``value_range=(lo, hi)`` (``range`` in an app file):
+        values written from outside that fall outside it are refused and counted, like NaN;
+        ``range=`` is accepted as the same.
         """
         what = f"port {_short(name)}"
+        if range is not None:
+            if value_range is not None:
+                raise AppError(f"{what}: give range= or value_range= (the same), not both")
+            value_range = range
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
             raise AppError(f"{what}: a port name uses letters, digits and underscores, at most 32")
         if name in self.ports:
@@ -482,8 +500,10 @@ class App:
                 if checked_range and any(not checked_range[0] <= v <= checked_range[1] for v in initial_values):
                     raise AppError(f"{what}: initial {_short(list(initial_values))} is outside its range "
                                    f"{list(checked_range)}")
+            if nudge is not None and nudge not in NUDGE_MODES:
+                raise AppError(f"{what}: nudge {_short(nudge)}; expected one of {list(NUDGE_MODES)}")
             spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
-                            Path(feed) if feed is not None else None, checked_range)
+                            Path(feed) if feed is not None else None, checked_range, nudge)
         else:
             assert source is not None
             ref = self._resolve(source, what)
@@ -493,6 +513,8 @@ class App:
                 raise AppError(f"{what}: only ports into a task can be fed from a profile")
             if value_range is not None:
                 raise AppError(f"{what}: range applies to ports into a task (values from outside)")
+            if nudge is not None:
+                raise AppError(f"{what}: nudge applies to ports into a task fed from a profile")
             if not isinstance(capacity, int) or isinstance(capacity, bool) or not 2 <= capacity <= MAX_PORT_CAPACITY:
                 raise AppError(f"{what}: capacity must be an integer from 2 to {MAX_PORT_CAPACITY}, "
                                f"got {_short(capacity)}")
@@ -597,16 +619,14 @@ class App:
         if not self.tasks:
             raise AppError(f"app {self.name!r} ({self.source}) has no tasks")
         for name, spec in self.tasks.items():
-            try:
-                pickle.dumps(spec.runnable)
-            except Exception as error:
-                raise AppError(
-                    f"task {name!r}: its runnable cannot be sent to the task process ({error}); "
-                    "define its class at module level and open devices/libraries in prerun(), not __init__"
-                ) from None
+            dumps_runnable(spec.runnable, name)  # it can reach its task process (or one line says why not)
+        for port in self.ports.values():
+            if port.nudge is not None and port.feed is None:
+                raise AppError(f"port {port.name!r}: nudge = {port.nudge!r} adds live writes to a profile, but no "
+                               f"profile feeds it (feed = \"FILE.csv\", or --feed {port.name}=FILE.csv)")
         for name, device in self.devices.items():
             try:
-                pickle.dumps((device.device, device.twin))
+                dumps_runnable((device.device, device.twin), device.task)  # by value, as the task's runnable
             except Exception as error:
                 raise DeviceError(name, self.source, "", f"cannot be sent to task {device.task!r}'s process "
                                   f"({error}); a driver opens its interface in configure(), not __init__") from None

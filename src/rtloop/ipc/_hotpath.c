@@ -59,13 +59,19 @@ typedef struct { /* LatestValue: an input port written by non-RT code */
     int64_t count, to, last_seq;
     int64_t *scratch;
     double index; /* its place among the task's input ports, for the input log */
+    double *dest; /* u + to, or the buffer of a profile's live nudges */
+    int fresh;    /* delivered a new value at this release */
 } LivePort;
 
 typedef struct { /* a setpoint profile, piecewise constant in time since T0 */
     const int64_t *t_ns;
     const double *rows;
     int64_t n_rows, count, to, index;
+    int64_t live_port, mode; /* live nudges: index into live_ports and NUDGE_OFFSET/OVERRIDE, or -1 and 0 */
 } Profile;
+
+#define NUDGE_OFFSET 1   /* u = the row in force + the latest live value */
+#define NUDGE_OVERRIDE 2 /* the newest of a row and a live write holds */
 
 typedef struct { /* SampleQueue (or the timing RecordRing, same header) */
     aword *words;
@@ -267,15 +273,18 @@ static PyObject *Core_add_input(Core *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* add_live_port(latest_value_words, to, count, last_seq_seen, index) */
+/* add_live_port(latest_value_words, to, count, last_seq_seen, index[, nudge float64 buffer instead of u]) */
 static PyObject *Core_add_live_port(Core *self, PyObject *args) {
-    PyObject *buffer;
+    PyObject *buffer, *nudge = Py_None;
     long long to, count, last_seq;
     double index;
-    if (!PyArg_ParseTuple(args, "OLLLd", &buffer, &to, &count, &last_seq, &index))
+    if (!PyArg_ParseTuple(args, "OLLLd|O", &buffer, &to, &count, &last_seq, &index, &nudge))
         return NULL;
     aword *words = hold_buffer(self, buffer, 1, (HEADER_WORDS + count) * 8, NULL);
     if (words == NULL || check_span(to, count, self->n_u, "u") < 0)
+        return NULL;
+    double *dest = self->u + to;
+    if (nudge != Py_None && (dest = hold_buffer(self, nudge, 1, count * 8, NULL)) == NULL)
         return NULL;
     if (LOAD(&words[3], relaxed) != count) {
         PyErr_SetString(PyExc_ValueError, "hot path: port size does not match its header");
@@ -288,16 +297,20 @@ static PyObject *Core_add_live_port(Core *self, PyObject *args) {
     int64_t *scratch = zeros(count);
     if (scratch == NULL)
         return NULL;
-    ports[self->n_live_ports++] = (LivePort){words, count, to, last_seq, scratch, index};
+    ports[self->n_live_ports++] = (LivePort){words, count, to, last_seq, scratch, index, dest, 0};
     Py_RETURN_NONE;
 }
 
-/* add_profile(t_ns int64 array, rows float64 array, to, count, index of the row in force) */
+/* add_profile(t_ns int64 array, rows float64 array, to, count, index of the row in force[, live port, mode]) */
 static PyObject *Core_add_profile(Core *self, PyObject *args) {
     PyObject *t_ns, *rows;
-    long long to, count, index;
-    if (!PyArg_ParseTuple(args, "OOLLL", &t_ns, &rows, &to, &count, &index))
+    long long to, count, index, live_port = -1, mode = 0;
+    if (!PyArg_ParseTuple(args, "OOLLL|LL", &t_ns, &rows, &to, &count, &index, &live_port, &mode))
         return NULL;
+    if (mode != 0 && (live_port < 0 || live_port >= self->n_live_ports || self->live_ports[live_port].count != count)) {
+        PyErr_SetString(PyExc_ValueError, "hot path: a profile's nudges need a live port of its size");
+        return NULL;
+    }
     Py_ssize_t len_t, len_rows;
     const int64_t *times = hold_buffer(self, t_ns, 0, 0, &len_t);
     const double *values = times ? hold_buffer(self, rows, 0, 0, &len_rows) : NULL;
@@ -311,7 +324,7 @@ static PyObject *Core_add_profile(Core *self, PyObject *args) {
     if (profiles == NULL)
         return PyErr_NoMemory();
     self->profiles = profiles;
-    profiles[self->n_profiles++] = (Profile){times, values, len_t / 8, count, to, index};
+    profiles[self->n_profiles++] = (Profile){times, values, len_t / 8, count, to, index, live_port, mode};
     Py_RETURN_NONE;
 }
 
@@ -427,7 +440,7 @@ static int64_t read_channel(Input *input, int64_t time_ns) {
 }
 
 /* 1 when the port delivered a value not seen before (it is then in u), else 0 */
-static int read_live_port(LivePort *port, double *u) {
+static int read_live_port(LivePort *port) {
     aword *words = port->words;
     for (int tries = 0; tries < READ_RETRIES; tries++) {
         int64_t seq = LOAD(&words[0], acquire);
@@ -438,7 +451,7 @@ static int read_live_port(LivePort *port, double *u) {
         atomic_thread_fence(memory_order_acquire);
         if (LOAD(&words[0], relaxed) != seq)
             continue;
-        memcpy(u + port->to, port->scratch, port->count * 8);
+        memcpy(port->dest, port->scratch, port->count * 8);
         if (seq != port->last_seq) {
             port->last_seq = seq;
             STORE(&words[2], LOAD(&words[2], relaxed) + 1, relaxed); /* reads: this reader's word */
@@ -455,7 +468,7 @@ static void log_input(Core *self, LivePort *port, int64_t since_t0_ns) {
     double *row = self->input_log_row;
     int64_t width = self->input_log.width, count = port->count < width - 1 ? port->count : width - 1;
     row[0] = port->index;
-    memcpy(row + 1, self->u + port->to, count * 8);
+    memcpy(row + 1, port->dest, count * 8);
     for (int64_t i = 1 + count; i < width; i++)
         row[i] = 0.0;
     push(&self->input_log, since_t0_ns, row);
@@ -478,16 +491,27 @@ static void read_inputs(Core *self, int64_t release_ns) {
         }
     }
     for (Py_ssize_t i = 0; i < self->n_live_ports; i++)
-        if (read_live_port(&self->live_ports[i], self->u) && self->has_input_log)
+        if ((self->live_ports[i].fresh = read_live_port(&self->live_ports[i])) && self->has_input_log)
             log_input(self, &self->live_ports[i], since_t0_ns);
     for (Py_ssize_t i = 0; i < self->n_profiles; i++) {
         Profile *profile = &self->profiles[i];
         int64_t index = profile->index;
         while (index + 1 < profile->n_rows && profile->t_ns[index + 1] <= since_t0_ns)
             index++;
-        if (index != profile->index && index >= 0) {
-            memcpy(self->u + profile->to, profile->rows + index * profile->count, profile->count * 8);
+        int changed = index != profile->index && index >= 0;
+        if (changed)
             profile->index = index;
+        double *u = self->u + profile->to;
+        const double *row = profile->index >= 0 ? profile->rows + profile->index * profile->count : NULL;
+        LivePort *nudge = profile->mode ? &self->live_ports[profile->live_port] : NULL;
+        if (profile->mode == NUDGE_OFFSET) {
+            if (profile->index >= 0)
+                for (int64_t k = 0; k < profile->count; k++)
+                    u[k] = row[k] + nudge->dest[k];
+        } else if (nudge != NULL && nudge->fresh) {
+            memcpy(u, nudge->dest, profile->count * 8);
+        } else if (changed) {
+            memcpy(u, row, profile->count * 8);
         }
     }
 }

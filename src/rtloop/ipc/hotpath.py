@@ -183,13 +183,17 @@ def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: An
     for link in wiring.links:
         core.add_input(link.channel.words, link.period_ns, link.first, len(link.scratch), link.spans)
     for port, target, index in wiring.live_ports:
-        core.add_live_port(port.words, _index_in(u, target), len(target), port.last_seq_seen, index)
+        if np.shares_memory(target, u):
+            core.add_live_port(port.words, _index_in(u, target), len(target), port.last_seq_seen, index)
+        else:  # a profile's live nudges: into their own buffer, which the profile adds or copies
+            core.add_live_port(port.words, 0, len(target), port.last_seq_seen, index, target)
     if wiring.input_log is not None:
         core.set_input_log(wiring.input_log.words)
     for reader in wiring.profiles:
         t_ns = np.ascontiguousarray(reader.profile.t_ns, dtype=np.int64)
         rows = np.ascontiguousarray(reader.profile.values, dtype=np.float64)
-        core.add_profile(t_ns, rows, _index_in(u, reader.target), len(reader.target), reader.index)
+        core.add_profile(t_ns, rows, _index_in(u, reader.target), len(reader.target), reader.index,
+                         reader.live_port, reader.mode)
     if wiring.output is not None:
         core.set_output(wiring.output.words)
     for queue, source in wiring.output_ports:

@@ -219,9 +219,12 @@ class AppLayout:
         starts = getattr(app.tasks[ref.task].runnable, "input_start_values", None)
         default = list(starts[ref.slice]) if starts is not None else [0.0] * ref.size  # a tunable keeps its start
         initial = np.array(port.initial if port.initial is not None else default, dtype=np.float64)
+        nudge = port.nudge if profile is not None else None
+        if nudge == "offset":
+            initial = np.zeros(ref.size)  # no offset until one is written
         created = segment(f"port.{port.name}", LatestValue.size_bytes(ref.size))
-        LatestValue.initialise(created, initial, fed_by_profile=profile is not None)
-        return created, InputPortLink(port.name, created.name, ref.slice, profile)
+        LatestValue.initialise(created, initial, fed_by_profile=profile is not None and nudge is None)
+        return created, InputPortLink(port.name, created.name, ref.slice, profile, nudge)
 
     # --- registry: how `rtloop port` and bridges find a running app's ports -------------
     def _write_registry(self, summary_path: Path | None) -> None:

@@ -167,12 +167,13 @@ class Supervisor:
         # Pickled here, unpickled by the task (a failure there is reported as "loading");
         # classes from a script, notebook or stdin travel by value (app/byvalue.py).
         runnables = {name: dumps_runnable(spec.runnable, name) for name, spec in self.app.tasks.items()}
+        devices = {name: dumps_runnable(self.app.device_wiring(name), name) for name in self.app.tasks}
         for name, spec in self.app.tasks.items():
             reader, writer = context.Pipe(duplex=False)
             handles = layout.tasks[name]
             process = context.Process(
                 target=task_process_main,
-                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, self.app.device_wiring(name)),
+                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name]),
                 name=f"rtloop-{self.app.name}-{name}",
             )
             with single_threaded_children(), children_without_main():  # no BLAS pool in an RT process

@@ -154,7 +154,7 @@ def task_process_main(
     plan: TaskWiringPlan,
     segments: TaskSegments,
     pipe: Any,
-    devices: tuple[DeviceWiring, ...] = (),
+    devices: tuple[DeviceWiring, ...] | bytes = (),
 ) -> None:
     """Entry point of a task process (spawned by the supervisor)."""
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
@@ -180,6 +180,8 @@ def task_process_main(
     status[StatusWord.PID] = os.getpid()
     try:  # the runnable's class and modules load here: a failure is "loading", not prerun
         runnable: Runnable = loads_runnable(runnable_bytes)
+        if isinstance(devices, bytes):
+            devices = loads_runnable(devices)
     except BaseException as error:
         status[StatusWord.STATE] = TaskState.FAILED
         _report(pipe, kind="failed", phase="loading", cycle=None, reason=f"{type(error).__name__}: {error}",

@@ -37,14 +37,21 @@ class Profile:
     """One row per time (float64)."""
 
 
+NUDGE_MODES = {"offset": 1, "override": 2}
+"""How live writes combine with a port's profile (0: no live writes to a fed port)."""
+
+
 @dataclass(frozen=True, slots=True)
 class InputPortLink:
-    """A port feeding this task's ``u[target]``: live values, or a profile."""
+    """A port feeding this task's ``u[target]``: live values, or a profile (plus live nudges)."""
 
     name: str
     segment: str
     target: slice
     profile: Profile | None = None
+    nudge: str | None = None
+    """With a profile: ``offset`` (u = profile + the latest live value) or ``override`` (the
+    newest of a profile row and a live write holds), else None (live writes refused)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,22 +95,35 @@ class _WriterLink:
 
 
 class _ProfileReader:
-    __slots__ = ("index", "profile", "t_ns", "target", "values")
+    __slots__ = ("index", "live_port", "mode", "nudge", "profile", "t_ns", "target", "values")
 
-    def __init__(self, profile: Profile, target: np.ndarray) -> None:
+    def __init__(self, profile: Profile, target: np.ndarray, mode: int = 0, nudge: np.ndarray | None = None,
+                 live_port: int = -1) -> None:
         self.profile = profile
         self.t_ns = [int(t) for t in profile.t_ns]
         self.values = [np.array(row, dtype=np.float64) for row in profile.values]
         self.target = target
         self.index = -1
+        self.mode, self.nudge, self.live_port = mode, nudge, live_port
+        """Live nudges: NUDGE_MODES value, the live value's buffer, its place among live ports."""
 
-    def read(self, since_t0_ns: int) -> None:
+    def read(self, since_t0_ns: int, fresh: list[bool]) -> None:
         index = self.index
         while index + 1 < len(self.t_ns) and self.t_ns[index + 1] <= since_t0_ns:
             index += 1
-        if index != self.index and index >= 0:
-            self.target[:] = self.values[index]
+        changed = index != self.index and index >= 0
+        if changed:
             self.index = index
+        if self.mode == 0:
+            if changed:
+                self.target[:] = self.values[index]
+        elif self.mode == 1:  # offset: the row in force plus the latest live value, every release
+            if self.index >= 0:
+                np.add(self.values[self.index], self.nudge, out=self.target)
+        elif fresh[self.live_port]:  # override: a live write arrived at this release
+            self.target[:] = self.nudge
+        elif changed:  # override: a new row starts and holds until the next write
+            self.target[:] = self.values[index]
 
 
 class TaskWiring:
@@ -120,16 +140,23 @@ class TaskWiring:
         for link in plan.inputs:
             by_writer.setdefault(link.channel_segment, []).append(link)
         self.links = [_WriterLink(LetChannel(self._segments[name]), links, u) for name, links in by_writer.items()]
-        self.live_ports = [
-            (LatestValue(self._segments[port.segment]), u[port.target], float(index))
-            for index, port in enumerate(plan.input_ports)
-            if port.profile is None
-        ]
+        # A live port writes its slice of u, or, for a profile's nudges, a buffer of its own.
+        self.live_ports: list[tuple[LatestValue, np.ndarray, float]] = []
+        self.profiles: list[_ProfileReader] = []
+        for index, port in enumerate(plan.input_ports):
+            target = u[port.target]
+            if port.profile is None or port.nudge is not None:
+                nudge = np.zeros(len(target)) if port.profile is not None else None
+                self.live_ports.append((LatestValue(self._segments[port.segment]),
+                                        target if nudge is None else nudge, float(index)))
+            if port.profile is not None:
+                mode = NUDGE_MODES.get(port.nudge or "", 0)
+                nudge_port = len(self.live_ports) - 1 if mode else -1
+                self.profiles.append(_ProfileReader(port.profile, target, mode,
+                                                    self.live_ports[nudge_port][1] if mode else None, nudge_port))
+        self.fresh = [False] * len(self.live_ports)
         self.input_log = SampleQueue(self._segments[plan.input_log]) if plan.input_log else None
         self.input_log_row = np.zeros(self.input_log.n_values if self.input_log is not None else 0)
-        self.profiles = [
-            _ProfileReader(port.profile, u[port.target]) for port in plan.input_ports if port.profile is not None
-        ]
         self.output_ports = [
             (SampleQueue(self._segments[port.segment]), y[port.source]) for port in plan.output_ports
         ]
@@ -150,13 +177,15 @@ class TaskWiring:
                 self.stale_reads += 1
                 if self.status is not None:
                     self.status[StatusWord.STALE_READS] = self.stale_reads
-        for port, target, index in self.live_ports:
+        fresh = self.fresh
+        for position, (port, target, index) in enumerate(self.live_ports):
             seen = port.last_seq_seen
             port.read_into(target)
-            if port.last_seq_seen != seen and self.input_log is not None:
+            fresh[position] = port.last_seq_seen != seen
+            if fresh[position] and self.input_log is not None:
                 self._log_input(release_ns - t0_ns, index, target)
         for profile in self.profiles:
-            profile.read(release_ns - t0_ns)
+            profile.read(release_ns - t0_ns, fresh)
 
     def _log_input(self, since_t0_ns: int, index: float, values: np.ndarray) -> None:
         """A port delivered a new value at this release: log it so the run can be replayed."""
