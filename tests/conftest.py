@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -14,6 +15,11 @@ sys.path.insert(1, str(TESTS_DIR.parent / "examples" / "jiwy"))  # the JIWY exam
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not in_rtkernel_guest():
+        skip_guest = pytest.mark.skip(reason=f"runs in the PREEMPT_RT test guest only: {GUEST_COMMAND}")
+        for item in items:
+            if "rtkernel" in item.keywords:
+                item.add_marker(skip_guest)
     capabilities = rt.probe()
     if capabilities.may_use_rt:
         return
@@ -21,6 +27,74 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "rt" in item.keywords:
             item.add_marker(skip)
+
+
+# --- the PREEMPT_RT test guest (tools/rtkernel-vm.sh, docs/rtkernel-guest.md) ---------------------
+GUEST_COMMAND = 'tools/rtkernel-vm.sh .venv/bin/python -m pytest -m "rt or rtkernel"'
+SLOWDOWN_ENV = "RTLOOP_TEST_SLOWDOWN"
+
+
+def in_rtkernel_guest() -> bool:
+    """True when the suite runs in the guest: its init sets RTLOOP_GUEST=1 and writes the device map."""
+    return os.environ.get("RTLOOP_GUEST") == "1" and bool(os.environ.get("RTLOOP_GUEST_DEVICES"))
+
+
+def guest_device_map() -> dict:
+    """The guest's device map (``/run/rtloop-guest/devices.json``); skips the test outside the guest."""
+    if not in_rtkernel_guest():
+        pytest.skip(f"runs in the PREEMPT_RT test guest only: {GUEST_COMMAND}")
+    path = Path(os.environ["RTLOOP_GUEST_DEVICES"])
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as error:  # in the guest without its map: the guest is broken, fail
+        pytest.fail(f"the guest's device map {path} is unreadable: {error}")
+
+
+def guest_device(name: str) -> dict:
+    """One device of the guest's map (``vcan``, ``can``, ``i2c``, ``uinput``, ``gpio``, ``spi``, ``serial``).
+
+    Skips the test outside the guest, and in the guest when the device is missing, with the
+    guest's reason (the guest's own presence tests fail instead: tests/test_rtkernel_guest.py).
+    """
+    device = guest_device_map()["devices"].get(name)
+    if device is None:
+        pytest.skip(f"the guest's device map has no {name!r}")
+    if not device["present"]:
+        pytest.skip(f"{name} is missing in the guest: {device['reason']}")
+    return device
+
+
+@pytest.fixture
+def rtkernel_guest() -> dict:
+    """The guest's device map (see docs/rtkernel-guest.md); the test is skipped outside the guest."""
+    return guest_device_map()
+
+
+def slowdown() -> float:
+    """How many times slower than the host this machine runs Python: 1 here, ~20 in the emulated guest.
+
+    The guest sets RTLOOP_TEST_SLOWDOWN. Real-time tests stretch their periods and durations by it
+    (``scaled_ns``, ``scaled_s``) so that the same number of cycles runs and the same behaviour is
+    asserted; nothing is asserted about time itself.
+    """
+    text = os.environ.get(SLOWDOWN_ENV, "1")
+    try:
+        factor = float(text)
+    except ValueError:
+        factor = float("nan")
+    if not 1 <= factor <= 1000:  # also NaN
+        raise pytest.UsageError(f"{SLOWDOWN_ENV}={text!r}: a factor from 1 to 1000 is expected")
+    return factor
+
+
+def scaled_ns(period_ns: int) -> int:
+    """A period (or any interval in ns) stretched by this machine's slowdown."""
+    return int(period_ns * slowdown())
+
+
+def scaled_s(duration_s: float) -> float:
+    """A duration (or timeout) in s stretched by this machine's slowdown."""
+    return duration_s * slowdown()
 
 
 @pytest.fixture

@@ -298,6 +298,7 @@ done
     echo "EXTRA_SHARES='$extra_shares'"
     echo "ACCEL='$accel_name'"
     echo "HOST_TTY='$([ -t 1 ] && echo 1 || echo 0)'"
+    echo "HOST_TERM='${TERM//[^A-Za-z0-9._-]/}'"
     echo "VERBOSE='${RTLOOP_RTKERNEL_VERBOSE:-0}'"
 } > "$ctl/config"
 

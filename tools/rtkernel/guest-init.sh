@@ -6,7 +6,7 @@
 # Runs the host's own bash and tools (kmod, iproute2) from the shared /usr.
 set -u
 export PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
-export HOME=/root LANG=C.UTF-8
+export HOME=/root LANG=C.UTF-8 TERM=dumb
 ctl=/run/rtloop-guest/ctl
 map=/run/rtloop-guest/devices.json
 # shellcheck source=/dev/null
@@ -37,7 +37,7 @@ ln -sf /proc/self/fd/0 /dev/stdin; ln -sf /proc/self/fd/1 /dev/stdout; ln -sf /p
 hostname rtkernel-guest
 ip link set lo up
 # the console is a UART: a terminal on the host wants CR LF, a log file wants LF
-[ "$HOST_TTY" = 1 ] || stty -F /dev/console -onlcr 2>/dev/null
+if [ "$HOST_TTY" = 1 ]; then export TERM="${HOST_TERM:-vt100}"; else stty -F /dev/console -onlcr 2>/dev/null; fi
 [ "$VERBOSE" = 1 ] || echo 1 > /proc/sys/kernel/printk   # module taint notes would cut into the output
 
 # --- devices -----------------------------------------------------------------------------------
