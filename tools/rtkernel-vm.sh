@@ -27,6 +27,8 @@
 #   RTLOOP_RTKERNEL_MEM        guest memory (default 2G)
 #   RTLOOP_RTKERNEL_SHARE      more host folders to share read-only at the same path (colon-separated)
 #   RTLOOP_RTKERNEL_VERBOSE=1  show the kernel's boot messages
+#   RTLOOP_TEST_SLOWDOWN       the factor tests stretch real-time periods and durations by in the
+#                              guest (default 20 under emulation, 1 under KVM)
 set -euo pipefail
 
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
@@ -300,6 +302,8 @@ done
     echo "HOST_TTY='$([ -t 1 ] && echo 1 || echo 0)'"
     echo "HOST_TERM='${TERM//[^A-Za-z0-9._-]/}'"
     echo "VERBOSE='${RTLOOP_RTKERNEL_VERBOSE:-0}'"
+    slowdown=${RTLOOP_TEST_SLOWDOWN:-}
+    echo "SLOWDOWN='${slowdown//[^0-9.]/}'"
 } > "$ctl/config"
 
 # the serial loop: the guest's second UART and an emulated FTDI USB adapter, wired by two UDP

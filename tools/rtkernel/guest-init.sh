@@ -108,9 +108,9 @@ setup_i2c() {
 
 setup_uinput() {
     local why
-    load uinput || { missing uinput "$why"; return; }
+    load uinput && load evdev || { missing uinput "$why"; return; }
     wait_for /dev/uinput 5 || { missing uinput "no /dev/uinput after loading uinput"; return; }
-    present uinput "/dev/uinput" '"device": "/dev/uinput"'
+    present uinput "/dev/uinput, events on /dev/input/event*" '"device": "/dev/uinput"'
 }
 
 # gpio-sim lines: name and the direction the device tests use them in (gpio-sim itself lets a
@@ -165,7 +165,7 @@ setup_serial() {
 
 say "$(uname -r), $(uname -v | grep -o 'PREEMPT_RT' || echo 'no PREEMPT_RT'), realtime=$(cat /sys/kernel/realtime 2>/dev/null || echo absent), $ACCEL"
 # one modprobe for the drivers that need no parameters, USB first: it enumerates meanwhile
-modprobe -a xhci_pci ftdi_sio vcan kvaser_pci i2c-dev uinput gpio-sim rtloop_spi_loopback 2>/dev/null
+modprobe -a xhci_pci ftdi_sio vcan kvaser_pci i2c-dev uinput evdev gpio-sim rtloop_spi_loopback 2>/dev/null
 setup_vcan
 setup_can
 setup_i2c
@@ -183,6 +183,8 @@ setup_serial
 
 # --- the command -------------------------------------------------------------------------------
 export RTLOOP_GUEST=1 RTLOOP_GUEST_DEVICES=$map RTLOOP_GUEST_ACCEL=$ACCEL
+# how much slower than the host Python runs here: real-time tests stretch periods and durations by it
+export RTLOOP_TEST_SLOWDOWN=${SLOWDOWN:-$([ "$ACCEL" = tcg ] && echo 20 || echo 1)}
 [ -d "$PROJECT/.venv/bin" ] && export PATH="$PROJECT/.venv/bin:$PATH" VIRTUAL_ENV="$PROJECT/.venv"
 mapfile -d '' argv < "$ctl/argv"
 cd "$PROJECT" || { say "no $PROJECT"; power_off; }
