@@ -10,8 +10,9 @@
 # missing, writes the device map to /run/rtloop-guest/devices.json, then runs COMMAND as root in
 # the project directory (the project's .venv/bin first on PATH). Output streams as it runs
 # (stdout and stderr both arrive on stdout: they share the guest's console). The exit status is
-# COMMAND's; 124 if the guest ran past its time limit (it is killed), 125 if the guest could not
-# be prepared or booted, 2 for bad usage.
+# COMMAND's; 124 if the guest ran past its time limit (it is killed), 123 if the guest stopped
+# while COMMAND ran (a kernel panic), 125 if the guest could not be prepared or did not boot to
+# COMMAND, 2 for bad usage.
 #
 # The first run installs what is missing from the Debian registry (qemu-system-x86, kmod,
 # iproute2, gcc-12, make; root or sudo needed for that) and downloads the kernel, its headers
@@ -288,7 +289,7 @@ index=0
 IFS=: read -r -a more <<< "${RTLOOP_RTKERNEL_SHARE:-}"
 for dir in ${python_prefix:+"$python_prefix"} "${more[@]}"; do
     [ -n "$dir" ] || continue
-    [ -d "$dir" ] || fail "RTLOOP_RTKERNEL_SHARE: $dir is not a folder"
+    [ -d "$dir" ] || { say "RTLOOP_RTKERNEL_SHARE: $dir is not a folder"; exit 2; }
     dir=$(cd "$dir" && pwd)
     shares+=(-virtfs "local,path=$dir,mount_tag=extra$index,security_model=none,multidevs=remap,readonly=on")
     extra_shares+="extra$index=$dir "
@@ -332,8 +333,12 @@ if [ "$qemu_status" -eq 124 ] || [ "$qemu_status" -eq 137 ]; then
     say "the guest did not finish within RTLOOP_RTKERNEL_TIMEOUT_S=$timeout_s s: killed it after $(elapsed) s"
     exit 124
 fi
+if [ ! -s "$ctl/status" ] && [ -e "$ctl/started" ]; then
+    say "the guest stopped while the command ran, without its exit status (a kernel panic? QEMU exited with $qemu_status after $(elapsed) s)"
+    exit 123
+fi
 if [ ! -s "$ctl/status" ]; then
-    say "the guest stopped without the command's exit status (QEMU exited with $qemu_status after $(elapsed) s; boot messages: RTLOOP_RTKERNEL_VERBOSE=1)"
+    say "the guest did not boot to the command (QEMU exited with $qemu_status after $(elapsed) s; boot messages: RTLOOP_RTKERNEL_VERBOSE=1)"
     exit 125
 fi
 status=$(cat "$ctl/status")

@@ -189,6 +189,7 @@ export RTLOOP_TEST_SLOWDOWN=${SLOWDOWN:-$([ "$ACCEL" = tcg ] && echo 20 || echo 
 mapfile -d '' argv < "$ctl/argv"
 cd "$PROJECT" || { say "no $PROJECT"; power_off; }
 say "running: ${argv[*]}"
+: > "$ctl/started"   # from here on, a guest that stops without a status has failed the command
 "${argv[@]}" < /dev/null
 status=$?
 echo "$status" > "$ctl/status"
