@@ -270,3 +270,19 @@ class MatrixProduct(Runnable):
         before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         self.a @ self.b
         y[0] = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+
+class PolicyAfterLoop(Runnable):
+    """Writes the scheduling policy its postrun runs under (``os.SCHED_*``) to ``path``."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def step(self, u, y) -> None:
+        y[0] = os.sched_getscheduler(0)
+
+    def postrun(self) -> None:
+        Path(self.path).write_text(str(os.sched_getscheduler(0)))

@@ -79,13 +79,19 @@ class AbsoluteSleeper:
         self._deadline_ref = ctypes.byref(self._deadline)
 
     def sleep_until(self, deadline_ns: int) -> None:
+        """Sleep to ``deadline_ns``, whatever signals arrive meanwhile."""
+        while not self.sleep_or_signal(deadline_ns):
+            pass  # a signal handler ran: sleep again to the same deadline
+
+    def sleep_or_signal(self, deadline_ns: int) -> bool:
+        """Sleep to ``deadline_ns``; False if a signal cut the sleep short (its handler has run then)."""
         deadline = self._deadline
         deadline.tv_sec, deadline.tv_nsec = divmod(deadline_ns, 1_000_000_000)
-        while True:
-            result = _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, self._deadline_ref, None)
-            if result != EINTR:  # a signal handler ran: sleep again to the same deadline
-                break
+        result = _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, self._deadline_ref, None)
+        if result == EINTR:
+            return False
         _check("clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)", result, returns_errno=True)
+        return True
 
 
 PR_SET_PDEATHSIG = 1
@@ -218,6 +224,16 @@ def set_scheduler(
             error.errno or 0,
             "needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO ≥ the priority (see `rtloop doctor`)",
         ) from None
+
+
+def leave_realtime() -> bool:
+    """Go back to SCHED_OTHER (always allowed): what runs after the loop must not delay real-time
+    tasks sharing this core. False if the kernel refused all the same."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        return False
+    return True
 
 
 def lock_memory() -> None:

@@ -31,6 +31,7 @@ typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
 #define HEADER_WORDS 8
 #define NO_STAMP (-(INT64_C(1) << 62))
 #define READ_RETRIES 64
+#define STOP_POLL_NS INT64_C(100000000) /* a long sleep looks at the stop flag this often */
 #define CONTROL_STOP 2
 #define STATUS_CYCLE 2
 #define STATUS_OVERRUNS 3
@@ -105,6 +106,7 @@ typedef struct {
     int64_t period_ns, catch_up, t0_ns, end_ns;
     int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
     int64_t cycle, release_ns, start_ns, stale_reads;
+    int64_t last_end_ns; /* when the last cycle ended (or start()): is the next sleep a long one? */
     int closed; /* after close(): no shared memory held, every call refused */
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
@@ -408,6 +410,7 @@ static PyObject *Core_start(Core *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     self->cycle = 0;
     self->release_ns = self->t0_ns;
+    self->last_end_ns = now_ns();
     Py_RETURN_NONE;
 }
 
@@ -564,6 +567,37 @@ static int set_tick(Core *self, PyObject *name, int64_t value) {
     return result;
 }
 
+/* Sleep to the release: 1 when reached, 0 when a stop was requested meanwhile, -1 on an error.
+   A long sleep wakes every STOP_POLL_NS before the release to look at the stop flag, and a
+   signal (its handler may set the flag: SIGTERM does) makes it look at once. */
+static int sleep_until_release(Core *self, int64_t release_ns) {
+    for (;;) {
+        int64_t wake_ns = release_ns;
+        if (release_ns - self->last_end_ns > STOP_POLL_NS) { /* a long sleep: cut it into slices */
+            int64_t left_ns = release_ns - now_ns();
+            if (left_ns > STOP_POLL_NS)
+                wake_ns = release_ns - (left_ns - 1) / STOP_POLL_NS * STOP_POLL_NS;
+        }
+        struct timespec deadline = {wake_ns / 1000000000, wake_ns % 1000000000};
+        int result;
+        Py_BEGIN_ALLOW_THREADS
+        result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
+        Py_END_ALLOW_THREADS
+        if (result == EINTR) {
+            if (PyErr_CheckSignals() < 0)
+                return -1;
+        } else if (result != 0) {
+            errno = result;
+            PyErr_SetFromErrno(PyExc_OSError);
+            return -1;
+        } else if (wake_ns == release_ns) {
+            return 1;
+        }
+        if (LOAD(&self->control[CONTROL_STOP], relaxed))
+            return 0;
+    }
+}
+
 /* begin(): sleep to the release, stamp the start, read the inputs. False: stop. */
 static PyObject *Core_begin(Core *self, PyObject *unused) {
     if (self->closed) {
@@ -573,8 +607,6 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
     int64_t release_ns = self->release_ns;
     if (release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed))
         Py_RETURN_FALSE;
-    struct timespec deadline = {release_ns / 1000000000, release_ns % 1000000000};
-    int result;
     if (self->measure_busy && self->busy_wake_ns) { /* the whole iteration since the last wake-up */
         int64_t busy_ns = now_ns() - self->busy_wake_ns;
         self->busy_ns += busy_ns;
@@ -582,19 +614,11 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         if (busy_ns > self->busy_max_ns)
             self->busy_max_ns = busy_ns;
     }
-    for (;;) {
-        Py_BEGIN_ALLOW_THREADS
-        result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
-        Py_END_ALLOW_THREADS
-        if (result != EINTR)
-            break;
-        if (PyErr_CheckSignals() < 0) /* a handler ran (SIGTERM sets the stop flag); then sleep on */
-            return NULL;
-    }
-    if (result != 0) {
-        errno = result;
-        return PyErr_SetFromErrno(PyExc_OSError);
-    }
+    int reached = sleep_until_release(self, release_ns);
+    if (reached < 0)
+        return NULL;
+    if (!reached)
+        Py_RETURN_FALSE;
     self->start_ns = now_ns();
     if (self->scope_mode == SCOPE_TOGGLE) { /* an edge at every release */
         self->scope_level ^= 1;
@@ -622,7 +646,7 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
     int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
     int64_t period_ns = self->period_ns;
     publish_outputs(self, cycle, release_ns + period_ns);
-    int64_t end_ns = now_ns();
+    int64_t end_ns = self->last_end_ns = now_ns();
     int64_t record[4] = {cycle, release_ns, start_ns, end_ns};
     push(&self->timing, 0, record);
     aword *status = self->status;
@@ -843,6 +867,7 @@ PyMODINIT_FUNC PyInit__hotpath(void) {
         PyModule_AddIntConstant(module, "HEADER_WORDS", HEADER_WORDS) < 0 ||
         PyModule_AddObject(module, "NO_STAMP", PyLong_FromLongLong(NO_STAMP)) < 0 ||
         PyModule_AddIntConstant(module, "READ_RETRIES", READ_RETRIES) < 0 ||
+        PyModule_AddObject(module, "STOP_POLL_NS", PyLong_FromLongLong(STOP_POLL_NS)) < 0 ||
         PyModule_AddIntConstant(module, "CONTROL_STOP", CONTROL_STOP) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_CYCLE", STATUS_CYCLE) < 0 ||
         PyModule_AddIntConstant(module, "STATUS_OVERRUNS", STATUS_OVERRUNS) < 0 ||

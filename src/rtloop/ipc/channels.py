@@ -123,6 +123,7 @@ class LatestValue:
         self.values = segment.array(np.float64, HEADER_WORDS + self.n_values, offset_bytes)[
             HEADER_WORDS:
         ]
+        self.scratch = np.zeros(self.n_values)  # a torn copy never reaches the reader's array
         self.last_seq_seen = 0
 
     @staticmethod
@@ -171,9 +172,10 @@ class LatestValue:
             if seq & 1:
                 continue
             fence()
-            out[:] = self.values
+            np.copyto(self.scratch, self.values)
             fence()
             if words[0] == seq:
+                np.copyto(out, self.scratch)
                 if seq != self.last_seq_seen:
                     self.last_seq_seen = seq
                     words[2] += 1

@@ -38,6 +38,8 @@ PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = 0, 1, 2
 """Scope pin modes (``set_scope_pin``): none, toggle at every release, high while step() runs."""
 _SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
+STOP_POLL_NS = 100_000_000
+"""A task sleeping towards a release further away than this looks at the stop flag this often."""
 _announced = False
 
 
@@ -77,7 +79,7 @@ class PythonCycle:
         self.misses_in_a_row = 0
         self.scope_mode = SCOPE_OFF
         self.sleeper = AbsoluteSleeper()
-        self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = 0
+        self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = self.last_end_ns = 0
 
     def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None:
         """Toggle a GPIO line at every release (mode 1) or hold it high while step() runs (mode 2).
@@ -98,6 +100,7 @@ class PythonCycle:
     def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None:
         self.t0_ns, self.end_ns = t0_ns, end_ns
         self.cycle, self.release_ns = 0, t0_ns
+        self.last_end_ns = now_ns()
         self.wiring.stale_reads = stale_reads
 
     @property
@@ -109,7 +112,8 @@ class PythonCycle:
         release_ns = self.release_ns
         if release_ns >= self.end_ns or self.control[ControlWord.STOP]:
             return False
-        self.sleeper.sleep_until(release_ns)  # absolute time: no drift, unlike sleep(P - elapsed)
+        if not self.sleep_until_release(release_ns):
+            return False
         self.start_ns = now_ns()
         if self.scope_mode == SCOPE_TOGGLE:  # an edge at every release
             self.scope_level ^= 1
@@ -121,6 +125,22 @@ class PythonCycle:
             self._scope(1)
         return True
 
+    def sleep_until_release(self, release_ns: int) -> bool:
+        """Sleep to the release (absolute time: no drift, unlike sleep(P - elapsed)); False: stop.
+
+        A stop request is seen within STOP_POLL_NS however long the period (a long sleep
+        wakes every STOP_POLL_NS before the release to look), and at once after a signal."""
+        while True:
+            wake_ns = release_ns
+            if release_ns - self.last_end_ns > STOP_POLL_NS:  # a long sleep: cut it into slices
+                left_ns = release_ns - now_ns()
+                if left_ns > STOP_POLL_NS:
+                    wake_ns = release_ns - (left_ns - 1) // STOP_POLL_NS * STOP_POLL_NS
+            if self.sleeper.sleep_or_signal(wake_ns) and wake_ns == release_ns:
+                return True
+            if self.control[ControlWord.STOP]:
+                return False
+
     def finish(self) -> bool:
         """Publish outputs valid from release + P, record the cycle, move to the next release.
 
@@ -129,7 +149,7 @@ class PythonCycle:
             self._scope(0)
         cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
         self.wiring.publish_outputs(cycle, release_ns + period_ns, self.wiring.y)
-        end_ns = now_ns()
+        end_ns = self.last_end_ns = now_ns()
         self.timing.push4(cycle, release_ns, start_ns, end_ns)
         status = self.status
         status[StatusWord.CYCLE] = cycle

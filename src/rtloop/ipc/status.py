@@ -3,14 +3,15 @@
 The control block carries the epoch T0, the end time and the stop flag from the
 supervisor to every task. A task's status block carries live counters the other way,
 for the supervisor, ``rtloop top`` and fault reports. Each word is written by one
-side only, as a single aligned 8-byte store, so no locks are needed.
+side only, as a single aligned 8-byte store, so no locks are needed. The epoch is two
+words that must be seen together: :func:`publish_epoch` and :func:`read_epoch` order them.
 """
 
 from __future__ import annotations
 
 import enum
 
-from rtloop.ipc.segments import Segment
+from rtloop.ipc.segments import Segment, fence
 
 
 class TaskState(enum.IntEnum):
@@ -62,3 +63,17 @@ class WordBlock:
 
     def __setitem__(self, word: int, value: int) -> None:
         self.words[word] = value
+
+
+def publish_epoch(control: WordBlock, t0_ns: int, end_ns: int) -> None:
+    """Give the tasks their timeline: END first, then T0 (release), for tasks start when T0 is set."""
+    control[ControlWord.END_NS] = end_ns
+    fence()  # on aarch64 a task could otherwise see the new T0 beside END = 0
+    control[ControlWord.T0_NS] = t0_ns
+
+
+def read_epoch(control: WordBlock) -> tuple[int, int]:
+    """(T0, END) as :func:`publish_epoch` left them; T0 = 0 while the epoch is not set."""
+    t0_ns = control[ControlWord.T0_NS]
+    fence()  # acquire: END is read after the T0 that announces it
+    return t0_ns, control[ControlWord.END_NS]

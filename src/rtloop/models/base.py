@@ -130,6 +130,10 @@ def describe(model: object) -> str:
     return repr(str(path)) if path is not None else type(model).__name__
 
 
+MAX_CATCH_UP_STEPS_PER_CYCLE = 1
+"""Extra model steps a cycle takes after skipped releases: a cycle costs at most twice a step."""
+
+
 class ModelRunnable(Runnable):
     """Runs any :class:`Model` as a :class:`Runnable` in a task.
 
@@ -139,9 +143,11 @@ class ModelRunnable(Runnable):
     The core calls :meth:`check_period` with the task period before spawning the task.
 
     Time follows the release timeline: when the task skipped releases (an overrun
-    under the ``skip`` policy) the model is brought to the new release first — by its
-    own ``skip_releases(n)`` if it has one (an FMU steps over the interval), else by
-    ``n`` extra ``calculate`` calls with the inputs held. Counted in
+    under the ``skip`` policy) the model is brought back to it — in one call by a
+    variable-step FMU (one longer step), else by extra steps with the inputs held, at
+    most :data:`MAX_CATCH_UP_STEPS_PER_CYCLE` per cycle: ten skipped releases caught up
+    in one cycle would make that cycle overrun again, the spiral skipping exists to stop.
+    Until it has caught up, the model is that many steps behind the releases. Counted in
     :attr:`catch_up_steps`.
     """
 
@@ -192,20 +198,24 @@ class ModelRunnable(Runnable):
         """One model step: ``calculate(u, y)``, after catching up with skipped releases."""
         tick = getattr(self, "tick", None)
         if tick is not None and tick.cycle > self._next_cycle:
-            self.follow_timeline(tick.cycle - self._next_cycle, u, y)
+            self._next_cycle += self.follow_timeline(tick.cycle - self._next_cycle, u, y)
         self.model.calculate(u, y)
-        if tick is not None:
-            self._next_cycle = tick.cycle + 1
+        self._next_cycle += 1
 
-    def follow_timeline(self, skipped: int, u: FloatVector, y: FloatVector) -> None:
-        """Bring the model ``skipped`` periods forward (releases the task did not run)."""
+    def follow_timeline(self, behind: int, u: FloatVector, y: FloatVector) -> int:
+        """Bring the model forward by up to ``behind`` periods (releases the task did not run).
+
+        Returns the periods it moved: all of them for a variable-step FMU (one longer
+        step), at most :data:`MAX_CATCH_UP_STEPS_PER_CYCLE` otherwise."""
         skip = getattr(self.model, "skip_releases", None)
+        steps = behind if getattr(self.model, "variable_step", False) else min(behind, MAX_CATCH_UP_STEPS_PER_CYCLE)
         if skip is not None:
-            skip(skipped)
+            skip(steps)
         else:
-            for _ in range(skipped):
+            for _ in range(steps):
                 self.model.calculate(u, y)
-        self.catch_up_steps += skipped
+        self.catch_up_steps += steps
+        return steps
 
     def postrun(self) -> None:
         """``terminate`` the model (zero inputs; the outputs it writes are not published)."""

@@ -46,8 +46,8 @@ class PythonModel(ModelRunnable):
 
     def step(self, u: FloatVector, y: FloatVector) -> None:
         # Direct call, no adapter hop: this runs every tick.
-        cycle = self.tick.cycle if hasattr(self, "tick") else 0
-        if cycle > self._next_cycle:  # releases were skipped: keep model time on the timeline
-            self.follow_timeline(cycle - self._next_cycle, u, y)
+        cycle = self.tick.cycle if hasattr(self, "tick") else self._next_cycle
+        if cycle > self._next_cycle:  # releases were skipped: bring model time back (bounded per cycle)
+            self._next_cycle += self.follow_timeline(cycle - self._next_cycle, u, y)
         self.calculate(u, y)
-        self._next_cycle = cycle + 1
+        self._next_cycle += 1

@@ -28,7 +28,7 @@ from rtloop.app.byvalue import children_without_main, dumps_runnable
 from rtloop.errors import AppError, DeviceError, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
-from rtloop.ipc.status import ControlWord, StatusWord, TaskState
+from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.lean import single_threaded_children
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import PortSummary, RunSummary, SummaryFile, TaskSummary, signal_names
@@ -207,8 +207,7 @@ class Supervisor:
         self.wall_t0 = (wall_now_ns + START_MARGIN_NS) / 1e9
         self.wall_t0_ns = wall_now_ns + START_MARGIN_NS
         recorder.start(self.t0_ns, wall_now_ns + START_MARGIN_NS)
-        layout.control[ControlWord.END_NS] = self.end_ns
-        layout.control[ControlWord.T0_NS] = self.t0_ns  # last: tasks start when they see it
+        publish_epoch(layout.control, self.t0_ns, self.end_ns)  # tasks start when they see T0
 
     def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder,
                           capabilities: rt.Capabilities, summary_file: SummaryFile) -> None:

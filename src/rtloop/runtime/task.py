@@ -26,7 +26,7 @@ from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import cycle_work
 from rtloop.ipc.segments import RecordRing, Segment
-from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock
+from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
 from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
@@ -113,6 +113,7 @@ class RealtimeTask:
             self.devices.stop()  # safe values first, on every way out of the loop
             self.safe_ns = rt.now_ns() if devices is not None else 0  # when they were written (an E-stop says it)
             cycle.close()  # let go of the shared memory before it is unmapped
+            rt.leave_realtime()  # teardown (gc, postrun, reports) must not delay tasks still in their loop
 
 
 def initial_inputs(runnable: Runnable) -> np.ndarray:
@@ -145,7 +146,7 @@ def _wait_for_epoch(control: WordBlock) -> tuple[int, int]:
         if control[ControlWord.STOP]:
             return 0, 0
         time.sleep(T0_POLL_S)
-    return control[ControlWord.T0_NS], control[ControlWord.END_NS]
+    return read_epoch(control)
 
 
 def task_process_main(
