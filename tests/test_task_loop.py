@@ -70,7 +70,7 @@ def test_a_20_s_period_task_stops_within_a_second(tmp_path: Path, rtloop_env, ho
             process.kill()
             process.wait()
     assert process.returncode == 0, stderr
-    assert took_s < 3.0, f"stopping took {took_s:.1f} s (period 20 s)"
+    assert took_s < 5.0, f"stopping took {took_s:.1f} s (period 20 s; 19.6 s before the fix)"
 
 
 def _misses_in_the_last_cycles(timing_csv: Path, period_ns: int, cycles: int, last: int) -> dict[str, int]:
