@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop import Runnable
-from rtloop.errors import DeviceError
+from rtloop.errors import DeviceError, StopRequested
 from rtloop.io.device import Device, Setting
 
 
@@ -62,6 +62,8 @@ class LogDevice(Device):
     def read(self, y: np.ndarray) -> None:
         if self.config["fail_in"] == "read":
             raise OSError("read failed (as asked)")
+        if self.config["fail_in"] == "estop" and self.last[0] >= 3:  # what an E-stop input does (io/gpio.py)
+            raise StopRequested("E-stop: falling edge on line 'estop' (as asked)")
         n = min(len(y), len(self.last))
         y[:n] = self.last[:n] * self.config["gain"]
 

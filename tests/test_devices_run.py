@@ -117,6 +117,21 @@ def test_a_non_finite_command_in_simulation_too(tmp_path: Path) -> None:
         rtloop.simulate(echo_app(tmp_path, "dev_sim_nan", io="immediate", echo=Echo(nan_at=4)), 1.0, tmp_path / "o")
 
 
+def test_an_e_stop_stops_the_app_in_order_safe_values_first(tmp_path: Path) -> None:
+    app = App("dev_stop_estop")
+    ctl = app.add_task("ctl", Echo(), period_ns=PERIOD_NS)
+    app.add_task("other", Echo(), period_ns=PERIOD_NS)
+    dev = app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log=str(tmp_path / "dev.log"),
+                         fail_in="estop", limits={"c0": LIMIT})
+    app.connect(ctl.y[0], dev.u[0])
+    app.connect(dev.y[0], ctl.u[0])
+    summary = rtloop.run(app, 30.0, tmp_path / "out")
+    assert "E-stop: falling edge" in summary.stopped_by and summary.failure is None
+    log = read_log(tmp_path / "dev.log")
+    assert writes(log) == [0.0, 1.0, 2.0, 3.0]
+    assert_ends_safe(log)
+
+
 def test_max_consecutive_misses(tmp_path: Path) -> None:
     app = echo_app(tmp_path, "dev_stop_misses", echo=Echo(slow_s=0.005), max_consecutive_misses=3)
     with pytest.raises(TaskFailed, match="3 deadline misses in a row"):

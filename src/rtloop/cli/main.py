@@ -28,7 +28,7 @@ DELEGATED = {
 
 # Optional packages and the extra that installs them (the core needs numpy only).
 EXTRAS = {"mcap": "ros", "mcap_ros2": "ros", "cyclonedds": "ros", "rich": "report", "matplotlib": "report",
-          "fmpy": "fmu", "foxglove": "live"}
+          "fmpy": "fmu", "foxglove": "live", "serial": "serial"}
 
 
 def missing_extra(error: ModuleNotFoundError) -> str:

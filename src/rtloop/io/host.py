@@ -93,18 +93,19 @@ class TaskDevices:
             device = slot.device
             try:
                 device.configure()
+                self.configured.append(slot)
+                device.write_safe(slot.guard.safe_values())  # held safe until T0 (where the rate limit starts)
             except Exception as error:
-                try:
-                    device.close()  # let go of whatever the half-done configure opened
-                except Exception:  # the configure error is the one to report
-                    pass
+                if slot not in self.configured:
+                    try:
+                        device.close()  # let go of whatever the half-done configure opened
+                    except Exception:  # the configure error is the one to report
+                        pass
                 self.stop()
                 if isinstance(error, DeviceError):
                     raise DeviceError(device.name, self.sources[device.name], error.key, error.problem) from None
                 raise DeviceError(device.name, self.sources[device.name], "",
                                   f"configure failed: {type(error).__name__}: {error}") from None
-            self.configured.append(slot)
-            device.write_safe(slot.guard.safe_values())  # held safe until T0: where the rate limit starts
 
     def activate(self) -> None:
         """At T0: enable the outputs (the first write follows at once)."""

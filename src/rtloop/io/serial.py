@@ -1,0 +1,234 @@
+"""Serial devices: one framed request/response per cycle, with a timeout.
+
+The protocol is small enough to implement on any microcontroller. Both directions use
+the same frame; all numbers little-endian::
+
+    sync     length       sequence   flags     payload (length bytes)  CRC (2 bytes)
+    0xA5 request  = 8 × values  0..255     bit 0:    values as float64       CRC-16/XMODEM
+    0x5A response               (echoed)   enabled                           of length..payload
+
+A request carries the commands (``u``), the response the readings (``y``), so one exchange
+is one cycle: the device applies the commands and answers what it measures. A request's
+``enabled`` flag is set from ``activate`` (T0) until the safe values at the end; the
+response's says whether the device's output is on. While enabled, every request is the
+device's **heartbeat**: a device that hears none for its timeout must go to its safe state
+by itself (the host cannot, once its process is killed), and say so in its responses: the
+host then stops the app with a fault rather than command a device that is not listening.
+
+The exchange happens in ``write`` (the time a LET device's commands are due: the release);
+``read`` hands over the readings of the last exchange. pyserial opens and sets up the port
+(raw mode, baud rate, exclusive lock); each cycle then costs one ``os.write`` and a
+``poll`` + ``os.readv`` or two on its file descriptor into buffers allocated once.
+"""
+
+from __future__ import annotations
+
+import binascii
+import grp
+import os
+import select
+import stat
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rtloop.errors import DeviceError, DeviceFault
+from rtloop.io.device import Device, FloatVector, Setting
+
+REQUEST_SYNC = 0xA5
+RESPONSE_SYNC = 0x5A
+HEADER_BYTES = 4
+ENABLED = 0x01
+"""Flags bit: outputs enabled (request), output on (response)."""
+CRC_BYTES = 2
+MAX_VALUES = 31
+"""At most 31 float64 values each way (248 payload bytes: the length fits one byte)."""
+
+
+def frame_bytes(n_values: int) -> int:
+    return HEADER_BYTES + 8 * n_values + CRC_BYTES
+
+
+def crc16(data: Any) -> int:
+    """CRC-16/XMODEM (polynomial 0x1021, initial 0): ``binascii.crc_hqx``, computed in C."""
+    return binascii.crc_hqx(data, 0)
+
+
+class Frame:
+    """One frame's bytes, allocated once, with a float64 view of its payload."""
+
+    def __init__(self, sync: int, n_values: int) -> None:
+        self.sync, self.n_values = sync, n_values
+        self.buffer = bytearray(frame_bytes(n_values))
+        self.view = memoryview(self.buffer)
+        self.values = np.frombuffer(self.buffer, dtype="<f8", count=n_values, offset=HEADER_BYTES)
+        self.buffer[0], self.buffer[1] = sync, 8 * n_values
+        self.crc_at = HEADER_BYTES + 8 * n_values
+        self.checked = self.view[1 : self.crc_at]  # what the CRC covers
+
+    @property
+    def sequence(self) -> int:
+        return self.buffer[2]
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.buffer[3] & ENABLED)
+
+    def seal(self, sequence: int, flags: int) -> None:
+        """Stamp the sequence number, the flags and the CRC (after ``values`` were filled)."""
+        self.buffer[2], self.buffer[3] = sequence, flags
+        crc = crc16(self.checked)
+        self.buffer[self.crc_at], self.buffer[self.crc_at + 1] = crc & 0xFF, crc >> 8
+
+    def problem(self, sequence: int | None = None) -> str | None:
+        """What is wrong with the bytes received (None: a good frame)."""
+        buffer = self.buffer
+        if buffer[0] != self.sync:
+            return f"sync byte 0x{buffer[0]:02x}, expected 0x{self.sync:02x}"
+        if buffer[1] != 8 * self.n_values:
+            return f"length {buffer[1]}, expected {8 * self.n_values} ({self.n_values} values)"
+        if crc16(self.checked) != buffer[self.crc_at] | buffer[self.crc_at + 1] << 8:
+            return "CRC mismatch"
+        if sequence is not None and buffer[2] != sequence:
+            return f"sequence {buffer[2]}, expected {sequence} (an answer to another request)"
+        return None
+
+
+def read_frame(fd: int, frame: Frame, poller: Any, timeout_ns: int) -> bool:
+    """Fill ``frame`` from ``fd`` within ``timeout_ns``; False on timeout (nothing allocated that stays)."""
+    deadline_ns = time.monotonic_ns() + timeout_ns
+    view, size, got = frame.view, len(frame.buffer), 0
+    while got < size:
+        left_ns = deadline_ns - time.monotonic_ns()
+        if left_ns <= 0 or not poller.poll(max(1, -(-left_ns // 1_000_000))):
+            return False
+        received = os.readv(fd, (view[got:],))
+        if received == 0:
+            raise OSError("the other end closed the line")
+        got += received
+    return True
+
+
+def _count(limit: int) -> Any:
+    return lambda value: None if 0 <= value <= limit else f"must be 0..{limit}"
+
+
+def _positive(value: float) -> str | None:
+    return None if value > 0 else "must be > 0"
+
+
+def _names(value: list[Any]) -> str | None:
+    if not all(isinstance(name, str) and name.isidentifier() for name in value):
+        return "expected names (letters, digits, underscores)"
+    return None if len(set(value)) == len(value) else "a name is given twice"
+
+
+class SerialDevice(Device):
+    """A device answering one framed request per cycle on a serial line (see the module)."""
+
+    kind = "serial"
+    settings: ClassVar[dict[str, Setting]] = {
+        "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0"),
+        "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0"),
+        "timeout_ms": Setting(float, 5.0, "how long to wait for the response, in ms (a late one is a fault)",
+                              check=_positive),
+        "commands": Setting(list, doc="names of the values sent each cycle (its u), e.g. [\"voltage_V\"]",
+                            check=_names),
+        "readings": Setting(list, doc="names of the values received each cycle (its y)", check=_names),
+    }
+
+    def __init__(self, name: str, **settings: Any) -> None:
+        super().__init__(name, **settings)
+        commands, readings = settings["commands"], settings["readings"]
+        for key, names in (("commands", commands), ("readings", readings)):
+            if len(names) > MAX_VALUES:
+                raise DeviceError(name, "", key, f"{len(names)} values; a frame carries at most {MAX_VALUES}")
+        self.n_inputs, self.n_outputs = len(commands), len(readings)
+        self.input_names, self.output_names = tuple(commands), tuple(readings)
+        self.timeout_ns = round(settings["timeout_ms"] * 1e6)
+        self._line: Any = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_line": None}  # an open port never travels
+
+    def check(self) -> None:
+        path = self.config["port"]
+        if "://" in path:
+            raise DeviceError(self.name, "", "port", f"{path!r}: give the device's path (pyserial URLs are "
+                              "not serial lines)")
+        try:
+            status = os.stat(path)
+        except FileNotFoundError:
+            raise DeviceError(self.name, "", "port", f"{path} does not exist (is the adapter plugged in? "
+                              "rtloop io list shows the serial devices)") from None
+        except PermissionError:
+            raise DeviceError(self.name, "", "port", f"{path}: no permission to look at it") from None
+        if not stat.S_ISCHR(status.st_mode):
+            raise DeviceError(self.name, "", "port", f"{path} is not a character device (a serial line)")
+        if not os.access(path, os.R_OK | os.W_OK):
+            try:
+                group = grp.getgrgid(status.st_gid).gr_name
+            except KeyError:
+                group = str(status.st_gid)
+            mode = stat.filemode(status.st_mode)
+            raise DeviceError(self.name, "", "port", f"{path}: no permission to open it ({mode}, group {group}); "
+                              f"add yourself to that group: sudo usermod -aG {group} $USER, then log in again")
+        try:
+            import serial  # noqa: F401 - pyserial
+        except ImportError:
+            raise DeviceError(self.name, "", "kind", "needs pyserial: pip install 'rtloop[serial]'") from None
+
+    def configure(self) -> None:
+        import serial
+
+        try:
+            self._line = serial.Serial(self.config["port"], self.config["baudrate"], timeout=0, write_timeout=0,
+                                       exclusive=True)
+        except (serial.SerialException, OSError, ValueError) as error:
+            raise DeviceError(self.name, "", "port", f"cannot open {self.config['port']}: {error}") from None
+        self._line.reset_input_buffer()  # nothing left over from before counts as an answer
+        self.fd = self._line.fileno()
+        self.poller = select.poll()
+        self.poller.register(self.fd, select.POLLIN)
+        self.request = Frame(REQUEST_SYNC, self.n_inputs)
+        self.response = Frame(RESPONSE_SYNC, self.n_outputs)
+        self.readings = np.zeros(self.n_outputs)
+        self.sequence = 0
+        self.exchanges = 0
+        self.flags = 0  # not enabled until T0
+
+    def activate(self) -> None:
+        self.flags = ENABLED
+
+    def write(self, u: FloatVector) -> None:
+        """One exchange: send the commands, wait for the readings (at most ``timeout_ms``)."""
+        request, response = self.request, self.response
+        self.sequence = sequence = (self.sequence + 1) & 0xFF
+        request.values[:] = u
+        request.seal(sequence, self.flags)
+        os.write(self.fd, request.buffer)
+        if not read_frame(self.fd, response, self.poller, self.timeout_ns):
+            raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
+                              f"on {self.config['port']} (request {sequence})")
+        problem = response.problem(sequence)
+        if problem is not None:
+            raise DeviceFault(f"device {self.name!r}: bad response on {self.config['port']}: {problem}")
+        self.readings[:] = response.values
+        self.exchanges += 1
+        if self.flags and not response.buffer[3] & ENABLED:
+            raise DeviceFault(f"device {self.name!r} turned its output off by itself (its heartbeat timed out, "
+                              "or it faulted): the app stops")
+
+    def write_safe(self, u: FloatVector) -> None:
+        """The safe values, with outputs no longer enabled: the device may stop watching its heartbeat."""
+        self.flags = 0
+        self.write(u)
+
+    def read(self, y: FloatVector) -> None:
+        y[:] = self.readings
+
+    def close(self) -> None:
+        if self._line is not None:
+            self._line.close()
+            self._line = None

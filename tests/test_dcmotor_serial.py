@@ -1,0 +1,213 @@
+"""The serial driver and the DC motor example: the loop closed over a pty with the motor driver
+model, run == simulate with its twin, the driver's heartbeat when processes are killed, bad input."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rtloop
+from rtloop.app.appfile import load_app
+from rtloop.errors import DeviceError
+from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, crc16
+from rtloop.runtime.replay import compare_signals, first_miss_s
+
+pytest.importorskip("serial", reason="pyserial is not installed: pip install 'rtloop[serial]'")
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "dcmotor_serial"
+ROOT = os.geteuid() == 0
+
+
+def test_frames_carry_length_sequence_flags_and_crc() -> None:
+    request = Frame(REQUEST_SYNC, 2)
+    request.values[:] = [1.5, -2.25]
+    request.seal(7, ENABLED)
+    raw = bytes(request.buffer)
+    assert raw[:4] == bytes([0xA5, 16, 7, 1]) and len(raw) == 4 + 16 + 2
+    assert int.from_bytes(raw[-2:], "little") == crc16(raw[1:-2])
+    echo = Frame(REQUEST_SYNC, 2)
+    echo.buffer[:] = raw
+    assert echo.problem(7) is None and list(echo.values) == [1.5, -2.25]
+    assert "sequence 7, expected 8" in echo.problem(8)
+    echo.buffer[5] ^= 0x01
+    assert echo.problem() == "CRC mismatch"
+    as_response = Frame(RESPONSE_SYNC, 2)
+    as_response.buffer[:] = raw
+    assert as_response.problem() == "sync byte 0xa5, expected 0x5a"
+
+
+class Driver:
+    """serial_motor.py in its own process, on a pty linked from ``link``."""
+
+    def __init__(self, folder: Path, heartbeat_ms: float = 50.0) -> None:
+        self.link = folder / "motor.tty"
+        self.log = folder / "driver.log"
+        priority = ["--priority", "70"] if ROOT else []
+        with open(self.log, "w") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, str(EXAMPLE / "serial_motor.py"), "--link", str(self.link),
+                 "--heartbeat-ms", str(heartbeat_ms), *priority], stdout=log, stderr=subprocess.STDOUT)
+        self.wait_for("listening on")
+
+    def lines(self) -> list[str]:
+        return self.log.read_text().splitlines()
+
+    def wait_for(self, text: str, timeout_s: float = 30.0) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            found = [line for line in self.lines() if text in line]
+            if found:
+                return found[0]
+            assert self.process.poll() is None, self.lines()
+            time.sleep(0.02)
+        raise AssertionError(f"the driver never said {text!r}: {self.lines()}")
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(10)
+
+
+@pytest.fixture
+def driver(tmp_path: Path):
+    started = Driver(tmp_path)
+    yield started
+    started.stop()
+
+
+def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_000) -> Path:
+    """The example's app file with the test's pty, a unique name and a forgiving timeout on a shared machine."""
+    text = (EXAMPLE / "dcmotor_serial.toml").read_text()
+    text = text.replace('name = "dcmotor_serial"', f'name = "{name}"')
+    text = text.replace('"/tmp/dcmotor-serial.tty"', f'"{port}"').replace("timeout_ms = 0.8 ", "timeout_ms = 50.0")
+    text = text.replace("period_ns = 1_000_000", f"period_ns = {period_ns}")
+    profile = EXAMPLE.parent / "dcmotor" / "profiles" / "speed_steps.csv"
+    text = text.replace('"../dcmotor/profiles/speed_steps.csv"', f'"{profile}"')
+    path = tmp_path / "dcmotor_serial.toml"
+    path.write_text(text)
+    (tmp_path / "serial_motor.py").symlink_to(EXAMPLE / "serial_motor.py")  # loaded from where it lives
+    return path
+
+
+def test_the_pi_closes_the_loop_over_a_pty_and_equals_its_simulation(tmp_path: Path, driver: Driver) -> None:
+    app_file = example_file(tmp_path, driver.link, "dcm_serial_loop")
+    rtloop.run(load_app(app_file), 1.0, tmp_path / "run")
+    rtloop.simulate(load_app(app_file), 1.0, tmp_path / "sim")
+    miss_s = first_miss_s(tmp_path / "run")
+    compared, difference = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", miss_s)
+    assert difference is None, f"run and simulation differ at t = {difference} s (first miss at {miss_s} s)"
+    assert compared >= (100 if miss_s is None else 1)
+    sim = np.genfromtxt(tmp_path / "sim" / "signals.csv", delimiter=",", names=True)
+    assert abs(sim["pispeed_rad_s"][-1] - sim["pisetpoint_rad_s"][-1]) < 5.0  # the PI holds the setpoint
+    run = np.genfromtxt(tmp_path / "run" / "signals.csv", delimiter=",", names=True)
+    assert run["pispeed_rad_s"].max() > 100.0  # the motor behind the pty turned
+    driver.wait_for("output disabled by the host")
+    assert any("output 0 V" in line for line in driver.lines())  # the safe value reached the driver
+    assert not any("no request for" in line for line in driver.lines())  # the host said stop: no heartbeat trip
+
+
+def _task_pid(supervisor: int) -> int:
+    """The task process: the supervisor's child that multiprocessing spawned (not its resource tracker)."""
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        for child in Path(f"/proc/{supervisor}/task/{supervisor}/children").read_text().split():
+            command = Path(f"/proc/{child}/cmdline").read_bytes()
+            if b"spawn_main" in command and b"resource_tracker" not in command:
+                return int(child)
+        time.sleep(0.05)
+    raise AssertionError("no task process")
+
+
+def _start(tmp_path: Path, driver: Driver, name: str) -> subprocess.Popen[str]:
+    app_file = example_file(tmp_path, driver.link, name)
+    process = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--out", str(tmp_path / "out"),
+                                "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    driver.wait_for("output enabled")
+    return process
+
+
+def test_kill_9_of_the_task_the_driver_goes_safe_by_its_heartbeat(tmp_path: Path, driver: Driver) -> None:
+    process = _start(tmp_path, driver, "dcm_serial_kill_task")
+    os.kill(_task_pid(process.pid), signal.SIGKILL)
+    line = driver.wait_for("no request for")
+    assert "output off" in line
+    _out, err = process.communicate(timeout=30)
+    assert process.returncode == 1 and "killed by SIGKILL" in err
+
+
+def test_kill_9_of_the_supervisor_the_task_writes_the_safe_value(tmp_path: Path, driver: Driver) -> None:
+    process = _start(tmp_path, driver, "dcm_serial_kill_sup")
+    time.sleep(0.3)
+    process.kill()
+    process.communicate(timeout=30)
+    driver.wait_for("output disabled by the host")
+    assert any("output 0 V" in line for line in driver.lines())
+
+
+def test_a_driver_that_goes_safe_by_itself_stops_the_app(tmp_path: Path) -> None:
+    """The driver latched safe (its heartbeat timed out while the host was slow): the host stops with a fault."""
+    slow = Driver(tmp_path, heartbeat_ms=1.0)
+    try:
+        app_file = example_file(tmp_path, slow.link, "dcm_serial_slow", period_ns=20_000_000)  # 20 ms > 1 ms
+        with pytest.raises(rtloop.TaskFailed, match="turned its output off by itself"):
+            rtloop.run(load_app(app_file), 5.0, tmp_path / "run")
+    finally:
+        slow.stop()
+
+
+# --- bad input: one line, exit 2, nothing started -----------------------------------------------------
+
+def _cli(app_file: Path, *wrapper: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*wrapper, sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "1",
+                           "--out", str(app_file.parent / "out")], capture_output=True, text=True, timeout=60)
+
+
+def test_a_missing_serial_port_is_one_line(tmp_path: Path) -> None:
+    app_file = example_file(tmp_path, tmp_path / "ttyUSB9", "dcm_serial_missing")
+    result = _cli(app_file)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert f"devices.motor.port: {tmp_path / 'ttyUSB9'} does not exist" in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_port_that_is_not_a_serial_line_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "plain").write_text("")
+    result = _cli(example_file(tmp_path, tmp_path / "plain", "dcm_serial_plain"))
+    assert result.returncode == 2 and "is not a character device" in result.stderr, result.stderr
+
+
+@pytest.mark.skipif(not ROOT or shutil.which("setpriv") is None, reason="needs root and setpriv to become 'nobody'")
+def test_a_serial_port_without_permission_is_one_line_with_the_fix(driver: Driver) -> None:
+    folder = Path(tempfile.mkdtemp(prefix="rtloop-perm-"))
+    try:
+        folder.chmod(0o755)
+        app_file = example_file(folder, Path(os.path.realpath(driver.link)), "dcm_serial_perm")
+        for path in folder.iterdir():
+            if not path.is_symlink():
+                path.chmod(0o644)
+        result = _cli(app_file, "setpriv", "--reuid", "65534", "--regid", "65534", "--clear-groups")
+        assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+        assert "devices.motor.port:" in result.stderr and "no permission to open it" in result.stderr
+        assert "sudo usermod -aG" in result.stderr
+    finally:
+        shutil.rmtree(folder)
+
+
+def test_a_serial_port_in_use_is_refused_at_configure(tmp_path: Path, driver: Driver) -> None:
+    import serial
+
+    holder = serial.Serial(str(driver.link), exclusive=True)
+    try:
+        with pytest.raises(DeviceError, match=r"devices\.motor\.port: cannot open"):
+            rtloop.run(load_app(example_file(tmp_path, driver.link, "dcm_serial_busy")), 1.0, tmp_path / "run")
+    finally:
+        holder.close()
