@@ -89,10 +89,51 @@ class PortSummary:
     """Values taken: new values read by the task (in) or rows read by a client (out)."""
     dropped: int
     """Values lost: overwritten before the task read them (in) or rejected by a full queue (out)."""
+    feed: dict[str, Any] | None = None
+    """A port fed from a profile: ``file``, ``rows``, ``rows_delivered`` (rows whose time came
+    within the run) and ``nudge`` (how live writes combine with it, or None: refused).
+    ``sent``/``received``/``dropped`` then count the live writes only."""
 
     def to_json(self) -> dict[str, Any]:
         return {"direction": self.direction, "signal": self.signal, "sent": self.sent,
-                "received": self.received, "dropped": self.dropped}
+                "received": self.received, "dropped": self.dropped,
+                **({"feed": self.feed} if self.feed is not None else {})}
+
+    def describe(self) -> str:
+        """What went through the port, in words (the console's line)."""
+        if self.feed is None:
+            return f"sent {self.sent}, received {self.received}, dropped {self.dropped}"
+        feed = self.feed
+        text = (f"fed from {Path(feed['file']).name}: {feed['rows_delivered']} of {feed['rows']} rows delivered, "
+                "each held until the next")
+        if feed.get("nudge"):
+            text += (f"; live nudges ({feed['nudge']}): sent {self.sent}, received {self.received}, "
+                     f"dropped {self.dropped}")
+        return text
+
+
+def slow_step_notes(tasks: dict[str, TaskSummary]) -> list[str]:
+    """One plain sentence per task whose typical step is longer than its period."""
+    notes = []
+    for name, task in tasks.items():
+        if task.host_exec_ns is not None:  # a simulation: what step cost on this host
+            typical_ns, how = task.host_exec_ns.get("mean", 0.0), "on this host (mean, simulated)"
+            consequence = "; in real time it would overrun"
+        else:
+            typical_ns, how = task.timing.exec_ns.p50, "(p50)"
+            consequence = ""
+        if typical_ns == typical_ns and typical_ns > task.period_ns:  # NaN (no cycles) says nothing
+            notes.append(f"{name}'s step takes about {_about(typical_ns)} {how}; its period is "
+                         f"{_exactly(task.period_ns)}{consequence}")
+    return notes
+
+
+def _about(ns: float) -> str:
+    return f"{ns / 1e6:.1f} ms" if ns >= 1e6 else f"{ns / 1e3:.0f} µs"
+
+
+def _exactly(ns: int) -> str:
+    return f"{ns / 1e6:g} ms" if ns >= 1_000_000 else f"{ns / 1e3:g} µs"
 
 
 @dataclass(frozen=True, slots=True)

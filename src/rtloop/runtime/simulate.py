@@ -24,7 +24,7 @@ from rtloop.io.host import TaskDevices
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
-from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names
+from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.supervisor import machine_facts, port_summaries
@@ -175,6 +175,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
         try:
             recorder.close()
             summary = _summary(app, recorder, layout, duration_s, failure, tasks, stopped_by)
+            summary.notes.extend(slow_step_notes(summary.tasks))
             summary.notes.extend(note for note in (recorder.mcap_note, recorder.stopped) if note)
             summary_file.write(summary)
         finally:
@@ -219,7 +220,7 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
         app=app.name, mode="simulate", hot_path=hot_path(),
         started=dt.datetime.now(tz=dt.UTC).isoformat(timespec="milliseconds"),
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
-        ports=port_summaries(layout), stopped_by="fault" if failure else stopped_by,
+        ports=port_summaries(layout, recorder.latest_ns), stopped_by="fault" if failure else stopped_by,
         failure=failure.to_json() if failure else None, machine=machine_facts(capabilities),
         elapsed_s=recorder.latest_ns / 1e9, recording=recorder.to_json(),
     )

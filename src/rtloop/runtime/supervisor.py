@@ -31,7 +31,7 @@ from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.lean import single_threaded_children
 from rtloop.record.recorder import Recorder
-from rtloop.record.summary import PortSummary, RunSummary, SummaryFile, TaskSummary, signal_names
+from rtloop.record.summary import PortSummary, RunSummary, SummaryFile, TaskSummary, signal_names, slow_step_notes
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
 from rtloop.runtime.task import task_process_main
@@ -451,12 +451,13 @@ class Supervisor:
             duration_s=self.duration_s,
             rt_capable=capabilities.may_use_rt,
             tasks=tasks,
-            ports=port_summaries(layout),
+            ports=port_summaries(layout, recorder.latest_ns),
             stopped_by="running" if running else self.stop_reason,
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
-            notes=[note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note]
-            + self.device_problems,
+            notes=[*slow_step_notes(tasks),
+                   *(note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note),
+                   *self.device_problems],
             bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,
@@ -496,18 +497,30 @@ def _resource_tracker() -> set[int]:
     return {pid} if pid else set()
 
 
-def port_summaries(layout: AppLayout) -> dict[str, PortSummary]:
+def port_summaries(layout: AppLayout, last_release_ns: int = 0) -> dict[str, PortSummary]:
+    """Traffic of every port; what a profile delivered counts its rows up to ``last_release_ns`` (since T0)."""
     ports: dict[str, PortSummary] = {}
     for name, spec in layout.app.ports.items():
         if spec.direction == "in":
             value = layout.input_ports[name]
             ports[name] = PortSummary("in", str(spec.signal), value.writes, value.reads,
-                                      max(0, value.writes - value.reads))
+                                      max(0, value.writes - value.reads), _feed_summary(layout, name, last_release_ns))
         else:
             queue = layout.output_ports[name]
             ports[name] = PortSummary("out", str(spec.signal), queue.sent + queue.dropped,
                                       queue.received, queue.dropped)
     return ports
+
+
+def _feed_summary(layout: AppLayout, port: str, last_release_ns: int) -> dict[str, Any] | None:
+    """What a port's profile delivered: its rows whose time came by the last release recorded."""
+    spec = layout.app.ports[port]
+    link = next((link for link in layout.tasks[spec.signal.task].plan.input_ports if link.name == port), None)
+    if spec.feed is None or link is None or link.profile is None:
+        return None
+    delivered = sum(1 for t_ns in link.profile.t_ns if t_ns <= last_release_ns)
+    return {"file": str(spec.feed), "rows": len(link.profile.t_ns), "rows_delivered": delivered,
+            "nudge": link.nudge}
 
 
 def machine_facts(capabilities: rt.Capabilities) -> dict[str, Any]:
