@@ -37,6 +37,8 @@ class DcMotor(PythonModel):
     n_inputs, n_outputs = 2, 2
     input_names = ("voltage_V", "load_torque_Nm")
     output_names = ("speed_rad_s", "current_A")
+    input_units = ("V", "N·m")
+    output_units = ("rad/s", "A")
     step_size_s = 0.001
     parameters = {  # noqa: RUF012 — PythonModel's parameters: set in the app file before the run
         "resistance_ohm": 2.0,
@@ -81,6 +83,8 @@ class PiSpeed(Runnable):
     n_inputs, n_outputs = 2, 1
     input_names = ("speed_rad_s", "setpoint_rad_s")
     output_names = ("voltage_V",)
+    input_units = ("rad/s", "rad/s")
+    output_units = ("V",)
     parameters = {"kp": 0.05, "ki": 3.0}  # noqa: RUF012 — live: the app file or `rtloop port write` changes them
 
     def prerun(self) -> None:

@@ -129,6 +129,8 @@ class JiwyPlant(_TwoAxisEulerModel):
     n_outputs = 2
     input_names = ("SteeringPan", "SteeringTilt")
     output_names = ("AnglePan", "AngleTilt")
+    input_units = ("", "")  # steering: a motor command without a physical unit
+    output_units = ("rad", "rad")
     pan: AxisParameters
     tilt: AxisParameters
 
@@ -171,6 +173,8 @@ class JiwyController(_TwoAxisEulerModel):
     n_outputs = 2
     input_names = ("MeasuredPan", "MeasuredTilt", "SetPointPan", "SetPointTilt")
     output_names = ("SteeringPan", "SteeringTilt")
+    input_units = ("rad", "rad", "rad", "rad")
+    output_units = ("", "")
     pan: PidParameters
     tilt: PidParameters
 

@@ -76,6 +76,10 @@ class Runnable(ABC):
     n_outputs: int = 0
     input_names: tuple[str, ...] | None = None
     output_names: tuple[str, ...] | None = None
+    input_units: tuple[str, ...] | None = None
+    """Unit of each input, for plots and recordings (``("rad/s", "V")``; '' for none)."""
+    output_units: tuple[str, ...] | None = None
+    """Unit of each output."""
 
     tick: TickInfo
 

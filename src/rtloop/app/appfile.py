@@ -14,6 +14,7 @@
     watchdog_periods = 1000                    # stop the app if no cycle ends for this long (0: off)
     max_consecutive_misses = 5                 # stop the app after 5 misses in a row (absent: go on)
     lock_blas_buffer = false                   # true: lock OpenBLAS's 32 MB buffer too (large matrix products)
+    units = { AnglePan = "rad", "u[0]" = "V" } # units of signals, by name or index (over the model's own)
 
     [devices.motor]                            # hardware the task "controller" reads and writes
     kind = "serial"                            # gpio, can, spi, serial, i2c (their settings follow)
@@ -42,6 +43,10 @@
 
     [record]
     signals = ["plant.y", "controller.y"]
+
+    [[plot]]                                   # optional: these signals on one axis of the report
+    title = "pan"
+    signals = ["controller.SetPointPan", "plant.AnglePan"]
 
     [ros]                                      # optional; domain_id defaults to ROS_DOMAIN_ID or 0
     [[ros.publish]]
@@ -76,8 +81,9 @@ MAX_APP_FILE_BYTES = 1 << 20
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
-    "foxglove": dict, "devices": dict,
+    "foxglove": dict, "devices": dict, "plot": list,
 }
+PLOT_KEYS = {"signals": list, "title": str}
 DEVICE_KEYS = {
     "kind": str, "task": str, "io": str, "twin": str, "twin_args": dict, "limits": dict, "description": str,
 }
@@ -92,7 +98,7 @@ TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
     "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict, "watchdog_periods": int,
     "max_consecutive_misses": int,
-    "lock_blas_buffer": bool,
+    "lock_blas_buffer": bool, "units": dict,
 }
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
@@ -171,6 +177,8 @@ def load_app(path: str | Path) -> App:
                 max_consecutive_misses=table.get("max_consecutive_misses"),
                 lock_blas_buffer=table.get("lock_blas_buffer", False),
             )
+            if "units" in table:
+                app.set_units(task_name, table["units"])
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None
 
@@ -222,7 +230,24 @@ def load_app(path: str | Path) -> App:
             app.record(parse_signal(str(text), app, "signal"))
         except AppError as error:
             raise AppFileError(shown, f"record.signals[{index}]", str(error)) from None
+    _load_plots(shown, data.get("plot", []), app)
     return app
+
+
+def _load_plots(shown: str, plots: list[Any], app: App) -> None:
+    """``[[plot]]``: ``signals = ["pi.setpoint_rad_s", "plant.speed_rad_s"]`` on one axis, ``title``."""
+    for index, table in enumerate(plots):
+        where = f"plot[{index}]"
+        if not isinstance(table, dict):
+            raise AppFileError(shown, where, "expected a table [[plot]] with signals = [...]")
+        _check_keys(shown, where, table, PLOT_KEYS)
+        signals = table.get("signals")
+        if not signals or not all(isinstance(text, str) for text in signals):
+            raise AppFileError(shown, f"{where}.signals", "expected signal names, e.g. ['pi.setpoint', 'motor.omega']")
+        try:
+            app.plot(*(parse_signal(text, app, "signal") for text in signals), title=table.get("title", ""))
+        except AppError as error:
+            raise AppFileError(shown, where, str(error)) from None
 
 
 def _load_devices(shown: str, devices: dict[str, Any], app: App, base_dir: Path) -> None:

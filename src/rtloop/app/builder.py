@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Literal
 
 from rtloop.app.byvalue import dumps_runnable
+from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
 from rtloop.io.host import DeviceWiring
@@ -258,6 +259,10 @@ class App:
     devices: dict[str, DeviceSpec] = field(default_factory=dict)
     device_links: list[Connection] = field(default_factory=list)
     """Connections between a device and the task that owns it (in that task's process)."""
+    plots: list[PlotSpec] = field(default_factory=list)
+    """Signals the report draws on one axis (``app.plot``); setpoint/measured pairs are also inferred."""
+    unit_overrides: dict[tuple[str, str, int], str] = field(default_factory=dict)
+    """(task, side, index) → unit, declared by the app (``app.set_units``) over the runnable's own."""
     source: str = "<python>"
     """Where the app was described (an app file's path, for messages)."""
 
@@ -612,6 +617,33 @@ class App:
             ref = self._resolve(signal, "record")
             if ref not in self.recorded:
                 self.recorded.append(ref)
+
+    def plot(self, *signals: SignalRef | SignalVector, title: str = "") -> PlotSpec:
+        """Draw these signals on one axis of the report (e.g. a setpoint over what it sets)."""
+        what = f"plot {_short(title)}" if title else "plot"
+        if not isinstance(title, str) or len(title) > 120 or not title.isprintable():
+            raise AppError(f"{what}: title must be printable text of at most 120 characters")
+        if not signals:
+            raise AppError(f"{what}: name at least one signal")
+        refs = tuple(self._resolve(signal, what) for signal in signals)
+        spec = PlotSpec(title, refs)
+        self.plots.append(spec)
+        return spec
+
+    def set_units(self, task: str, units: dict[str, str]) -> None:
+        """Units of a task's signals, by name or index: ``{"AnglePan": "rad", "u[0]": "V"}``.
+
+        They take precedence over what the runnable or model declares.
+        """
+        if task not in self.tasks:
+            raise AppError(f"units of {_short(task)}: unknown task; tasks are {sorted(self.tasks)}")
+        if not isinstance(units, dict):
+            raise AppError(f"units of task {task!r}: expected a table of signal name → unit")
+        for key, unit in units.items():
+            ref = parse_signal(f"{task}.{key}", self, f"units of task {task!r}")
+            checked = check_unit(f"units of {task}.{key}", unit)
+            for index in range(ref.start, ref.stop):
+                self.unit_overrides[(task, ref.side, index)] = checked
 
     # --- checking ------------------------------------------------------------------------
     def validate(self) -> None:

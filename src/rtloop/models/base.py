@@ -159,6 +159,8 @@ class ModelRunnable(Runnable):
         self.n_outputs = self.model.n_outputs
         self.input_names = self.model.input_names
         self.output_names = self.model.output_names
+        self.input_units = getattr(self.model, "input_units", None)
+        self.output_units = getattr(self.model, "output_units", None)
         starts = getattr(self.model, "input_start_values", None)
         self.input_start_values: tuple[float, ...] | None = tuple(starts) if starts is not None else None
         """What each input holds until something writes it (an FMU's start values)."""

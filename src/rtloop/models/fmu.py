@@ -159,6 +159,8 @@ class FmuModel:
         self._out_elements = self._elements(out_names, "outputs", settable=False)
         self.input_names: tuple[str, ...] | None = tuple(e.name for e in self._in_elements)
         self.output_names: tuple[str, ...] | None = tuple(e.name for e in self._out_elements)
+        self.input_units: tuple[str, ...] | None = tuple(self._unit_of(e.variable) for e in self._in_elements)
+        self.output_units: tuple[str, ...] | None = tuple(self._unit_of(e.variable) for e in self._out_elements)
         self.n_inputs = len(self._in_elements)
         self.n_outputs = len(self._out_elements)
         self.parameters = self._check_parameters(dict(parameters or {}))
@@ -271,6 +273,14 @@ class FmuModel:
         if given is not None:
             return given[element.offset]
         return element.start if element.start is not None else 0.0
+
+    def _unit_of(self, name: str) -> str:
+        """The variable's unit, or its declared type's ('' when the FMU gives none)."""
+        variable = self.variables.get(name)
+        if variable is None:
+            return ""
+        declared = getattr(variable, "declaredType", None)
+        return str(getattr(variable, "unit", None) or (getattr(declared, "unit", None) if declared else None) or "")
 
     def describe_variables(self) -> list[dict[str, Any]]:
         """Every model variable: type, causality, variability, start, unit, description, and where rtloop maps it."""

@@ -131,6 +131,10 @@ class Plot:
     """The plot's title (by default its signals, joined)."""
     signals: tuple[str, ...]
     """Column names of signals.csv, overlaid in this order."""
+    setpoint: str | None = None
+    """For a setpoint/measured pair: the setpoint's column (the other signal is what it sets)."""
+    inferred: bool = False
+    """Found from the app's wiring (a setpoint port beside a connection), not declared."""
 
 
 @dataclass(frozen=True)
@@ -441,8 +445,9 @@ def _read_sidecar(path: Path, names: tuple[str, ...],
         columns = data.get("columns", {})
         units = {name: str(columns[name]["unit"]) for name in names
                  if isinstance(columns.get(name), dict) and columns[name].get("unit")}
-        plots = tuple(Plot(str(p.get("title") or " / ".join(p["signals"])),
-                           tuple(str(s) for s in p["signals"] if s in names))
+        plots = tuple(Plot(str(p.get("title") or " vs ".join(p["signals"])),
+                           tuple(str(s) for s in p["signals"] if s in names),
+                           p["setpoint"] if p.get("setpoint") in names else None, bool(p.get("inferred")))
                       for p in data.get("plots", []))
     except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError, AttributeError) as error:
         problems.append(f"{SIDECAR}: unreadable ({type(error).__name__}); signals loaded without units")

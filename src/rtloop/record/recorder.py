@@ -28,6 +28,7 @@ from rtloop.app.builder import App
 from rtloop.record.csvfiles import InputsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
+from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
 from rtloop.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.timing_stream import StreamingTaskTiming
 
@@ -59,6 +60,8 @@ class Recorder:
         """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
         live_ports = [p for p in app.ports.values() if p.direction == "in"]
         self.inputs: InputsCsv | None = None
+        self.sidecar: dict[str, Any] = {}
+        """signals.json: units and plots of the recorded signals."""
         self._has_live_ports = bool(live_ports)
         self._port_order = {
             name: [(link.name, link.signal.size) for link in live_ports if link.signal.task == name]
@@ -75,6 +78,8 @@ class Recorder:
             self.window = FlightWindow(self.out, self.keep_s)
         self.timing = TimingCsv(self._path("timing.csv"))
         if self.app.recorded:
+            self.sidecar = sidecar_content(self.app)
+            write_sidecar(self.out, self.sidecar)  # small and fixed: beside the files, never rotated
             self.signals = SignalsCsv(
                 self._path("signals.csv"), self.app.recorded, self.periods_ns,
                 {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
@@ -106,7 +111,9 @@ class Recorder:
         names = self.signals.names if self.signals is not None else []
         try:
             self.mcap = RunMcapWriter(self._path("run.mcap"), names, self.t0_ns, self.wall_t0_ns,
-                                      metadata={"app": self.app.name, "source": self.app.source})
+                                      metadata={"app": self.app.name, "source": self.app.source,
+                                                "units": json.dumps(units_by_column(self.sidecar))
+                                                if self.sidecar else "{}"})
         except ModuleNotFoundError as error:
             self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
 

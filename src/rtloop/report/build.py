@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rtloop.report import figures, html
+from rtloop.report import signals as signal_figures
 from rtloop.report.data import Histogram, ReportError, Run, load_run, run_labels, task_series
 
 FIGURES_DIR = "report-figures"
@@ -54,11 +55,10 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
             path = figures.save(figures.latency_over_time_figure(run, series), fig_dir / f"{prefix}-latency-time.png")
             refs.append(html.FigureRef(path, "Wake-up latency of every cycle over time (grey: trimmed ends)."))
         if run.signals is not None:
-            path = figures.save(
-                figures.signals_figure(run.label, run.signals, figures.names_from_summary(run.summary)),
-                fig_dir / f"{prefix}-signals.png",
-            )
-            refs.append(html.FigureRef(path, "Recorded signals (signals.csv) over time."))
+            path = figures.save(signal_figures.signals_figure(run.label, run.signals, run.data.inputs),
+                                fig_dir / f"{prefix}-signals.png")
+            refs.append(html.FigureRef(path, "Recorded signals (signals.csv): one axis per declared plot, "
+                                             "setpoint pair or unit; dotted lines: live port writes."))
         report.pngs.extend(ref.path for ref in refs)
     comparison: list[html.FigureRef] = []
     if len(runs) > 1:
@@ -67,6 +67,14 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
             fig, _ = figures.comparison_figure(name, having)
             path = figures.save(fig, fig_dir / f"compare-{_slug(name)}.png")
             comparison.append(html.FigureRef(path, f"Task {name} in each run, on common bins."))
+            report.pngs.append(path)
+    with_signals = [(run.label, run.signals, run.data.inputs) for run in runs if run.signals is not None]
+    if len(with_signals) > 1:
+        fig = signal_figures.comparison_figure(with_signals)
+        if fig is not None:
+            path = figures.save(fig, fig_dir / "compare-signals.png")
+            comparison.insert(0, html.FigureRef(path, f"The runs' signals overlaid, and each run's difference to "
+                                                      f"{with_signals[0][0]} at the times both recorded."))
             report.pngs.append(path)
     if write_html:
         report.html = out / "report.html"

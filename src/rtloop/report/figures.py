@@ -16,10 +16,12 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from rtloop.report.data import Histogram, Run, Signals, TaskSeries, histogram
+from rtloop.report.data import Histogram, Run, TaskSeries, histogram
 from rtloop.timing import THESIS_JITTER_FRACTION
 
 US = 1e3  # ns per µs
+FIGURE_WIDTH_IN = 13.0
+"""1300 px at 100 dpi: the report page reads at 1366 px without shrinking the figures."""
 MAX_COLOR = "tab:red"
 CRITERION_COLOR = "tab:orange"
 RUN_COLORS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
@@ -119,7 +121,7 @@ def task_histograms(series: TaskSeries) -> dict[str, Histogram]:
 def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, dict[str, Histogram]]:
     """Wake-up latency, period jitter and execution time of one task, side by side."""
     hists = task_histograms(series)
-    fig = Figure(figsize=(16, 4.4), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.4), layout="constrained")
     axes = fig.subplots(1, 3)
     jitter = series.period_jitter_ns
     over = int(np.count_nonzero(np.abs(jitter) > THESIS_JITTER_FRACTION * series.period_ns)) if jitter.size else 0
@@ -138,7 +140,7 @@ def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, 
 def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     """Wake-up latency of every cycle against time: periodic disturbances show as stripes."""
     names = list(series)
-    fig = Figure(figsize=(16, 2.6 + 2.2 * len(names)), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 2.6 + 2.2 * len(names)), layout="constrained")
     axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0])
     for ax, name in zip(axes, names, strict=True):
         s = series[name]
@@ -166,30 +168,6 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     return fig
 
 
-def signals_figure(run_label: str, signals: Signals, model_names: dict[str, str] | None = None) -> Figure:
-    """Recorded signals against time, one panel per task (thesis figure 6.2).
-
-    ``model_names`` maps a column (``plant.y[0]``) to what the model calls it (``AnglePan``).
-    """
-    model_names = model_names or {}
-    groups: dict[str, list[str]] = {}
-    for name in signals.columns:
-        groups.setdefault(name.split(".", 1)[0], []).append(name)
-    fig = Figure(figsize=(16, 1.6 + 2.6 * len(groups)), layout="constrained")
-    axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
-    for ax, (task, names) in zip(axes, groups.items(), strict=True):
-        for name in names:
-            label = f"{name} {model_names[name]}" if name in model_names else name
-            ax.plot(signals.t_s, signals.columns[name], linewidth=1.2, label=label)
-        ax.set_ylabel("value")
-        ax.set_title(f"task {task}", fontsize=10)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right", ncol=min(len(names), 4))
-    axes[-1].set_xlabel("time t [s] (each value holds from t on)")
-    fig.suptitle(f"{run_label} — recorded signals", fontsize=12)
-    return fig
-
-
 def names_from_summary(summary: dict) -> dict[str, str]:
     """``{"plant.y[0]": "AnglePan", ...}`` from the task entries of summary.json."""
     names: dict[str, str] = {}
@@ -204,7 +182,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
     """One task across several runs: latency and jitter histograms on common bins, overlaid."""
     period_ns = next((s.period_ns for _, s in runs if s.period_ns), 0)
     limit = THESIS_JITTER_FRACTION * period_ns
-    fig = Figure(figsize=(16, 4.8), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.8), layout="constrained")
     axes = fig.subplots(1, 2)
     out: dict[str, list[Histogram]] = {"latency": [], "jitter": []}
     for ax, key, attr, xlabel in (

@@ -12,12 +12,13 @@ from typing import Any
 from rtloop.report.data import Run
 
 STYLE = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1650px; color: #222; }
+body { font-family: system-ui, sans-serif; margin: 1.5em auto; padding: 0 1em; max-width: 1320px; color: #222; }
 h1 { font-size: 1.6em; } h2 { border-bottom: 2px solid #ccc; padding-bottom: .2em; margin-top: 2em; }
 table { border-collapse: collapse; margin: .8em 0; font-size: .9em; }
 th, td { border: 1px solid #ccc; padding: .25em .6em; text-align: right; }
 th { background: #f0f0f0; } td.name, th.name { text-align: left; }
-.bad { background: #fde2e1; } .ok { background: #e3f6e3; }
+.bad { background: #fde2e1; } .ok { background: #e3f6e3; } .amber { background: #fff4d6; }
+.criterion { font-weight: 600; } .scroll { overflow-x: auto; max-width: 100%; }
 .banner { padding: .8em 1em; margin: 1em 0; border-radius: 4px; }
 .failure { background: #fde2e1; border: 2px solid #c0392b; }
 .warning { background: #fff4d6; border: 2px solid #e0a800; }
@@ -68,7 +69,7 @@ METRICS: tuple[tuple[str, Any, bool], ...] = (
     ("jitter max [µs]", lambda t: _us(t.get("period_jitter_ns", {}).get("max")), False),
     ("exec p50 [µs]", lambda t: _us(t.get("exec_ns", {}).get("p50")), False),
     ("exec max [µs]", lambda t: _us(t.get("exec_ns", {}).get("max")), False),
-    ("cycles beyond ±3 % of P", lambda t: str(t.get("jitter_over_3pct", "–")), True),
+    ("cycles beyond ±3 % of P", lambda t: str(t.get("jitter_over_3pct", "–")), False),
     ("deadline misses", lambda t: str(t.get("deadline_misses", "–")), True),
     ("overruns (skipped releases)", lambda t: str(t.get("overruns", "–")), True),
     ("stale reads", lambda t: str(t.get("stale_reads", "–")), True),
@@ -90,14 +91,52 @@ def _bad(value: str, flag: bool) -> str:
 
 
 def summary_table(run: Run) -> str:
-    """One row per task, one column per metric."""
-    head = _row(["task", *(label for label, _, _ in METRICS)], header=True)
-    rows = []
-    for name, task in run.tasks.items():
-        values = [read(task) for _, read, _ in METRICS]
-        rows.append(_row([escape(name), *values], classes=["", *(_bad(v, f) for v, (_, _, f) in
-                                                                  zip(values, METRICS, strict=True))]))
-    return f"<table>{head}{''.join(rows)}</table>"
+    """One row per metric, one column per task (fits the page however many metrics there are)."""
+    names = list(run.tasks)
+    head = _row(["metric", *(escape(n) for n in names)], header=True)
+    rows = [criterion_row(run, names)]
+    for label, read, flag in METRICS:
+        values = [read(run.tasks[n]) for n in names]
+        rows.append(_row([label, *values], classes=["", *(_bad(v, flag) for v in values)]))
+    return f'<div class="scroll"><table>{head}{"".join(rows)}</table></div>'
+
+
+def criterion(run: Run, task: str) -> tuple[str, str]:
+    """The thesis's firm real-time requirement for one task: (verdict text, css class).
+
+    Met when the largest period jitter is within ±3 % of P and at most 0.01 % of the
+    periods missed their deadline (thesis, chapter 3). Not applicable to a simulation.
+    """
+    entry = run.tasks.get(task, {})
+    if run.summary.get("mode") == "simulate":
+        return "not applicable (simulated clock)", ""
+    period_ns = entry.get("period_ns") or 0
+    jitter = entry.get("period_jitter_ns") or {}
+    low, high = jitter.get("min"), jitter.get("max")
+    cycles = entry.get("cycles") or 0
+    if not period_ns or low is None or high is None or not cycles:
+        return "not enough cycles to judge", ""
+    limit_ns = 0.03 * period_ns
+    worst_ns = max(abs(low), abs(high))
+    misses = entry.get("deadline_misses") or 0
+    allowed = 1e-4 * cycles
+    problems = []
+    if worst_ns > limit_ns:
+        problems.append(f"max |jitter| {worst_ns / 1e3:,.1f} µs &gt; {limit_ns / 1e3:g} µs "
+                        f"({entry.get('jitter_over_3pct', '?')} cycles beyond)")
+    if misses > allowed:
+        problems.append(f"{misses} deadline misses &gt; 0.01 % of {cycles:,} periods")
+    if not problems:
+        return (f"met: max |jitter| {worst_ns / 1e3:,.1f} µs ≤ {limit_ns / 1e3:g} µs, "
+                f"{misses} deadline misses"), "ok"
+    return "not met: " + "; ".join(problems), "amber"
+
+
+def criterion_row(run: Run, names: Sequence[str]) -> str:
+    verdicts = [criterion(run, n) for n in names]
+    cells = "".join(f'<td class="criterion {css}">{text}</td>' for text, css in verdicts)
+    return ('<tr><td class="name criterion">thesis criterion: |jitter| ≤ 3 % of P, '
+            f"misses ≤ 0.01 %</td>{cells}</tr>")
 
 
 def comparison_table(runs: Sequence[Run]) -> str:
@@ -109,10 +148,13 @@ def comparison_table(runs: Sequence[Run]) -> str:
     tasks = list(dict.fromkeys(name for run in runs for name in run.tasks))
     for name in tasks:
         rows.append(f'<tr><th class="name" colspan="{len(runs) + 1}">{escape(name)}</th></tr>')
+        verdicts = [criterion(run, name) if name in run.tasks else ("–", "") for run in runs]
+        rows.append('<tr><td class="name criterion">thesis criterion</td>'
+                    + "".join(f'<td class="criterion {css}">{text}</td>' for text, css in verdicts) + "</tr>")
         for label, read, flag in METRICS:
             values = [read(run.tasks[name]) if name in run.tasks else "–" for run in runs]
             rows.append(_row([label, *values], classes=["", *(_bad(v, flag) for v in values)]))
-    return f"<table>{head}{''.join(rows)}</table>"
+    return f'<div class="scroll"><table>{head}{"".join(rows)}</table></div>'
 
 
 def machine_table(run: Run) -> str:

@@ -1,0 +1,83 @@
+"""``signals.json``: what signals.csv's columns are (task, side, index, unit) and how to plot them.
+
+signals.csv stays a plain CSV that any tool reads; this small file beside it carries what a
+CSV header cannot: each column's unit and the app's plots (declared with ``[[plot]]`` or
+inferred setpoint/measured pairs), by column name::
+
+    {"version": 1,
+     "columns": {"plant.omega": {"task": "plant", "side": "y", "index": 0, "unit": "rad/s"}, ...},
+     "plots": [{"title": "speed", "signals": ["pi.setpoint", "plant.omega"],
+                "setpoint": "pi.setpoint", "inferred": true}, ...]}
+
+The same units go into run.mcap's ``rtloop`` metadata record (key ``units``, JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from rtloop.app.builder import App
+from rtloop.app.plots import Element, element_units, elements, inferred_plots
+from rtloop.record.csvfiles import column_names
+
+SIDECAR = "signals.json"
+VERSION = 1
+
+
+def recorded_columns(app: App) -> dict[Element, str]:
+    """Each recorded element → its signals.csv column name (the order of the file)."""
+    columns: dict[Element, str] = {}
+    for ref in app.recorded:
+        runnable = app.tasks[ref.task].runnable
+        names = column_names(ref, runnable.input_names, runnable.output_names)
+        for element, name in zip(elements(ref), names, strict=True):
+            columns.setdefault(element, name)
+    return columns
+
+
+def sidecar_content(app: App) -> dict[str, Any]:
+    """The JSON of ``signals.json`` for ``app``'s recording."""
+    columns = recorded_columns(app)
+    units = element_units(app)
+    carried_by = _mirrors(app)
+    out_columns = {name: {"task": task, "side": side, "index": index, "unit": units.get((task, side, index), "")}
+                   for (task, side, index), name in columns.items()}
+    plots = []
+    for spec in [*app.plots, *inferred_plots(app)]:
+        names = []
+        for ref in spec.signals:
+            for element in elements(ref):
+                column = columns.get(element) or next((columns[e] for e in carried_by.get(element, ()) if e in columns),
+                                                      None)
+                if column is not None and column not in names:
+                    names.append(column)
+        setpoint = columns.get(spec.setpoint) if spec.setpoint is not None else None
+        if not names or (spec.inferred and (setpoint is None or len(names) < 2)):
+            continue  # an inferred pair is drawn only when both of its signals were recorded
+        plots.append({"title": spec.title or " vs ".join(names), "signals": names, "setpoint": setpoint,
+                      "inferred": spec.inferred})
+    return {"version": VERSION, "columns": out_columns, "plots": plots}
+
+
+def _mirrors(app: App) -> dict[Element, list[Element]]:
+    """An output element → the inputs that read it through a connection (the same values, a period on)."""
+    mirrors: dict[Element, list[Element]] = {}
+    for connection in app.connections:
+        for source, target in zip(elements(connection.source), elements(connection.target), strict=True):
+            mirrors.setdefault(source, []).append(target)
+    return mirrors
+
+
+def units_by_column(content: dict[str, Any]) -> dict[str, str]:
+    """Column → unit, for the columns that have one."""
+    return {name: column["unit"] for name, column in content["columns"].items() if column["unit"]}
+
+
+def write_sidecar(out: Path, content: dict[str, Any]) -> None:
+    """Write ``signals.json`` whole or not at all (a temporary name, then a rename)."""
+    temporary = out / f".{SIDECAR}.tmp"
+    temporary.write_text(json.dumps(content, indent=1) + "\n")
+    os.replace(temporary, out / SIDECAR)

@@ -1,0 +1,238 @@
+"""Figures of a run's signals: one axis per declared plot, setpoint pair or unit; runs overlaid.
+
+Which signals share an axis: the app's plots first (``[[plot]]``, then the setpoint/measured
+pairs inferred from its wiring), then the remaining signals one axis per unit, then those
+without a unit one axis per task. Legends sit right of the axes, never over the traces.
+Every value holds from its time on, so traces are drawn as steps; rows missing from the
+recording break the line (a gap is never bridged). Live port writes are dotted vertical
+lines, labelled on the first axis. Long runs are drawn as a min/max envelope of at most
+:data:`ENVELOPE_BUCKETS` buckets, so a day at 1 kHz plots as fast as a minute.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from rtloop.record.load import PortInputs, Signals
+
+FIGURE_WIDTH_IN = 13.0
+"""1300 px at the report's 100 dpi: the page reads at 1366 px without shrinking the figures."""
+AXIS_HEIGHT_IN = 2.3
+MAX_DRAWN_ROWS = 20_000
+ENVELOPE_BUCKETS = 2_000
+MAX_LABELLED_INPUTS = 12
+MAX_SHADED_GAPS = 200
+RUN_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+SETPOINT_STYLE = {"color": "black", "linestyle": "--", "linewidth": 1.1}
+INPUT_STYLE = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
+TIME_LABEL = "t [s] (each value holds from t on)"
+
+
+@dataclass(frozen=True)
+class Group:
+    """Signals on one axis."""
+
+    title: str
+    names: tuple[str, ...]
+    setpoint: str | None
+    """The setpoint's column in a setpoint/measured pair."""
+    units: tuple[str, ...]
+    """The distinct units of its signals ('' for none)."""
+
+    @property
+    def ylabel(self) -> str:
+        known = [u for u in self.units if u]
+        if not known:
+            return "value (no unit declared)"
+        return f"[{', '.join(known)}]" + (" / no unit" if "" in self.units else "")
+
+
+def groups_of(signals: Signals) -> list[Group]:
+    """The axes of a signals figure, in order (declared plots, pairs, units, then tasks)."""
+    out: list[Group] = []
+    placed: set[str] = set()
+    for plot in signals.plots:
+        names = tuple(n for n in plot.signals if n in signals)
+        if not names:
+            continue
+        title = plot.title
+        if plot.inferred and plot.setpoint:
+            measured = [n for n in names if n != plot.setpoint]
+            title = f"{', '.join(measured)} and its setpoint {plot.setpoint}"
+        out.append(Group(title, names, plot.setpoint, _units(signals, names)))
+        placed.update(names)
+    by_unit: dict[str, list[str]] = {}
+    by_task: dict[str, list[str]] = {}
+    for name in signals:
+        if name in placed:
+            continue
+        unit = signals.unit(name)
+        if unit:
+            by_unit.setdefault(unit, []).append(name)
+        else:
+            by_task.setdefault(name.split(".", 1)[0], []).append(name)
+    out += [Group(f"signals in {unit}", tuple(names), None, (unit,)) for unit, names in by_unit.items()]
+    out += [Group(f"task {task}", tuple(names), None, ("",)) for task, names in by_task.items()]
+    return out
+
+
+def _units(signals: Signals, names: Sequence[str]) -> tuple[str, ...]:
+    return tuple(dict.fromkeys(signals.unit(n) for n in names))
+
+
+def drawable(t_s: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(times, values, enveloped): what to draw for one signal, NaN where the line must break.
+
+    Up to :data:`MAX_DRAWN_ROWS` rows every value is drawn, with a NaN put in at each gap.
+    Beyond, each of :data:`ENVELOPE_BUCKETS` equal time buckets is drawn as its min and max
+    (a bucket without rows, i.e. inside a gap, is NaN and breaks the line).
+    """
+    t_s = np.asarray(t_s)
+    if t_s.size <= MAX_DRAWN_ROWS:
+        values = np.asarray(values, dtype=np.float64)
+        if len(gaps):
+            at = np.searchsorted(t_s, np.asarray(gaps)[:, 1])
+            return np.insert(t_s, at, np.asarray(gaps)[:, 0]), np.insert(values, at, np.nan), False
+        return t_s, values, False
+    first, last = float(t_s[0]), float(t_s[-1])
+    width = (last - first) / ENVELOPE_BUCKETS or 1.0
+    bucket = np.minimum(((t_s - first) / width).astype(np.int64), ENVELOPE_BUCKETS - 1)
+    starts = np.searchsorted(bucket, np.arange(ENVELOPE_BUCKETS))
+    counts = np.diff(np.append(starts, t_s.size))
+    filled = counts > 0
+    column = np.asarray(values, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        low = np.fmin.reduceat(column, starts[filled])
+        high = np.fmax.reduceat(column, starts[filled])
+    lows = np.full(ENVELOPE_BUCKETS, np.nan)
+    highs = np.full(ENVELOPE_BUCKETS, np.nan)
+    lows[filled], highs[filled] = low, high
+    centers = first + (np.arange(ENVELOPE_BUCKETS) + 0.5) * width
+    return np.repeat(centers, 2), np.stack([lows, highs], axis=1).ravel(), True
+
+
+def _trace(ax: Axes, t_s: np.ndarray, values: np.ndarray, gaps: np.ndarray, **style: object) -> None:
+    x, y, enveloped = drawable(t_s, values, gaps)
+    if enveloped:
+        ax.plot(x, y, **style)
+    else:
+        ax.plot(x, y, drawstyle="steps-post", **style)
+
+
+def _legend(ax: Axes) -> None:
+    ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, frameon=False, borderaxespad=0.0)
+
+
+def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str | None = None) -> int:
+    """Dotted lines where live port writes took effect; labelled on the first axis. Returns how many."""
+    events = sorted((float(t), port, values) for port, entry in inputs.items()
+                    for t, values in zip(entry.t_s, entry.values, strict=True))
+    style = {**INPUT_STYLE, **({"color": color} if color else {})}
+    for ax in axes:
+        for t, _, _ in events:
+            ax.axvline(t, **style)
+    if events and len(events) <= MAX_LABELLED_INPUTS:
+        for t, port, values in events:
+            text = f"{port} ← {', '.join(f'{v:g}' for v in values if v == v)}"
+            axes[0].annotate(text, (t, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -2),
+                             textcoords="offset points", rotation=90, va="top", ha="left", fontsize=7,
+                             color=style["color"])
+    return len(events)
+
+
+def _shade_gaps(axes: Sequence[Axes], gaps: np.ndarray) -> None:
+    """Grey where rows are missing (releases skipped, a pruned segment): nothing was recorded there."""
+    for ax in axes:
+        for i, (start, end) in enumerate(np.asarray(gaps)[:MAX_SHADED_GAPS]):
+            ax.axvspan(start, end, color="tab:gray", alpha=0.15, linewidth=0,
+                       label="not recorded" if i == 0 and ax is axes[0] else None)
+    if len(gaps):
+        _legend(axes[0])
+
+
+def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] | None = None) -> Figure:
+    """A run's recorded signals: one axis per group, legends outside, live inputs marked."""
+    groups = groups_of(signals)
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + AXIS_HEIGHT_IN * len(groups)), layout="constrained")
+    axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, group in zip(axes, groups, strict=True):
+        color = iter(RUN_COLORS)
+        for name in group.names:
+            style = dict(SETPOINT_STYLE) if name == group.setpoint else {"color": next(color), "linewidth": 1.3}
+            _trace(ax, signals.t_s, signals[name], signals.gaps, label=_label(signals, name, group), **style)
+        _finish(ax, group)
+    marked = _mark_inputs(list(axes), inputs or {})
+    _shade_gaps(list(axes), signals.gaps)
+    axes[-1].set_xlabel(TIME_LABEL)
+    note = f"; dotted: {marked} live port write(s)" if marked else ""
+    gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
+    fig.suptitle(f"{label} — recorded signals{note}{gaps}", fontsize=12)
+    return fig
+
+
+def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]) -> Figure | None:
+    """The runs' signals overlaid, each group with the differences to the first run below it.
+
+    Runs are matched by column name and rows by time (a run and its simulation share
+    their times t = k·P exactly). None when the runs share no signal.
+    """
+    reference_label, reference, _ = runs[0]
+    groups = [g for g in groups_of(reference) if all(any(n in s for n in g.names) for _, s, _ in runs[1:])]
+    if not groups:
+        return None
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + (AXIS_HEIGHT_IN + 1.5) * len(groups)), layout="constrained")
+    axes = fig.subplots(2 * len(groups), 1, sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": [AXIS_HEIGHT_IN, 1.5] * len(groups)})[:, 0]
+    for i, group in enumerate(groups):
+        ax, diff_ax = axes[2 * i], axes[2 * i + 1]
+        for r, (label, signals, _) in enumerate(runs):
+            for s, name in enumerate(n for n in group.names if n in signals):
+                # the reference wide and pale beneath: where runs agree, both stay visible
+                style = {"color": RUN_COLORS[r % len(RUN_COLORS)], "linewidth": 3.0 if r == 0 else 1.1,
+                         "alpha": 0.45 if r == 0 else 1.0, "linestyle": ("-", "--", ":", "-.")[s % 4]}
+                _trace(ax, signals.t_s, signals[name], signals.gaps, label=f"{label}: {name}", **style)
+                if r == 0:
+                    continue
+                t_s, delta = difference(reference, signals, name)
+                worst = float(np.nanmax(np.abs(delta))) if delta.size and np.isfinite(delta).any() else float("nan")
+                _trace(diff_ax, t_s, delta, np.zeros((0, 2)), label=f"{label} − {reference_label}: {name}"
+                       f" (max |Δ| {worst:.3g})", **style)
+        _finish(ax, group)
+        diff_ax.axhline(0.0, color="black", linewidth=0.6)
+        diff_ax.set_ylabel("Δ " + group.ylabel, fontsize=9)
+        diff_ax.grid(True, alpha=0.3)
+        if diff_ax.get_legend_handles_labels()[0]:
+            _legend(diff_ax)
+    for r, (_, _, inputs) in enumerate(runs):
+        _mark_inputs(list(axes[::2]) if r == 0 else [], inputs)
+    axes[-1].set_xlabel(TIME_LABEL)
+    fig.suptitle(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the difference to "
+                 f"{reference_label} at common times", fontsize=12)
+    return fig
+
+
+def difference(reference: Signals, other: Signals, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``other[name] − reference[name]`` at the times both recorded (rows matched exactly by time)."""
+    if name not in reference or name not in other:
+        return np.zeros(0), np.zeros(0)
+    common, in_ref, in_other = np.intersect1d(np.asarray(reference.t_s), np.asarray(other.t_s),
+                                              assume_unique=True, return_indices=True)
+    return common, np.asarray(other[name])[in_other] - np.asarray(reference[name])[in_ref]
+
+
+def _label(signals: Signals, name: str, group: Group) -> str:
+    unit = signals.unit(name)
+    role = " (setpoint)" if name == group.setpoint else ""
+    return f"{name}{role}" + (f" [{unit}]" if unit else "")
+
+
+def _finish(ax: Axes, group: Group) -> None:
+    ax.set_title(group.title, fontsize=10, loc="left")
+    ax.set_ylabel(group.ylabel)
+    ax.grid(True, alpha=0.3)
+    _legend(ax)

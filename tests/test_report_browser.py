@@ -1,0 +1,118 @@
+"""The report in a real browser at 1366 px: no horizontal scrolling, the figures load, units on the axes.
+
+Headless chromium renders report.html of a JIWY run and of a run-vs-simulation comparison;
+the test reads the page's scroll width back from the DOM and keeps the screenshots
+(``RTLOOP_SCREENSHOTS=DIR`` copies them there for a person to look at).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rtloop
+from rtloop.report import build_report
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+PAGE_WIDTH_PX = 1366
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium here (Debian: apt-get install chromium)")
+
+
+def chromium(tmp_path: Path, *args: str, height_px: int = 2400) -> subprocess.CompletedProcess[str]:
+    profile = tmp_path / f"chromium-profile-{len(list(tmp_path.glob('chromium-profile-*')))}"
+    command = [CHROMIUM, "--headless", "--disable-gpu", "--disable-background-networking",
+               "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
+               "--hide-scrollbars", f"--user-data-dir={profile}", f"--window-size={PAGE_WIDTH_PX},{height_px}", *args]
+    if os.geteuid() == 0:
+        command.insert(1, "--no-sandbox")  # chromium refuses to run as root with its sandbox
+    return subprocess.run(command, capture_output=True, text=True, timeout=120)
+
+
+def page_width_px(tmp_path: Path, html: Path) -> int:
+    """document.documentElement.scrollWidth of the page at 1366 px, read from the DOM chromium dumps."""
+    probe = html.with_name("probe.html")
+    probe.write_text(html.read_text().replace(
+        "</body>", "<script>document.title = 'width=' + document.documentElement.scrollWidth + ' images=' + "
+                   "Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0).length;"
+                   "</script></body>"))
+    dom = chromium(tmp_path, "--dump-dom", probe.as_uri()).stdout
+    match = re.search(r"<title>width=(\d+) images=(\d+)</title>", dom)
+    assert match, dom[:500]
+    assert int(match.group(2)) == html.read_text().count("<img"), "every figure loads"
+    return int(match.group(1))
+
+
+def screenshot(tmp_path: Path, html: Path, name: str) -> Path:
+    png = tmp_path / f"{name}.png"
+    result = chromium(tmp_path, f"--screenshot={png}", html.as_uri(), height_px=6000)  # the whole page
+    assert png.is_file(), result.stderr[-2000:]
+    from matplotlib.image import imread
+
+    pixels = imread(png)
+    assert pixels.shape[1] == PAGE_WIDTH_PX and float(np.std(pixels)) > 0.05, "a page, not a blank"
+    keep = os.environ.get("RTLOOP_SCREENSHOTS")
+    if keep:
+        Path(keep).mkdir(parents=True, exist_ok=True)
+        shutil.copy(png, Path(keep) / png.name)
+    return png
+
+
+def jiwy_app_file(tmp_path: Path, name: str) -> Path:
+    """examples/jiwy/jiwy.toml under a name of its own, without its ROS 2 bridges (jiwy_models on the path)."""
+    text = (EXAMPLES / "jiwy" / "jiwy.toml").read_text()
+    text = text.split("# ROS 2 topics")[0].replace('name = "jiwy"', f'name = "{name}"')
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # two runs, two reports, four browser starts: minutes on a loaded machine
+def test_jiwy_run_and_its_simulation_read_at_1366_px(tmp_path: Path, rtloop_env) -> None:
+    name = f"jiwy_browser_{os.getpid() % 100000}"
+    app_file = jiwy_app_file(tmp_path, name)
+    feed = ["--feed", f"setpoint={EXAMPLES / 'jiwy' / 'setpoints' / 'step.csv'}"]
+    run_dir, sim_dir = tmp_path / "jiwy-run", tmp_path / "jiwy-sim"
+    for command, out in (("run", run_dir), ("simulate", sim_dir)):
+        result = subprocess.run([sys.executable, "-m", "rtloop.cli", command, str(app_file), "--duration", "3",
+                                 "--out", str(out), "-q", *feed], env=rtloop_env, capture_output=True, text=True,
+                                timeout=300)
+        assert result.returncode == 0, result.stderr
+    run = rtloop.load(run_dir)
+    assert run.signals.units["plant.AnglePan"] == "rad"
+
+    single = build_report([run_dir])
+    assert single.html is not None
+    html = single.html.read_text()
+    assert "thesis criterion" in html and ("met:" in html or "not met:" in html)
+    assert page_width_px(tmp_path, single.html) <= PAGE_WIDTH_PX
+    screenshot(tmp_path, single.html, "jiwy-run-report")
+
+    compared = build_report([run_dir, sim_dir], tmp_path / "compare")
+    assert compared.html is not None and (tmp_path / "compare" / "report-figures" / "compare-signals.png").is_file()
+    assert page_width_px(tmp_path, compared.html) <= PAGE_WIDTH_PX
+    screenshot(tmp_path, compared.html, "jiwy-run-vs-simulation-report")
+
+
+def test_the_signal_axes_carry_units(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from rtloop.report import signals as signal_figures
+
+    monkeypatch.syspath_prepend(str(EXAMPLES / "jiwy"))
+    app_file = jiwy_app_file(tmp_path, f"jiwy_units_{os.getpid() % 100000}")
+    from rtloop.app.appfile import load_app
+
+    rtloop.simulate(load_app(app_file), 1.0, tmp_path / "sim")
+    run = rtloop.load(tmp_path / "sim")
+    fig = signal_figures.signals_figure("sim", run.signals, run.inputs)
+    labels = [ax.get_ylabel() for ax in fig.get_axes()]
+    assert labels[:2] == ["[rad]", "[rad]"]  # pan and tilt, each over its setpoint
+    legend = [t.get_text() for t in fig.get_axes()[0].get_legend().get_texts()]
+    assert legend == ["plant.AnglePan [rad]", "controller.SetPointPan (setpoint) [rad]"]
