@@ -211,3 +211,13 @@ def test_a_serial_port_in_use_is_refused_at_configure(tmp_path: Path, driver: Dr
             rtloop.run(load_app(example_file(tmp_path, driver.link, "dcm_serial_busy")), 1.0, tmp_path / "run")
     finally:
         holder.close()
+
+
+def test_a_frame_that_cannot_carry_the_values_is_one_line(tmp_path: Path) -> None:
+    app_file = example_file(tmp_path, tmp_path / "tty", "dcm_serial_too_many")
+    names = ", ".join(f'"r{i}"' for i in range(32))
+    text = app_file.read_text().replace('readings = ["speed_rad_s", "current_A"]', f"readings = [{names}]")
+    app_file.write_text(text)
+    result = _cli(app_file)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "devices.motor.readings: 32 values; a frame carries at most 31" in result.stderr

@@ -546,8 +546,26 @@ def run_checks(root: Path = LIVE_ROOT) -> list[Check]:
         ("swap", lambda: _check_swap(root)),
         ("clocksource", lambda: _check_clocksource(root)),
         ("irqbalance", lambda: _check_irqbalance(root)),
+        ("devices", lambda: _check_devices(root)),
     ]
     return [_guarded(name, check) for name, check in checks]
+
+
+def _check_devices(root: Path) -> Check:
+    """Interfaces devices can use (``rtloop io list`` has the details): may this user open them?"""
+    from rtloop.io.inventory import list_interfaces
+
+    interfaces = list_interfaces(root)
+    if not interfaces:
+        return Check("devices", "ok", "no GPIO chip, CAN interface, spidev, serial line or I2C bus here "
+                     "(needed only by apps with [devices])", "")
+    blocked = [item for item in interfaces if not item.usable]
+    kinds = ", ".join(sorted({item.kind for item in interfaces}))
+    if not blocked:
+        return Check("devices", "ok", f"{len(interfaces)} interfaces ({kinds}), all usable (rtloop io list)", "")
+    return Check("devices", "warn", f"{len(blocked)} of {len(interfaces)} interfaces cannot be used now: "
+                 + ", ".join(item.path for item in blocked),
+                 "; ".join(f"{item.path}: {item.fix}" for item in blocked))
 
 
 def verdict(checks: Iterable[Check]) -> Status:

@@ -23,6 +23,7 @@ DELEGATED = {
     "bridge": ("rtloop.ros.bridge", "ROS 2 listener/talker nodes between topics and an app's ports"),
     "bench": ("rtloop.cli.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
     "service": ("rtloop.cli.service", "a systemd unit that runs an app until stopped (--install writes it)"),
+    "io": ("rtloop.cli.devices", "GPIO chips, CAN interfaces, spidev, serial lines, I2C buses: may you open them?"),
 }
 
 

@@ -1,0 +1,28 @@
+"""``rtloop io list [--json]``: the interfaces devices can use here, and whether you may open them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from rtloop.io.inventory import format_table, list_interfaces
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rtloop io", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    listing = commands.add_parser("list", help="GPIO chips, CAN interfaces, spidev, serial lines, I2C buses")
+    listing.add_argument("--json", action="store_true", help="one JSON object per interface, as a list")
+    args = parser.parse_args(argv)
+    interfaces = list_interfaces()
+    if args.json:
+        json.dump([item.to_json() for item in interfaces], sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(interfaces))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
