@@ -6,8 +6,16 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 from rtloop import rt
+
+# Property tests draw the same examples on every run (derandomized), so a red run on any
+# machine, CI's included, reproduces with the same command. HYPOTHESIS_PROFILE=explore
+# draws fresh random examples (and keeps failures in .hypothesis/) when hunting for new ones.
+settings.register_profile("reproducible", derandomize=True, database=None, print_blob=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "reproducible"))
 
 TESTS_DIR = Path(__file__).parent
 sys.path.insert(0, str(TESTS_DIR))  # rt_test_runnables, for spawned task processes too
