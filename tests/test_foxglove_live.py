@@ -1,4 +1,5 @@
-"""`rtloop run --foxglove`: a plain WebSocket client (subprotocol foxglove.sdk.v1) sees the run live
+"""`rtloop run --foxglove`: a plain WebSocket client (subprotocol foxglove.sdk.v1, or its older name
+foxglove.websocket.v1) sees the run live
 and writes an input port through the same checks as the ROS 2 talker.
 
 The client is the `websockets` package speaking the Foxglove WebSocket protocol by hand
@@ -84,7 +85,9 @@ def url_from(stderr_lines: queue.Queue[str], timeout_s: float) -> str:
 
 
 @pytest.mark.rt
-def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path: Path, rtloop_env) -> None:
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path: Path, rtloop_env,
+                                                                       subprotocol: str) -> None:
     app_file = tmp_path / "fox.toml"
     app_file.write_text(APP.format(suffix=f"{time.monotonic_ns() % 10**9}"))
     out = tmp_path / "out"
@@ -96,7 +99,8 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
     try:
         url = url_from(stderr_lines, 30)
         assert url.startswith("ws://localhost:")
-        with websockets_sync.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=20) as client:
+        with websockets_sync.connect(url, subprotocols=[subprotocol], open_timeout=20) as client:
+            assert client.subprotocol == subprotocol  # the name the client offered, answered as offered
             channels: dict[str, int] = {}
             deadline = time.monotonic() + 20
             while len(channels) < 2 and time.monotonic() < deadline:
@@ -178,3 +182,33 @@ def test_missing_foxglove_sdk_is_one_line(tmp_path: Path, rtloop_env) -> None:
     assert result.returncode != 0
     assert result.stderr.strip().splitlines() == [
         "rtloop: the Foxglove live view needs foxglove-sdk: pip install 'rtloop[live]'"]
+
+
+def test_the_front_accepts_both_names_and_refuses_others() -> None:
+    foxglove = pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk (pip install 'rtloop[live]')")
+    from rtloop.ros.subprotocol import SubprotocolFront
+
+    server = foxglove.start_server(name="front", host="127.0.0.1", port=0, context=foxglove.Context())
+    front = SubprotocolFront("127.0.0.1", 0, server.port)
+    try:
+        for offered in (["foxglove.websocket.v1"], ["foxglove.sdk.v1"], ["foxglove.websocket.v1", "foxglove.sdk.v1"]):
+            with websockets_sync.connect(f"ws://127.0.0.1:{front.port}", subprotocols=offered,
+                                         open_timeout=10) as client:
+                assert client.subprotocol in offered
+                assert json.loads(client.recv(timeout=10))["op"] == "serverInfo"
+        with pytest.raises(Exception, match="400"):
+            websockets_sync.connect(f"ws://127.0.0.1:{front.port}", subprotocols=["chat.v2"], open_timeout=10)
+    finally:
+        front.close()
+        server.stop()
+
+
+def test_only_the_handshake_header_is_renamed() -> None:
+    from rtloop.ros.subprotocol import rename_offer
+
+    request = (b"GET / HTTP/1.1\r\nHost: x\r\nsec-websocket-protocol: foxglove.websocket.v1\r\n"
+               b"X-Note: foxglove.websocket.v1\r\n\r\n")
+    renamed, alias = rename_offer(request)
+    assert alias == "foxglove.websocket.v1"
+    assert b"Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n" in renamed and b"X-Note: foxglove.websocket.v1" in renamed
+    assert rename_offer(b"GET / HTTP/1.1\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n")[1] is None

@@ -235,7 +235,7 @@ class RosTopic:
 
 @dataclass(frozen=True, slots=True)
 class LiveViewSpec:
-    """A Foxglove WebSocket server (``foxglove.sdk.v1``) showing the run live, in the supervisor."""
+    """A Foxglove WebSocket server (``foxglove.sdk.v1`` or ``foxglove.websocket.v1``) showing the run live."""
 
     host: str = "127.0.0.1"
     """Address to bind: this machine only unless told otherwise (``0.0.0.0``: every interface)."""

@@ -10,6 +10,8 @@ falls behind, the oldest batches are dropped (counted) — the tasks never notic
 
 Topics and messages are those of ``run.mcap``: ``/rtloop/signals`` (``JointState``, one
 per tick, the signal names as joint names) and ``/rtloop/timing/<task>`` (``CycleTiming``).
+Clients may offer the WebSocket subprotocol ``foxglove.sdk.v1`` or its older name
+``foxglove.websocket.v1`` (Lichtblick, older Foxglove apps): see :mod:`rtloop.ros.subprotocol`.
 Input ports listed in ``[foxglove] inputs`` take messages on ``/rtloop/ports/<port>``
 (JSON ``{"data": [...]}`` as Foxglove's Publish panel sends a ``Float64MultiArray``, or
 ``{"position": [...]}``), checked exactly as the ROS 2 talker checks them.
@@ -30,6 +32,7 @@ from rtloop.app.builder import App, LiveViewSpec
 from rtloop.errors import PortValueError, RtloopError
 from rtloop.ipc.ports import RunningApp, app_from_registry
 from rtloop.ros.cdr import cycle_timing_cdr, joint_state_cdr
+from rtloop.ros.subprotocol import SubprotocolFront
 from rtloop.ros.types import CYCLE_TIMING_SCHEMA, JOINT_STATE_SCHEMA, SIGNALS_TOPIC, TIMING_TOPIC_PREFIX, topic_token
 from rtloop.ros.validate import MessageValidator, RateLimitedWarner
 
@@ -72,14 +75,19 @@ class LiveView:
                                      CYCLE_TIMING_SCHEMA) for task in app.tasks}
         self.inputs = _Inputs(app.name, spec.inputs)
         self.inputs.attach(app_from_registry(registry_path))  # ports exist already: writes may come before T0
-        try:
+        try:  # clients reach it through the front below, which accepts both subprotocol names
             self.server = foxglove.start_server(
-                name=f"rtloop {app.name}", host=spec.host, port=spec.port, context=self.context,
+                name=f"rtloop {app.name}", host="127.0.0.1", port=0, context=self.context,
                 capabilities=[Capability.ClientPublish] if spec.inputs else [],
                 server_listener=self.inputs, supported_encodings=["json"],
             )
-        except Exception as error:  # foxglove raises its own error types for a taken or bad address
-            raise LiveViewError(f"cannot serve Foxglove on {spec.host}:{spec.port}: {error}") from None
+        except Exception as error:  # foxglove raises its own error types
+            raise LiveViewError(f"cannot start the Foxglove server: {error}") from None
+        try:
+            self.front = SubprotocolFront(spec.host, spec.port, self.server.port)
+        except OSError as error:
+            self.server.stop()
+            raise LiveViewError(f"cannot serve Foxglove on {spec.host}:{spec.port}: {error.strerror}") from None
         self.pending: deque[tuple[str, Any, Any]] = deque(maxlen=MAX_PENDING_BATCHES)
         self.offered = 0
         self.wake = threading.Event()
@@ -88,7 +96,7 @@ class LiveView:
         self.thread = threading.Thread(target=self._send_loop, name="rtloop-foxglove", daemon=True)
 
         host = "localhost" if spec.host in ("127.0.0.1", "0.0.0.0", "::", "::1") else spec.host
-        self.url = f"ws://{host}:{self.server.port}"
+        self.url = f"ws://{host}:{self.front.port}"
         """Where Foxglove connects (the port the server got, if 0 was asked for)."""
 
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:
@@ -136,6 +144,7 @@ class LiveView:
         self.wake.set()
         if self.thread.is_alive():
             self.thread.join(5.0)
+        self.front.close()
         self.server.stop()
 
     def summary(self) -> dict[str, Any]:
