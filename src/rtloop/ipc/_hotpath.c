@@ -102,6 +102,8 @@ typedef struct {
     Queue input_log; /* [port index, values...] each time a live port delivers a new value */
     int has_input_log;
     double *input_log_row;
+    Queue read_log; /* [release, writer index, stamp got, stamp due] (ns since T0) for each stale read */
+    int has_read_log;
     Py_ssize_t n_inputs, n_live_ports, n_profiles, n_out_ports;
     int64_t period_ns, catch_up, t0_ns, end_ns;
     int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
@@ -397,6 +399,18 @@ static PyObject *Core_set_input_log(Core *self, PyObject *buffer) {
     Py_RETURN_NONE;
 }
 
+/* set_read_log(record_ring_memory): reads that got another sample than LET promised, for replay */
+static PyObject *Core_set_read_log(Core *self, PyObject *buffer) {
+    if (attach_queue(self, buffer, &self->read_log, 0) < 0)
+        return NULL;
+    if (self->read_log.width != 4) {
+        PyErr_SetString(PyExc_ValueError, "hot path: the read log must hold 4-word records");
+        return NULL;
+    }
+    self->has_read_log = 1;
+    Py_RETURN_NONE;
+}
+
 /* start(t0_ns, end_ns, stale_reads): the timeline and the counts carried over */
 static PyObject *Core_start(Core *self, PyObject *const *args, Py_ssize_t nargs) {
     if (nargs != 3) {
@@ -491,6 +505,11 @@ static void read_inputs(Core *self, int64_t release_ns) {
         if (stamp < entitled) { /* the writer has not published what we are entitled to */
             self->stale_reads++;
             STORE(&self->status[STATUS_STALE_READS], self->stale_reads, relaxed);
+            if (self->has_read_log) { /* what the task got instead, for replay */
+                int64_t record[4] = {since_t0_ns, (int64_t)i, stamp == NO_STAMP ? NO_STAMP : stamp - self->t0_ns,
+                                     entitled - self->t0_ns};
+                push(&self->read_log, 0, record);
+            }
         }
     }
     for (Py_ssize_t i = 0; i < self->n_live_ports; i++)
@@ -788,6 +807,7 @@ static PyMethodDef Core_methods[] = {
     {"add_input", (PyCFunction)Core_add_input, METH_VARARGS, "Attach every connection from one writer."},
     {"add_live_port", (PyCFunction)Core_add_live_port, METH_VARARGS, "Attach an input port (LatestValue)."},
     {"set_input_log", (PyCFunction)Core_set_input_log, METH_O, "Attach the input log (SampleQueue) for replay."},
+    {"set_read_log", (PyCFunction)Core_set_read_log, METH_O, "Attach the read log (RecordRing) for replay."},
     {"close", (PyCFunction)Core_close, METH_NOARGS, "Release the shared memory and the tick (idempotent)."},
     {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
     {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},

@@ -209,6 +209,8 @@ def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: An
             core.add_live_port(port.words, 0, len(target), port.last_seq_seen, index, target)
     if wiring.input_log is not None:
         core.set_input_log(wiring.input_log.words)
+    if wiring.read_log is not None:
+        core.set_read_log(wiring.read_log.memory)
     for reader in wiring.profiles:
         t_ns = np.ascontiguousarray(reader.profile.t_ns, dtype=np.int64)
         rows = np.ascontiguousarray(reader.profile.values, dtype=np.float64)

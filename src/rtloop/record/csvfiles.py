@@ -93,6 +93,68 @@ def read_inputs_csv(path: Path) -> list[tuple[str, int, str, list[float]]]:
     return rows
 
 
+NO_STAMP = -(2**62)
+"""A read that found no sample at all (the read log's word for it; as in the channels)."""
+
+
+class ReadsCsv:
+    """``reads.csv``: each read of a connection that did not get the sample LET promised.
+
+    ``task,cycle,writer,stamp_ns,due_ns`` — at ``cycle`` the task read ``writer``'s sample
+    published with ``stamp_ns`` (ns since T0; empty: none at all, its inputs kept their
+    values) instead of the one due at ``due_ns`` (a stale read: the writer was late). A
+    clean cycle writes nothing; ``rtloop replay`` makes the task read the same samples.
+    """
+
+    HEADER = "task,cycle,writer,stamp_ns,due_ns\n"
+
+    def __init__(self, path: Path) -> None:
+        self.file: TextIO = self._open(path)
+
+    def _open(self, path: Path) -> TextIO:
+        file = open(path, "w", buffering=1 << 14)  # noqa: SIM115
+        file.write(self.HEADER)
+        return file
+
+    def switch_to(self, path: Path) -> None:
+        """Go on in a new file (a recording segment), which starts with the header."""
+        self.file.close()
+        self.file = self._open(path)
+
+    def append(self, task: str, period_ns: int, writers: list[str], records: np.ndarray) -> None:
+        """``records``: rows of ``[release, writer index, stamp got or NO_STAMP, stamp due]`` (ns since T0)."""
+        lines = []
+        for release_ns, writer, stamp_ns, due_ns in records.tolist():
+            stamp = "" if stamp_ns == NO_STAMP else str(stamp_ns)
+            lines.append(f"{task},{release_ns // period_ns},{writers[writer]},{stamp},{due_ns}\n")
+        self.file.writelines(lines)
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_reads_csv(path: Path) -> list[tuple[str, int, str, int | None, int]]:
+    """Rows of a ``reads.csv``: (task, cycle, writer, stamp_ns or None, due_ns)."""
+    rows = []
+    with open(path) as file:
+        header = file.readline()
+        if header != ReadsCsv.HEADER:
+            raise ValueError(f"{path}: not a reads.csv (header {header.strip()!r})")
+        for number, line in enumerate(file, start=2):
+            parts = line.rstrip("\n").split(",")
+            try:
+                if len(parts) != 5:
+                    raise ValueError
+                task, cycle, writer, stamp, due = parts
+                rows.append((task, int(cycle), writer, int(stamp) if stamp else None, int(due)))
+            except ValueError:
+                raise ValueError(f"{path}:{number}: expected task,cycle,writer,stamp_ns,due_ns") from None
+    return rows
+
+
 class SignalsCsv:
     """Collects record-queue rows per task and writes signals.csv rows in time order.
 

@@ -25,14 +25,14 @@ from typing import Any
 import numpy as np
 
 from rtloop.app.builder import App
-from rtloop.record.csvfiles import InputsCsv, SignalsCsv, TimingCsv
+from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
 from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
 from rtloop.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.timing_stream import StreamingTaskTiming
 
-FILE_NAMES = ["timing.csv", "signals.csv", "run.mcap"]
+FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap"]
 
 
 class Recorder:
@@ -62,6 +62,12 @@ class Recorder:
         self.inputs: InputsCsv | None = None
         self.sidecar: dict[str, Any] = {}
         """signals.json: units and plots of the recorded signals."""
+        # each reader's writers in the order its wiring reads them (TaskWiringPlan.writers)
+        self._writers = {name: list(dict.fromkeys(c.source.task for c in app.connections if c.target.task == name))
+                         for name in app.tasks}
+        self.reads: ReadsCsv | None = None
+        self.reads_dropped: dict[str, int] = {}
+        """Per task, stale reads its read log could not keep (ring full): replay cannot follow them."""
         self._has_live_ports = bool(live_ports)
         self._port_order = {
             name: [(link.name, link.signal.size) for link in live_ports if link.signal.task == name]
@@ -84,6 +90,8 @@ class Recorder:
                 self._path("signals.csv"), self.app.recorded, self.periods_ns,
                 {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
                 {n: (t.runnable.input_names, t.runnable.output_names) for n, t in self.app.tasks.items()})
+        if any(self._writers.values()):  # a stale read needs a connection
+            self.reads = ReadsCsv(self._path("reads.csv"))
         if self._has_live_ports:  # small (one row per value that came in): never rotated
             self.inputs = InputsCsv(self.out / "inputs.csv")
 
@@ -127,6 +135,8 @@ class Recorder:
             self.timing.switch_to(self._path("timing.csv"))
         if self.signals is not None:
             self.signals.switch_to(self._path("signals.csv"))
+        if self.reads is not None:
+            self.reads.switch_to(self._path("reads.csv"))
         if not self.mcap_note:
             self._open_mcap()
 
@@ -144,17 +154,24 @@ class Recorder:
         what = errno.errorcode.get(error.errno or 0, "error")
         self.stopped = (f"recording stopped at {self.latest_ns / 1e9:.1f} s of run time: "
                         f"{what} {error.strerror or error}{where}; the run went on")
-        for writer in (self.mcap, self.timing, self.signals, self.inputs):
+        for writer in (self.mcap, self.timing, self.signals, self.inputs, self.reads):
             if writer is not None:
                 with contextlib.suppress(OSError, ValueError):
                     writer.close()
-        self.mcap = self.timing = self.signals = self.inputs = None
+        self.mcap = self.timing = self.signals = self.inputs = self.reads = None
 
     # --- data ----------------------------------------------------------------------------------
     def add_inputs(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
         """Port values ``task`` took (ticks: ns since T0; rows: [index into the task's input ports, values…])."""
         if self.inputs is not None and len(ticks):
             self._guard(self.inputs.append, task, self.periods_ns[task], self._port_order[task], ticks, rows)
+
+    def add_reads(self, task: str, records: np.ndarray, dropped: int) -> None:
+        """Stale reads of ``task`` (read-log records) and how many its ring dropped so far."""
+        if dropped:
+            self.reads_dropped[task] = dropped
+        if self.reads is not None and len(records):
+            self._guard(self.reads.append, task, self.periods_ns[task], self._writers[task], records)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         if not len(records):
@@ -196,6 +213,8 @@ class Recorder:
             self.timing.flush()
         if self.inputs is not None:
             self.inputs.flush()
+        if self.reads is not None:
+            self.reads.flush()
         if self.signals is not None:
             times, rows = self.signals.flush(final=final)
             if self.mcap is not None and times:
@@ -219,7 +238,7 @@ class Recorder:
         give_to_invoking_user(self.out)
 
     def _close_files(self) -> None:
-        for writer in (self.timing, self.signals, self.mcap, self.inputs):
+        for writer in (self.timing, self.signals, self.mcap, self.inputs, self.reads):
             if writer is not None:
                 writer.close()
 
@@ -235,7 +254,8 @@ class Recorder:
     def to_json(self) -> dict[str, object]:
         """What the summary says about the recording."""
         window = self.window.to_json() if self.window is not None else {}
-        return {"keep_s": self.keep_s, "stopped": self.stopped or None, **window}
+        dropped = {"reads_dropped": dict(self.reads_dropped)} if self.reads_dropped else {}
+        return {"keep_s": self.keep_s, "stopped": self.stopped or None, **window, **dropped}
 
 
 def give_to_invoking_user(out: Path) -> None:

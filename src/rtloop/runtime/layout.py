@@ -29,11 +29,13 @@ from rtloop.ipc.segments import (
 )
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.runtime.task import TaskSegments, task_segment_size
-from rtloop.runtime.wiring import InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
+from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
 INPUT_LOG_CAPACITY = 1 << 12
+READ_LOG_CAPACITY = 1 << 13
+"""Stale reads a task can log between two drains (50 ms): a read per writer per cycle at 10 kHz."""
 LET_SLOTS = 8
 
 
@@ -52,6 +54,8 @@ def shared_memory_bytes(app: App) -> int:
         else:
             total += LatestValue.size_bytes(port.signal.size)
     total += len(app.tasks) * task_segment_size(TIMING_RING_CAPACITY)
+    readers = {connection.target.task for connection in app.connections}
+    total += len(readers) * RecordRing.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH)
     for name in {ref.task for ref in app.recorded}:
         runnable = app.tasks[name].runnable
         total += SampleQueue.size_bytes(runnable.n_outputs + runnable.n_inputs, RECORD_QUEUE_CAPACITY)
@@ -99,6 +103,8 @@ class TaskHandles:
     record: SampleQueue | None = None
     input_log: SampleQueue | None = None
     """Port values the task took, with the release that took them (``inputs.csv``)."""
+    read_log: RecordRing | None = None
+    """Reads of connections that got another sample than logical execution time promised (``reads.csv``)."""
 
 
 @dataclass
@@ -173,7 +179,7 @@ class AppLayout:
             inputs = tuple(
                 InputLink(
                     channels[c.source.task], c.source.slice, c.target.slice,
-                    app.tasks[c.source.task].config.period_ns,
+                    app.tasks[c.source.task].config.period_ns, c.source.task,
                 )
                 for c in app.connections
                 if c.target.task == name
@@ -190,6 +196,11 @@ class AppLayout:
                 input_log_segment = segment(f"{name}.inputs", SampleQueue.size_bytes(width, INPUT_LOG_CAPACITY))
                 input_log = SampleQueue.initialise(input_log_segment, width, INPUT_LOG_CAPACITY)
                 wanted.add(input_log_segment.name)
+            read_log = read_log_segment = None
+            if inputs:
+                read_log_segment = segment(f"{name}.reads", RecordRing.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH))
+                read_log = RecordRing.initialise(read_log_segment, READ_LOG_CAPACITY, READ_LOG_WIDTH)
+                wanted.add(read_log_segment.name)
             plan = TaskWiringPlan(
                 output_channel=channels.get(name),
                 inputs=inputs,
@@ -197,10 +208,11 @@ class AppLayout:
                 output_ports=tuple(link for link in links if isinstance(link, OutputPortLink)),
                 record_queue=record_segment.name if record is not None else None,
                 input_log=input_log_segment.name if input_log_segment is not None else None,
+                read_log=read_log_segment.name if read_log_segment is not None else None,
                 segments=tuple(sorted(w for w in wanted if w)),
             )
             segments_of_task = TaskSegments(control_segment.name, task_segment.name)
-            tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log)
+            tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log, read_log)
         layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
         layout._write_registry(summary_path)
         return layout

@@ -26,7 +26,7 @@ from rtloop.ipc.status import StatusWord
 from rtloop.record.recorder import Recorder
 from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
-from rtloop.runtime.layout import RECORD_QUEUE_CAPACITY, AppLayout
+from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
 from rtloop.runtime.wiring import TaskWiring
@@ -153,7 +153,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
                 break
             heapq.heappush(releases, (release_ns + tasks[current].period_ns, rank, cycle + 1, current))
             steps += 1
-            if steps % (RECORD_QUEUE_CAPACITY // 2) == 0:
+            if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0:
                 _drain(tasks, recorder)
         phase = "postrun"
         for task in tasks.values():  # safe values first, as in a real run
@@ -196,6 +196,8 @@ def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
         task.records.clear()
         if task.handles.input_log is not None:
             recorder.add_inputs(name, *task.handles.input_log.drain())
+        if task.handles.read_log is not None:
+            recorder.add_reads(name, task.handles.read_log.drain(), task.handles.read_log.dropped)
         if task.handles.record is not None:
             recorder.add_signals(name, *task.handles.record.drain())
     recorder.flush()

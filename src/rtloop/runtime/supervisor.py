@@ -328,6 +328,8 @@ class Supervisor:
                 more |= len(records) == DRAIN_BATCH_RECORDS
                 if handles.input_log is not None:
                     recorder.add_inputs(name, *handles.input_log.drain())
+                if handles.read_log is not None:
+                    recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
                 if handles.record is not None:
                     ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
                     recorder.add_signals(name, ticks, rows)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
-from rtloop.ipc.segments import Segment
+from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import StatusWord, WordBlock
 
 
@@ -25,6 +25,12 @@ class InputLink:
     source: slice
     target: slice
     writer_period_ns: int
+    writer: str = ""
+    """The writing task's name (names the link in the read log, ``reads.csv``)."""
+
+
+READ_LOG_WIDTH = 4
+"""A read-log record, times in ns since T0: ``[release, writer index, stamp got (or NO_STAMP), stamp due]``."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,7 +80,14 @@ class TaskWiringPlan:
     input_log: str | None = None
     """Segment of the queue carrying ``[port index, values…]`` each time a live input port
     delivers a new value, stamped with the release (ns since T0) that took it (for replay)."""
+    read_log: str | None = None
+    """Segment of the ring of reads that did not get the sample logical execution time promised
+    (a stale read): one ``READ_LOG_WIDTH`` record each, nothing in a clean cycle (for replay)."""
     segments: tuple[str, ...] = field(default=())
+
+    def writers(self) -> list[str]:
+        """The writing tasks in the order the task reads them (the writer index of the read log)."""
+        return list(dict.fromkeys(link.writer for link in self.inputs))
 
 
 class _WriterLink:
@@ -140,6 +153,7 @@ class TaskWiring:
         for link in plan.inputs:
             by_writer.setdefault(link.channel_segment, []).append(link)
         self.links = [_WriterLink(LetChannel(self._segments[name]), links, u) for name, links in by_writer.items()]
+        self.read_log = RecordRing(self._segments[plan.read_log]) if plan.read_log else None
         # A live port writes its slice of u, or, for a profile's nudges, a buffer of its own.
         self.live_ports: list[tuple[LatestValue, np.ndarray, float]] = []
         self.profiles: list[_ProfileReader] = []
@@ -167,7 +181,7 @@ class TaskWiring:
 
     def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
         t0_ns = self.t0_ns
-        for link in self.links:
+        for index, link in enumerate(self.links):
             stamp = link.channel.read_valid_at(release_ns, link.sources, link.scratch)
             if stamp != NO_STAMP:
                 for source, target in link.copies:
@@ -177,6 +191,9 @@ class TaskWiring:
                 self.stale_reads += 1
                 if self.status is not None:
                     self.status[StatusWord.STALE_READS] = self.stale_reads
+                if self.read_log is not None:  # what the task got instead, for replay
+                    got = stamp if stamp == NO_STAMP else stamp - t0_ns
+                    self.read_log.push4(release_ns - t0_ns, index, got, entitled - t0_ns)
         fresh = self.fresh
         for position, (port, target, index) in enumerate(self.live_ports):
             seen = port.last_seq_seen
