@@ -286,3 +286,16 @@ class PolicyAfterLoop(Runnable):
 
     def postrun(self) -> None:
         Path(self.path).write_text(str(os.sched_getscheduler(0)))
+
+
+class SlowIntegrator(Integrator):
+    """An :class:`Integrator` whose step takes ``slow_s`` longer every ``every`` cycles (overruns on purpose)."""
+
+    def __init__(self, n: int = 2, gain: float = 3.0, slow_s: float = 0.0025, every: int = 100) -> None:
+        super().__init__(n, gain)
+        self.slow_s, self.every = slow_s, every
+
+    def step(self, u, y) -> None:
+        super().step(u, y)
+        if self.tick.cycle % self.every == self.every // 2:
+            time.sleep(self.slow_s)

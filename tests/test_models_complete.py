@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import shutil
 import subprocess
 import sys
@@ -270,41 +269,30 @@ def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path,
     from conftest import other_cpu
 
     cli = [sys.executable, "-m", "rtloop.cli"]
-    attempts = []
-    for attempt in range(3):  # a loaded machine can miss early; the rule is the same each time
-        name = f"replay_t{attempt}_{int(time.time() * 1000) % 100000}"
-        app_file = tmp_path / f"{name}.toml"
-        app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu()))
-        run_dir = tmp_path / f"run{attempt}"
-        process = subprocess.Popen([*cli, "run", str(app_file), "--duration", "3", "--out", str(run_dir), "-q"],
-                                   env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            time.sleep(1.5)
-            for values in (["0.5", "0.3"], ["-0.2", "0.1"]):
-                write = subprocess.run([*cli, "port", "write", name, "setpoint", *values], env=rtloop_env,
-                                       capture_output=True, text=True)
-                assert write.returncode == 0, write.stderr
-                time.sleep(0.4)
-        finally:
-            process.communicate(timeout=60)
-        assert process.returncode == 0
-        logged = read_rows(run_dir / "inputs.csv")
-        assert logged[0] == ["task", "cycle", "port", "values"] and len(logged) == 3
-        assert [row[3] for row in logged[1:]] == ["0.5 0.3", "-0.2 0.1"]
-        result = subprocess.run([*cli, "replay", str(run_dir), "--out", str(tmp_path / f"replay{attempt}")],
-                                env=rtloop_env, capture_output=True, text=True)
-        assert result.returncode == 0, result.stdout + result.stderr
-        assert "equal bit for bit" in result.stdout
-        replayed = read_rows(tmp_path / f"replay{attempt}" / "inputs.csv")
-        assert replayed == logged, "the replay took the same values at the same cycles"
-        summary = json.loads((run_dir / "summary.json").read_text())
-        from rtloop.runtime.replay import first_miss_s
-
-        miss = first_miss_s(run_dir)
-        last_write_s = int(logged[-1][1]) * 1e-3
-        attempts.append(miss)
-        if miss is None or miss > last_write_s + 0.05:
-            assert summary["tasks"]["controller"]["cycles"] > 0
-            return  # equal bit for bit across both live setpoints
-    pytest.skip(f"every run missed a deadline before its setpoints took effect (first misses at {attempts} s): "
-                "too loaded to show the equality across the writes")
+    name = f"replay_t_{int(time.time() * 1000) % 100000}"
+    app_file = tmp_path / f"{name}.toml"
+    app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu()))
+    run_dir = tmp_path / "run"
+    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", "3", "--out", str(run_dir), "-q"],
+                               env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)
+        for values in (["0.5", "0.3"], ["-0.2", "0.1"]):
+            write = subprocess.run([*cli, "port", "write", name, "setpoint", *values], env=rtloop_env,
+                                   capture_output=True, text=True)
+            assert write.returncode == 0, write.stderr
+            time.sleep(0.4)
+    finally:
+        process.communicate(timeout=60)
+    assert process.returncode == 0
+    logged = read_rows(run_dir / "inputs.csv")
+    assert logged[0] == ["task", "cycle", "port", "values"] and len(logged) == 3
+    assert [row[3] for row in logged[1:]] == ["0.5 0.3", "-0.2 0.1"]
+    # a loaded machine misses deadlines: the replay follows them, over the whole run
+    result = subprocess.run([*cli, "replay", str(run_dir), "--out", str(tmp_path / "replay")],
+                            env=rtloop_env, capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "equal bit for bit over the whole run" in result.stdout
+    replayed = read_rows(tmp_path / "replay" / "inputs.csv")
+    assert replayed == logged, "the replay took the same values at the same cycles"
+    assert read_rows(tmp_path / "replay" / "signals.csv") == read_rows(run_dir / "signals.csv")

@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import csv
+import json
 import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
+import pytest
 
+import rtloop
+from conftest import other_cpu
+from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
@@ -16,6 +28,7 @@ from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWir
 
 P = 1_000_000
 T0 = 5_000_000_000
+HOG_LOAD_PERCENT = 20
 
 
 def _stale_reads_logged(kind: str, monkeypatch) -> tuple[list[list[int]], list[float], int]:
@@ -92,3 +105,224 @@ def test_a_read_that_found_no_sample_logs_no_stamp(monkeypatch) -> None:
     finally:
         for segment in made:
             segment.unlink()
+
+
+# --- whole runs, replayed ---------------------------------------------------------------------------
+
+JIWY_APP = """name = "{name}"
+[tasks.controller]
+runnable = "jiwy_models:JiwyController"
+period_ns = 1_000_000
+priority = 80
+cpu = {cpu}
+[tasks.plant]
+runnable = "jiwy_models:JiwyPlant"
+period_ns = 1_000_000
+priority = 81
+cpu = {cpu}
+[[connect]]
+from = "plant.y[0:2]"
+to = "controller.u[0:2]"
+[[connect]]
+from = "controller.y[0:2]"
+to = "plant.u[0:2]"
+[ports.setpoint]
+to = "controller.u[2:4]"
+[record]
+signals = ["plant.y", "controller.y", "controller.u"]
+"""
+
+
+def _rows(path: Path) -> list[list[str]]:
+    with open(path, newline="") as file:
+        return list(csv.reader(file))
+
+
+def _faults(run_dir: Path) -> tuple[int, int]:
+    """(deadline misses, stale reads) of a run, from its summary and reads.csv."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    misses = sum(task["deadline_misses"] for task in summary["tasks"].values())
+    return misses, len(_rows(run_dir / "reads.csv")) - 1
+
+
+def _replay_cli(run_dir: Path, out: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rtloop.cli", "replay", str(run_dir), "--out", str(out)],
+                          env=env, capture_output=True, text=True, timeout=600)
+
+
+def _lets_own_simulation_differs(app_file: Path, run_dir: Path, tmp_path: Path, env: dict[str, str]) -> bool:
+    """Whether plain simulation (the logical timeline, the run's port inputs) differs from the run:
+    then the run's timing faults changed its signals, and a replay that equals it followed them."""
+    code = ("import sys; from pathlib import Path; from rtloop.app.appfile import load_app; "
+            "from rtloop.runtime.replay import port_writes; from rtloop.runtime.simulate import simulate; "
+            "import json; run = Path(sys.argv[2]); d = json.loads((run / 'summary.json').read_text())['elapsed_s']; "
+            "simulate(load_app(sys.argv[1]), round(d, 3), sys.argv[3], port_writes=port_writes(run))")
+    subprocess.run([sys.executable, "-c", code, str(app_file), str(run_dir), str(tmp_path / "let")], env=env,
+                   check=True, capture_output=True, timeout=600)
+    return _rows(tmp_path / "let" / "signals.csv")[:len(_rows(run_dir / "signals.csv"))] != _rows(
+        run_dir / "signals.csv")
+
+
+@pytest.mark.rt
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(shutil.which("stress-ng") is None, reason="stress-ng is not installed (apt install stress-ng)")
+def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_stale_reads_included(
+        tmp_path: Path, rtloop_env) -> None:
+    from conftest import other_cpu
+    from rtloop.ipc.ports import connect_app
+
+    cpu = other_cpu()
+    name = f"replay_jiwy_{os.getpid()}"
+    app_file = tmp_path / f"{name}.toml"
+    app_file.write_text(JIWY_APP.format(name=name, cpu=cpu))
+    run_dir = tmp_path / "run"
+    # Two CPU hogs on the tasks' core, real-time above them but busy only part of the time: the
+    # tasks are held off in bursts, so they miss deadlines and read samples their writer had
+    # not yet published. Only this process group is stopped afterwards.
+    hogs = subprocess.Popen(["stress-ng", "--cpu", "2", "--cpu-load", str(HOG_LOAD_PERCENT), "--taskset", str(cpu),
+                             "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s", "--quiet"],
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "20",
+                                    "--out", str(run_dir), "-q"], env=rtloop_env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            app = connect_app(name, timeout_s=30)
+            for step in range(12):  # a new setpoint every 1.5 s, the first at about 1 s
+                time.sleep(1.5 if step else 1.0)
+                app.write("setpoint", [0.4 * (-1) ** step, 0.1 * (step % 3)])
+        finally:
+            _out, err = process.communicate(timeout=120)
+    finally:
+        os.killpg(hogs.pid, signal.SIGTERM)
+        hogs.wait(timeout=30)
+    assert process.returncode == 0, err
+    misses, stale = _faults(run_dir)
+    assert misses and stale, f"the run had {misses} misses and {stale} stale reads: nothing to prove"
+    assert len(_rows(run_dir / "inputs.csv")) - 1 >= 10, "the setpoints entered the run"
+    replayed = _replay_cli(run_dir, tmp_path / "replay", rtloop_env)
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    assert "equal bit for bit over the whole run" in replayed.stdout
+    run_rows, replay_rows = _rows(run_dir / "signals.csv"), _rows(tmp_path / "replay" / "signals.csv")
+    assert run_rows == replay_rows and len(run_rows) > 1000
+    assert _lets_own_simulation_differs(app_file, run_dir, tmp_path, rtloop_env), (
+        "the faults did not change the signals: the test proved nothing beyond simulation")
+
+
+def _slow_step_app(name: str, overrun: str, profile: Path) -> App:
+    from rt_test_runnables import PiController, SlowIntegrator
+
+    app = App(name)
+    controller = app.add_task("controller", PiController(2), period_ns=P, cpu=other_cpu())
+    plant = app.add_task("plant", SlowIntegrator(2), period_ns=P, cpu=other_cpu(), priority=81, overrun=overrun)
+    app.connect(plant.y, controller.u[0:2])
+    app.connect(controller.y, plant.u)
+    app.port("setpoint", to=controller.u[2:4], feed=profile)
+    app.record(plant.y, controller.y, controller.u)
+    return app
+
+
+@pytest.mark.rt
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("overrun", ["skip", "catch_up"])
+def test_a_run_with_a_slow_step_every_100th_cycle_replays_bit_for_bit(overrun: str, tmp_path: Path,
+                                                                      hot_path: str) -> None:
+    from rtloop.runtime.replay import replay
+
+    profile = tmp_path / "setpoints.csv"
+    profile.write_text("t_s,pan,tilt\n0,0.5,-0.25\n0.7,-0.3,0.4\n1.6,0.1,0.0\n")
+    name = f"replay_slow_{overrun[0]}{hot_path[0]}_{os.getpid()}"
+    summary = rtloop.run(_slow_step_app(name, overrun, profile), 2.5, tmp_path / "run")
+    plant = summary.tasks["plant"]
+    assert plant.timing.deadline_misses >= 20, "a slow step every 100th cycle overruns"
+    if overrun == "skip":
+        assert plant.timing.overruns >= 40, "each slow step skips about two releases"
+    else:  # every release runs, late: the controller reads samples the plant has not published yet
+        assert summary.tasks["controller"].stale_reads >= 20
+    result = replay(tmp_path / "run", tmp_path / "replay", app=_slow_step_app(name, overrun, profile))
+    assert result.cannot is None and result.divergence is None, result
+    assert result.equal and result.rows_compared == result.rows_in_run > 2000
+    assert _rows(tmp_path / "run" / "signals.csv") == _rows(tmp_path / "replay" / "signals.csv")
+    lets = rtloop.simulate(_slow_step_app(name, overrun, profile), 2.5, tmp_path / "let")
+    assert lets.tasks["plant"].timing.overruns == 0
+    assert _rows(tmp_path / "let" / "signals.csv") != _rows(tmp_path / "run" / "signals.csv"), (
+        "the overruns changed the signals (else this test proves nothing beyond simulation)")
+
+
+class Noisy(rtloop.Runnable):
+    """Not deterministic: its output depends on a random draw (what a replay cannot reproduce)."""
+
+    n_inputs, n_outputs = 2, 2
+
+    def step(self, u, y) -> None:
+        y[:] = u + np.random.default_rng().random()
+
+
+def _clean_app(name: str, runnable: rtloop.Runnable | None = None) -> App:
+    from rt_test_runnables import Integrator, PiController
+
+    app = App(name)
+    controller = app.add_task("controller", PiController(2), period_ns=P)
+    plant = app.add_task("plant", runnable or Integrator(2), period_ns=2 * P)
+    app.connect(plant.y, controller.u[0:2])
+    app.connect(controller.y, plant.u)
+    app.port("setpoint", to=controller.u[2:4])
+    app.record(plant.y, controller.y)
+    return app
+
+
+def _edit(path: Path, row: int, column: int, value: str) -> None:
+    rows = _rows(path)
+    rows[row][column] = value
+    path.write_text("".join(",".join(cells) + "\n" for cells in rows))
+
+
+def test_a_difference_is_reported_with_its_cycle_task_values_and_inputs(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    writes = {("controller", 30): [("setpoint", [1.0, -1.0])]}
+    rtloop.simulate(_clean_app("replay_div"), 0.2, tmp_path / "run", port_writes=writes)
+    (tmp_path / "run" / "inputs.csv").write_text("task,cycle,port,values\ncontroller,30,setpoint,1.0 -1.0\n")
+    result = replay(tmp_path / "run", tmp_path / "same", app=_clean_app("replay_div"))
+    assert result.equal and result.rows_compared == result.rows_in_run == 201 and result.port_inputs == 1
+    _edit(tmp_path / "run" / "signals.csv", 101, 1, "0.125")  # plant.y[0] at t = 0.1 s: plant cycle 49
+    result = replay(tmp_path / "run", tmp_path / "diff", app=_clean_app("replay_div"))
+    assert not result.equal and result.rows_compared == 100
+    divergence = result.divergence
+    assert (divergence.t_s, divergence.task, divergence.cycle) == (0.1, "plant", 49)
+    assert divergence.signals[0][:2] == ("plant.y[0]", "0.125") and len(divergence.signals) == 1
+    assert divergence.inputs is not None and len(divergence.inputs) == 2 and divergence.inputs[0] != 0.0
+    assert "not deterministic" in divergence.describe()
+
+
+def test_a_model_that_is_not_deterministic_diverges_and_says_where(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    rtloop.simulate(_clean_app("replay_noisy", Noisy()), 0.05, tmp_path / "run")
+    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_noisy", Noisy()))
+    assert not result.equal and result.divergence is not None
+    assert (result.divergence.t_s, result.divergence.task, result.divergence.cycle) == (0.002, "plant", 0)
+
+
+def test_a_lost_timing_record_is_named_never_called_equal(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    rtloop.simulate(_clean_app("replay_gap"), 0.1, tmp_path / "run")
+    timing = tmp_path / "run" / "timing.csv"
+    timing.write_text("".join(line for line in timing.read_text().splitlines(keepends=True)
+                              if not line.startswith(("plant,20,", "plant,21,"))))
+    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_gap"))
+    assert not result.equal
+    assert result.cannot == ("from t = 0.04 s: timing.csv lacks plant cycles 20..21, which followed a cycle that "
+                             "ended in time: the replay cannot know what they did")
+    assert result.rows_compared == result.rows_in_run == 40  # every row before it, and equal
+
+
+def test_a_run_with_no_signal_rows_is_never_called_equal(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    rtloop.simulate(_clean_app("replay_empty"), 0.02, tmp_path / "run")
+    signals = tmp_path / "run" / "signals.csv"
+    signals.write_text(signals.read_text().splitlines(keepends=True)[0])
+    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_empty"))
+    assert not result.equal and "holds no rows" in result.cannot

@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
     _add_run_arguments(simulate)
 
-    replay = commands.add_parser("replay", help="re-simulate a run with its logged port inputs; compare signals")
+    replay = commands.add_parser("replay", help="re-simulate a run along its real timeline; compare signals bit for bit")
     replay.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="output folder of `rtloop run`")
     replay.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the replay's artifacts")
 
@@ -234,13 +234,20 @@ def _replay(args: argparse.Namespace) -> int:
     from rtloop.runtime.replay import replay
 
     result = replay(args.run_dir, args.out)
-    horizon = "the whole run" if result.first_miss_s is None else f"its first miss at t = {result.first_miss_s:g} s"
+    followed = (f"{result.skipped_releases} skipped releases, {result.stale_reads} stale reads and "
+                f"{result.port_inputs} port inputs followed")
+    for note in result.notes:
+        print(f"note: {note}", file=sys.stderr)
     if result.equal:
-        print(f"replay of {args.run_dir}: signals equal bit for bit up to {horizon} "
-              f"({result.rows_compared} rows); artifacts in {args.out}/")
+        print(f"replay of {args.run_dir}: signals equal bit for bit over the whole run ({result.rows_compared} rows; "
+              f"{followed}); artifacts in {args.out}/")
         return 0
-    print(f"replay of {args.run_dir}: signals differ from t = {result.first_difference_s:g} s "
-          f"(before {horizon}); artifacts in {args.out}/", file=sys.stderr)
+    if result.divergence is not None:
+        print(f"replay of {args.run_dir}: signals differ ({result.rows_compared} of {result.rows_in_run} rows equal "
+              f"first; {followed})\n{result.divergence.describe()}", file=sys.stderr)
+    if result.cannot is not None:
+        print(f"replay of {args.run_dir}: cannot reproduce the run {result.cannot} "
+              f"({result.rows_compared} rows before that equal)", file=sys.stderr)
     return EXIT_TASK_FAILED
 
 

@@ -1,44 +1,127 @@
-"""Replay: re-simulate a run with what entered it from outside, at the cycles it took effect.
+"""Replay: re-simulate a whole run offline, its timing faults included, and compare it bit for bit.
 
-A run writes ``inputs.csv`` (every new value a task took from a live input port: CLI,
-Python client, ROS 2 bridge) and ``replay.json`` (the app file and profile feeds).
-:func:`replay` rebuilds the app, simulates it with those values written to their
-ports just before the releases that took them, and compares its ``signals.csv`` with
-the run's: under logical execution time they agree bit for bit up to the run's first
-deadline miss (after a miss, the run itself departed from the logical timeline).
+A run leaves what its tasks really did beside its signals: ``timing.csv`` (every cycle
+run, so the releases skipped after an overrun show as gaps), ``reads.csv`` (every read of
+a connection that got an older sample than logical execution time promised: a stale
+read), ``inputs.csv`` (every value taken from a live port, with the cycle that took it)
+and ``replay.json`` (the app file and profile feeds). :func:`replay` rebuilds the app and
+simulates it along that real timeline (:class:`RunTimeline`): each task runs the cycles
+it ran, skips the ones it skipped, and reads the samples it read. Then the replay's
+``signals.csv`` equals the run's bit for bit over the whole run, however many misses it
+had; :func:`compare_signals` checks every row, and a difference comes back as a
+:class:`Divergence` (first cycle, task, signals on both sides, the inputs of that cycle).
+
+Where the replay cannot follow the run (a timing record the run lost, early cycles a
+``--keep`` run did not keep), :attr:`ReplayResult.cannot` says why and from where, and
+the result is not called equal.
 """
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
-from dataclasses import dataclass
+import shutil
+from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from rtloop.app.builder import App
 from rtloop.errors import AppError
-from rtloop.record.csvfiles import read_inputs_csv
-from rtloop.runtime.simulate import PortWrites, simulate
+from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
+from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
+
+DIVERGENCE_DIR = "divergence"
+"""Inside the replay's folder: the short second replay that captures the inputs of the first divergence."""
+
+
+@dataclass(frozen=True)
+class CycleRecord:
+    """One cycle of a task as the run's ``timing.csv`` holds it (times in ns since T0)."""
+
+    cycle: int
+    release_ns: int
+    start_ns: int
+    end_ns: int
+
+
+@dataclass(frozen=True)
+class Divergence:
+    """The first place where the replay differs from the run."""
+
+    t_s: float
+    """Time of the first ``signals.csv`` row that differs."""
+    task: str
+    """The task whose cycle produced the first differing value."""
+    cycle: int
+    """That cycle (its outputs hold from ``t_s`` if a ``y`` differs; its inputs are read at ``t_s`` if a ``u`` does)."""
+    signals: tuple[tuple[str, str, str], ...]
+    """(column, value in the run, value in the replay) of every column of that row that differs."""
+    inputs: tuple[float, ...] | None = None
+    """The task's ``u`` as the replay read it at that cycle (None: not captured)."""
+    run_log: tuple[str, ...] = ()
+    """What the run's logs say of that cycle: stale reads, port values taken, skips, lateness."""
+
+    def describe(self) -> str:
+        lines = [f"first difference at t = {self.t_s!r} s: task {self.task!r}, cycle {self.cycle}"]
+        lines += [f"  {name}: run {run} != replay {replayed}" for name, run, replayed in self.signals]
+        if self.inputs is not None:
+            lines.append(f"  inputs of that cycle in the replay: u = {list(self.inputs)!r}")
+        lines += [f"  run log: {entry}" for entry in self.run_log] or [
+            "  the run logged no fault at that cycle: a model that is not deterministic (the clock, "
+            "tick.start_ns, random numbers) or an input that entered unlogged"]
+        return "\n".join(lines)
 
 
 @dataclass(frozen=True)
 class ReplayResult:
     """How the replay compares with the run."""
 
+    rows_in_run: int
+    """Rows of the run's signals.csv."""
     rows_compared: int
-    """signals.csv rows compared (those before the run's first miss)."""
-    first_difference_s: float | None
-    """Time of the first row that differs, or None if every compared row is equal."""
-    first_miss_s: float | None
-    """Release time of the run's first deadline miss or skipped release (None: none)."""
+    """Rows compared and found equal, from the first."""
+    divergence: Divergence | None
+    """The first difference (None: none among the rows compared)."""
+    cannot: str | None = None
+    """Why the replay cannot reproduce the run from some point on, and where (None: it can)."""
+    skipped_releases: int = 0
+    """Releases the run skipped (overruns), followed by the replay."""
+    stale_reads: int = 0
+    """Stale reads of the run followed by the replay (the samples it actually read)."""
+    port_inputs: int = 0
+    """Port values the run took, fed back at the cycles that took them."""
+    notes: tuple[str, ...] = field(default=())
 
     @property
     def equal(self) -> bool:
-        return self.first_difference_s is None
+        """Every row of the run compared, and equal bit for bit (never True when nothing was compared)."""
+        return (self.cannot is None and self.divergence is None and self.rows_in_run > 0
+                and self.rows_compared == self.rows_in_run)
+
+    @property
+    def first_difference_s(self) -> float | None:
+        return None if self.divergence is None else self.divergence.t_s
 
 
-def load_replay_app(run_dir: Path) -> tuple[App, float]:
-    """The app of a run (from replay.json), with its feeds, and the run's duration."""
+# --- the run's logs --------------------------------------------------------------------------------
+
+
+def read_summary(run_dir: Path) -> dict[str, Any]:
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        raise AppError(f"{run_dir}: no summary.json; is it the output folder of `rtloop run`?")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as error:
+        raise AppError(f"{path}: not JSON ({error})") from None
+
+
+def load_replay_app(run_dir: Path) -> tuple[App, float | None]:
+    """The app of a run (from replay.json), with its feeds, and the run's ``--duration`` (None: none)."""
     from rtloop.app.appfile import load_app
 
     info_path = run_dir / "replay.json"
@@ -46,21 +129,12 @@ def load_replay_app(run_dir: Path) -> tuple[App, float]:
         raise AppError(f"{run_dir}: no replay.json; is it the output folder of `rtloop run`?")
     info = json.loads(info_path.read_text())
     if info.get("source", "<python>") == "<python>":
-        raise AppError(f"{run_dir}: the app was built in Python; call rtloop.runtime.replay.replay(app, ...)")
+        raise AppError(f"{run_dir}: the app was built in Python; call rtloop.runtime.replay.replay(run_dir, out, app)")
     app = load_app(info["source"])
     for port, feed in info.get("feeds", {}).items():
         app.feed(port, feed)
     duration_s = info.get("duration_s")
-    summary_path = run_dir / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    if (summary.get("recording") or {}).get("keep_s") is not None:
-        raise AppError(f"{run_dir}: recorded with --keep, so signals.csv holds a window, not the run from t = 0; "
-                       "replay needs a run recorded whole (--duration without --keep)")
-    if duration_s is None:  # a run until stopped: replay as long as it ran
-        duration_s = summary.get("elapsed_s") or 0.0
-        if not duration_s:
-            raise AppError(f"{run_dir}: the run had no --duration and its summary.json does not say how long it ran")
-    return app, float(duration_s)
+    return app, None if duration_s is None else float(duration_s)
 
 
 def port_writes(run_dir: Path) -> PortWrites:
@@ -77,58 +151,272 @@ def port_writes(run_dir: Path) -> PortWrites:
     return writes
 
 
-def first_miss_s(run_dir: Path) -> float | None:
-    """Release time (since T0) of the first cycle that ended after its deadline or followed a skip."""
-    summary = json.loads((run_dir / "summary.json").read_text())
-    periods = {name: task["period_ns"] for name, task in summary["tasks"].items()}
-    first: int | None = None
-    previous: dict[str, int] = {}
-    t0: int | None = None
-    rows = []
-    with open(run_dir / "timing.csv", newline="") as file:
-        for row in csv.DictReader(file):
-            rows.append((row["task"], int(row["cycle"]), int(row["release_ns"]), int(row["end_ns"])))
-            t0 = int(row["release_ns"]) if t0 is None else min(t0, int(row["release_ns"]))
-    for task, cycle, release, end in rows:
-        period = periods[task]
-        late = end > release + period
-        skipped = cycle != previous.get(task, -1) + 1
-        previous[task] = cycle
-        if late or skipped:
-            at = release - (t0 or 0) - (period if skipped else 0)
-            first = at if first is None else min(first, at)
-    return None if first is None else first / 1e9
+def read_timing(run_dir: Path, periods_ns: dict[str, int]) -> tuple[dict[str, list[CycleRecord]], int]:
+    """Each task's cycles from timing.csv (times since T0), in order, and T0 (ns, the run's clock)."""
+    path = run_dir / "timing.csv"
+    if not path.is_file():
+        raise AppError(f"{run_dir}: no timing.csv: the run's timeline is unknown")
+    cycles: dict[str, list[CycleRecord]] = {name: [] for name in periods_ns}
+    t0_ns: int | None = None
+    with open(path, newline="") as file:
+        for number, row in enumerate(csv.DictReader(file), start=2):
+            try:
+                task, cycle = row["task"], int(row["cycle"])
+                release, start, end = int(row["release_ns"]), int(row["start_ns"]), int(row["end_ns"])
+                period = periods_ns[task]
+            except (KeyError, TypeError, ValueError):
+                raise AppError(f"{path}:{number}: expected task,cycle,release_ns,start_ns,end_ns of a task "
+                               f"of the app ({', '.join(periods_ns)})") from None
+            t0_ns = release - cycle * period if t0_ns is None else t0_ns
+            if release - cycle * period != t0_ns:
+                raise AppError(f"{path}:{number}: release {release} of {task} cycle {cycle} is off its timeline")
+            cycles[task].append(CycleRecord(cycle, release - t0_ns, start - t0_ns, end - t0_ns))
+    for records in cycles.values():
+        records.sort(key=lambda record: record.cycle)
+    return cycles, t0_ns or 0
 
 
-def compare_signals(run_csv: Path, replay_csv: Path, until_s: float | None) -> tuple[int, float | None]:
+# --- the run's timeline, followed ------------------------------------------------------------------
+
+
+class RunTimeline(LetTimeline):
+    """A run's real timeline for :func:`~rtloop.runtime.simulate.simulate`: its cycles and its reads.
+
+    Each task runs exactly the cycles ``timing.csv`` holds. At a cycle ``reads.csv`` lists,
+    the task first reads as LET says, then each late connection is given the sample the run
+    got instead: the writer's outputs published with that stamp (kept when the replayed
+    writer published them, and only those a logged read needs), or, when the run found no
+    sample, the values its inputs held before the read.
+    """
+
+    def __init__(self, app: App, cycles: dict[str, list[int]],
+                 reads: list[tuple[str, int, str, int | None, int]]) -> None:
+        self.periods_ns = {name: task.config.period_ns for name, task in app.tasks.items()}
+        self.cycles = cycles
+        self._next: dict[str, dict[int, int]] = {
+            name: dict(pairwise(run)) for name, run in cycles.items()}
+        self.spans: dict[tuple[str, str], list[tuple[slice, slice]]] = {}
+        for connection in app.connections:
+            key = (connection.target.task, connection.source.task)
+            self.spans.setdefault(key, []).append((connection.source.slice, connection.target.slice))
+        self.reads: dict[tuple[str, int], list[tuple[str, int | None]]] = {}
+        self.uses: dict[tuple[str, int], int] = {}
+        for task, cycle, writer, stamp_ns, _due_ns in reads:
+            if (task, writer) not in self.spans:
+                raise AppError(f"reads.csv: {task} has no connection from {writer}")
+            self.reads.setdefault((task, cycle), []).append((writer, stamp_ns))
+            if stamp_ns is not None:
+                self.uses[(writer, stamp_ns)] = self.uses.get((writer, stamp_ns), 0) + 1
+        self.kept: dict[tuple[str, int], np.ndarray] = {}
+        self.problems: list[tuple[int, str]] = []
+        """(release since T0, what could not be followed) — a sample the replayed writer never published."""
+        self.captured: dict[tuple[str, int], np.ndarray] = {}
+        self.capture: set[tuple[str, int]] = set()
+        """(task, cycle) whose inputs to keep in :attr:`captured` (a divergence report)."""
+
+    def first_cycle(self, task: str) -> int | None:
+        run = self.cycles.get(task)
+        return run[0] if run else None
+
+    def next_cycle(self, task: str, cycle: int) -> int | None:
+        return self._next[task].get(cycle)
+
+    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, u: np.ndarray) -> None:
+        late = self.reads.get((task, cycle))
+        if late is None:
+            io.read_inputs(release_ns)
+        else:
+            before = u.copy()
+            io.read_inputs(release_ns)
+            for writer, stamp_ns in late:
+                sample = None if stamp_ns is None else self._take(writer, stamp_ns)
+                if stamp_ns is not None and sample is None:
+                    self.problems.append((cycle * self.periods_ns[task], (
+                        f"{task} cycle {cycle} read {writer}'s sample stamped {stamp_ns} ns, which the "
+                        f"replayed {writer} never published (its timing record is missing)")))
+                    continue
+                for source, target in self.spans[(task, writer)]:
+                    u[target] = before[target] if sample is None else sample[source]
+        if (task, cycle) in self.capture:
+            self.captured[(task, cycle)] = u.copy()
+
+    def _take(self, writer: str, stamp_ns: int) -> np.ndarray | None:
+        key = (writer, stamp_ns)
+        sample = self.kept.get(key)
+        if sample is not None:
+            self.uses[key] -= 1
+            if not self.uses[key]:
+                del self.kept[key]  # nothing later needs it: the kept samples stay few
+        return sample
+
+    def published(self, task: str, cycle: int, y: np.ndarray) -> None:
+        key = (task, (cycle + 1) * self.periods_ns[task])
+        if key in self.uses:
+            self.kept[key] = y.copy()
+
+
+def check_timeline(cycles: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
+                   dropped: dict[str, int]) -> tuple[int, str] | None:
+    """The first place where ``timing.csv`` cannot be the whole timeline: (release since T0, why)."""
+    first: tuple[int, str] | None = None
+    for task, records in cycles.items():
+        period = periods_ns[task]
+        lost = f" (its timing ring dropped {dropped[task]} records)" if dropped.get(task) else ""
+        problem = None
+        if records and records[0].cycle != 0:
+            problem = (0, f"timing.csv starts {task} at cycle {records[0].cycle}, not 0{lost}")
+        for before, after in pairwise(records):
+            if problem is not None:
+                break
+            if after.cycle == before.cycle:
+                problem = (after.release_ns, f"timing.csv holds {task} cycle {after.cycle} twice")
+            elif after.cycle > before.cycle + 1 and before.end_ns <= before.release_ns + period:
+                # releases are skipped only after an overrun: these cycles ran, unrecorded
+                problem = ((before.cycle + 1) * period,
+                           f"timing.csv lacks {task} cycles {before.cycle + 1}..{after.cycle - 1}, which "
+                           f"followed a cycle that ended in time{lost}: the replay cannot know what they did")
+        if problem is not None and (first is None or problem[0] < first[0]):
+            first = problem
+    return first
+
+
+# --- comparing -------------------------------------------------------------------------------------
+
+
+def _column_owners(app: App) -> list[tuple[str, str]]:
+    """(task, side) of each signals.csv column, in order."""
+    owners = []
+    for ref in app.recorded:
+        runnable = app.tasks[ref.task].runnable
+        owners += [(ref.task, ref.side)] * len(column_names(ref, runnable.input_names, runnable.output_names))
+    return owners
+
+
+def compare_signals(run_csv: Path, replay_csv: Path, app: App,
+                    until_ns: int | None = None) -> tuple[int, int, Divergence | None]:
+    """(rows in the run, rows equal from the first, the first divergence) up to ``until_ns`` (None: all)."""
     with open(run_csv, newline="") as a, open(replay_csv, newline="") as b:
         run_rows, replay_rows = list(csv.reader(a)), list(csv.reader(b))
-    if run_rows[:1] != replay_rows[:1]:
-        return 0, 0.0
-    compared = 0
-    for run_row, replay_row in zip(run_rows[1:], replay_rows[1:], strict=False):
-        t = float(run_row[0])
-        if until_s is not None and t > until_s:  # values at the miss's release were computed in time
-            break
-        if run_row != replay_row:
-            return compared, t
-        compared += 1
-    return compared, None
+    if not run_rows:
+        return 0, 0, None
+    header, rows = run_rows[0], run_rows[1:]
+    if until_ns is not None:
+        rows = [row for row in rows if round(float(row[0]) * 1e9) < until_ns]
+    if replay_rows[:1] != [header]:
+        got = replay_rows[0] if replay_rows else []
+        return len(rows), 0, Divergence(0.0, "", 0, (("columns", ",".join(header), ",".join(got)),))
+    owners = _column_owners(app)
+    periods = {name: task.config.period_ns for name, task in app.tasks.items()}
+    for index, run_row in enumerate(rows):
+        replay_row = replay_rows[index + 1] if index + 1 < len(replay_rows) else None
+        if replay_row == run_row:
+            continue
+        t_ns = round(float(run_row[0]) * 1e9)
+        if replay_row is None or replay_row[0] != run_row[0]:
+            other = "none" if replay_row is None else f"t = {replay_row[0]}"
+            return len(rows), index, Divergence(float(run_row[0]), "", 0, (("row", f"t = {run_row[0]}", other),))
+        differing = [(header[i], run_row[i], replay_row[i]) for i in range(1, len(header))
+                     if run_row[i] != replay_row[i]]
+        # the earliest cycle behind a differing column: a y holds from (k+1)·P, a u was read at k·P
+        causes = []
+        for i in range(1, len(header)):
+            if run_row[i] != replay_row[i]:
+                task, side = owners[i - 1]
+                cycle = t_ns // periods[task] - (1 if side == "y" else 0)
+                causes.append((cycle * periods[task], task, cycle))
+        _, task, cycle = min(causes)
+        return len(rows), index, Divergence(float(run_row[0]), task, cycle, tuple(differing))
+    return len(rows), len(rows), None
+
+
+def _run_log_of(task: str, cycle: int, timeline: RunTimeline, writes: PortWrites,
+                records: list[CycleRecord], period_ns: int) -> tuple[str, ...]:
+    entries = []
+    by_cycle = {record.cycle: (i, record) for i, record in enumerate(records)}
+    if cycle in by_cycle:
+        i, record = by_cycle[cycle]
+        if i and records[i - 1].cycle != cycle - 1:
+            entries.append(f"it followed skipped releases (cycles {records[i - 1].cycle + 1}..{cycle - 1})")
+        if record.end_ns > record.release_ns + period_ns:
+            entries.append(f"it ended {(record.end_ns - record.release_ns) / 1e6:.3f} ms after its release "
+                           f"(period {period_ns / 1e6:g} ms)")
+    else:
+        entries.append("the run has no timing record of it")
+    for writer, stamp in timeline.reads.get((task, cycle), ()):
+        got = "no sample at all" if stamp is None else f"the sample stamped {stamp / 1e9!r} s"
+        entries.append(f"stale read of {writer}: got {got}")
+    for port, values in writes.get((task, cycle), ()):
+        entries.append(f"took {values!r} from port {port!r}")
+    return tuple(entries)
+
+
+# --- replay ----------------------------------------------------------------------------------------
 
 
 def replay(run_dir: str | Path, out: str | Path, app: App | None = None) -> ReplayResult:
-    """Re-simulate the run in ``run_dir`` into ``out``; compare the signals up to its first miss."""
+    """Re-simulate the run in ``run_dir`` along its real timeline into ``out``; compare every signal row."""
     run_dir, out = Path(run_dir), Path(out)
+    summary = read_summary(run_dir)
     if app is None:
-        app, duration_s = load_replay_app(run_dir)
-    else:
-        duration_s = float(json.loads((run_dir / "replay.json").read_text())["duration_s"] or 0.0) or 1e8
-    summary = json.loads((run_dir / "summary.json").read_text())
-    cycles = max((t.get("cycles", 0) + t.get("overruns", 0)) * t["period_ns"] for t in summary["tasks"].values())
-    duration_s = min(duration_s, cycles / 1e9) if cycles else duration_s  # a run stopped early
-    simulate(app, duration_s, out, port_writes=port_writes(run_dir))
-    miss_s = first_miss_s(run_dir)
+        app, _duration_s = load_replay_app(run_dir)
+    pristine = copy.deepcopy(app)  # runnables as before any prerun, for a second pass
+    recording = summary.get("recording") or {}
+    if recording.get("keep_s") is not None:
+        raise AppError(f"{run_dir}: recorded with --keep, so its files hold a window, not the run from t = 0; "
+                       "the replay of a window needs the state kept at its start (not recorded by this run)")
+    periods = {name: task.config.period_ns for name, task in app.tasks.items()}
+    records, _t0_ns = read_timing(run_dir, periods)
+    dropped = {name: int(task.get("timing_samples_dropped") or 0) for name, task in summary.get("tasks", {}).items()}
+    try:
+        reads = read_reads_csv(run_dir / "reads.csv") if (run_dir / "reads.csv").exists() else []
+    except ValueError as error:
+        raise AppError(str(error)) from None
+    notes = []
+    if app.connections and not (run_dir / "reads.csv").exists():
+        notes.append("the run has no reads.csv (recorded by an older rtloop): stale reads are not followed")
+    for task, count in (recording.get("reads_dropped") or {}).items():
+        notes.append(f"the run's read log of {task} dropped {count} stale reads (ring full): they are not followed")
+    timeline = RunTimeline(app, {name: [r.cycle for r in run] for name, run in records.items()}, reads)
+    writes = port_writes(run_dir)
+    last_release_ns = max((run[-1].release_ns + periods[name] for name, run in records.items() if run), default=0)
+    if not last_release_ns:
+        raise AppError(f"{run_dir}: timing.csv holds no cycle: nothing to replay")
+    simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=timeline)
+    gap = check_timeline(records, periods, dropped)
+    problems = sorted(timeline.problems + ([gap] if gap else []))
+    cannot = None
+    if problems:
+        at_ns, why = problems[0]
+        cannot = f"from t = {at_ns / 1e9!r} s: {why}"
+    skipped = sum(b.cycle - a.cycle - 1 for run in records.values() for a, b in pairwise(run))
+    common = {"cannot": cannot, "skipped_releases": skipped, "stale_reads": len(reads),
+              "port_inputs": sum(len(v) for v in writes.values()), "notes": tuple(notes)}
     if not (run_dir / "signals.csv").exists():
-        return ReplayResult(0, None, miss_s)
-    compared, difference = compare_signals(run_dir / "signals.csv", out / "signals.csv", miss_s)
-    return ReplayResult(compared, difference, miss_s)
+        return ReplayResult(0, 0, None, **{**common, "cannot": cannot or "the run recorded no signals.csv: "
+                                           "nothing to compare"})
+    until_ns = problems[0][0] if problems else None
+    rows, equal_rows, divergence = compare_signals(run_dir / "signals.csv", out / "signals.csv", app, until_ns)
+    if not rows and common["cannot"] is None:
+        common["cannot"] = "the run's signals.csv holds no rows: nothing to compare"
+    if divergence is not None and divergence.task:
+        divergence = _explain(divergence, pristine, run_dir, out, timeline, writes, records)
+    return ReplayResult(rows, equal_rows, divergence, **common)
+
+
+def _explain(divergence: Divergence, app: App, run_dir: Path, out: Path, timeline: RunTimeline,
+             writes: PortWrites, records: dict[str, list[CycleRecord]]) -> Divergence:
+    """Add the inputs of the diverging cycle: replay again up to it, keeping its ``u``."""
+    task, cycle = divergence.task, divergence.cycle
+    period_ns = app.tasks[task].config.period_ns
+    again = RunTimeline(app, timeline.cycles, read_reads_csv(run_dir / "reads.csv")
+                        if (run_dir / "reads.csv").exists() else [])
+    again.capture.add((task, cycle))
+    scratch = out / DIVERGENCE_DIR
+    try:
+        simulate(app, (cycle + 1) * period_ns / 1e9, scratch, port_writes=writes, timeline=again)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    inputs = again.captured.get((task, cycle))
+    log = _run_log_of(task, cycle, timeline, writes, records.get(task, []), period_ns)
+    return Divergence(divergence.t_s, task, cycle, divergence.signals,
+                      None if inputs is None else tuple(inputs.tolist()), log)

@@ -59,10 +59,10 @@ class _SimTask:
         self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
         self.devices.activate()
 
-    def step(self, cycle: int, release_ns: int) -> None:
+    def step(self, cycle: int, release_ns: int, timeline: LetTimeline) -> None:
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
-        self.io.read_inputs(release_ns)
+        timeline.read_inputs(self.name, cycle, release_ns, self.io, self.u)
         started = time.perf_counter_ns()
         if self.devices:  # as in the task's loop: commands that hold from now, then readings
             self.devices.at_release(cycle)
@@ -71,6 +71,7 @@ class _SimTask:
             self.devices.after_step(cycle)
         self.host_exec.add(time.perf_counter_ns() - started)
         self.io.publish_outputs(cycle, release_ns + self.period_ns)
+        timeline.published(self.name, cycle, self.y)
         # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
         # What it cost on this host is kept apart (host_exec_ns), never taken for timing.
         self.records.append((cycle, release_ns, release_ns, release_ns))
@@ -96,12 +97,37 @@ PortWrites = dict[tuple[str, int], list[tuple[str, list[float]]]]
 """(task, cycle) → the (port, values) a run's task took at that cycle (its inputs.csv)."""
 
 
+class LetTimeline:
+    """The logical timeline: every task runs every release from cycle 0 and reads what LET promises.
+
+    A replay (:mod:`rtloop.runtime.replay`) follows a run's real timeline instead: the cycles
+    it ran and skipped, and the older samples its late reads got.
+    """
+
+    def first_cycle(self, task: str) -> int | None:
+        """The first cycle ``task`` runs (None: it runs none)."""
+        return 0
+
+    def next_cycle(self, task: str, cycle: int) -> int | None:
+        """The cycle ``task`` runs after ``cycle`` (None: no more)."""
+        return cycle + 1
+
+    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, u: np.ndarray) -> None:
+        """Read ``task``'s inputs for the release of ``cycle`` into ``u`` (the hot path's read)."""
+        io.read_inputs(release_ns)
+
+    def published(self, task: str, cycle: int, y: np.ndarray) -> None:
+        """``task`` published ``y`` as the outputs of ``cycle`` (-1: its initial outputs)."""
+
+
 def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
-             port_writes: PortWrites | None = None, keep_s: float | None = None) -> RunSummary:
+             port_writes: PortWrites | None = None, keep_s: float | None = None,
+             timeline: LetTimeline | None = None) -> RunSummary:
     """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`.
 
     ``port_writes`` replays what entered a real run from outside: each value is written
-    to its port just before the task's release that took it in the run.
+    to its port just before the task's release that took it in the run. ``timeline`` says
+    which cycles run and what they read (default: :class:`LetTimeline`).
     """
     out = Path(out)
     app.validate()
@@ -120,6 +146,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     recorder.write_replay_info(duration_s)
     t0_ns = SIMULATION_T0_NS
     port_writes = port_writes or {}
+    timeline = timeline or LetTimeline()
     recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
     tasks: dict[str, _SimTask] = {}
@@ -134,12 +161,15 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
             tasks[name].devices.configure()
             tasks[name].runnable.prerun()
             tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
+            timeline.published(name, -1, tasks[name].y)
         for task in tasks.values():
             task.start(layout, t0_ns, end_ns)
         phase = "step"
         # (release time, task order, cycle, name): a heap of the next release of each task
         order = {name: i for i, name in enumerate(tasks)}
-        releases = [(t0_ns, order[name], 0, name) for name in tasks]
+        firsts = {name: timeline.first_cycle(name) for name in tasks}
+        releases = [(t0_ns + first * tasks[name].period_ns, order[name], first, name)
+                    for name, first in firsts.items() if first is not None]
         heapq.heapify(releases)
         steps = 0
         while releases and releases[0][0] < end_ns:
@@ -147,11 +177,13 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
             for port, values in port_writes.get((current, cycle), ()):
                 layout.input_ports[port].write(np.asarray(values, dtype=np.float64))
             try:
-                tasks[current].step(cycle, release_ns)
+                tasks[current].step(cycle, release_ns, timeline)
             except StopRequested as request:  # a model ended the run: stop every task, in order
                 stopped_by = f"task {current} at cycle {cycle}: {request}"
                 break
-            heapq.heappush(releases, (release_ns + tasks[current].period_ns, rank, cycle + 1, current))
+            following = timeline.next_cycle(current, cycle)
+            if following is not None:
+                heapq.heappush(releases, (t0_ns + following * tasks[current].period_ns, rank, following, current))
             steps += 1
             if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0:
                 _drain(tasks, recorder)
