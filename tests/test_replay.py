@@ -199,7 +199,7 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
     assert process.returncode == 0, err
     misses, stale = _faults(run_dir)
     assert misses and stale, f"the run had {misses} misses and {stale} stale reads: nothing to prove"
-    assert len(_rows(run_dir / "inputs.csv")) - 1 >= 10, "the setpoints entered the run"
+    assert len(_rows(run_dir / "inputs.csv")) - 1 >= 5, "the setpoints entered the run"
     replayed = _replay_cli(run_dir, tmp_path / "replay", rtloop_env)
     assert replayed.returncode == 0, replayed.stdout + replayed.stderr
     assert "equal bit for bit over the whole run" in replayed.stdout
