@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
     _add_run_arguments(simulate)
 
-    replay = commands.add_parser("replay", help="re-simulate a run along its real timeline; compare signals bit for bit")
+    replay = commands.add_parser("replay", help="re-simulate a run along its real timeline; compare its signals")
     replay.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="output folder of `rtloop run`")
     replay.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the replay's artifacts")
 
