@@ -8,7 +8,7 @@ and ``replay.json`` (the app file and profile feeds). :func:`replay` rebuilds th
 simulates it along that real timeline (:class:`RunTimeline`): each task runs the cycles
 it ran, skips the ones it skipped, and reads the samples it read. Then the replay's
 ``signals.csv`` equals the run's bit for bit over the whole run, however many misses it
-had; :func:`compare_signals` checks every row, and a difference comes back as a
+had; :func:`compare_replay` checks every row, and a difference comes back as a
 :class:`Divergence` (first cycle, task, signals on both sides, the inputs of that cycle).
 
 Where the replay cannot follow the run (a timing record the run lost, early cycles a
@@ -292,7 +292,7 @@ def _column_owners(app: App) -> list[tuple[str, str]]:
     return owners
 
 
-def compare_signals(run_csv: Path, replay_csv: Path, app: App,
+def compare_replay(run_csv: Path, replay_csv: Path, app: App,
                     until_ns: int | None = None) -> tuple[int, int, Divergence | None]:
     """(rows in the run, rows equal from the first, the first divergence) up to ``until_ns`` (None: all)."""
     with open(run_csv, newline="") as a, open(replay_csv, newline="") as b:
@@ -350,6 +350,43 @@ def _run_log_of(task: str, cycle: int, timeline: RunTimeline, writes: PortWrites
     return tuple(entries)
 
 
+# --- a run against its plain simulation (the logical timeline) ------------------------------------
+
+
+def first_miss_s(run_dir: Path) -> float | None:
+    """Release time (since T0) of the run's first cycle that ended after its deadline or followed a skip:
+    up to there a run equals its plain simulation (the logical timeline); its replay goes further."""
+    periods = {name: task["period_ns"] for name, task in read_summary(run_dir)["tasks"].items()}
+    records, _t0_ns = read_timing(run_dir, periods)
+    first: int | None = None
+    for task, run in records.items():
+        previous = -1
+        for record in run:
+            skipped = record.cycle != previous + 1
+            previous = record.cycle
+            if record.end_ns > record.release_ns + periods[task] or skipped:
+                at = record.release_ns - (periods[task] if skipped else 0)
+                first = at if first is None else min(first, at)
+    return None if first is None else first / 1e9
+
+
+def compare_signals(run_csv: Path, other_csv: Path, until_s: float | None) -> tuple[int, float | None]:
+    """(rows equal from the first, time of the first that differs or None) of two signals.csv, up to ``until_s``."""
+    with open(run_csv, newline="") as a, open(other_csv, newline="") as b:
+        run_rows, other_rows = list(csv.reader(a)), list(csv.reader(b))
+    if run_rows[:1] != other_rows[:1]:
+        return 0, 0.0
+    compared = 0
+    for run_row, other_row in zip(run_rows[1:], other_rows[1:], strict=False):
+        t = float(run_row[0])
+        if until_s is not None and t > until_s:  # values at the miss's release were computed in time
+            break
+        if run_row != other_row:
+            return compared, t
+        compared += 1
+    return compared, None
+
+
 # --- replay ----------------------------------------------------------------------------------------
 
 
@@ -395,7 +432,7 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None) -> Repl
         return ReplayResult(0, 0, None, **{**common, "cannot": cannot or "the run recorded no signals.csv: "
                                            "nothing to compare"})
     until_ns = problems[0][0] if problems else None
-    rows, equal_rows, divergence = compare_signals(run_dir / "signals.csv", out / "signals.csv", app, until_ns)
+    rows, equal_rows, divergence = compare_replay(run_dir / "signals.csv", out / "signals.csv", app, until_ns)
     if not rows and common["cannot"] is None:
         common["cannot"] = "the run's signals.csv holds no rows: nothing to compare"
     if divergence is not None and divergence.task:

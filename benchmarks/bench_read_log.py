@@ -1,0 +1,173 @@
+"""The cost of the read log (replay's record of stale reads) per cycle: with it, and as before it, in one run.
+
+A task with connections logs each read that did not get the sample logical execution time
+promised (``reads.csv``). Its promise is nothing extra in a clean cycle, one 4-word
+record in a faulty one. Measured here, in one process pinned to a CPU under SCHED_FIFO,
+for the compiled hot path and its Python twin, with the log attached and without it (a
+task without the log is what every task was before it):
+
+1. ``read_inputs`` of 1 and 4 connections in a clean cycle (every writer published the
+   sample due) and in a stale one (every writer is one period late: a record per read);
+2. the whole no-op iteration ``begin(); step(u, y); finish()`` of a task with one clean
+   connection, releases in the past (``clock_nanosleep`` returns at once).
+
+Figures are medians of 11 batches (µs per call); the ring is drained between batches.
+
+Usage (as root)::
+
+    python benchmarks/bench_read_log.py
+    python benchmarks/bench_read_log.py --repeats 4000 --json read_log.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_json
+
+from rtloop import rt
+from rtloop.ipc import hotpath
+from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+from rtloop.runnable import TickInfo
+from rtloop.runtime.task import task_segment_size
+from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
+
+P = 1_000
+RING = 1 << 16
+
+
+class Rig:
+    def __init__(self, n_writers: int) -> None:
+        self.token, self.made = new_run_token(), []
+        self.writers = [self._make(f"w{i}", LetChannel.size_bytes(1, 8)) for i in range(n_writers)]
+        self.channels = [LetChannel.initialise(w, 1, 8) for w in self.writers]
+        for channel in self.channels:  # samples stamped 0 and P: a read at P is clean, one at 2P is stale
+            channel.publish(0, np.array([1.0]))
+            channel.publish(P, np.array([2.0]))
+
+    def _make(self, what: str, size: int) -> Segment:
+        segment = Segment.create("bench_readlog", os.getpid(), self.token, what, size)
+        self.made.append(segment)
+        return segment
+
+    def task(self, kind: str, n_inputs: int, with_log: bool) -> tuple[Any, RecordRing | None, RecordRing]:
+        """The per-cycle work of a reader of the first ``n_inputs`` writers (C or Python)."""
+        log = self._make(f"log{len(self.made)}", RecordRing.size_bytes(RING, READ_LOG_WIDTH)) if with_log else None
+        if log is not None:
+            RecordRing.initialise(log, RING, READ_LOG_WIDTH)
+        control = self._make(f"control{len(self.made)}", CONTROL_WORDS * 8)
+        segment = self._make(f"task{len(self.made)}", task_segment_size(RING))
+        status = WordBlock(segment, 0, STATUS_WORDS)
+        timing = RecordRing.initialise(segment, RING, 4, STATUS_WORDS * 8)
+        plan = TaskWiringPlan(
+            inputs=tuple(InputLink(w.name, slice(0, 1), slice(i, i + 1), P, f"w{i}")
+                         for i, w in enumerate(self.writers[:n_inputs])),
+            read_log=log.name if log is not None else None,
+            segments=tuple(w.name for w in self.writers[:n_inputs]) + ((log.name,) if log is not None else ()))
+        wiring = TaskWiring(plan, np.zeros(max(n_inputs, 1)), np.zeros(0), status)
+        os.environ[hotpath.PURE_PYTHON_ENV] = "1" if kind == "python" else "0"
+        work = hotpath.cycle_work(TickInfo(), wiring, WordBlock(control, 0, CONTROL_WORDS), status, timing, P,
+                                  catch_up=True)
+        return work, (RecordRing(log) if log is not None else None), timing
+
+    def close(self) -> None:
+        for segment in self.made:
+            segment.unlink()
+
+
+def median_us(call: Any, repeats: int, rings: list[RecordRing | None]) -> float:
+    samples = []
+    for _ in range(11):
+        for ring in rings:
+            if ring is not None:
+                ring.drain()
+        started = time.perf_counter_ns()
+        for _ in range(repeats):
+            call()
+        samples.append((time.perf_counter_ns() - started) / repeats)
+    return float(np.median(samples)) / 1000
+
+
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    os.sched_setaffinity(0, {args.cpu})
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))
+        scheduling = f"SCHED_FIFO {args.priority}"
+    except PermissionError:
+        scheduling = "SCHED_OTHER (no privileges)"
+    kinds = ["rtloop python"] + (["rtloop C"] if hotpath.c_built() else [])
+    rig = Rig(4)
+    results: dict[str, dict[str, float]] = {}
+    try:
+        for kind in kinds:
+            short = "python" if kind == "rtloop python" else "c"
+            row: dict[str, float] = {}
+            for n in (1, 4):
+                for with_log in (False, True):
+                    work, log, _timing = rig.task(short, n, with_log)
+                    work.start(0, 2**62, 0)
+                    label = "read log" if with_log else "no read log (before)"
+                    row[f"{n} conn, clean, {label}"] = median_us(lambda w=work: w.read_inputs(P), args.repeats, [log])
+                    row[f"{n} conn, stale, {label}"] = median_us(lambda w=work: w.read_inputs(2 * P), args.repeats,
+                                                                 [log])
+                    work.close()
+            step = NoOp().step
+            u = y = np.zeros(0)
+            for with_log in (False, True):
+                work, log, timing = rig.task(short, 1, with_log)
+                work.start(rt.now_ns() - 10_000_000_000, 2**62, 0)
+
+                def iterate(w=work, step=step, u=u, y=y) -> None:
+                    w.begin()
+                    step(u, y)
+                    w.finish()
+
+                label = "read log" if with_log else "no read log (before)"
+                row[f"no-op iteration, 1 conn, {label}"] = median_us(iterate, min(args.repeats, 5000), [log, timing])
+                work.close()
+            results[kind] = row
+    finally:
+        rig.close()
+        os.environ.pop(hotpath.PURE_PYTHON_ENV, None)
+    return {"machine": machine_facts(), "scheduling": scheduling, "cpu": args.cpu, "repeats": args.repeats,
+            "costs_us": results}
+
+
+def report_markdown(result: dict[str, Any]) -> str:
+    kinds = list(result["costs_us"])
+    cases = list(next(iter(result["costs_us"].values())))
+    rows = [[case, *(f"{result['costs_us'][kind][case]:.3f}" for kind in kinds)] for case in cases]
+    title = (f"#### Read log: µs per call, medians of 11 × {result['repeats']} calls, CPU {result['cpu']}, "
+             f"{result['scheduling']}")
+    return "\n".join([title, "", markdown_table(["case", *kinds], rows), "", facts_markdown(result["machine"])])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=4000, help="calls per batch (at most 65536)")
+    parser.add_argument("--cpu", type=int, default=max(os.sched_getaffinity(0)))
+    parser.add_argument("--priority", type=int, default=80)
+    parser.add_argument("--json", metavar="PATH")
+    args = parser.parse_args(argv)
+    if not 0 < args.repeats <= RING:
+        parser.error(f"--repeats must be 1..{RING}")
+    result = measure(args)
+    print(report_markdown(result))
+    if args.json:
+        write_json(args.json, result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
