@@ -226,11 +226,15 @@ def test_port_read_starts_with_the_newest_sample_unless_asked_for_the_queue(tmp_
         for tick in range(10):
             queue.push(tick, np.array([float(tick), 0.0]))
         assert main(["port", "read", app.name, "out", "--count", "1"]) == 0
-        assert capsys.readouterr().out.split()[1] == "9.0"  # now, not ten ticks ago
+        header, line = capsys.readouterr().out.splitlines()
+        assert header.split() == ["t_s", "c.y[0]", "c.y[1]"]  # a header names the columns
+        assert line.split()[1] == "9"  # now, not ten ticks ago
         for tick in range(10, 13):
             queue.push(tick, np.array([float(tick), 0.0]))
         assert main(["port", "read", app.name, "out", "--count", "2", "--queued"]) == 0
-        assert [line.split()[1] for line in capsys.readouterr().out.splitlines()] == ["10.0", "11.0"]
+        lines = capsys.readouterr().out.splitlines()[1:]
+        assert [line.split()[1] for line in lines] == ["10", "11"]
+        assert len({len(line) for line in lines}) == 1  # fixed-width columns: nothing jumps
     finally:
         layout.close()
 
@@ -265,3 +269,23 @@ def test_summary_says_whether_cpu_dma_latency_was_held(tmp_path: Path) -> None:
     except OSError:
         can_hold = False
     assert summary["machine"]["cpu_dma_latency_held"] is can_hold
+
+
+def test_port_write_mistakes_are_said_in_plain_words() -> None:
+    from rt_test_runnables import Gain
+    from rtloop.ipc.ports import connect_app
+
+    app = App(_unique("writer"))
+    task = app.add_task("g", Gain(1), period_ns=1_000_000)
+    app.port("setpoint", to=task.u[0], value_range=(-1.0, 1.0))
+    layout = AppLayout.create(app)
+    try:
+        running = connect_app(app.name)
+        with pytest.raises(PortValueError, match=r"takes 1 value, got 2$"):
+            running.write("setpoint", [0.1, 0.2])
+        with pytest.raises(PortValueError, match=r"value 7\.0 at index 0 is outside its range \[-1\.0, 1\.0\]$"):
+            running.write("setpoint", np.array([7.0]))
+        with pytest.raises(PortValueError, match=r"has no port 'setpiont'; did you mean 'setpoint'\?"):
+            running.write("setpiont", [0.1])
+    finally:
+        layout.close()

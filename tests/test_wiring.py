@@ -321,7 +321,8 @@ def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path
         read = subprocess.run([*rtloop, "port", "read", "jiwy", "angles", "--count", "5"], capture_output=True,
                               text=True, timeout=20)
         assert read.returncode == 0, read.stderr
-        lines = read.stdout.strip().splitlines()
+        header, *lines = read.stdout.strip().splitlines()
+        assert header.split() == ["t_s", "plant.y[0]", "plant.y[1]"]
         assert len(lines) == 5 and all(len(line.split()) == 3 for line in lines)
         assert app.ports["setpoint"]["direction"] == "in"
     finally:

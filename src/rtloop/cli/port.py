@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import time
 
 from rtloop.ipc.ports import connect_app, scan_registries
@@ -28,11 +29,28 @@ def cli_port(args: argparse.Namespace) -> int:
     with app.reader(args.port) as reader:
         if not args.queued:
             reader.skip_to_newest()  # what the app sends now, not what queued up before anyone read
+        names = element_names(app.ports[args.port]["signal"])
+        print("t_s".rjust(TIME_WIDTH) + "".join(name.rjust(VALUE_WIDTH) for name in names), flush=True)
         while printed < args.count:
             ticks, rows = reader.read(args.count - printed)
-            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):
-                print(f"{tick * reader.period_ns / 1e9:.6f} " + " ".join(repr(v) for v in row), flush=True)
+            for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):  # fixed columns: nothing jumps
+                print(f"{tick * reader.period_ns / 1e9:{TIME_WIDTH}.6f}"
+                      + "".join(f"{value:{VALUE_WIDTH}.8g}" for value in row), flush=True)
             printed += len(ticks)
             if not len(ticks):
                 time.sleep(0.02)
     return 0
+
+
+TIME_WIDTH = 12
+VALUE_WIDTH = 16
+
+
+def element_names(signal: str) -> list[str]:
+    """``plant.y[0:2]`` → ``["plant.y[0]", "plant.y[1]"]`` (the columns of ``port read``)."""
+    match = re.fullmatch(r"(\w+)\.([uy])\[(\d+)(?::(\d+))?\]", signal)
+    if match is None:
+        return [signal]
+    task, side, start, stop = match.groups()
+    stop_index = int(stop) if stop is not None else int(start) + 1
+    return [f"{task}.{side}[{index}]" for index in range(int(start), stop_index)]

@@ -18,6 +18,7 @@ caller's own uid are considered; root acts on another user's app only when it sa
 
 from __future__ import annotations
 
+import difflib
 import fcntl
 import json
 import math
@@ -80,7 +81,9 @@ class RunningApp:
     def _port(self, name: str, direction: str) -> dict[str, Any]:
         info = self.ports.get(name)
         if info is None:
-            raise PortValueError(f"app {self.name!r} has no port {name!r}; its ports are {sorted(self.ports)}")
+            close = difflib.get_close_matches(str(name), list(self.ports), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise PortValueError(f"app {self.name!r} has no port {name!r}; {hint}its ports are {sorted(self.ports)}")
         if info["direction"] != direction:
             verb = "written" if direction == "in" else "read"
             raise PortValueError(f"port {name!r} of app {self.name!r} goes {info['direction']}; it cannot be {verb}")
@@ -98,7 +101,8 @@ class RunningApp:
                 raise SegmentRefused(f"port {port!r}: its segment holds {channel.n_values} values, "
                                      f"the registry says {info['size']}; not used")
             if channel.fed_by_profile:
-                raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused")
+                raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused "
+                                     '(nudge = "offset" or "override" on the port combines them with the profile)')
             fcntl.flock(segment.fd, fcntl.LOCK_EX)  # writers serialise; the RT reader never waits
             channel.write(array)
         finally:
@@ -170,17 +174,18 @@ def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, wh
     except (TypeError, ValueError, OverflowError):
         raise PortValueError(f"{where}: {shorten(values)} are not numbers") from None
     if array.size != size:
-        raise PortValueError(f"{where}: takes {size} values, got {array.size}")
+        raise PortValueError(f"{where}: takes {size} value{'s' if size != 1 else ''}, got {array.size}")
     if not allow_nonfinite and not np.all(np.isfinite(array)):
         bad = [i for i, v in enumerate(array) if not math.isfinite(v)]
-        raise PortValueError(f"{where}: NaN or infinite value at index {shorten(bad)} of {shorten(array.tolist())}")
+        raise PortValueError(f"{where}: NaN or infinite value at index {shorten(bad)} of "
+                             f"{shorten([float(v) for v in array.tolist()])}")
     if value_range is not None:
         low, high = value_range
         outside = np.flatnonzero(~((array >= low) & (array <= high)) & ~np.isnan(array))
         if outside.size:
             first = int(outside[0])
-            raise PortValueError(f"{where}: value {array[first]!r} at index {first} is outside its range "
-                                 f"[{low!r}, {high!r}]")
+            raise PortValueError(f"{where}: value {float(array[first])!r} at index {first} is outside its range "
+                                 f"[{float(low)!r}, {float(high)!r}]")
     return array
 
 
