@@ -118,3 +118,12 @@ def test_parameters_on_a_runnable_that_declares_none_say_how_to_declare_them(tmp
         load_app(tmp_path / "app.toml")
     message = str(caught.value)
     assert "declares no parameters" in message and 'parameters = {"kp": 0.0}' in message
+
+
+def test_a_signal_recorded_twice_is_one_column(tmp_path: Path) -> None:
+    app = load_app(EXAMPLE / "dcmotor.toml")
+    app.record(app.tasks["plant"].y, app.tasks["pi"].u[1])  # both recorded already, by name or by index
+    rtloop.simulate(app, 0.01, tmp_path / "sim")
+    header = (tmp_path / "sim" / "signals.csv").read_text().splitlines()[0].split(",")
+    assert len(header) == len(set(header))
+    assert header.count("plant.speed_rad_s") == 1 and header.count("pi.setpoint_rad_s") == 1

@@ -615,8 +615,16 @@ class App:
         """Record these signals every tick into ``signals.csv`` and ``run.mcap``."""
         for signal in signals:
             ref = self._resolve(signal, "record")
-            if ref not in self.recorded:
-                self.recorded.append(ref)
+            taken = {i for r in self.recorded if (r.task, r.side) == (ref.task, ref.side)
+                     for i in range(r.start, r.stop)}
+            start = None  # each element once: a signal named twice (plant.y and plant.AnglePan) is one column
+            for index in range(ref.start, ref.stop + 1):
+                free = index < ref.stop and index not in taken
+                if free and start is None:
+                    start = index
+                elif not free and start is not None:
+                    self.recorded.append(SignalRef(ref.task, ref.side, start, index))
+                    start = None
 
     def plot(self, *signals: SignalRef | SignalVector, title: str = "") -> PlotSpec:
         """Draw these signals on one axis of the report (e.g. a setpoint over what it sets)."""

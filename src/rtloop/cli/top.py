@@ -272,8 +272,9 @@ def live_summary_line(path: str | None) -> str:
                 parts.append(f"{name} p99 {latency['p99'] / 1e3:,.1f} max {latency['max'] / 1e3:,.1f} µs")
         recording = summary.get("recording", {})
         stopped = recording.get("stopped")
+        keep_s = recording.get("keep_s")
         parts.append(f"recording: {stopped}" if stopped else
-                     f"recording: keep {recording.get('keep_s') or 'all'} s")
+                     f"recording: the last {keep_s:g} s kept" if keep_s else "recording: everything kept")
         return f"summary.json ({age_s:.0f} s old): " + "; ".join(parts)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return ""

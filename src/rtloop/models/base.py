@@ -225,8 +225,9 @@ class ModelRunnable(Runnable):
         if self.catch_up_steps:
             import sys
 
-            print(f"rtloop: {describe(self.model)}: {self.catch_up_steps} model steps taken to follow the "
-                  "release timeline after skipped releases", file=sys.stderr)
+            print(f"rtloop: {describe(self.model)}: the task skipped releases (its step overran), so the "
+                  f"model took {self.catch_up_steps} extra steps to keep its time equal to the clock's",
+                  file=sys.stderr)
 
 
 def apply_parameters(runnable: object, parameters: dict[str, object], where: str) -> None:
