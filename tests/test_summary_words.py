@@ -80,3 +80,36 @@ def test_a_run_says_when_a_step_is_slower_than_its_period(tmp_path: Path) -> Non
     row = next(line for line in text.splitlines() if line.startswith("slow "))
     exec_p50_us = float(row.split()[5].split("/")[0])
     assert exec_p50_us > 1000.0  # the execution-time column shows the 2 ms step
+
+
+def _app_file(tmp_path: Path, policy: str) -> Path:
+    (tmp_path / "app.toml").write_text(
+        f'name = "reqrt{policy}"\n[tasks.fast]\nrunnable = "rt_test_runnables:Counter"\nperiod_ns = 1_000_000\n'
+        f'policy = "{policy}"\n' + ('priority = 10\n' if policy == "fifo" else ""))
+    return tmp_path / "app.toml"
+
+
+def test_require_rt_refuses_a_task_that_would_not_run_real_time(tmp_path: Path, capsys) -> None:
+    from rtloop.cli.main import main
+
+    assert main(["run", str(_app_file(tmp_path, "other")), "--duration", "0.1", "--out", str(tmp_path / "out"),
+                 "--require-rt"]) == 2
+    assert "--require-rt: task 'fast' has policy = \"other\", which is not real time" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # refused before anything started
+
+
+def test_require_rt_refuses_a_process_without_real_time_privileges(tmp_path: Path, rtloop_env) -> None:
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("setpriv") is None or shutil.which("prlimit") is None:
+        pytest.skip("setpriv and prlimit (util-linux) are needed to drop the privileges")
+    command = ["setpriv", "--inh-caps=-all", "--bounding-set=-all", "--", "prlimit", "--rtprio=0", "--",
+               sys.executable, "-m", "rtloop.cli", "run", str(_app_file(tmp_path, "fifo")), "--duration", "0.1",
+               "--out", str(tmp_path / "out"), "--require-rt"]
+    done = subprocess.run(command, env=rtloop_env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "--require-rt: this process may not use real-time scheduling (no CAP_SYS_NICE and RLIMIT_RTPRIO is 0)" \
+        in done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "out").exists()

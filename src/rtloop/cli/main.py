@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import AppError, RtloopError, TaskFailed
@@ -82,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = commands.add_parser("run", help="run an app in real time and record its timing")
     _add_run_arguments(run)
+    run.add_argument("--require-rt", action="store_true",
+                     help="refuse to start (exit 2, saying why) a run that would not be real time")
     simulate = commands.add_parser("simulate", help="run an app lock-step offline, as fast as possible")
     _add_run_arguments(simulate)
 
@@ -215,6 +218,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.foxglove is not None:
         host, port = args.foxglove
         app.serve_foxglove(port, host=host, inputs=app.live_view.inputs if app.live_view else ())
+    if getattr(args, "require_rt", False):
+        refuse_unless_real_time(app)
     interactive = not args.quiet and sys.stderr.isatty()
     keep_s = args.keep if args.keep is not None or args.duration is not None else DEFAULT_KEEP_S
     if args.command == "run":
@@ -228,6 +233,22 @@ def _run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0
+
+
+def refuse_unless_real_time(app: Any) -> None:
+    """``--require-rt``: an AppError (exit 2) naming why this run would not be real time."""
+    from rtloop import rt
+
+    capabilities = rt.probe()
+    if not capabilities.may_use_rt:
+        raise AppError(f"--require-rt: this process may not use real-time scheduling ({capabilities.rt_reason}); "
+                       "run it as root (tools/as-root) or give the user an rtprio limit (docs/service.md)")
+    for name, spec in app.tasks.items():
+        if spec.config.policy == "other":
+            raise AppError(f"--require-rt: task {name!r} has policy = \"other\", which is not real time")
+        if spec.config.priority > capabilities.max_rt_priority:
+            raise AppError(f"--require-rt: task {name!r} asks for priority {spec.config.priority}, but this "
+                           f"process may use at most {capabilities.max_rt_priority} ({capabilities.rt_reason})")
 
 
 def _replay(args: argparse.Namespace) -> int:
