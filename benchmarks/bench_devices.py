@@ -16,7 +16,9 @@ Where it runs:
   (loopback spidev), I2C (i2c-stub). The guest is emulated (TCG, 15-18x slower than the
   host, unevenly): its microseconds mean nothing; only the ratio in one run is compared.
 
-The target is driver ≤ 1.3 × bare + 1 µs (host figures). Usage::
+Each contender's figure is its fastest batch (what the code costs when nothing else takes the
+CPU, as ``timeit`` reports it); the medians are printed beside. The target is driver ≤ 1.3 ×
+bare + 1 µs (host figures). Usage::
 
     python benchmarks/bench_devices.py                   # what this machine has
     tools/rtkernel-vm.sh .venv/bin/python benchmarks/bench_devices.py --cycles 2000
@@ -64,9 +66,12 @@ def compare(driver: Callable[[], None], bare: Callable[[], None], peer: Callable
     for _ in range(rounds):
         driver_ns.append(timed(driver, peer, cycles) / cycles)
         bare_ns.append(timed(bare, peer, cycles) / cycles)
-    d, b = float(np.median(driver_ns)), float(np.median(bare_ns))
+    # the fastest batch of each: what the code costs when nothing else takes the CPU (as timeit
+    # reports), then the medians, which a busy machine moves
+    d, b = min(driver_ns), min(bare_ns)
     return {"driver_us": d / 1000, "bare_us": b / 1000, "ratio": d / b, "target_us": (1.3 * b + 1000) / 1000,
-            "within_target": d <= 1.3 * b + 1000}
+            "within_target": d <= 1.3 * b + 1000, "driver_median_us": float(np.median(driver_ns)) / 1000,
+            "bare_median_us": float(np.median(bare_ns)) / 1000}
 
 
 # --- CAN -------------------------------------------------------------------------------------------
@@ -215,8 +220,8 @@ def i2c(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=10_000, help="cycles per batch")
-    parser.add_argument("--rounds", type=int, default=5, help="batches of each contender (medians)")
+    parser.add_argument("--cycles", type=int, default=1_000, help="cycles per batch")
+    parser.add_argument("--rounds", type=int, default=30, help="batches of each contender, interleaved")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     in_guest = bool(os.environ.get("RTLOOP_GUEST_DEVICES"))
@@ -232,12 +237,14 @@ def main() -> int:
             results["can (vcan0)"] = can_on_vcan(devices["vcan"]["interface"], args.cycles, args.rounds)
     where = ("PREEMPT_RT test guest under TCG emulation: µs mean nothing, compare the ratio" if in_guest
              else f"{platform.node()}: {platform.release()}")
-    print(f"# bench_devices: {where}; {args.rounds} x {args.cycles} cycles each, medians\n")
-    print("| device | driver write+read µs | bare calls µs | ratio | 1.3 x bare + 1 µs | within |")
-    print("|---|---:|---:|---:|---:|---|")
+    load = os.getloadavg()[0]
+    print(f"# bench_devices: {where}; {args.rounds} batches x {args.cycles} cycles each, interleaved; "
+          f"1-min load average {load:.1f}\n")
+    print("| device | driver write+read µs | bare calls µs | ratio | 1.3 x bare + 1 µs | within | medians µs |")
+    print("|---|---:|---:|---:|---:|---|---|")
     for name, r in results.items():
         print(f"| {name} | {r['driver_us']:.2f} | {r['bare_us']:.2f} | {r['ratio']:.2f} | {r['target_us']:.2f} | "
-              f"{'yes' if r['within_target'] else 'no'} |")
+              f"{'yes' if r['within_target'] else 'no'} | {r['driver_median_us']:.2f} / {r['bare_median_us']:.2f} |")
     if args.json:
         args.json.write_text(json.dumps({"where": where, "python": sys.version.split()[0], "results": results},
                                         indent=1))

@@ -81,11 +81,11 @@ def test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say(tmp_path, hot_
     gpio = guest_device("gpio")
     pytest.importorskip("gpiod")
     tracing = tracefs()
-    scope = gpio_number(tracing, gpio["device"], "scope")
     (tracing / "trace_clock").write_text("mono")
-    (tracing / "trace").write_text("")
     (tracing / "events" / "gpio" / "gpio_value" / "enable").write_text("1")
     try:
+        scope = gpio_number(tracing, gpio["device"], "scope")
+        (tracing / "trace").write_text("")
         text = APP.format(name=f"scope_{mode}_{hot_path}_{os.getpid()}", period_ns=20_000_000, chip=gpio["device"],
                           extra=f'scope_pin = "scope"\nscope_mode = "{mode}"')
         run = run_app(tmp_path, text, "--duration", "2",
@@ -121,7 +121,9 @@ def test_an_estop_edge_stops_the_app_with_every_output_safe(tmp_path):
                                 str(tmp_path / "run"), "-q"], env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
-        assert led.wait_value(1, timeout_s=120) == 1 and enable.value == 1, "the app never drove its outputs"
+        if led.wait_value(1, timeout_s=120) != 1 or enable.value != 1:
+            process.kill()
+            pytest.fail(f"the app never drove its outputs: {process.communicate()}")
         time.sleep(0.5)
         estop.pull(False)  # pressed
         _, stderr = process.communicate(timeout=120)

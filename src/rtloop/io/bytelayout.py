@@ -140,23 +140,21 @@ class ByteLayout:
     def pack_into(self, frame: Any, at: int, values: Any, first: int = 0) -> None:
         """Write ``values[first:first + len(self)]`` into ``frame`` (a writable buffer) from byte ``at``."""
         index = first
-        for codec, start, scale, offset, low, high, integer in self._plan:
-            value = values[index]
-            index += 1
-            raw = (value - offset) / scale
-            if integer:
-                if not math.isfinite(raw):
-                    raise ValueError(self._not_finite(index - first - 1, value))
-                raw = round(raw)
-                if raw > high:
-                    raw = high
-                elif raw < low:
-                    raw = low
-                codec.pack_into(frame, at + start, int(raw))
-            else:
-                if raw != raw or raw in (math.inf, -math.inf):
-                    raise ValueError(self._not_finite(index - first - 1, value))
+        try:
+            for codec, start, scale, offset, low, high, integer in self._plan:
+                raw = (values[index] - offset) / scale
+                if integer:
+                    raw = round(raw)  # NaN and ±inf raise here: never sent
+                    if raw > high:
+                        raw = high
+                    elif raw < low:
+                        raw = low
+                elif raw - raw != 0.0:  # NaN or ±inf (inf - inf is NaN); 0.0 for every finite value
+                    raise ValueError
                 codec.pack_into(frame, at + start, raw)
+                index += 1
+        except (ValueError, OverflowError):
+            raise ValueError(self._not_finite(index - first, values[index])) from None
 
     def unpack_from(self, frame: Any, at: int, out: Any, first: int = 0) -> None:
         """Read the fields of ``frame`` (from byte ``at``) into ``out[first:first + len(self)]``."""

@@ -105,15 +105,20 @@ class CanDevice(Device):
         self._heartbeat = HeartbeatCounter(self.heartbeat_frame) if self.heartbeat_frame else None
         self._plan_read = [(frame, latest, first) for frame, latest, first in
                            zip(self.received, self.socket.latest, _starts(self.received), strict=True)]
-        self._plan_write = list(zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True))
+        self._plan_write = [(frame.layout.pack_into, buffer, first) for frame, buffer, first in
+                            zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True)]
+        self._send = sock.sock.send
 
     def write(self, u: FloatVector) -> None:
-        sock, u = self.socket, self._u.of(u)
-        for frame, buffer, first in self._plan_write:
-            frame.layout.pack_into(buffer, DATA_AT, u, first)
-            sock.send(buffer)
-        if self._heartbeat is not None:
-            sock.send(self._heartbeat.next())
+        send, u = self._send, self._u.of(u)
+        try:
+            for pack_into, buffer, first in self._plan_write:
+                pack_into(buffer, DATA_AT, u, first)
+                send(buffer)
+            if self._heartbeat is not None:
+                send(self._heartbeat.next())
+        except OSError as error:
+            raise self.socket.send_failed(error) from None
 
     def read(self, y: FloatVector) -> None:
         sock, y = self.socket, self._y.of(y)

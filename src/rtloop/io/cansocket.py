@@ -107,9 +107,13 @@ class CanSocket:
         try:
             self.sock.send(frame)
         except OSError as error:
-            hint = (" (the transmit queue is full: no node acknowledges, or the controller is bus-off)"
-                    if error.errno in (errno.ENOBUFS, errno.EAGAIN) else "")
-            raise OSError(error.errno, f"{self.where}: sending on {self.interface}: {error.strerror}{hint}") from None
+            raise self.send_failed(error) from None
+
+    def send_failed(self, error: OSError) -> OSError:
+        """What a failed send means, in one line naming the device and the interface."""
+        hint = (" (the transmit queue is full: no node acknowledges, or the controller is bus-off)"
+                if error.errno in (errno.ENOBUFS, errno.EAGAIN) else "")
+        return OSError(error.errno, f"{self.where}: sending on {self.interface}: {error.strerror}{hint}")
 
     def _drain(self) -> int:
         """Take every frame already queued, keeping the newest of each id; how many expected ones came."""
