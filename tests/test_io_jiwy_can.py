@@ -28,6 +28,8 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
     name = f"jiwy_can_{os.getpid()}"
     text = (EXAMPLE / "jiwy_can.toml").read_text().replace('name = "jiwy_can"', f'name = "{name}"')
     text = text.replace('interface = "vcan0"', f'interface = "{entry["interface"]}"')
+    # 40 ms, not the example's 10 ms: the guest is emulated, and the plant node is Python in it too
+    text = text.replace("period_ns = 10_000_000", "period_ns = 40_000_000")
     text = text.replace('feed = "../jiwy/setpoints/step.csv"', f'feed = "{EXAMPLE.parent / "jiwy/setpoints/step.csv"}"')
     app.write_text(text)
     for module in ("jiwy_can_models.py",):
@@ -45,7 +47,9 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
     finally:
         node.terminate()
         _, said = node.communicate(timeout=60)
-    assert "heartbeat lost: steering zero (safe)" in said
+    said_lines = said.strip().splitlines()
+    assert "heartbeat seen: enabled" in said  # the drive enabled itself on the first heartbeat
+    assert said_lines[-1] == "plant_node: heartbeat lost: steering zero (safe)", said  # and went safe at the end
     sim = subprocess.run([sys.executable, "-m", "rtloop", "simulate", str(app), "--duration", "3", "--out",
                           str(tmp_path / "sim"), "-q"], env=env, capture_output=True, text=True, timeout=600)
     assert sim.returncode == 0, sim.stderr

@@ -66,13 +66,14 @@ def main() -> int:
     have = [False, False]
     angles = np.zeros(2)
     last_beat_s = time.monotonic()
-    safe = False
+    armed = False  # a drive stays disabled until the first heartbeat; its watchdog runs from then on
+    safe = True
     print(f"plant_node: on {args.interface}, waiting for steering frames", file=sys.stderr, flush=True)
     while running:
         ready, _, _ = select.select([bus], [], [], 0.05)
         now_s = time.monotonic()
         if not ready:
-            if not safe and now_s - last_beat_s > args.heartbeat_timeout_ms / 1000:
+            if armed and not safe and now_s - last_beat_s > args.heartbeat_timeout_ms / 1000:
                 safe = True  # what a drive's watchdog does: stop steering
                 steering[:] = 0.0
                 print("plant_node: heartbeat lost: steering zero (safe)", file=sys.stderr, flush=True)
@@ -82,7 +83,8 @@ def main() -> int:
             last_beat_s = now_s
             if safe:
                 safe = False
-                print("plant_node: heartbeat back", file=sys.stderr, flush=True)
+                print(f"plant_node: heartbeat {'back' if armed else 'seen'}: enabled", file=sys.stderr, flush=True)
+                armed = True
             continue
         have[can_id == STEERING_TILT] = True
         steering[can_id == STEERING_TILT] = VALUE.unpack_from(data)[0]
