@@ -14,6 +14,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -51,7 +52,7 @@ def tracefs() -> Path:
     return TRACING
 
 
-def gpio_number(tracing: Path, chip: str, line: str) -> int:
+def gpio_number(tracing: Path, chip: str, line: str) -> int | None:
     """The kernel's global number of ``line`` (the trace events name lines by it): set it once and look."""
     import gpiod
 
@@ -62,8 +63,8 @@ def gpio_number(tracing: Path, chip: str, line: str) -> int:
         request.set_value(line, gpiod.line.Value.INACTIVE)
         request.release()
     numbers = {int(n) for n in re.findall(r"gpio_value: (\d+) set", (tracing / "trace").read_text())}
-    assert len(numbers) == 1, numbers
-    return numbers.pop()
+    assert len(numbers) <= 1, numbers
+    return numbers.pop() if numbers else None
 
 
 def run_app(tmp_path: Path, text: str, *args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -75,6 +76,26 @@ def run_app(tmp_path: Path, text: str, *args: str, env: dict | None = None) -> s
                            *args], capture_output=True, text=True, timeout=600, env=env)
 
 
+class Sampler(threading.Thread):
+    """Counts the changes of a gpio-sim line's value, read every ~0.2 ms (when no trace event can)."""
+
+    def __init__(self, line: SimLine) -> None:
+        super().__init__(daemon=True)
+        self.fd = os.open(line.folder / "value", os.O_RDONLY)
+        self.values: list[int] = []
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        last = None
+        while not self.done.is_set():
+            value = int(os.pread(self.fd, 8, 0))
+            if value != last:
+                self.values.append(value)
+                last = value
+            time.sleep(0.0002)
+        os.close(self.fd)
+
+
 @pytest.mark.parametrize("hot_path", ["c", "python"])
 @pytest.mark.parametrize("mode", ["toggle", "step"])
 def test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say(tmp_path, hot_path, mode):
@@ -83,24 +104,41 @@ def test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say(tmp_path, hot_
     tracing = tracefs()
     (tracing / "trace_clock").write_text("mono")
     (tracing / "events" / "gpio" / "gpio_value" / "enable").write_text("1")
+    sampler = None
     try:
         scope = gpio_number(tracing, gpio["device"], "scope")
+        if scope is None:  # this kernel does not trace values set through a line request
+            if mode == "step":
+                pytest.skip("no gpio_value trace events for lines set through a request, and a step's high "
+                            "time is too short to sample")
+            sampler = Sampler(SimLine(gpio, "scope"))
+            sampler.values.append(0)  # the line starts low (requested inactive)
         (tracing / "trace").write_text("")
-        text = APP.format(name=f"scope_{mode}_{hot_path}_{os.getpid()}", period_ns=20_000_000, chip=gpio["device"],
+        period_ns = 20_000_000 if sampler is None else 100_000_000  # sampling needs time between edges
+        text = APP.format(name=f"scope_{mode}_{hot_path}_{os.getpid()}", period_ns=period_ns, chip=gpio["device"],
                           extra=f'scope_pin = "scope"\nscope_mode = "{mode}"')
-        run = run_app(tmp_path, text, "--duration", "2",
+        if sampler is not None:
+            sampler.start()
+        run = run_app(tmp_path, text, "--duration", "3",
                       env={"RTLOOP_PURE_PYTHON": "1" if hot_path == "python" else "0"})
         assert run.returncode == 0, run.stderr
     finally:
         (tracing / "events" / "gpio" / "gpio_value" / "enable").write_text("0")
-    values = [int(v) for n, v in re.findall(r"gpio_value: (\d+) set (\d+)", (tracing / "trace").read_text())
-              if int(n) == scope]
+        if sampler is not None:
+            time.sleep(0.05)
+            sampler.done.set()
+            sampler.join()
+    if sampler is None:
+        values = [int(v) for n, v in re.findall(r"gpio_value: (\d+) set (\d+)", (tracing / "trace").read_text())
+                  if int(n) == scope]
+    else:
+        values = sampler.values[1:]  # the changes after the initial low
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     cycles = summary["tasks"]["ctl"]["cycles"]
     assert summary["hot_path"] == hot_path
-    assert cycles > 20
+    assert cycles > 10
     if mode == "toggle":  # one edge per release, alternating
-        assert len(values) == cycles and values == [(i + 1) % 2 for i in range(cycles)]
+        assert len(values) == cycles and values == [(i + 1) % 2 for i in range(cycles)], (len(values), cycles)
     else:  # high at the start of step, low when it ended
         assert values == [1, 0] * cycles
 
