@@ -20,6 +20,7 @@ from io_guest_devices import guest_device
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "jiwy_can"
 
 
+@pytest.mark.timeout(1500)
 def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_heartbeat_stops(tmp_path):
     entry = guest_device("vcan")
     from rtloop.runtime.replay import compare_signals, first_miss_s
@@ -40,7 +41,7 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
                              "--heartbeat-timeout-ms", "300"], env=env, stderr=subprocess.PIPE, text=True)
     try:
         assert "waiting for steering frames" in node.stderr.readline()
-        run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "3", "--out",
+        run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "40", "--out",
                               str(tmp_path / "run"), "-q"], env=env, capture_output=True, text=True, timeout=600)
         assert run.returncode == 0, run.stderr
         time.sleep(1.0)  # the heartbeat stopped with the run: the node's watchdog trips after 300 ms
@@ -50,7 +51,7 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
     said_lines = said.strip().splitlines()
     assert "heartbeat seen: enabled" in said  # the drive enabled itself on the first heartbeat
     assert said_lines[-1] == "plant_node: heartbeat lost: steering zero (safe)", said  # and went safe at the end
-    sim = subprocess.run([sys.executable, "-m", "rtloop", "simulate", str(app), "--duration", "3", "--out",
+    sim = subprocess.run([sys.executable, "-m", "rtloop", "simulate", str(app), "--duration", "40", "--out",
                           str(tmp_path / "sim"), "-q"], env=env, capture_output=True, text=True, timeout=600)
     assert sim.returncode == 0, sim.stderr
     until_s = first_miss_s(tmp_path / "run")
