@@ -432,8 +432,8 @@ class FmuModel:
         self._set_start_values(fmu, u)
         fmu.enterInitializationMode(startTime=t_s)
         fmu.exitInitializationMode()
-        if self.has_event_mode:  # initialisation ends in event mode when the importer uses it
-            self._event_iteration(fmu)
+        if self.has_event_mode:  # instantiated with eventModeUsed: initialisation ends in Event Mode
+            self._event_iteration(fmu, enter=False)
         self._component = fmu.component
         b = ctypes.POINTER(ctypes.c_bool)
         self._do_step = _raw(fmu.dll, "fmi3DoStep", [
@@ -540,10 +540,16 @@ class FmuModel:
             if event.value and self.has_event_mode:
                 self._event_iteration(self._fmu)
 
-    def _event_iteration(self, fmu: Any) -> None:
-        """FMI 3 event mode: update discrete states until they settle, then back to step mode."""
-        self.events += 1
-        fmu.enterEventMode()
+    def _event_iteration(self, fmu: Any, enter: bool = True) -> None:
+        """FMI 3 event mode: update discrete states until they settle, then back to step mode.
+
+        ``enter=False`` right after initialisation: an FMU instantiated with ``eventModeUsed``
+        is in Event Mode already when ``fmi3ExitInitializationMode`` returns, and entering it
+        again is an error (FMI 3.0, co-simulation state machine).
+        """
+        if enter:
+            self.events += 1
+            fmu.enterEventMode()
         need, terminate = ctypes.c_bool(True), ctypes.c_bool(False)
         nominals, values, defined, next_time = ctypes.c_bool(), ctypes.c_bool(), ctypes.c_bool(), ctypes.c_double()
         rounds = 0

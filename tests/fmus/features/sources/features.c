@@ -1,7 +1,10 @@
 /* features.c - rtloop test FMU (FMI 3.0 co-simulation, MIT).
  * x' = gain * u (Euler, from x0); count = steps taken; positive = x > 0; half = x / 2 as
  * Float32; multiples = [x, 2x, 3x]; an event is signalled after event_at steps (events
- * counts event-mode visits); the simulation terminates once time >= stop_at. */
+ * counts event-mode visits); the simulation terminates once time >= stop_at.
+ * It keeps the FMI 3 co-simulation modes as strictly as the Modelica Reference FMUs do:
+ * after fmi3ExitInitializationMode it is in Event Mode when instantiated with
+ * eventModeUsed, else in Step Mode; fmi3EnterEventMode is an error unless in Step Mode. */
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdlib.h>
@@ -13,9 +16,13 @@ typedef enum { fmi3OK, fmi3Warning, fmi3Discard, fmi3Error, fmi3Fatal } fmi3Stat
 typedef unsigned int fmi3ValueReference;
 typedef void (*LogMessage)(void *env, fmi3Status status, const char *category, const char *message);
 
+enum Mode { INSTANTIATED, INITIALIZATION, EVENT, STEP };
+
 typedef struct {
 	double time, u, gain, x0, stop_at, x;
 	int event_at, count, events;
+	bool event_mode_used;
+	enum Mode mode;
 	LogMessage log;
 	void *env;
 } Instance;
@@ -28,12 +35,13 @@ EXPORT void *fmi3InstantiateCoSimulation(const char *instanceName, const char *t
 	void *environment, void *logMessage, void *intermediateUpdate)
 {
 	Instance *m;
-	(void)instanceName; (void)resourcePath; (void)visible; (void)loggingOn; (void)eventModeUsed;
+	(void)instanceName; (void)resourcePath; (void)visible; (void)loggingOn;
 	(void)earlyReturnAllowed; (void)required; (void)nRequired; (void)intermediateUpdate;
 	if (token == NULL || strcmp(token, "{rtloop-features-1}") != 0) return NULL;
 	m = calloc(1, sizeof(Instance));
 	m->gain = 2.0; m->x0 = 0.5; m->event_at = 5; m->stop_at = 1000.0;
 	m->log = (LogMessage)logMessage; m->env = environment;
+	m->event_mode_used = eventModeUsed; m->mode = INSTANTIATED;
 	return m;
 }
 
@@ -45,23 +53,40 @@ EXPORT fmi3Status fmi3EnterInitializationMode(void *instance, bool toleranceDefi
 	Instance *m = instance;
 	(void)toleranceDefined; (void)tolerance; (void)stopTimeDefined; (void)stopTime;
 	m->time = startTime;
+	m->mode = INITIALIZATION;
 	return fmi3OK;
 }
 
 EXPORT fmi3Status fmi3ExitInitializationMode(void *instance)
 {
 	Instance *m = instance;
+	if (m->mode != INITIALIZATION) return fmi3Error;
 	m->x = m->x0;
+	m->mode = m->event_mode_used ? EVENT : STEP;
 	return fmi3OK;
 }
 
-EXPORT fmi3Status fmi3EnterEventMode(void *instance) { (void)instance; return fmi3OK; }
-EXPORT fmi3Status fmi3EnterStepMode(void *instance) { (void)instance; return fmi3OK; }
+EXPORT fmi3Status fmi3EnterEventMode(void *instance)
+{
+	Instance *m = instance;
+	if (m->mode != STEP || !m->event_mode_used) return fmi3Error;
+	m->mode = EVENT;
+	return fmi3OK;
+}
+
+EXPORT fmi3Status fmi3EnterStepMode(void *instance)
+{
+	Instance *m = instance;
+	if (m->mode != EVENT) return fmi3Error;
+	m->mode = STEP;
+	return fmi3OK;
+}
 
 EXPORT fmi3Status fmi3UpdateDiscreteStates(void *instance, bool *needUpdate, bool *terminate,
 	bool *nominalsChanged, bool *valuesChanged, bool *nextEventTimeDefined, double *nextEventTime)
 {
 	Instance *m = instance;
+	if (m->mode != EVENT) return fmi3Error;
 	if (m->count > 0) m->events += 1;	/* the first call ends initialisation */
 	*needUpdate = false; *terminate = false; *nominalsChanged = false; *valuesChanged = false;
 	*nextEventTimeDefined = false; *nextEventTime = 0.0;
@@ -163,6 +188,7 @@ EXPORT fmi3Status fmi3DoStep(void *instance, double currentCommunicationPoint,
 {
 	Instance *m = instance;
 	(void)noSetFMUStatePriorToCurrentPoint;
+	if (m->mode != STEP) return fmi3Error;
 	m->time = currentCommunicationPoint + communicationStepSize;
 	m->x += m->gain * m->u * communicationStepSize;
 	m->count += 1;
