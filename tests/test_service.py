@@ -140,7 +140,7 @@ def test_install_writes_then_refuses_a_different_unit(test_app: Path, tmp_path: 
     said = capsys.readouterr().out
     assert path.read_text() == printed
     assert oct(path.stat().st_mode & 0o777) == "0o644"
-    assert "systemctl daemon-reload" in said and f"systemctl enable --now {path.name}" in said
+    assert f"systemctl link {path}" in said and f"systemctl enable --now {path.name}" in said  # not in /etc: linked
 
     assert service.main([str(test_app), "--install", "--unit-dir", str(unit_dir)]) == 0  # same text: fine
     assert "nothing written" in capsys.readouterr().out
@@ -156,9 +156,17 @@ def test_install_writes_then_refuses_a_different_unit(test_app: Path, tmp_path: 
 
 def test_install_into_a_missing_folder_says_so(test_app: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
-    assert service.main([str(test_app), "--install", "--unit-dir", str(tmp_path / "nope")]) == 1
+    assert service.main([str(test_app), "--install", "--unit-dir", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "cannot write" in err and "nope" in err
+    assert err.count("\n") == 1 and "--unit-dir" in err and "nope: no such folder" in err
+
+
+def test_a_unit_outside_systemds_folders_is_linked_not_reloaded(test_app: Path, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert service.main([str(test_app), "--install", "--unit-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "daemon-reload" not in out and f"systemctl link {tmp_path}/rtloop-" in out
+    assert "systemd does not look in" in out
 
 
 @pytest.mark.parametrize(("content", "expected"), [

@@ -283,6 +283,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+SYSTEMD_UNIT_DIRS = tuple(Path(p) for p in ("/etc/systemd/system", "/run/systemd/system",
+                                            "/usr/local/lib/systemd/system", "/usr/lib/systemd/system",
+                                            "/lib/systemd/system"))
+"""Where systemd looks for system units (systemd.unit(5)); a unit elsewhere must be linked."""
+
+
 def _check_options(args: argparse.Namespace) -> str | None:
     """The first problem with the options, as one line; ``None`` if none."""
     if not args.keep > 0 or not math.isfinite(args.keep):
@@ -327,6 +333,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.install:
         sys.stdout.write(text)
         return 0
+    if not args.unit_dir.is_dir():
+        print(f"rtloop service: --unit-dir {args.unit_dir}: no such folder (create it, or leave --unit-dir out "
+              f"to install into {UNIT_DIR})", file=sys.stderr)
+        return EXIT_BAD_INPUT
     path = args.unit_dir / unit_name(app)
     try:
         message = install(text, path, force=args.force)
@@ -337,8 +347,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rtloop service: cannot write {path}: {error.strerror}", file=sys.stderr)
         return EXIT_CANNOT_WRITE
     print(message)
-    print("next:")
-    print("  systemctl daemon-reload")
+    if args.unit_dir.resolve() in SYSTEMD_UNIT_DIRS:
+        print("next:")
+        print("  systemctl daemon-reload")
+    else:  # systemd never reads this folder by itself: link the file (which also reloads)
+        print(f"next (systemd does not look in {args.unit_dir} by itself):")
+        print(f"  systemctl link {path.absolute()}")
     print(f"  systemctl enable --now {unit_name(app)}")
     print(f"  journalctl -u {unit_name(app)} -f")
     return 0
