@@ -24,7 +24,9 @@ Controller, per axis, 20-sim's PID ``kp·(1 + τD·s)/(1 + β·τD·s)·(1 + 1/(
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 from rtloop.models.python import PythonModel
 from rtloop.runnable import FloatVector
@@ -141,6 +143,12 @@ class JiwyPlant(_TwoAxisEulerModel):
         tilt: AxisParameters = TILT_AXIS,
     ) -> None:
         super().__init__(step_size_s, pan, tilt)
+        self.parameters.update(kp_pan=pan.kp, kp_tilt=tilt.kp)
+
+    def set_parameters(self, values: dict[str, float]) -> None:
+        super().set_parameters(values)
+        self.pan = dataclasses.replace(self.pan, kp=self.parameters["kp_pan"])
+        self.tilt = dataclasses.replace(self.tilt, kp=self.parameters["kp_tilt"])
 
     def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states
@@ -175,6 +183,8 @@ class JiwyController(_TwoAxisEulerModel):
     output_names = ("SteeringPan", "SteeringTilt")
     input_units = ("rad", "rad", "rad", "rad")
     output_units = ("", "")
+    parameters: ClassVar[dict[str, float]] = {"kp_pan": PAN_PID.kp, "kp_tilt": TILT_PID.kp}
+    """Proportional gains, settable by name (``parameters = { kp_pan = 0.4 }``, ``rtloop sweep``)."""
     pan: PidParameters
     tilt: PidParameters
 
@@ -185,6 +195,12 @@ class JiwyController(_TwoAxisEulerModel):
         tilt: PidParameters = TILT_PID,
     ) -> None:
         super().__init__(step_size_s, pan, tilt)
+        self.parameters.update(kp_pan=pan.kp, kp_tilt=tilt.kp)
+
+    def set_parameters(self, values: dict[str, float]) -> None:
+        super().set_parameters(values)
+        self.pan = dataclasses.replace(self.pan, kp=self.parameters["kp_pan"])
+        self.tilt = dataclasses.replace(self.tilt, kp=self.parameters["kp_tilt"])
 
     def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states

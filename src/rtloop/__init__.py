@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from rtloop.record.summary import TaskSummary as TaskSummary
     from rtloop.runtime.simulate import simulate as simulate
     from rtloop.runtime.supervisor import run as run
+    from rtloop.runtime.sweep import sweep as sweep
 
 # Imported on first use, not here: every task process imports this package (it unpickles
 # rtloop.runtime.task), and the supervisor, the recorder and their dependencies would
@@ -41,6 +42,7 @@ _LAZY = {
     "TaskSummary": "rtloop.record.summary",
     "simulate": "rtloop.runtime.simulate",
     "run": "rtloop.runtime.supervisor",
+    "sweep": "rtloop.runtime.sweep",
 }
 
 
@@ -72,4 +74,5 @@ __all__ = [
     "load",
     "run",
     "simulate",
+    "sweep",
 ]

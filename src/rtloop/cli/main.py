@@ -25,6 +25,7 @@ DELEGATED = {
     "bench": ("rtloop.cli.bench", "the thesis's chapter-6 experiments on this machine, with a report"),
     "service": ("rtloop.cli.service", "a systemd unit that runs an app until stopped (--install writes it)"),
     "io": ("rtloop.cli.devices", "GPIO chips, CAN interfaces, spidev, serial lines, I2C buses: may you open them?"),
+    "sweep": ("rtloop.cli.sweep", "simulate an app over a grid of parameters in parallel; one table of step metrics"),
 }
 
 
