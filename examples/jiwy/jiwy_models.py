@@ -143,12 +143,6 @@ class JiwyPlant(_TwoAxisEulerModel):
         tilt: AxisParameters = TILT_AXIS,
     ) -> None:
         super().__init__(step_size_s, pan, tilt)
-        self.parameters.update(kp_pan=pan.kp, kp_tilt=tilt.kp)
-
-    def set_parameters(self, values: dict[str, float]) -> None:
-        super().set_parameters(values)
-        self.pan = dataclasses.replace(self.pan, kp=self.parameters["kp_pan"])
-        self.tilt = dataclasses.replace(self.tilt, kp=self.parameters["kp_tilt"])
 
     def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states
