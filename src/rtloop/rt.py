@@ -104,6 +104,7 @@ def set_timer_slack(slack_ns: int) -> None:
 
 
 PR_SET_CHILD_SUBREAPER = 36
+PR_GET_CHILD_SUBREAPER = 37
 
 
 def die_with_parent(signum: int) -> None:
@@ -111,9 +112,16 @@ def die_with_parent(signum: int) -> None:
     _check("prctl(PR_SET_PDEATHSIG)", _libc.prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0))
 
 
-def become_subreaper() -> None:
+def become_subreaper(on: bool = True) -> None:
     """prctl(PR_SET_CHILD_SUBREAPER): orphaned descendants are re-parented to this process, not init."""
-    _check("prctl(PR_SET_CHILD_SUBREAPER)", _libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0))
+    _check("prctl(PR_SET_CHILD_SUBREAPER)", _libc.prctl(PR_SET_CHILD_SUBREAPER, int(on), 0, 0, 0))
+
+
+def is_subreaper() -> bool:
+    """prctl(PR_GET_CHILD_SUBREAPER): whether this process is a subreaper (to give the state back)."""
+    flag = ctypes.c_int(0)
+    _check("prctl(PR_GET_CHILD_SUBREAPER)", _libc.prctl(PR_GET_CHILD_SUBREAPER, ctypes.byref(flag), 0, 0, 0))
+    return bool(flag.value)
 
 
 def child_pids(pid: int | None = None) -> set[int]:

@@ -10,8 +10,13 @@ import numpy as np
 from rtloop.errors import AppError, ConnectionSizeError
 
 
-def load_profile(path: Path, size: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Read a CSV profile: header ``t_s,...`` then rows; returns (t_ns, values)."""
+def load_profile(path: Path, size: int, where: str,
+                 value_range: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read a CSV profile: header ``t_s,...`` then rows; returns (t_ns, values).
+
+    ``value_range``: the port's ``[lo, hi]``; a profile value outside it is refused as a
+    live write would be (naming the file, the row and the column).
+    """
     try:
         with open(path, newline="") as file:
             rows = list(csv.reader(file))
@@ -37,6 +42,12 @@ def load_profile(path: Path, size: int, where: str) -> tuple[np.ndarray, np.ndar
             raise AppError(f"{where}: {path}:{line_number}: {len(numbers)} columns, header has {len(header)}")
         if not all(np.isfinite(numbers)):
             raise AppError(f"{where}: {path}:{line_number}: NaN or infinite value in {row}")
+        if value_range is not None:
+            low, high = value_range
+            for column, value in zip(header[1:], numbers[1:], strict=True):
+                if not low <= value <= high:
+                    raise AppError(f"{where}: {path}:{line_number}: column {column.strip()!r} is {value!r}, outside "
+                                   f"the port's range [{low!r}, {high!r}]")
         t_ns = round(numbers[0] * 1e9)
         if times and t_ns <= times[-1]:
             raise AppError(f"{where}: {path}:{line_number}: t_s must increase")

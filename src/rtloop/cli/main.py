@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import AppError, RtloopError, TaskFailed
 from rtloop.record.summary import RunSummary
+
+if TYPE_CHECKING:
+    from rtloop.runtime.supervisor import Progress
 
 EXIT_TASK_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -65,7 +68,10 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep only the last S seconds of timing.csv, signals.csv and run.mcap, plus the "
                              "cycles around every deadline miss, stale read or fault (default: "
                              f"{DEFAULT_KEEP_S:g} without --duration, everything with it)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the artifacts")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="directory for the artifacts (one that holds a run is refused without --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the run already in --out (its files, report.html and report-figures/)")
     parser.add_argument("--feed", type=_parse_feed, action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile (t_s, values...)")
     parser.add_argument("--cpu", type=int, default=None, metavar="N",
@@ -91,7 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     replay = commands.add_parser("replay", help="re-simulate a run along its real timeline; compare its signals")
     replay.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="output folder of `rtloop run`")
-    replay.add_argument("--out", type=Path, required=True, metavar="DIR", help="directory for the replay's artifacts")
+    replay.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="directory for the replay's artifacts (never RUN_DIR nor inside it)")
+    replay.add_argument("--force", action="store_true", help="replace the run already in --out")
 
     port = commands.add_parser("port", help="write to or read from a running app's port")
     port_commands = port.add_subparsers(dest="port_command", required=True)
@@ -226,11 +234,16 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "run":
         from rtloop.runtime.supervisor import run
 
-        summary = run(app, args.duration, args.out, progress=interactive, trim=args.trim, keep_s=keep_s)
+        try:
+            summary = run(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force,
+                          on_progress=show_progress if interactive else None)
+        finally:
+            if interactive:
+                sys.stderr.write("\n")
     else:
         from rtloop.runtime.simulate import simulate
 
-        summary = simulate(app, args.duration, args.out, trim=args.trim, keep_s=keep_s)
+        summary = simulate(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force)
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0
@@ -255,7 +268,7 @@ def refuse_unless_real_time(app: Any) -> None:
 def _replay(args: argparse.Namespace) -> int:
     from rtloop.runtime.replay import replay
 
-    result = replay(args.run_dir, args.out)
+    result = replay(args.run_dir, args.out, force=args.force)
     followed = (f"{result.skipped_releases} skipped releases, {result.stale_reads} stale reads and "
                 f"{result.port_inputs} port inputs followed")
     for note in result.notes:
@@ -271,6 +284,16 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"replay of {args.run_dir}: cannot reproduce the run {result.cannot} "
               f"({result.rows_compared} rows before that equal)", file=sys.stderr)
     return EXIT_TASK_FAILED
+
+
+def show_progress(progress: Progress) -> None:
+    """The run's progress line on the console (rewritten in place)."""
+    until = "  (Ctrl-C stops)" if progress.duration_s is None else f" / {progress.duration_s:.1f} s"
+    recording = "   RECORDING STOPPED" if progress.recording_stopped else ""
+    lost = f"   LOST {progress.lost} records" if progress.lost else ""
+    sys.stderr.write(f"\r  {progress.elapsed_s:7.1f} s{until}   deadline misses {progress.deadline_misses}   "
+                     f"latency now {progress.latency_now_ns / 1e3:7.1f} µs{recording}{lost}  ")
+    sys.stderr.flush()
 
 
 def format_summary(summary: RunSummary, out: Path) -> str:

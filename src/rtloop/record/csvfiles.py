@@ -192,6 +192,12 @@ class SignalsCsv:
         self.pending: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = {s: [] for s in self.streams}
         self.delivered_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
         self.held: dict[tuple[str, str], np.ndarray | None] = dict.fromkeys(self.streams)
+        self.gap: dict[tuple[str, str], bool] = dict.fromkeys(self.streams, False)
+        """Whether a stream's newest value was lost (its cells are empty until the next one)."""
+        self.last_tick: dict[str, int] = {}
+        self.lost_marked: dict[str, int] = {}
+        self.unexplained: dict[str, int] = {}
+        """Per task, rows lost after its newest row (no later row has shown the gap yet)."""
         self.rows_written = 0
         self.file: TextIO = self._open(path)
 
@@ -205,19 +211,49 @@ class SignalsCsv:
         self.file.close()
         self.path, self.file = path, self._open(path)
 
-    def add(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
+    def add(self, task: str, ticks: np.ndarray, rows: np.ndarray, lost_so_far: int = 0) -> None:
+        """Rows of ``task``'s record queue; ``lost_so_far``: rows its queue has dropped in all (gaps)."""
         if not len(ticks):
             return
+        gaps = self._gaps(task, ticks, lost_so_far)
         period = self.periods_ns[task]
         for side, shift in (("y", 1), ("u", 0)):  # y of tick k holds from (k+1)·P, u from k·P
             stream = (task, side)
             if stream not in self.pending:
                 continue
             times = ((ticks + shift) * period).tolist()
-            self.pending[stream].extend((t, row) for t, row in zip(times, rows, strict=True) if t >= 0)
+            entries = [(t, row) for t, row in zip(times, rows, strict=True) if t >= 0]
+            if gaps:
+                entries += [((tick + shift) * period, None) for tick in gaps]
+                entries.sort(key=lambda entry: entry[0])
+            self.pending[stream].extend(entries)
             self.delivered_ns[stream] = max(self.delivered_ns[stream], times[-1])
 
-    def flush(self, final: bool = False) -> tuple[list[int], list[list[float]]]:
+    def _gaps(self, task: str, ticks: np.ndarray, lost_so_far: int) -> list[int]:
+        """First ticks of the gaps lost rows left (a skipped release leaves a gap too: it is no loss).
+
+        A gap is taken for lost rows while the queue's drop count is not yet explained by the
+        gaps seen: drops are counted before the rows after them arrive, so the count is known
+        when the gap shows.
+        """
+        previous = self.last_tick.get(task, -2)  # the first row is the initial outputs' (tick -1)
+        self.last_tick[task] = int(ticks[-1])
+        unexplained = lost_so_far - self.lost_marked.get(task, 0)
+        if unexplained <= 0:
+            return []
+        joined = np.concatenate(([previous], ticks))
+        firsts: list[int] = []
+        for index in np.flatnonzero(np.diff(joined) > 1).tolist():
+            if unexplained <= 0:
+                break
+            missing = int(joined[index + 1] - joined[index] - 1)
+            firsts.append(int(joined[index]) + 1)
+            unexplained -= missing
+            self.lost_marked[task] = self.lost_marked.get(task, 0) + missing
+        self.unexplained[task] = max(0, unexplained)
+        return firsts
+
+    def flush(self, final: bool = False) -> tuple[list[int], list[list[float | None]]]:
         """Write every row whose time all recorded streams have reached; return those rows.
 
         Returns (times since T0 in ns, values) of the rows written, NaN where a signal
@@ -225,19 +261,30 @@ class SignalsCsv:
         """
         if not self.streams:
             return [], []
+        if final:  # rows lost at the very end: no later row shows their gap, so mark it here
+            for task, count in self.unexplained.items():
+                if count > 0 and task in self.last_tick:
+                    tick = self.last_tick[task] + 1
+                    for side, shift in (("y", 1), ("u", 0)):
+                        if (task, side) in self.pending:
+                            self.pending[(task, side)].append(((tick + shift) * self.periods_ns[task], None))
+            self.unexplained.clear()
         horizon = max(self.delivered_ns.values()) if final else min(self.delivered_ns.values())
         streams = [[(t, s, row) for t, row in self.pending[s] if t <= horizon] for s in self.streams]
         for s in self.streams:
             self.pending[s] = [(t, row) for t, row in self.pending[s] if t > horizon]
         times: list[int] = []
-        rows: list[list[float]] = []
+        rows: list[list[float | None]] = []
         current_t: int | None = None
         for t_ns, stream, row in heapq.merge(*streams, key=lambda item: item[0]):
             if current_t is not None and t_ns != current_t:
                 times.append(current_t)
                 rows.append(self._row())
             current_t = t_ns
-            self.held[stream] = row
+            if row is None:
+                self.gap[stream] = True
+            else:
+                self.held[stream], self.gap[stream] = row, False
         if current_t is not None:
             times.append(current_t)
             rows.append(self._row())
@@ -246,9 +293,10 @@ class SignalsCsv:
         self.file.flush()
         return times, rows
 
-    def _row(self) -> list[float]:
+    def _row(self) -> list[float | None]:
+        """The values valid now: None where they were lost (an empty cell), NaN where none came yet."""
         nan = float("nan")
-        return [nan if (held := self.held[stream]) is None else float(held[index])
+        return [None if self.gap[stream] else nan if (held := self.held[stream]) is None else float(held[index])
                 for stream, index in self.columns]
 
     def close(self) -> None:
@@ -273,6 +321,7 @@ def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
     return out
 
 
-def _csv_line(t_ns: int, row: list[float]) -> str:
-    cells = [repr(t_ns / 1e9)] + [repr(value) for value in row]  # NaN as nan, ±inf as inf/-inf
+def _csv_line(t_ns: int, row: list[float | None]) -> str:
+    # NaN as nan, ±inf as inf/-inf, a lost value as an empty cell
+    cells = [repr(t_ns / 1e9)] + ["" if value is None else repr(value) for value in row]
     return ",".join(cells) + "\n"

@@ -201,9 +201,10 @@ class Recorder:
         """The statistics of ``task`` so far."""
         return self.statistics[task].task_timing()
 
-    def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray) -> None:
+    def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray, lost_so_far: int = 0) -> None:
+        """Record-queue rows of ``task``; ``lost_so_far``: rows its queue dropped in all (marked as gaps)."""
         if self.signals is not None:
-            self.signals.add(task, ticks, rows)
+            self.signals.add(task, ticks, rows, lost_so_far)
 
     def flush(self, final: bool = False) -> None:
         self._guard(self._flush, final)

@@ -226,7 +226,7 @@ class AppLayout:
             return created, OutputPortLink(port.name, created.name, ref.slice)
         profile = None
         if port.feed is not None:
-            t_ns, values = load_profile(port.feed, ref.size, f"port {port.name!r}")
+            t_ns, values = load_profile(port.feed, ref.size, f"port {port.name!r}", port.value_range)
             profile = Profile(t_ns, values)
         starts = getattr(app.tasks[ref.task].runnable, "input_start_values", None)
         default = list(starts[ref.slice]) if starts is not None else [0.0] * ref.size  # a tunable keeps its start

@@ -32,6 +32,7 @@ import numpy as np
 from rtloop.app.builder import App
 from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
+from rtloop.runtime.session import check_out_dir
 from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
 
 DIVERGENCE_DIR = "divergence"
@@ -390,9 +391,13 @@ def compare_signals(run_csv: Path, other_csv: Path, until_s: float | None) -> tu
 # --- replay ----------------------------------------------------------------------------------------
 
 
-def replay(run_dir: str | Path, out: str | Path, app: App | None = None) -> ReplayResult:
-    """Re-simulate the run in ``run_dir`` along its real timeline into ``out``; compare every signal row."""
+def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, force: bool = False) -> ReplayResult:
+    """Re-simulate the run in ``run_dir`` along its real timeline into ``out``; compare every signal row.
+
+    ``out`` may not be ``run_dir`` nor inside it; a folder holding another run needs ``force``.
+    """
     run_dir, out = Path(run_dir), Path(out)
+    check_out_dir(out, protect=[run_dir])  # before reading anything: refusals come first
     summary = read_summary(run_dir)
     if app is None:
         app, _duration_s = load_replay_app(run_dir)
@@ -418,7 +423,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None) -> Repl
     last_release_ns = max((run[-1].release_ns + periods[name] for name, run in records.items() if run), default=0)
     if not last_release_ns:
         raise AppError(f"{run_dir}: timing.csv holds no cycle: nothing to replay")
-    simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=timeline)
+    simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=timeline, force=force,
+             protect=(run_dir,))
     gap = check_timeline(records, periods, dropped)
     problems = sorted(timeline.problems + ([gap] if gap else []))
     cannot = None
@@ -450,7 +456,7 @@ def _explain(divergence: Divergence, app: App, run_dir: Path, out: Path, timelin
     again.capture.add((task, cycle))
     scratch = out / DIVERGENCE_DIR
     try:
-        simulate(app, (cycle + 1) * period_ns / 1e9, scratch, port_writes=writes, timeline=again)
+        simulate(app, (cycle + 1) * period_ns / 1e9, scratch, port_writes=writes, timeline=again, force=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     inputs = again.captured.get((task, cycle))

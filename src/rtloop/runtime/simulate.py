@@ -18,15 +18,15 @@ from typing import Any
 import numpy as np
 
 from rtloop import rt
-from rtloop.app.builder import App, check_duration
+from rtloop.app.builder import App
 from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
 from rtloop.io.host import TaskDevices
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
-from rtloop.record.recorder import Recorder
-from rtloop.record.summary import RunSummary, SummaryFile, TaskSummary, signal_names, slow_step_notes
+from rtloop.record.summary import RunSummary, TaskSummary, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout
+from rtloop.runtime.session import RunSession
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
 from rtloop.runtime.wiring import TaskWiring
@@ -122,38 +122,56 @@ class LetTimeline:
 
 def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
              port_writes: PortWrites | None = None, keep_s: float | None = None,
-             timeline: LetTimeline | None = None) -> RunSummary:
+             timeline: LetTimeline | None = None, force: bool = False, protect: tuple[Path, ...] = ()) -> RunSummary:
     """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`.
 
     ``port_writes`` replays what entered a real run from outside: each value is written
     to its port just before the task's release that took it in the run. ``timeline`` says
-    which cycles run and what they read (default: :class:`LetTimeline`).
+    which cycles run and what they read (default: :class:`LetTimeline`). A folder that
+    already holds a run is refused unless ``force`` is true (as :func:`rtloop.run`);
+    ``protect``: folders ``out`` may not be nor be inside (the run a replay reads).
     """
-    out = Path(out)
-    app.validate()
     if duration_s is None:
         raise AppError("a simulation needs a duration (--duration S): logical time cannot be stopped by Ctrl-C")
-    check_duration(duration_s)
-    if keep_s is not None and not keep_s > 0:
-        raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
     for name in app.tasks:  # every device needs a twin: found before anything is written
         app.device_wiring(name, twins=True)
+    session = RunSession(app, out, mode="simulate", duration_s=duration_s, keep_s=keep_s, trim=trim, force=force,
+                         protect=protect, registry=False)
     announce_once()
-    out.mkdir(parents=True, exist_ok=True)
-    summary_file = SummaryFile(out)
-    layout = AppLayout.create(app)
-    recorder = Recorder(app, out, keep_s=keep_s, trim=trim)
-    recorder.write_replay_info(duration_s)
+    tasks: dict[str, _SimTask] = {}
+    outcome = _Outcome()
+    with session:
+        session.summarise = lambda _running: _summary(app, session, duration_s, outcome, tasks)
+        session.before_close.append(lambda: _let_go(tasks))
+        _simulate(session, duration_s, port_writes or {}, timeline or LetTimeline(), tasks, outcome)
+    if outcome.failure is not None:
+        raise outcome.failure
+    assert session.summary is not None
+    return session.summary
+
+
+class _Outcome:
+    """How the simulation ended: a failure, or what stopped it."""
+
+    def __init__(self) -> None:
+        self.failure: TaskFailed | None = None
+        self.stopped_by = "duration"
+
+
+def _let_go(tasks: dict[str, _SimTask]) -> None:
+    for task in tasks.values():
+        if task.io is not None:
+            task.io.close()  # let go of the shared memory before it is unmapped
+
+
+def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, timeline: LetTimeline,
+              tasks: dict[str, _SimTask], outcome: _Outcome) -> None:
+    app, layout, recorder = session.app, session.layout, session.recorder
     t0_ns = SIMULATION_T0_NS
-    port_writes = port_writes or {}
-    timeline = timeline or LetTimeline()
     recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
-    tasks: dict[str, _SimTask] = {}
-    failure: TaskFailed | None = None
     phase, current = "prerun", ""
     cycle = -1
-    stopped_by = "duration"
     try:
         for name in app.tasks:
             current = name
@@ -179,14 +197,14 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
             try:
                 tasks[current].step(cycle, release_ns, timeline)
             except StopRequested as request:  # a model ended the run: stop every task, in order
-                stopped_by = f"task {current} at cycle {cycle}: {request}"
+                outcome.stopped_by = f"task {current} at cycle {cycle}: {request}"
                 break
             following = timeline.next_cycle(current, cycle)
             if following is not None:
                 heapq.heappush(releases, (t0_ns + following * tasks[current].period_ns, rank, following, current))
             steps += 1
             if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0:
-                _drain(tasks, recorder)
+                _drain(tasks, session)
         phase = "postrun"
         for task in tasks.values():  # safe values first, as in a real run
             task.devices.stop()
@@ -198,45 +216,27 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     except Exception as error:  # the user's code raised: report it like a real run does
         import traceback
 
-        failure = TaskFailed(current, cycle if phase == "step" else None, phase,
-                             f"{type(error).__name__}: {error}", traceback.format_exc())
+        outcome.failure = TaskFailed(current, cycle if phase == "step" else None, phase,
+                                     f"{type(error).__name__}: {error}", traceback.format_exc())
+        outcome.stopped_by = "fault"
     finally:
         for task in tasks.values():
             task.devices.stop()  # the twins see the safe values on every way out too
-        _drain(tasks, recorder)
-        try:
-            recorder.close()
-            summary = _summary(app, recorder, layout, duration_s, failure, tasks, stopped_by)
-            summary.notes.extend(slow_step_notes(summary.tasks))
-            summary.notes.extend(note for note in (recorder.mcap_note, recorder.stopped) if note)
-            summary_file.write(summary)
-        finally:
-            summary_file.close()
-            for task in tasks.values():
-                if task.io is not None:
-                    task.io.close()  # let go of the shared memory before it is unmapped
-            layout.close()
-    if failure is not None:
-        raise failure
-    return summary
+        _drain(tasks, session)
 
 
-def _drain(tasks: dict[str, _SimTask], recorder: Recorder) -> None:
+def _drain(tasks: dict[str, _SimTask], session: RunSession) -> None:
     """Hand what the tasks recorded since the last drain to the recorder."""
+    recorder = session.recorder
     for name, task in tasks.items():
         recorder.add_timing(name, np.array(task.records, dtype=np.int64).reshape(-1, 4))
         task.records.clear()
-        if task.handles.input_log is not None:
-            recorder.add_inputs(name, *task.handles.input_log.drain())
-        if task.handles.read_log is not None:
-            recorder.add_reads(name, task.handles.read_log.drain(), task.handles.read_log.dropped)
-        if task.handles.record is not None:
-            recorder.add_signals(name, *task.handles.record.drain())
-    recorder.flush()
+    session.drain()  # the signal and input queues, as in a real run
 
 
-def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
-             failure: TaskFailed | None, sim_tasks: dict[str, _SimTask], stopped_by: str) -> RunSummary:
+def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome,
+             sim_tasks: dict[str, _SimTask]) -> RunSummary:
+    layout, recorder = session.layout, session.recorder
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
         summaries[name] = TaskSummary(
@@ -250,11 +250,13 @@ def _summary(app: App, recorder: Recorder, layout: AppLayout, duration_s: float,
             **signal_names(spec.runnable),
         )
     capabilities = rt.probe()
+    notes = [*slow_step_notes(summaries), *session.notes()]
     return RunSummary(
         app=app.name, mode="simulate", hot_path=hot_path(),
         started=dt.datetime.now(tz=dt.UTC).isoformat(timespec="milliseconds"),
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
-        ports=port_summaries(layout, recorder.latest_ns), stopped_by="fault" if failure else stopped_by,
-        failure=failure.to_json() if failure else None, machine=machine_facts(capabilities),
-        elapsed_s=recorder.latest_ns / 1e9, recording=recorder.to_json(),
+        ports=port_summaries(layout, recorder.latest_ns), stopped_by=outcome.stopped_by,
+        failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
+        notes=notes, elapsed_s=recorder.latest_ns / 1e9,
+        recording={**recorder.to_json(), **session.losses.to_json()},
     )

@@ -1,50 +1,62 @@
-"""The supervisor: starts one process per task, drains what they record, stops them.
+"""The supervisor: starts one process per task, watches them, stops them.
 
-It runs in the ``rtloop run`` process (non-real-time). The order of a run:
-create shared memory → spawn tasks → wait until every task has finished ``prerun`` →
-pick the common epoch T0 → drain timing and recordings until the tasks end (rewriting
-summary.json every few seconds, watching that every task makes progress) → write the
-artifacts → remove shared memory. Ctrl-C, SIGTERM, a task that raises, a task process that
-dies and a task the watchdog finds stuck all take the same way out, so nothing recorded is
-lost. Without a duration the run goes on until Ctrl-C or SIGTERM.
+It runs in the ``rtloop run`` process (non-real-time), inside a
+:class:`~rtloop.runtime.session.RunSession` that owns the shared memory, the recorder and
+summary.json. The order of a run: spawn tasks → wait until every task has finished
+``prerun`` → pick the common epoch T0 → drain (to a time budget) until the tasks end,
+rewriting summary.json every few seconds and watching that every task makes progress →
+join → the session writes the artifacts and removes shared memory. Ctrl-C, SIGTERM, a task
+that raises, a task process that dies and a task the watchdog finds stuck all take the same
+way out, so nothing recorded is lost. Without a duration the run goes on until Ctrl-C or
+SIGTERM.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import datetime as dt
 import multiprocessing
 import os
 import signal
-import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rtloop import rt
-from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
+from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import AppError, DeviceError, TaskFailed
+from rtloop.errors import DeviceError, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.lean import single_threaded_children
-from rtloop.record.recorder import Recorder
-from rtloop.record.summary import PortSummary, RunSummary, SummaryFile, TaskSummary, signal_names, slow_step_notes
+from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names, slow_step_notes
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
+from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession, RunState
 from rtloop.runtime.task import task_process_main
 
-DRAIN_INTERVAL_S = 0.05
-DRAIN_BATCH_RECORDS = 2048
-START_MARGIN_NS = 100_000_000
-STOP_GRACE_S = 5.0
-STARTUP_ALLOWANCE_S = 30.0
-"""Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
-WATCHDOG_GRACE_S = 2.0  # between SIGTERM and SIGKILL of a task the watchdog found stuck
-SUMMARY_INTERVAL_S = 2.0
+STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
 UNTIL_STOPPED_NS = 1 << 62  # the end time of a run without a duration: never
+TASK_MARK_ENV = "RTLOOP_TASK_OF_RUN"
+"""Set in each task process's environment (and so in whatever it starts): what the cleanup may end."""
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    """What the console shows while a run goes on (the CLI formats it)."""
+
+    elapsed_s: float
+    duration_s: float | None
+    deadline_misses: int
+    latency_now_ns: int
+    recording_stopped: str
+    lost: int
+    """Timing records, signal rows and logged inputs lost so far (the supervisor fell behind)."""
 
 
 @dataclass
@@ -62,24 +74,36 @@ class _TaskRun:
 
 
 class Supervisor:
-    def __init__(self, app: App, duration_s: float | None, out: Path, *, progress: bool, trim: int,
-                 keep_s: float | None = None) -> None:
-        app.validate()
-        if duration_s is not None:
-            check_duration(duration_s)
-        if keep_s is not None and not keep_s > 0:
-            raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
+    def __init__(self, app: App, duration_s: float | None, out: Path, *, trim: int,
+                 keep_s: float | None = None, force: bool = False, limits: Limits = DEFAULT_LIMITS,
+                 on_progress: Callable[[Progress], None] | None = None, on_notice: Callable[[str], None] | None = None,
+                 ) -> None:
+        self.session = RunSession(app, out, mode="run", duration_s=duration_s, keep_s=keep_s, trim=trim,
+                                  force=force, limits=limits)
         for device in app.devices.values():  # a missing interface or permission: exit 2, nothing started
             check_device(device.device, app.source)
         self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
         self.device_problems: list[str] = []
-        self.app, self.duration_s, self.out = app, duration_s, out
-        self.keep_s = keep_s
-        self.progress, self.trim = progress, trim
-        self.stop_reason = "duration"
+        self.app, self.duration_s, self.out, self.limits = app, duration_s, out, limits
+        self.on_progress = on_progress
+        self.on_notice = on_notice or _print_notice
+        self.stop_detail = ""  # the StopRequested text (task, cycle, reason) when state is REQUESTED
         self.failure: TaskFailed | None = None
         self.t0_ns = 0
         self.end_ns = 0
+        self.wall_t0_ns = 0
+        self.runs: dict[str, _TaskRun] = {}
+        self.live: Any = None
+        self.bridges: Bridges | None = None
+        self.dma_latency_held = False
+
+    @property
+    def state(self) -> RunState:
+        return self.session.state
+
+    @state.setter
+    def state(self, value: RunState) -> None:
+        self.session.state = value
 
     # --- lifecycle -------------------------------------------------------------------------
     def run(self) -> RunSummary:
@@ -87,78 +111,76 @@ class Supervisor:
             from rtloop.ros.live import import_foxglove
 
             import_foxglove()
-        self.out.mkdir(parents=True, exist_ok=True)
         capabilities = rt.probe()
         announce_once()
-        summary_file = SummaryFile(self.out)  # reserves its disk space first
-        layout = AppLayout.create(self.app, summary_file.path)
-        runs: dict[str, _TaskRun] = {}
-        self.live: Any = None
+        previous_handlers = self._install_signal_handlers()  # kept until the session has written everything
         try:
-            recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
-            recorder.write_replay_info(self.duration_s)
-            self.bridges = Bridges(self.app)
-            previous_handlers = self._install_signal_handlers()
-            self.dma_latency = rt.CpuDmaLatency().__enter__()
-            self.dma_latency_held = self.dma_latency.held  # read now: the summary is written after it is let go
-            children_before = _adopt_orphans()
-            try:
-                self._open_live_view(recorder, layout)
-                runs = self._spawn(layout)
-                assert layout.registry_path is not None
-                self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
-                self._wait_until_ready(layout, runs)
-                if self.failure is None and self.stop_reason == "duration":
-                    self._start_epoch(layout, recorder)
-                    if self.live is not None:
-                        self.live.start(self.t0_ns, self.wall_t0_ns)
-                    self._drain_until_done(layout, runs, recorder, capabilities, summary_file)
-                else:
-                    layout.control[ControlWord.STOP] = 1
-                self._join(layout, runs)
-                self._drain(layout, recorder)
-            finally:
-                self.bridges.stop()
-                if self.live is not None:
-                    self.live.close()
-                self.dma_latency.__exit__()
-                self._restore_signal_handlers(previous_handlers)
-                layout.control[ControlWord.STOP] = 1
-                for task_run in runs.values():
-                    if task_run.process.is_alive():
-                        task_run.process.kill()
-                    task_run.process.join()
-                rt.end_strays(keep=children_before | _resource_tracker())  # whatever the tasks left running
-                try:
-                    recorder.close()
-                except Exception as error:
-                    recorder.stopped = recorder.stopped or f"recording not closed: {error}"
-                summary = self._summary(layout, runs, capabilities, recorder, running=False)
-                summary_file.write(summary)
-                summary_file.close()
+            with self.session as session:
+                session.summarise = lambda running: self._summary(capabilities, running=running)
+                self._run_tasks(session, capabilities)
         finally:
-            layout.close()  # whatever happened above: no shared memory is left behind
-            summary_file.close()
-        if summary_file.problem:
-            sys.stderr.write(f"rtloop: {summary_file.problem}\n")
+            self._restore_signal_handlers(previous_handlers)
         if self.refused is not None:
             raise self.refused
         if self.failure is not None:
             raise self.failure
-        return summary
+        assert self.session.summary is not None
+        return self.session.summary
 
-    def _open_live_view(self, recorder: Recorder, layout: AppLayout) -> None:
+    def _run_tasks(self, session: RunSession, capabilities: rt.Capabilities) -> None:
+        layout, recorder = session.layout, session.recorder
+        self.bridges = Bridges(self.app)
+        dma_latency = rt.CpuDmaLatency().__enter__()
+        self.dma_latency_held = dma_latency.held  # read now: the summary is written after it is let go
+        was_subreaper = _is_subreaper()
+        children_before = _adopt_orphans()
+        previous_scheduling = None
+        try:
+            self._open_live_view(session)
+            self.runs = self._spawn(layout)
+            previous_scheduling = _serve_below_the_tasks(self.app, capabilities)
+            assert layout.registry_path is not None
+            self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
+            self._wait_until_ready(layout)
+            if self.failure is None and self.state is RunState.RUNNING:
+                self._start_epoch(layout, recorder)
+                if self.live is not None:
+                    self.live.start(self.t0_ns, self.wall_t0_ns)
+                self._drain_until_done(session)
+            else:
+                layout.control[ControlWord.STOP] = 1
+            self._join(layout)
+            session.drain()
+        finally:
+            self.bridges.stop()
+            if self.live is not None:
+                self.live.close()
+            dma_latency.__exit__()
+            layout.control[ControlWord.STOP] = 1
+            for task_run in self.runs.values():
+                if task_run.process.is_alive():
+                    task_run.process.kill()
+                task_run.process.join()
+            if previous_scheduling is not None:
+                os.sched_setscheduler(0, *previous_scheduling)
+            _end_task_strays(layout.token, keep=children_before | _resource_tracker())
+            if not was_subreaper:
+                _stop_adopting()
+            if self.state is RunState.RUNNING:
+                self.state = RunState.DURATION
+
+    def _open_live_view(self, session: RunSession) -> None:
         """Start the Foxglove server if the app asks for one (in this non-real-time process)."""
         if self.app.live_view is None:
             return
         from rtloop.ros.live import LiveView
 
+        recorder = session.recorder
         names = recorder.signals.names if recorder.signals is not None else []
-        assert layout.registry_path is not None
-        self.live = LiveView(self.app, self.app.live_view, names, layout.registry_path)
+        assert session.layout.registry_path is not None
+        self.live = LiveView(self.app, self.app.live_view, names, session.layout.registry_path)
         recorder.live = self.live
-        print(f"rtloop: Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)",
-              file=sys.stderr, flush=True)
+        self.on_notice(f"Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)")
 
     def _spawn(self, layout: AppLayout) -> dict[str, _TaskRun]:
         # spawn, not fork: a forked child of a threaded parent can inherit held locks.
@@ -176,81 +198,89 @@ class Supervisor:
                 args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name]),
                 name=f"rtloop-{self.app.name}-{name}",
             )
-            with single_threaded_children(), children_without_main():  # no BLAS pool in an RT process
+            # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
+            with single_threaded_children(), children_without_main(), _marked_environment(layout.token):
                 process.start()
             writer.close()
             runs[name] = _TaskRun(name, process, reader)
         return runs
 
-    def _wait_until_ready(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
+    def _wait_until_ready(self, layout: AppLayout) -> None:
         """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
-        limit_s = float("inf") if self.duration_s is None else self.duration_s + STARTUP_ALLOWANCE_S
+        allowance_s = self.limits.startup_allowance_s
+        limit_s = float("inf") if self.duration_s is None else self.duration_s + allowance_s
         deadline = time.monotonic() + limit_s
-        while self.failure is None and self.stop_reason == "duration":
-            self._poll(layout, runs)
-            states = [layout.tasks[name].status[StatusWord.STATE] for name in runs]
+        while self.failure is None and self.state is RunState.RUNNING:
+            self._poll(layout)
+            states = [layout.tasks[name].status[StatusWord.STATE] for name in self.runs]
             if all(state == TaskState.READY for state in states):
                 return
             if time.monotonic() > deadline:
-                slow = [n for n, s in zip(runs, states, strict=True) if s != TaskState.READY]
-                reason = (f"prerun did not finish within the run's duration + {STARTUP_ALLOWANCE_S:g} s "
+                slow = [n for n, s in zip(self.runs, states, strict=True) if s != TaskState.READY]
+                reason = (f"prerun did not finish within the run's duration + {allowance_s:g} s "
                           f"of start-up ({limit_s:g} s)")
                 self.failure = TaskFailed(slow[0], None, "prerun", reason)
-                self.stop_reason = "fault"
+                self.state = RunState.FAULT
                 return
             time.sleep(0.005)
 
-    def _start_epoch(self, layout: AppLayout, recorder: Recorder) -> None:
+    def _start_epoch(self, layout: AppLayout, recorder: Any) -> None:
+        margin_ns = self.limits.start_margin_ns
         wall_now_ns, now_ns = time.time_ns(), rt.now_ns()
-        self.t0_ns = now_ns + START_MARGIN_NS
+        self.t0_ns = now_ns + margin_ns
         self.end_ns = UNTIL_STOPPED_NS if self.duration_s is None else self.t0_ns + round(self.duration_s * 1e9)
-        self.wall_t0 = (wall_now_ns + START_MARGIN_NS) / 1e9
-        self.wall_t0_ns = wall_now_ns + START_MARGIN_NS
-        recorder.start(self.t0_ns, wall_now_ns + START_MARGIN_NS)
+        self.wall_t0_ns = wall_now_ns + margin_ns
         publish_epoch(layout.control, self.t0_ns, self.end_ns)  # tasks start when they see T0
+        # Only then open run.mcap: its first use imports mcap, which can take longer than the margin.
+        recorder.start(self.t0_ns, self.wall_t0_ns)
 
-    def _drain_until_done(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder,
-                          capabilities: rt.Capabilities, summary_file: SummaryFile) -> None:
-        give_up_ns = self.end_ns + round(STOP_GRACE_S * 1e9)
-        next_summary_s = time.monotonic()
-        stale_reads = dict.fromkeys(runs, 0)
+    def _drain_until_done(self, session: RunSession) -> None:
+        layout, recorder = session.layout, session.recorder
+        give_up_ns = self.end_ns + round(self.limits.stop_grace_s * 1e9)
+        stale_reads = dict.fromkeys(self.runs, 0)
         recording_stopped = ""
-        while not all(r.finished for r in runs.values()):
-            time.sleep(DRAIN_INTERVAL_S)
-            self._poll(layout, runs)
-            if layout.control[ControlWord.STOP] and self.stop_reason == "duration":
-                self.stop_reason = "signal"  # a task process was sent SIGTERM: it stops the app
-            self._drain(layout, recorder)
-            self._poll(layout, runs)
-            self._watch(layout, runs, recorder)
+        lost_reported = 0
+        behind = False
+        while not all(r.finished for r in self.runs.values()):
+            if not behind:  # a supervisor that fell behind goes straight back to draining
+                time.sleep(self.limits.drain_interval_s)
+            self._poll(layout)
+            if layout.control[ControlWord.STOP] and self.state is RunState.RUNNING:
+                self.state = RunState.SIGNAL  # a task process was sent SIGTERM: it stops the app
+            behind = session.drain(self.limits.drain_budget_s)
+            self._poll(layout)
+            self._watch(layout, recorder)
+            assert self.bridges is not None
             self.bridges.poll()
-            for name in runs:  # a stale read is an event the flight recorder keeps
+            for name in self.runs:  # a stale read is an event the flight recorder keeps
                 count = layout.tasks[name].status[StatusWord.STALE_READS]
                 if count != stale_reads[name]:
                     stale_reads[name] = count
                     recorder.mark_event()
             if recorder.stopped != recording_stopped:
                 recording_stopped = recorder.stopped
-                sys.stderr.write(f"\nrtloop: {recording_stopped}\n")
-            if self.failure is not None or self.stop_reason != "duration":
+                self.on_notice(recording_stopped)
+            lost = session.losses.total()
+            if lost > lost_reported:
+                if not lost_reported:
+                    self.on_notice("the supervisor falls behind the recording: records are being lost "
+                                   "(counted in summary.json notes; signals.csv marks the gaps)")
+                lost_reported = lost
+            if self.failure is not None or self.state is not RunState.RUNNING:
                 recorder.mark_event()
                 layout.control[ControlWord.STOP] = 1
                 break
             if rt.now_ns() > give_up_ns:
                 layout.control[ControlWord.STOP] = 1
                 break
-            if time.monotonic() >= next_summary_s:
-                next_summary_s = time.monotonic() + SUMMARY_INTERVAL_S
-                summary_file.write(self._summary(layout, runs, capabilities, recorder, running=True))
-            if self.progress:
-                self._show_progress(layout, recorder)
-        if self.progress:
-            sys.stderr.write("\n")
+            session.write_summary_if_due()
+            if self.on_progress is not None:
+                self.on_progress(self._progress(layout, session))
 
-    def _watch(self, layout: AppLayout, runs: dict[str, _TaskRun], recorder: Recorder) -> None:
+    def _watch(self, layout: AppLayout, recorder: Any) -> None:
         """The watchdog: a running task whose cycle count stands still too long is stuck."""
         now_ns = rt.now_ns()
-        for task_run in runs.values():
+        for task_run in self.runs.values():
             status = layout.tasks[task_run.name].status
             if task_run.finished or task_run.stuck or status[StatusWord.STATE] != TaskState.RUNNING:
                 continue
@@ -261,7 +291,7 @@ class Supervisor:
             config = self.app.tasks[task_run.name].config
             if not config.watchdog_periods:
                 continue
-            limit_ns = max(config.watchdog_periods * config.period_ns, round(WATCHDOG_MIN_S * 1e9))
+            limit_ns = max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9))
             quiet_ns = now_ns - max(task_run.progress_ns, self.t0_ns)
             if quiet_ns <= limit_ns or self.failure is not None:
                 continue
@@ -271,14 +301,14 @@ class Supervisor:
                 f"watchdog: no cycle finished for {quiet_ns / 1e9:.1f} s ({config.watchdog_periods} periods); "
                 "the step is stuck (a blocking call or an endless loop)",
             )
-            self.stop_reason = "watchdog"
+            self.state = RunState.WATCHDOG
             layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
             try:
                 os.kill(task_run.process.pid, signal.SIGTERM)
             except ProcessLookupError:
                 pass
 
-    def _cycle_after(self, name: str, recorder: Recorder) -> int:
+    def _cycle_after(self, name: str, recorder: Any) -> int:
         """The cycle a task works on: the one after its newest timing record."""
         last = recorder.last_record[name]
         if last is None:
@@ -289,12 +319,13 @@ class Supervisor:
             return cycle + 1
         return (end_ns - self.t0_ns) // config.period_ns + 1  # skip: the next release after it ended
 
-    def _join(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
-        deadline = time.monotonic() + STOP_GRACE_S + max(
+    def _join(self, layout: AppLayout) -> None:
+        stop_grace_s, watchdog_grace_s = self.limits.stop_grace_s, self.limits.watchdog_grace_s
+        deadline = time.monotonic() + stop_grace_s + max(
             t.config.period_ns for t in self.app.tasks.values()
         ) / 1e9
-        stuck_deadline = time.monotonic() + WATCHDOG_GRACE_S
-        for task_run in runs.values():
+        stuck_deadline = time.monotonic() + watchdog_grace_s
+        for task_run in self.runs.values():
             task_run.process.join(max(0.0, (stuck_deadline if task_run.stuck else deadline) - time.monotonic()))
             if task_run.process.is_alive():
                 task_run.process.kill()
@@ -303,46 +334,27 @@ class Supervisor:
                     self.failure = TaskFailed(
                         task_run.name, self.failure.cycle, self.failure.phase,
                         f"{self.failure.reason}; it ignored SIGTERM and was killed (SIGKILL) after "
-                        f"{WATCHDOG_GRACE_S:.0f} s, so its postrun did not run")
+                        f"{watchdog_grace_s:g} s, so its postrun did not run")
                 if self.failure is None:
                     phase, cycle = self._phase_of(layout, task_run.name)
                     self.failure = TaskFailed(
                         task_run.name, cycle, phase,
-                        f"did not stop within {STOP_GRACE_S:.0f} s of the stop request; killed "
+                        f"did not stop within {stop_grace_s:g} s of the stop request; killed "
                         f"(is {phase}() blocking or looping?)",
                     )
-                    self.stop_reason = "fault"
-        self._poll(layout, runs)
+                    self.state = RunState.FAULT
+        self._poll(layout)
 
-    # --- draining and watching ---------------------------------------------------------------
-    @staticmethod
-    def _drain(layout: AppLayout, recorder: Recorder) -> None:
-        """Hand what the tasks recorded to the recorder, in bounded batches: a supervisor that fell
-        behind catches up without a burst of memory (which Python would keep afterwards)."""
-        more = True
-        while more:
-            more = False
-            for name, handles in layout.tasks.items():
-                records = handles.timing.drain(DRAIN_BATCH_RECORDS)
-                recorder.add_timing(name, records)
-                more |= len(records) == DRAIN_BATCH_RECORDS
-                if handles.input_log is not None:
-                    recorder.add_inputs(name, *handles.input_log.drain())
-                if handles.read_log is not None:
-                    recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
-                if handles.record is not None:
-                    ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
-                    recorder.add_signals(name, ticks, rows)
-                    more |= len(ticks) == DRAIN_BATCH_RECORDS
-            recorder.flush()
-
-    def _poll(self, layout: AppLayout, runs: dict[str, _TaskRun]) -> None:
+    # --- watching ----------------------------------------------------------------------------
+    def _poll(self, layout: AppLayout) -> None:
         """Read task messages; notice failures and dead processes."""
-        for task_run in runs.values():
+        for task_run in self.runs.values():
             self._read_messages(task_run)
             process = task_run.process
             if process.exitcode is None or task_run.finished:
                 continue
+            # It exited: what it sent just before (its traceback) may have come after the read above.
+            self._read_messages(task_run)
             task_run.finished = True
             if task_run.failure is None and process.exitcode != 0:
                 phase, cycle = self._phase_of(layout, task_run.name)
@@ -351,7 +363,7 @@ class Supervisor:
                 )
             if task_run.failure is not None and self.failure is None:
                 self.failure = task_run.failure
-                self.stop_reason = "fault"
+                self.state = RunState.FAULT
                 layout.control[ControlWord.STOP] = 1
 
     def _phase_of(self, layout: AppLayout, name: str) -> tuple[str, int | None]:
@@ -375,16 +387,16 @@ class Supervisor:
                     task_run.settings = message["settings"]
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
-                    if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe
-                        edge_ns, safe_ns = message["edge_ns"], message.get("safe_ns") or 0
-                        self.device_problems.append(
-                            f"E-stop: edge at {edge_ns} ns (CLOCK_MONOTONIC, kernel timestamp); task {task_run.name}'s "
-                            f"devices safe at {safe_ns} ns, {(safe_ns - edge_ns) / 1e3:.0f} µs after the edge")
                 elif kind == "device_error":
                     self.refused = DeviceError(message["device"], message["source"], message["key"],
                                                message["problem"])
                 elif kind == "device_problems":
                     self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
+                    if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe
+                        edge_ns, safe_ns = message["edge_ns"], message.get("safe_ns") or 0
+                        self.device_problems.append(
+                            f"E-stop: edge at {edge_ns} ns (CLOCK_MONOTONIC, kernel timestamp); task {task_run.name}'s "
+                            f"devices safe at {safe_ns} ns, {(safe_ns - edge_ns) / 1e3:.0f} µs after the edge")
                 elif kind == "failed":
                     task_run.failure = TaskFailed(
                         task_run.name, message["cycle"], message["phase"], message["reason"],
@@ -392,21 +404,19 @@ class Supervisor:
                     )
         except (EOFError, OSError):
             pass
-        if task_run.stop_request and self.stop_reason == "duration":
-            self.stop_reason = task_run.stop_request
+        if task_run.stop_request and self.state is RunState.RUNNING:
+            self.state, self.stop_detail = RunState.REQUESTED, task_run.stop_request
 
-    def _show_progress(self, layout: AppLayout, recorder: Recorder) -> None:
+    def _progress(self, layout: AppLayout, session: RunSession) -> Progress:
         elapsed_s = max(0.0, (rt.now_ns() - self.t0_ns) / 1e9)
-        misses = sum(h.status[StatusWord.DEADLINE_MISSES] for h in layout.tasks.values())
-        worst_us = max(h.status[StatusWord.LATENCY_LAST_NS] for h in layout.tasks.values()) / 1e3
-        until = "  (Ctrl-C stops)" if self.duration_s is None else f" / {self.duration_s:.1f} s"
         if self.duration_s is not None:
             elapsed_s = min(elapsed_s, self.duration_s)
-        recording = "   RECORDING STOPPED" if recorder.stopped else ""
-        sys.stderr.write(
-            f"\r  {elapsed_s:7.1f} s{until}   deadline misses {misses}   latency now {worst_us:7.1f} µs{recording}  "
+        return Progress(
+            elapsed_s=elapsed_s, duration_s=self.duration_s,
+            deadline_misses=sum(h.status[StatusWord.DEADLINE_MISSES] for h in layout.tasks.values()),
+            latency_now_ns=max(h.status[StatusWord.LATENCY_LAST_NS] for h in layout.tasks.values()),
+            recording_stopped=session.recorder.stopped, lost=session.losses.total(),
         )
-        sys.stderr.flush()
 
     # --- signals ------------------------------------------------------------------------------
     def _install_signal_handlers(self) -> dict[int, Any]:
@@ -414,7 +424,8 @@ class Supervisor:
             return {}
 
         def request_stop(signum: int, _frame: object) -> None:
-            self.stop_reason = "signal"
+            if self.state is RunState.RUNNING:
+                self.state = RunState.SIGNAL
 
         return {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
 
@@ -424,13 +435,27 @@ class Supervisor:
             signal.signal(signum, handler)
 
     # --- results --------------------------------------------------------------------------------
-    def _summary(self, layout: AppLayout, runs: dict[str, _TaskRun], capabilities: rt.Capabilities,
-                 recorder: Recorder, *, running: bool) -> RunSummary:
+    def _stopped_by(self, running: bool) -> str:
+        if running:
+            return "running"
+        if self.state is RunState.REQUESTED:
+            return self.stop_detail
+        return (RunState.DURATION if self.state is RunState.RUNNING else self.state).value
+
+    def _summary(self, capabilities: rt.Capabilities, *, running: bool) -> RunSummary:
+        session = self.session
+        layout, recorder = session.layout, session.recorder
         tasks: dict[str, TaskSummary] = {}
         for name, spec in self.app.tasks.items():
-            task_run = runs.get(name)
+            task_run = self.runs.get(name)
             status = layout.tasks[name].status
             settings = task_run.settings if task_run else None
+            dropped = layout.tasks[name].timing.dropped
+            timing = recorder.timing_of(name)
+            if dropped and spec.config.overrun == "skip":
+                # Lost records leave gaps in timing.csv's cycles as skipped releases do: the task's
+                # own count of the releases it skipped is the true one.
+                timing = dataclasses.replace(timing, overruns=status[StatusWord.OVERRUNS])
             tasks[name] = TaskSummary(
                 period_ns=spec.config.period_ns,
                 priority=settings.priority if settings else 0,
@@ -439,31 +464,31 @@ class Supervisor:
                 rt=settings.rt if settings else False,
                 rt_reason="; ".join(settings.reasons) if settings else "the task never started",
                 memory_locked=settings.memory_locked if settings else False,
-                timing=recorder.timing_of(name),
+                timing=timing,
                 stale_reads=status[StatusWord.STALE_READS],
                 misses_in_a_row_max=status[StatusWord.MISSES_IN_A_ROW_MAX],
-                timing_samples_dropped=layout.tasks[name].timing.dropped,
+                timing_samples_dropped=dropped,
                 **signal_names(spec.runnable),
             )
+        bridges = self.bridges.summary() if self.bridges is not None else {}
         return RunSummary(
             app=self.app.name,
             mode="run",
             hot_path=hot_path(),
-            started=_iso(getattr(self, "wall_t0", time.time())),
+            started=_iso((self.wall_t0_ns or time.time_ns()) / 1e9),
             duration_s=self.duration_s,
             rt_capable=capabilities.may_use_rt,
             tasks=tasks,
             ports=port_summaries(layout, recorder.latest_ns),
-            stopped_by="running" if running else self.stop_reason,
+            stopped_by=self._stopped_by(running),
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
             notes=[*slow_step_notes(tasks),
-                   *(note for note in (recorder.mcap_note, self.bridges.note, recorder.stopped) if note),
-                   *self.device_problems],
-            bridges={**self.bridges.summary(), **(self.live.summary() if self.live is not None else {})},
+                   *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems)],
+            bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,
-            recording=recorder.to_json(),
+            recording={**recorder.to_json(), **session.losses.to_json()},
         )
 
 
@@ -482,8 +507,47 @@ def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
     return following
 
 
+SUPERVISOR_PRIORITY = 1
+
+
+def _serve_below_the_tasks(app: App, capabilities: rt.Capabilities) -> tuple[int, os.sched_param] | None:
+    """Run this thread at SCHED_FIFO 1 while every task is real-time above it; returns what to restore.
+
+    Busy real-time tasks leave the rest of the machine the crumbs (RT throttling: 5 %), shared
+    with every SCHED_OTHER process: the supervisor then could not serve Ctrl-C, the watchdog or
+    the recording. At the lowest real-time priority it runs whenever the tasks sleep and never
+    delays one of them. Children (bridges) start as SCHED_OTHER (reset on fork). Not done when a
+    task is SCHED_OTHER (the supervisor would starve it) or shares priority 1.
+    """
+    configs = [task.config for task in app.tasks.values()]
+    above = all(c.policy == "deadline" or (c.policy in ("fifo", "rr") and c.priority > SUPERVISOR_PRIORITY)
+                for c in configs)
+    if not capabilities.may_use_rt or not above:
+        return None
+    previous = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(SUPERVISOR_PRIORITY))
+    except OSError:
+        return None
+    return previous
+
+
+def _print_notice(text: str) -> None:
+    import sys
+
+    sys.stderr.write(f"\nrtloop: {text}\n")
+    sys.stderr.flush()
+
+
+def _is_subreaper() -> bool:
+    try:
+        return rt.is_subreaper()
+    except OSError:
+        return False
+
+
 def _adopt_orphans() -> set[int]:
-    """Become the subreaper of what the tasks start; returns the children that existed before."""
+    """Become the subreaper of what the tasks start (for this run only); returns the children that existed before."""
     try:
         rt.become_subreaper()
     except OSError:
@@ -491,12 +555,66 @@ def _adopt_orphans() -> set[int]:
     return rt.child_pids()
 
 
+def _stop_adopting() -> None:
+    """Give the caller back what it was: a library's caller does not stay a subreaper after a run."""
+    try:
+        rt.become_subreaper(False)
+    except OSError:
+        pass
+
+
+@contextlib.contextmanager
+def _marked_environment(token: str) -> Iterator[None]:
+    """The task process starts with a mark in its environment that its descendants inherit."""
+    previous = os.environ.get(TASK_MARK_ENV)
+    os.environ[TASK_MARK_ENV] = f"{os.getpid()}-{token}"
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(TASK_MARK_ENV, None)
+        else:
+            os.environ[TASK_MARK_ENV] = previous
+
+
 def _resource_tracker() -> set[int]:
-    """multiprocessing's helper process (a child of ours, started with the first task)."""
+    """multiprocessing's helper process (a child of ours, started with the first task: it carries the mark)."""
     from multiprocessing import resource_tracker
 
     pid = getattr(resource_tracker._resource_tracker, "_pid", None)
     return {pid} if pid else set()
+
+
+def _carries_mark(pid: int, mark: bytes) -> bool:
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as file:
+            return mark in file.read().split(b"\0")
+    except OSError:
+        return False
+
+
+def _end_task_strays(token: str, keep: set[int]) -> None:
+    """SIGKILL what the tasks left running (orphans adopted here), never a child the caller started itself.
+
+    Only children that carry this run's mark in their environment are ended: the task processes
+    and whatever they started (a program started with a wiped environment escapes this and
+    is reparented to init, as without rtloop).
+    """
+    mark = f"{TASK_MARK_ENV}={os.getpid()}-{token}".encode()
+    for _ in range(20):
+        strays = [pid for pid in rt.child_pids() - keep if _carries_mark(pid, mark)]
+        if not strays:
+            return
+        for pid in strays:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        for pid in strays:
+            try:
+                os.waitpid(pid, 0)
+            except ChildProcessError:
+                pass
 
 
 def port_summaries(layout: AppLayout, last_release_ns: int = 0) -> dict[str, PortSummary]:
@@ -548,11 +666,16 @@ def _describe_exit(exitcode: int) -> str:
     return f"exit code {exitcode}"
 
 
-def run(app: App, duration_s: float | None, out: str | Path, *, progress: bool = False, trim: int = 20,
-        keep_s: float | None = None) -> RunSummary:
+def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, keep_s: float | None = None,
+        force: bool = False, limits: Limits = DEFAULT_LIMITS, on_progress: Callable[[Progress], None] | None = None,
+        ) -> RunSummary:
     """Run ``app`` in real time for ``duration_s`` (None: until SIGINT/SIGTERM); artifacts go into ``out``.
 
     ``keep_s``: keep only the last ``keep_s`` seconds of timing.csv, signals.csv and run.mcap,
     plus the cycles around every deadline miss, stale read or fault (None: keep everything).
+    A folder that already holds a run is refused (:class:`~rtloop.runtime.session.RunDirectoryError`)
+    unless ``force`` is true; then that run's files are removed first. ``on_progress`` is called
+    with a :class:`Progress` at every drain (the CLI draws its progress line with it).
     """
-    return Supervisor(app, duration_s, Path(out), progress=progress, trim=trim, keep_s=keep_s).run()
+    return Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
+                      on_progress=on_progress).run()

@@ -1,0 +1,350 @@
+"""One run session: the output folder, shared memory, recorder and summary of a run, and their cleanup.
+
+``run``, ``simulate`` and ``replay`` all enter a :class:`RunSession` (a context manager, like
+a trio nursery: whatever it opens, it closes on every way out). It owns
+
+- the output folder, under the rule that protects what earlier runs recorded: a folder that
+  already holds a run is never written into unless the caller asks (``force=True``,
+  ``--force``), and then the earlier run's files are removed first, so no stale
+  ``report.html`` or ``report-figures/`` sits beside new data. Two things are refused even
+  then: writing into the run a replay reads (or a folder inside it), and a ``segments/``
+  folder left by a run that did not finish (its only recording);
+- the shared memory (:class:`~rtloop.runtime.layout.AppLayout`), the recorder and
+  ``summary.json``, and the drain that moves what tasks recorded into the recorder, in a
+  time budget so the caller's control loop always gets the processor back;
+- the counts of what was lost on the way (timing records, signal rows, logged inputs), for
+  the summary's notes;
+- the cleanup: the recorder closed, the final summary written (a second Ctrl-C waits until
+  it is), the reserve file given back, every segment removed.
+
+The supervisor (``runtime/supervisor.py``) keeps only the processes' lifecycle; the
+simulator only its logical clock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import os
+import shutil
+import signal
+import stat
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
+from rtloop.errors import AppError
+from rtloop.record.recorder import Recorder
+from rtloop.record.summary import RunSummary, SummaryFile
+from rtloop.runtime.layout import AppLayout
+
+RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
+             "inputs.csv", "replay.json", "report.html")
+"""Files a run (and ``rtloop report``) writes into its folder."""
+LEFTOVERS = (".summary-reserve", ".summary.json.tmp", ".signals.json.tmp")
+"""Files of a run that are not its data (a reserve, a half-written temporary): removed, never a reason to refuse."""
+RUN_FOLDERS = ("report-figures",)
+"""Folders of a finished run, removed with it by ``force``."""
+UNFINISHED_FOLDER = "segments"
+"""The flight recorder's folder: present after a run only when the run did not finish."""
+
+
+class RunDirectoryError(AppError):
+    """The output folder holds a run that would be overwritten, or is the run being replayed."""
+
+
+def prepare_out_dir(out: Path, *, force: bool = False, protect: Iterable[Path] = ()) -> Path:
+    """Make ``out`` ready for a new run's artifacts, or refuse before anything is written.
+
+    ``protect``: folders whose contents must survive (the run a replay reads): ``out`` may be
+    neither one of them nor inside one. Returns ``out``.
+    """
+    check_out_dir(out, protect=protect)
+    if not out.exists():
+        out.mkdir(parents=True)
+        return out
+    for name in LEFTOVERS:
+        if os.path.lexists(out / name):
+            _remove(out / name)
+    found = [name for name in (*RUN_FILES, *RUN_FOLDERS) if os.path.lexists(out / name)]
+    if not found:
+        return out
+    if not force:
+        raise RunDirectoryError(f"{out} already holds a run ({', '.join(found[:3])}); nothing was written: "
+                                "choose another --out, or add --force to replace it (force=True in Python)")
+    for name in found:
+        _remove(out / name)
+    return out
+
+
+def check_out_dir(out: Path, *, protect: Iterable[Path] = ()) -> None:
+    """The refusals that hold even with ``force`` (see :func:`prepare_out_dir`); writes nothing."""
+    resolved = out.resolve()
+    for kept in protect:
+        kept_resolved = Path(kept).resolve()
+        if resolved == kept_resolved or kept_resolved in resolved.parents:
+            raise RunDirectoryError(f"--out {out} is the run {kept} it replays, or inside it; the replay would "
+                                    "overwrite what it compares with: choose another folder")
+    if out.exists() and not out.is_dir():
+        raise RunDirectoryError(f"--out {out} exists and is not a folder")
+    if os.path.lexists(out / UNFINISHED_FOLDER):
+        raise RunDirectoryError(f"{out}/{UNFINISHED_FOLDER}/ holds the recording of a run that did not finish; "
+                                "nothing was written: move it away (or choose another --out); --force "
+                                "never deletes it")
+
+
+def _remove(path: Path) -> None:
+    """Remove a file, a link (never what it points to) or a folder of the earlier run."""
+    if stat.S_ISDIR(os.lstat(path).st_mode):
+        shutil.rmtree(path)
+    else:
+        path.unlink()
+
+
+# --- the session ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """Every time limit of a run's lifecycle, in one place (tests shrink them to run faster)."""
+
+    startup_allowance_s: float = 30.0
+    """Time to start a task process (Python, numpy, the runnable's imports) on top of the run's duration."""
+    stop_grace_s: float = 5.0
+    """Time (plus one period) a task has to stop after the stop request before it is killed."""
+    watchdog_grace_s: float = 2.0
+    """Between SIGTERM and SIGKILL of a task the watchdog found stuck."""
+    watchdog_min_s: float = WATCHDOG_MIN_S
+    """The watchdog never calls a task stuck sooner than this (a loaded machine stalls for seconds)."""
+    drain_interval_s: float = 0.05
+    """Sleep of the supervisor's control loop between two drains."""
+    drain_budget_s: float = 0.025
+    """Most time one drain may take before the control loop (signals, watchdog, summary) comes back."""
+    summary_interval_s: float = 2.0
+    """How often summary.json is rewritten during a run."""
+    start_margin_ns: int = 100_000_000
+    """T0 lies this far after the moment every task is ready."""
+
+
+DEFAULT_LIMITS = Limits()
+
+
+class RunState(enum.Enum):
+    """Where a run is; once it leaves RUNNING, why it ended (``stopped_by`` in summary.json)."""
+
+    RUNNING = "running"
+    DURATION = "duration"
+    """Its duration ran out (or, for a run without one, never set: it was stopped otherwise)."""
+    SIGNAL = "signal"
+    """Ctrl-C or SIGTERM."""
+    FAULT = "fault"
+    """A task raised, died or would not stop."""
+    WATCHDOG = "watchdog"
+    """A task stopped making progress."""
+    REQUESTED = "requested"
+    """A runnable raised StopRequested (the summary names the task, the cycle and the reason)."""
+
+
+DRAIN_BATCH_RECORDS = 4096
+
+
+@dataclass
+class Losses:
+    """What did not reach the recording, per task: counted by the shared-memory queues."""
+
+    timing: dict[str, int]
+    signal_rows: dict[str, int]
+    inputs: dict[str, int]
+
+    def total(self) -> int:
+        return sum(self.timing.values()) + sum(self.signal_rows.values()) + sum(self.inputs.values())
+
+    def to_json(self) -> dict[str, dict[str, int]]:
+        """summary.json's ``recording.lost``: per kind, per task, only where something was lost."""
+        kinds = {"timing_records": self.timing, "signal_rows": self.signal_rows, "inputs": self.inputs}
+        return {"lost": {kind: {t: n for t, n in counts.items() if n} for kind, counts in kinds.items()}}
+
+    def notes(self) -> list[str]:
+        lines = []
+        for task, count in self.timing.items():
+            if count:
+                lines.append(f"task {task}: {count} timing records lost (its timing ring was full: the supervisor "
+                             "fell behind); timing.csv lacks those cycles, they are not counted as overruns")
+        for task, count in self.signal_rows.items():
+            if count:
+                lines.append(f"task {task}: {count} signal rows lost (its record queue was full: the supervisor "
+                             "fell behind); signals.csv leaves those cells empty")
+        for task, count in self.inputs.items():
+            if count:
+                lines.append(f"task {task}: {count} port values taken but not logged (its input log was full); "
+                             "a replay of this run will not see them")
+        return lines
+
+
+class RunSession:
+    """The resources of one run (see the module's docstring); enter it with ``with``.
+
+    ``summarise(running)`` builds the summary (the caller knows its tasks); the session writes
+    it every ``summary_interval_s`` through :meth:`write_summary_if_due` and at the end.
+    """
+
+    def __init__(self, app: App, out: str | Path, *, mode: str, duration_s: float | None, keep_s: float | None,
+                 trim: int, force: bool = False, protect: Iterable[Path] = (), limits: Limits = DEFAULT_LIMITS,
+                 registry: bool = True) -> None:
+        app.validate()
+        if duration_s is not None:
+            check_duration(duration_s)
+        if keep_s is not None and not keep_s > 0:
+            raise AppError(f"--keep must be > 0 seconds, got {keep_s}")
+        if isinstance(trim, bool) or not isinstance(trim, int) or trim < 0:
+            raise AppError(f"--trim must be a whole number of cycles ≥ 0, got {trim!r}")
+        self.app, self.out, self.mode = app, Path(out), mode
+        self.duration_s, self.keep_s, self.trim, self.force = duration_s, keep_s, trim, force
+        self.protect = tuple(Path(p) for p in protect)
+        self.limits = limits
+        self.registry = registry
+        self.state = RunState.RUNNING
+        self.summarise: Callable[[bool], RunSummary] | None = None
+        self.summary: RunSummary | None = None
+        self.layout: AppLayout
+        self.recorder: Recorder
+        self.summary_file: SummaryFile
+        self._opened: list[str] = []
+        self._next_summary_s = 0.0
+        self.losses = Losses({}, {}, {})
+        self.before_close: list[Callable[[], None]] = []
+        """Called before the shared memory is removed (the simulator lets go of its views)."""
+
+    # --- opening -------------------------------------------------------------------------------
+    def __enter__(self) -> RunSession:
+        check_out_dir(self.out, protect=self.protect)  # refusals first: nothing is written yet
+        summary_path = self.out / "summary.json"
+        # The layout checks memory and loads profiles: bad input is refused before the folder is touched.
+        self.layout = AppLayout.create(self.app, summary_path if self.registry else None)
+        self._opened.append("layout")
+        try:
+            prepare_out_dir(self.out, force=self.force, protect=self.protect)
+            self.summary_file = SummaryFile(self.out)  # reserves its disk space first
+            self._opened.append("summary")
+            self.recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
+            self._opened.append("recorder")
+            self.recorder.write_replay_info(self.duration_s)
+        except BaseException:
+            self._close_resources()
+            raise
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        with signals_deferred():  # a second Ctrl-C must not cost summary.json and metadata.yaml
+            try:
+                self._finish()
+            finally:
+                self._close_resources()
+        if self.summary_file_problem:
+            import sys
+
+            sys.stderr.write(f"rtloop: {self.summary_file_problem}\n")
+
+    @property
+    def summary_file_problem(self) -> str:
+        return self.summary_file.problem if "summary" in self._opened else ""
+
+    def _finish(self) -> None:
+        if "recorder" not in self._opened:
+            return
+        try:
+            self.recorder.close()
+        except Exception as error:  # the recording's own failure is reported, never raised over the run's
+            self.recorder.stopped = self.recorder.stopped or f"recording not closed: {error}"
+        if self.summarise is not None:
+            self.summary = self.summarise(False)
+            self.summary_file.write(self.summary)
+
+    def _close_resources(self) -> None:
+        hooks, self.before_close = self.before_close, []
+        for hook in hooks:
+            with contextlib.suppress(Exception):
+                hook()
+        if "summary" in self._opened:
+            self.summary_file.close()
+        if "layout" in self._opened:
+            self.layout.close()
+        self._opened.clear()
+
+    # --- during the run -----------------------------------------------------------------------
+    def write_summary_if_due(self) -> None:
+        now_s = time.monotonic()
+        if self.summarise is None or now_s < self._next_summary_s:
+            return
+        self._next_summary_s = now_s + self.limits.summary_interval_s
+        self.summary_file.write(self.summarise(True))
+
+    def drain(self, budget_s: float | None = None) -> bool:
+        """Move what the tasks recorded into the recorder, in batches, for at most ``budget_s``.
+
+        Returns whether records were left waiting (the caller comes back soon). ``None``: drain
+        everything (at the end, when the tasks have stopped). The budget is what keeps a
+        supervisor that cannot keep up serving Ctrl-C, the watchdog and the summary: what it
+        cannot take is dropped by the full queues, counted, and reported.
+        """
+        deadline = None if budget_s is None else time.monotonic() + budget_s
+        recorder = self.recorder
+        while True:
+            more = False
+            for name, handles in self.layout.tasks.items():
+                records = handles.timing.drain(DRAIN_BATCH_RECORDS)
+                recorder.add_timing(name, records)
+                more |= len(records) == DRAIN_BATCH_RECORDS
+                if handles.input_log is not None:
+                    recorder.add_inputs(name, *handles.input_log.drain())
+                if handles.read_log is not None:
+                    recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
+                if handles.record is not None:
+                    ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
+                    recorder.add_signals(name, ticks, rows, lost_so_far=handles.record.dropped)
+                    more |= len(ticks) == DRAIN_BATCH_RECORDS
+            recorder.flush()
+            if not more:
+                self._count_losses()
+                return False
+            if deadline is not None and time.monotonic() >= deadline:
+                self._count_losses()
+                return True
+
+    def _count_losses(self) -> None:
+        for name, handles in self.layout.tasks.items():
+            self.losses.timing[name] = handles.timing.dropped
+            if handles.record is not None:
+                self.losses.signal_rows[name] = handles.record.dropped
+            if handles.input_log is not None:
+                self.losses.inputs[name] = handles.input_log.dropped
+
+    def notes(self, *more: str) -> list[str]:
+        """The summary's notes: the recording's, what was lost, and ``more``."""
+        recorder = self.recorder
+        return [note for note in (recorder.mcap_note, *more, recorder.stopped, *self.losses.notes()) if note]
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM back while the block runs; then act on them as the handlers before would."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, _frame: caught.append(signum)) for s in (signal.SIGINT,
+                                                                                            signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in caught:
+            handler = previous[signum]
+            if callable(handler):
+                handler(signum, None)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), signum)
