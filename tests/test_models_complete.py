@@ -296,3 +296,34 @@ def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path,
     replayed = read_rows(tmp_path / "replay" / "inputs.csv")
     assert replayed == logged, "the replay took the same values at the same cycles"
     assert read_rows(tmp_path / "replay" / "signals.csv") == read_rows(run_dir / "signals.csv")
+
+
+def test_model_build_of_an_fmu_source_folder_never_writes_into_it(tmp_path: Path) -> None:
+    source = tmp_path / "plant"
+    shutil.copytree(JIWY / "models" / "fmu", source)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    env = {"RTLOOP_CACHE_DIR": str(tmp_path / "cache"), "PATH": "/usr/bin:/bin",
+           "PYTHONPATH": str(TESTS.parent / "src")}
+    info = subprocess.run([sys.executable, "-m", "rtloop.cli", "model", "info", str(source)],
+                          capture_output=True, text=True, env=env)
+    assert info.returncode == 2 and f"build it with `rtloop model build {source}`" in info.stderr
+    built = subprocess.run([sys.executable, "-m", "rtloop.cli", "model", "build", str(source)],
+                           capture_output=True, text=True, env=env)
+    assert built.returncode == 0, built.stderr
+    target = tmp_path / "cache" / "fmu" / "plant.fmu"
+    assert target.is_file() and f'model = "fmu:{target}"' in built.stdout
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if "cache" not in p.parts) == before
+    chosen = tmp_path / "chosen.fmu"
+    assert subprocess.run([sys.executable, "-m", "rtloop.cli", "model", "build", str(source), "--out", str(chosen)],
+                          capture_output=True, text=True, env=env).returncode == 0
+    assert chosen.is_file()
+    helped = "".join(subprocess.run([sys.executable, "-m", "rtloop.cli", *command, "--help"], capture_output=True,
+                                    text=True, env=env).stdout for command in (["model"], ["model", "build"]))
+    assert "FMU source folder" in helped and "20-sim" in helped
+
+
+def test_the_jiwy_app_files_comment_names_files_that_exist_or_the_command_making_them() -> None:
+    comment = (JIWY / "jiwy.toml").read_text()
+    assert 'model = "20sim:models/Plant"' in comment and (JIWY / "models" / "Plant").is_dir()
+    assert "rtloop model build examples/jiwy/models/fmu --out examples/jiwy/jiwy-plant.fmu" in comment
+    assert 'model = "fmu:jiwy-plant.fmu"' in comment and (JIWY / "models" / "fmu" / "sources").is_dir()

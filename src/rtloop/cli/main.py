@@ -123,8 +123,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     model = commands.add_parser("model", help="inspect or build a 20-sim model or an FMU")
     model_commands = model.add_subparsers(dest="model_command", required=True)
-    model_commands.add_parser("info", help="inputs, outputs, step size, kind").add_argument("path")
-    model_commands.add_parser("build", help="compile a 20-sim model into its cached library").add_argument("path")
+    model_commands.add_parser("info", help="inputs, outputs, step size, kind (20-sim folder, FMU, python:)"
+                              ).add_argument("path")
+    build = model_commands.add_parser(
+        "build", help="compile a 20-sim folder into its cached library, or an FMU source folder "
+                      "(modelDescription.xml + sources/*.c) into an .fmu (default in the cache, never the source tree)")
+    build.add_argument("path")
+    build.add_argument("--out", type=Path, default=None, metavar="FILE.fmu",
+                       help="where an FMU source folder's .fmu goes (default: ~/.cache/rtloop/fmu/<folder>.fmu)")
     return parser
 
 
@@ -201,8 +207,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         from rtloop import models
 
         try:
-            command = models.cli_model_info if args.model_command == "info" else models.cli_model_build
-            text = command(args.path)
+            if args.model_command == "info":
+                text = models.cli_model_info(args.path)
+            else:
+                text = models.cli_model_build(args.path, args.out)
         except models.ModelError as error:  # the model the user named cannot be used: bad input
             print(f"rtloop: {error}", file=sys.stderr)
             return EXIT_BAD_INPUT

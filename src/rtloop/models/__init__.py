@@ -160,16 +160,20 @@ def build(
     """Compile a model; return what was built.
 
     A 20-sim folder → its cached shared library. An FMU source folder
-    (``modelDescription.xml`` + ``sources/*.c``) → an ``.fmu`` at ``out_path``
-    (default ``<folder>.fmu`` next to it). A ready ``.fmu`` has nothing to build.
+    (``modelDescription.xml`` + ``sources/*.c``) → an ``.fmu`` at ``out_path`` (default:
+    ``<cache>/fmu/<folder>.fmu``, the cache of 20-sim libraries — never the source tree).
+    A ready ``.fmu`` has nothing to build.
     """
     scheme, rest = _split(spec)
     path = _resolve(rest, base_dir)
     if scheme == "fmu":
         if path.is_dir() and (path / "sources").is_dir():
             from rtloop.models.fmu_build import build_fmu
+            from rtloop.models.twentysim import default_cache_dir
 
-            target = Path(out_path) if out_path else path.parent / f"{path.name}.fmu"
+            default = default_cache_dir().parent / "fmu" / f"{path.resolve().name}.fmu"
+            target = Path(out_path) if out_path else default
+            target.parent.mkdir(parents=True, exist_ok=True)
             return build_fmu(path, target)
         raise ModelError(f"{str(path)!r} is an FMU: it is already built")
     if scheme == "python":
@@ -213,7 +217,10 @@ def cli_model_info(spec: str | os.PathLike[str]) -> str:
     return "\n".join(lines)
 
 
-def cli_model_build(spec: str | os.PathLike[str]) -> str:
-    """Text for ``rtloop model build PATH`` (raises :class:`ModelBuildError` on failure)."""
-    built = build(spec)
-    return f"built {os.fspath(spec)} → {built}"
+def cli_model_build(spec: str | os.PathLike[str], out_path: str | os.PathLike[str] | None = None) -> str:
+    """Text for ``rtloop model build PATH [--out FILE]`` (raises :class:`ModelBuildError` on failure)."""
+    built = build(spec, out_path=out_path)
+    text = f"built {os.fspath(spec)} → {built}"
+    if built.suffix == ".fmu":
+        text += f'\nuse it in an app file: model = "fmu:{built}"'
+    return text

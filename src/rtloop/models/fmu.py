@@ -205,6 +205,10 @@ class FmuModel:
         if wanted in names:
             return
         present = sorted({n.split("/")[1] for n in names if n.startswith("binaries/") and n.count("/") >= 2})
+        if self.path.is_dir() and (self.path / "sources").is_dir():
+            raise FmuError(f"{str(self.path)!r} is the source folder of an FMU, not a built one: build it with "
+                           f"`rtloop model build {self.path}` (add --out FILE.fmu to choose where), then name "
+                           "the .fmu it prints")
         raise FmuError(
             f"FMU {str(self.path)!r} has no binary for this machine: {wanted} is missing "
             f"(platform key {key!r}; platforms present: {', '.join(present) or 'none'}). "
