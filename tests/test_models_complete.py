@@ -327,3 +327,15 @@ def test_the_jiwy_app_files_comment_names_files_that_exist_or_the_command_making
     assert 'model = "20sim:models/Plant"' in comment and (JIWY / "models" / "Plant").is_dir()
     assert "rtloop model build examples/jiwy/models/fmu --out examples/jiwy/jiwy-plant.fmu" in comment
     assert 'model = "fmu:jiwy-plant.fmu"' in comment and (JIWY / "models" / "fmu" / "sources").is_dir()
+
+
+def test_20sim_names_with_a_backslash_are_written_with_a_dot_in_an_app_file(tmp_path: Path) -> None:
+    from rtloop.app.appfile import load_app
+
+    app_file = tmp_path / "app.toml"
+    app_file.write_text(f'name = "dotted"\n[tasks.plant]\nmodel = "20sim:{JIWY / "models" / "Plant"}"\n'
+                        'parameters = { pan.r = 0.02, pan.Dcam = 3e-4 }   # pan\\r and pan\\Dcam, no escaping\n'
+                        "period_ns = 1_000_000\n")
+    model = load_app(app_file).tasks["plant"].runnable.model
+    index = {name: i for name, i, _default in model.info.parameters}
+    assert model.parameters == {index["pan\\r"]: 0.02, index["pan\\Dcam"]: 3e-4}  # by index, as the model keeps them

@@ -5,7 +5,8 @@
     [tasks.plant]
     runnable = "jiwy_models:JiwyPlant"   # module beside the app file; or model = "20sim:models/Plant"
     args = {}                                  # keyword arguments of the constructor
-    parameters = {}                            # model parameters by name (FMU, 20-sim, PythonModel)
+    parameters = {}                            # parameters by name (FMU, 20-sim, a Runnable's live ones);
+                                               # 20-sim's pan\\r is written pan.r: { pan.r = 0.018 }
     period_ns = 1_000_000
     priority = 80
     cpu = 1
@@ -329,7 +330,7 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     if has_runnable == has_model:
         raise AppFileError(shown, where, 'give exactly one of runnable = "module:Class" or model = "kind:path"')
     args = table.get("args", {})
-    parameters = table.get("parameters")
+    parameters = _flat_parameters(table.get("parameters"))
     if has_model:
         try:
             from rtloop.models import load_model
@@ -372,6 +373,22 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
         except RtloopError as error:
             raise AppFileError(shown, f"{where}.parameters", str(error)) from None
     return runnable
+
+
+def _flat_parameters(parameters: Any) -> Any:
+    """``{ pan.r = 0.018 }`` is TOML for ``{"pan": {"r": 0.018}}``: back to ``{"pan.r": 0.018}``.
+
+    So a 20-sim name with its backslash (``pan\\r``) is written with a dot, no escaping.
+    """
+    if not isinstance(parameters, dict):
+        return parameters
+    flat: dict[str, Any] = {}
+    for name, value in parameters.items():
+        if isinstance(value, dict):
+            flat.update({f"{name}.{inner}": inner_value for inner, inner_value in _flat_parameters(value).items()})
+        else:
+            flat[name] = value
+    return flat
 
 
 def _is_dotted_name(text: str) -> bool:
