@@ -221,3 +221,16 @@ def test_a_frame_that_cannot_carry_the_values_is_one_line(tmp_path: Path) -> Non
     result = _cli(app_file)
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
     assert "devices.motor.readings: 32 values; a frame carries at most 31" in result.stderr
+
+
+def test_the_serial_exchange_allocates_nothing_that_stays(tmp_path: Path) -> None:
+    """benchmarks/bench_serial.py at its smallest: its tables are there, and tracemalloc finds no byte
+    kept by rtloop/io over the cycles of TaskDevices.at_release with the serial device (timings unchecked)."""
+    result = subprocess.run([sys.executable, str(EXAMPLE.parents[1] / "benchmarks" / "bench_serial.py"),
+                             "--cycles", "10000", "--rounds", "1", "--json", str(tmp_path / "r.json")],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "| device vs os calls |" in result.stdout and "| framework vs os calls |" in result.stdout
+    import json
+
+    assert json.loads((tmp_path / "r.json").read_text())["allocated_bytes_io"] <= 0
