@@ -33,17 +33,22 @@ class CommandGuard:
         self.out = np.zeros(len(limits))
         self._delta = np.zeros(len(limits))
         self.rate_limited = bool(np.isfinite(self.step_max).any())
+        self._finite = np.zeros(len(limits), dtype=bool)
         self.labels = tuple(labels)
 
     def apply(self, u: FloatVector, task: str, cycle: int) -> FloatVector:
         """The command to write for ``u``: checked, clamped, rate limited (in ``self.out``).
 
         Plain ufuncs with ``out=`` only (``np.clip`` and ``ndarray.all`` go through Python
-        wrappers that cost several times more); the rate limit's five only where one is set."""
-        delta, out, last = self._delta, self.out, self.last
-        np.subtract(u, u, out=delta)  # 0 where finite, NaN where NaN or ±inf
-        if delta.dot(delta) != 0.0:
-            index = int(np.argmin(np.isfinite(u)))
+        wrappers that cost several times more; arithmetic on a NaN or inf would warn); the
+        rate limit's four only where one is set."""
+        delta = self._delta
+        out = self.out
+        last = self.last
+        finite = self._finite  # (one name a line: a tuple here would be the only object a cycle makes)
+        np.isfinite(u, out=finite)
+        if np.count_nonzero(finite) != len(finite):
+            index = int(np.argmin(finite))
             raise fault(task, cycle, self.labels[index], f"command {float(u[index])!r} is not finite; "
                         "it was not sent (the device gets its safe value)")
         np.minimum(u, self.high, out=out)
