@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app.builder import App, RosTopic
+from rtloop.app.byvalue import children_without_main
 
 STOP_TIMEOUT_S = 5.0
 
@@ -64,7 +65,8 @@ class Bridges:
                 target=bridge_process_main, args=(topic, str(registry_path), writer),
                 name=f"rtloop-{self.app.name}-bridge-{topic.topic}", daemon=True,
             )
-            process.start()
+            with children_without_main():  # a bridge needs nothing of __main__ (a notebook, python -)
+                process.start()
             writer.close()
             self.running.append(_Bridge(topic, process, reader))
 
