@@ -11,6 +11,7 @@ setup(
         Extension(
             "rtloop.ipc._hotpath",
             sources=["src/rtloop/ipc/_hotpath.c"],
+            depends=["src/rtloop/ipc/_schema.h"],
             extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
             optional=True,
         )

@@ -40,11 +40,11 @@ from bench_channels import START_MARGIN_NS, _realtime, _wait_for_t0, decode, enc
 from rtloop import rt
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
-from rtloop.runtime.task import task_segment_size
-from rtloop.runtime.wiring import InputLink, TaskWiring, TaskWiringPlan
 
 KINDS = ("raw numpy", "rtloop python", "rtloop C")
 NEWEST = 2**61

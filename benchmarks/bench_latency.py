@@ -179,10 +179,11 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     """
     from rtloop import rt
     from rtloop.ipc.hotpath import PythonCycle
+    from rtloop.ipc.schema import task_segment_size
     from rtloop.ipc.segments import RecordRing, Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
-    from rtloop.runtime.task import RealtimeTask, TaskConfig, task_segment_size
-    from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
+    from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
+    from rtloop.runtime.task import RealtimeTask, TaskConfig
 
     token = new_run_token()
     control_segment = Segment.create("bench", os.getpid(), token, "control", CONTROL_WORDS * 8)

@@ -37,11 +37,11 @@ from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_j
 from rtloop import rt
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
+from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
-from rtloop.runtime.task import task_segment_size
-from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 
 P = 1_000
 RING = 1 << 16

@@ -22,11 +22,11 @@ from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.ports import connect_app
+from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
+from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
-from rtloop.runtime.task import task_segment_size
-from rtloop.runtime.wiring import InputLink, TaskWiring, TaskWiringPlan
 
 P = 1_000_000
 SRC = Path(__file__).resolve().parent.parent / "src"

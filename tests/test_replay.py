@@ -20,11 +20,11 @@ from conftest import other_cpu
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
+from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
+from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
-from rtloop.runtime.task import task_segment_size
-from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 
 P = 1_000_000
 T0 = 5_000_000_000

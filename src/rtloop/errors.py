@@ -83,6 +83,10 @@ class DeadlineMissesExceeded(RtloopError, RuntimeError):
     """A task missed more consecutive deadlines than its ``max_consecutive_misses`` allows."""
 
 
+class NonFiniteOutput(RtloopError, ValueError):
+    """A NaN or infinite output was headed across a connection that does not allow it."""
+
+
 class PortValueError(RtloopError, ValueError):
     """A value written to a port was rejected (wrong length, NaN/inf)."""
 

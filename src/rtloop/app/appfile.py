@@ -106,6 +106,7 @@ PORT_KEYS = {
     "feed": str, "description": str, "range": list, "value_range": list, "nudge": str,
 }
 CONNECT_KEYS = {"from": str, "to": str}
+CONNECT_OPTIONAL_KEYS = {"allow_nonfinite": bool}
 RECORD_KEYS = {"signals": list}
 TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an array", bool: "true or false"}
 
@@ -189,12 +190,13 @@ def load_app(path: str | Path) -> App:
         where = f"connect[{index}]"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [[connect]] with from and to")
-        _check_keys(shown, where, table, CONNECT_KEYS)
+        _check_keys(shown, where, table, CONNECT_KEYS | CONNECT_OPTIONAL_KEYS)
         for key in CONNECT_KEYS:
             if key not in table:
                 raise AppFileError(shown, f"{where}.{key}", "missing")
         try:
-            app.connect(parse_signal(table["from"], app, "from"), parse_signal(table["to"], app, "to"))
+            app.connect(parse_signal(table["from"], app, "from"), parse_signal(table["to"], app, "to"),
+                        allow_nonfinite=table.get("allow_nonfinite", False))
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None
 

@@ -186,6 +186,8 @@ class DeviceSpec:
 class Connection:
     source: SignalRef
     target: SignalRef
+    allow_nonfinite: bool = False
+    """Let NaN and ±inf cross (counted and named in the summary); otherwise they are a fault."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -427,8 +429,12 @@ class App:
                     "an input has at most one writer"
                 )
 
-    def connect(self, source: SignalRef | SignalVector, target: SignalRef | SignalVector) -> Connection:
+    def connect(self, source: SignalRef | SignalVector, target: SignalRef | SignalVector, *,
+                allow_nonfinite: bool = False) -> Connection:
         """Wire an output slice (``y``) to an input slice (``u``) of the same size.
+
+        A NaN or infinite value crossing it is a fault naming task, cycle and output, unless
+        ``allow_nonfinite``: then it crosses, and the summary counts and names it.
 
         Either end may be a device, wired to the task that owns it: ``motor.y[0]`` (a reading)
         → ``controller.u[1]``, ``controller.y[0]`` → ``motor.u[0]`` (a command).
@@ -443,7 +449,7 @@ class App:
         if src.size != dst.size:
             raise ConnectionSizeError(f"{what}: {src} has {src.size} values but {dst} has {dst.size}")
         self._check_single_writer(dst, what)
-        connection = Connection(src, dst)
+        connection = Connection(src, dst, bool(allow_nonfinite))
         device = self.devices.get(src.task) or self.devices.get(dst.task)
         if device is None:
             self.connections.append(connection)

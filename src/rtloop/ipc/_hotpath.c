@@ -15,6 +15,7 @@
 #include <Python.h>
 
 #include <errno.h>
+#include <math.h>
 #include <stdatomic.h>
 #include <stdint.h>
 #include <string.h>
@@ -27,19 +28,9 @@
 
 typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
 
-/* Layout constants shared with the Python modules (hotpath.py checks they agree). */
-#define HEADER_WORDS 8
-#define NO_STAMP (-(INT64_C(1) << 62))
-#define READ_RETRIES 64
-#define STOP_POLL_NS INT64_C(100000000) /* a long sleep looks at the stop flag this often */
-#define CONTROL_STOP 2
-#define STATUS_CYCLE 2
-#define STATUS_OVERRUNS 3
-#define STATUS_DEADLINE_MISSES 4
-#define STATUS_STALE_READS 5
-#define STATUS_LATENCY_LAST_NS 6
-#define STATUS_EXEC_LAST_NS 8
-#define STATUS_MISSES_IN_A_ROW_MAX 15
+/* Every word and offset of shared memory, generated from schema.py (hotpath.py checks the
+   built module agrees with it: _hotpath.SCHEMA). */
+#include "_schema.h"
 
 #define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
 #define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
@@ -71,8 +62,6 @@ typedef struct { /* a setpoint profile, piecewise constant in time since T0 */
     int64_t live_port, mode; /* live nudges: index into live_ports and NUDGE_OFFSET/OVERRIDE, or -1 and 0 */
 } Profile;
 
-#define NUDGE_OFFSET 1   /* u = the row in force + the latest live value */
-#define NUDGE_OVERRIDE 2 /* the newest of a row and a live write holds */
 
 typedef struct { /* SampleQueue (or the timing RecordRing, same header) */
     aword *words;
@@ -118,9 +107,13 @@ typedef struct {
     int scope_fd;
     unsigned long scope_request; /* GPIO_V2_LINE_SET_VALUES_IOCTL, from the caller */
     uint64_t scope_mask, scope_level;
+    /* set_finite_check(): outputs that cross a connection; a non-finite one is a fault unless allowed */
+    Py_ssize_t n_checks;
+    int64_t *check_index, *check_fault;
+    PyObject *check_labels; /* tuple of str, one per checked output, for the fault's message */
+    PyObject *check_error;  /* the exception type raised on a fault */
 } Core;
 
-enum { SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP };
 
 /* One ioctl on the line request: struct gpio_v2_line_values { u64 bits; u64 mask; }. A failed
    write of a diagnostic pin must not stop the loop: the result is not checked. */
@@ -173,9 +166,9 @@ static int attach_queue(Core *self, PyObject *buffer, Queue *queue, int with_tic
     if (words == NULL)
         return -1;
     queue->words = words;
-    queue->width = LOAD(&words[3], relaxed);
-    queue->capacity = LOAD(&words[4], relaxed);
-    queue->written = LOAD(&words[0], relaxed);
+    queue->width = LOAD(&words[QUEUE_WIDTH], relaxed);
+    queue->capacity = LOAD(&words[QUEUE_CAPACITY], relaxed);
+    queue->written = LOAD(&words[QUEUE_WRITTEN], relaxed);
     int64_t needed = HEADER_WORDS + queue->capacity * (queue->width + (with_ticks ? 1 : 0));
     if (queue->capacity <= 0 || queue->width < 0 || needed * 8 > len) {
         PyErr_SetString(PyExc_ValueError, "hot path: queue header does not match its buffer");
@@ -205,11 +198,11 @@ static int Core_init(Core *self, PyObject *args, PyObject *kwargs) {
     Py_INCREF(tick);
     self->tick = tick;
     if ((self->u = hold_buffer(self, u, 1, 0, &len_u)) == NULL || (self->y = hold_buffer(self, y, 1, 0, &len_y)) == NULL ||
-        (self->control = hold_buffer(self, control, 1, (CONTROL_STOP + 1) * 8, NULL)) == NULL ||
-        (self->status = hold_buffer(self, status, 1, (STATUS_MISSES_IN_A_ROW_MAX + 1) * 8, NULL)) == NULL ||
+        (self->control = hold_buffer(self, control, 1, CONTROL_WORDS * 8, NULL)) == NULL ||
+        (self->status = hold_buffer(self, status, 1, STATUS_WORDS * 8, NULL)) == NULL ||
         attach_queue(self, timing, &self->timing, 0) < 0)
         return -1;
-    if (self->timing.width != 4) {
+    if (self->timing.width != TIMING_RECORD_WORDS) {
         PyErr_SetString(PyExc_ValueError, "hot path: the timing ring must hold 4-word records");
         return -1;
     }
@@ -246,10 +239,10 @@ static PyObject *Core_add_input(Core *self, PyObject *args) {
     self->inputs = inputs;
     Input *input = &inputs[self->n_inputs];
     memset(input, 0, sizeof *input);
-    int64_t n_values = LOAD(&words[1], relaxed);
+    int64_t n_values = LOAD(&words[CHANNEL_N_VALUES], relaxed);
     input->words = words;
-    input->n_slots = LOAD(&words[2], relaxed);
-    input->slot_words = 2 + n_values;
+    input->n_slots = LOAD(&words[CHANNEL_N_SLOTS], relaxed);
+    input->slot_words = SLOT_VALUES + n_values;
     input->period_ns = period_ns;
     input->first = first;
     input->width = width;
@@ -290,7 +283,7 @@ static PyObject *Core_add_live_port(Core *self, PyObject *args) {
     double *dest = self->u + to;
     if (nudge != Py_None && (dest = hold_buffer(self, nudge, 1, count * 8, NULL)) == NULL)
         return NULL;
-    if (LOAD(&words[3], relaxed) != count) {
+    if (LOAD(&words[PORT_N_VALUES], relaxed) != count) {
         PyErr_SetString(PyExc_ValueError, "hot path: port size does not match its header");
         return NULL;
     }
@@ -338,15 +331,15 @@ static PyObject *Core_set_output(Core *self, PyObject *buffer) {
     aword *words = hold_buffer(self, buffer, 1, HEADER_WORDS * 8, &len);
     if (words == NULL)
         return NULL;
-    int64_t n_values = LOAD(&words[1], relaxed);
-    self->output_slots = LOAD(&words[2], relaxed);
-    self->output_slot_words = 2 + n_values;
+    int64_t n_values = LOAD(&words[CHANNEL_N_VALUES], relaxed);
+    self->output_slots = LOAD(&words[CHANNEL_N_SLOTS], relaxed);
+    self->output_slot_words = SLOT_VALUES + n_values;
     if (n_values != self->n_y || self->output_slots <= 0 ||
         (HEADER_WORDS + self->output_slots * self->output_slot_words) * 8 > len) {
         PyErr_SetString(PyExc_ValueError, "hot path: output channel does not match y");
         return NULL;
     }
-    self->published = LOAD(&words[0], relaxed);
+    self->published = LOAD(&words[CHANNEL_PUBLISHED], relaxed);
     self->output = words;
     Py_RETURN_NONE;
 }
@@ -403,11 +396,48 @@ static PyObject *Core_set_input_log(Core *self, PyObject *buffer) {
 static PyObject *Core_set_read_log(Core *self, PyObject *buffer) {
     if (attach_queue(self, buffer, &self->read_log, 0) < 0)
         return NULL;
-    if (self->read_log.width != 4) {
+    if (self->read_log.width != READ_LOG_RECORD_WORDS) {
         PyErr_SetString(PyExc_ValueError, "hot path: the read log must hold 4-word records");
         return NULL;
     }
     self->has_read_log = 1;
+    Py_RETURN_NONE;
+}
+
+/* set_finite_check(indices, faults, labels, error_type): y[indices[i]] crosses a connection; a NaN
+   or inf there is counted, and raises error_type(labels[i] ...) when faults[i] is true */
+static PyObject *Core_set_finite_check(Core *self, PyObject *args) {
+    PyObject *indices, *faults, *labels, *error_type;
+    if (!PyArg_ParseTuple(args, "O!O!O!O", &PyTuple_Type, &indices, &PyTuple_Type, &faults, &PyTuple_Type, &labels,
+                          &error_type))
+        return NULL;
+    Py_ssize_t n = PyTuple_GET_SIZE(indices);
+    if (PyTuple_GET_SIZE(faults) != n || PyTuple_GET_SIZE(labels) != n || !PyExceptionClass_Check(error_type) ||
+        self->check_index != NULL) {
+        PyErr_SetString(PyExc_ValueError, "set_finite_check(indices, faults, labels, error_type): once, same lengths");
+        return NULL;
+    }
+    self->check_index = zeros(n);
+    self->check_fault = zeros(n);
+    if (self->check_index == NULL || self->check_fault == NULL)
+        return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        long long index = PyLong_AsLongLong(PyTuple_GET_ITEM(indices, i));
+        int fault = PyObject_IsTrue(PyTuple_GET_ITEM(faults, i));
+        if (PyErr_Occurred() || fault < 0 || check_span(index, 1, self->n_y, "checked output") < 0 ||
+            !PyUnicode_Check(PyTuple_GET_ITEM(labels, i))) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_TypeError, "set_finite_check: labels are str");
+            return NULL;
+        }
+        self->check_index[i] = index;
+        self->check_fault[i] = fault;
+    }
+    Py_INCREF(labels);
+    Py_INCREF(error_type);
+    self->check_labels = labels;
+    self->check_error = error_type;
+    self->n_checks = n;
     Py_RETURN_NONE;
 }
 
@@ -432,22 +462,22 @@ static PyObject *Core_start(Core *self, PyObject *const *args, Py_ssize_t nargs)
 
 static int64_t read_channel(Input *input, int64_t time_ns) {
     aword *words = input->words;
-    int64_t published = LOAD(&words[0], acquire);
+    int64_t published = LOAD(&words[CHANNEL_PUBLISHED], acquire);
     int64_t back = 1, tries = 0;
     while (back <= published && back <= input->n_slots && tries < READ_RETRIES * input->n_slots) {
         tries++;
         aword *slot = words + HEADER_WORDS + ((published - back) % input->n_slots) * input->slot_words;
-        int64_t seq = LOAD(&slot[0], acquire);
+        int64_t seq = LOAD(&slot[SLOT_SEQ], acquire);
         if (seq & 1)
             continue; /* being written: look again */
-        int64_t stamp = LOAD(&slot[1], relaxed);
+        int64_t stamp = LOAD(&slot[SLOT_STAMP_NS], relaxed);
         if (stamp <= time_ns) {
-            aword *values = slot + 2 + input->first;
+            aword *values = slot + SLOT_VALUES + input->first;
             for (int64_t i = 0; i < input->width; i++)
                 input->scratch[i] = LOAD(&values[i], relaxed);
         }
         atomic_thread_fence(memory_order_acquire);
-        if (LOAD(&slot[0], relaxed) != seq)
+        if (LOAD(&slot[SLOT_SEQ], relaxed) != seq)
             continue; /* changed under us (the writer may have lapped it): look again */
         if (stamp <= time_ns)
             return stamp;
@@ -460,18 +490,18 @@ static int64_t read_channel(Input *input, int64_t time_ns) {
 static int read_live_port(LivePort *port) {
     aword *words = port->words;
     for (int tries = 0; tries < READ_RETRIES; tries++) {
-        int64_t seq = LOAD(&words[0], acquire);
+        int64_t seq = LOAD(&words[PORT_SEQ], acquire);
         if (seq & 1)
             continue;
         for (int64_t i = 0; i < port->count; i++)
             port->scratch[i] = LOAD(&words[HEADER_WORDS + i], relaxed);
         atomic_thread_fence(memory_order_acquire);
-        if (LOAD(&words[0], relaxed) != seq)
+        if (LOAD(&words[PORT_SEQ], relaxed) != seq)
             continue;
         memcpy(port->dest, port->scratch, port->count * 8);
         if (seq != port->last_seq) {
             port->last_seq = seq;
-            STORE(&words[2], LOAD(&words[2], relaxed) + 1, relaxed); /* reads: this reader's word */
+            STORE(&words[PORT_READS], LOAD(&words[PORT_READS], relaxed) + 1, relaxed); /* this reader's word */
             return 1;
         }
         return 0;
@@ -506,8 +536,11 @@ static void read_inputs(Core *self, int64_t release_ns) {
             self->stale_reads++;
             STORE(&self->status[STATUS_STALE_READS], self->stale_reads, relaxed);
             if (self->has_read_log) { /* what the task got instead, for replay */
-                int64_t record[4] = {since_t0_ns, (int64_t)i, stamp == NO_STAMP ? NO_STAMP : stamp - self->t0_ns,
-                                     entitled - self->t0_ns};
+                int64_t record[READ_LOG_RECORD_WORDS];
+                record[READ_LOG_RELEASE_NS] = since_t0_ns;
+                record[READ_LOG_WRITER] = (int64_t)i;
+                record[READ_LOG_STAMP_GOT_NS] = stamp == NO_STAMP ? NO_STAMP : stamp - self->t0_ns;
+                record[READ_LOG_STAMP_DUE_NS] = entitled - self->t0_ns;
                 push(&self->read_log, 0, record);
             }
         }
@@ -542,8 +575,8 @@ static void read_inputs(Core *self, int64_t release_ns) {
 static void push(Queue *queue, int64_t tick, const void *values) {
     aword *words = queue->words;
     int64_t written = queue->written;
-    if (written - LOAD(&words[1], acquire) >= queue->capacity) {
-        STORE(&words[2], LOAD(&words[2], relaxed) + 1, relaxed);
+    if (written - LOAD(&words[QUEUE_READ], acquire) >= queue->capacity) {
+        STORE(&words[QUEUE_DROPPED], LOAD(&words[QUEUE_DROPPED], relaxed) + 1, relaxed);
         return;
     }
     int64_t index = written % queue->capacity;
@@ -551,22 +584,52 @@ static void push(Queue *queue, int64_t tick, const void *values) {
         queue->ticks[index] = tick;
     memcpy(queue->rows + index * queue->width, values, queue->width * 8);
     queue->written = written + 1;
-    STORE(&words[0], written + 1, release); /* the row is visible before the count announcing it */
+    STORE(&words[QUEUE_WRITTEN], written + 1, release); /* the row is visible before the count announcing it */
 }
 
-static void publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
+/* NaN or inf in an output headed across a connection: counted (and the first one named) in the
+   status block; -1 with the exception set when a connection does not allow it (nothing published). */
+static int check_finite(Core *self, int64_t cycle) {
+    for (Py_ssize_t i = 0; i < self->n_checks; i++) {
+        double value = self->y[self->check_index[i]];
+        if (isfinite(value))
+            continue;
+        aword *status = self->status;
+        int64_t count = LOAD(&status[STATUS_NONFINITE_VALUES], relaxed);
+        if (count == 0) {
+            STORE(&status[STATUS_NONFINITE_FIRST_CYCLE], cycle, relaxed);
+            STORE(&status[STATUS_NONFINITE_FIRST_OUTPUT], self->check_index[i], relaxed);
+        }
+        STORE(&status[STATUS_NONFINITE_VALUES], count + 1, relaxed);
+        if (self->check_fault[i]) {
+            PyObject *shown = PyFloat_FromDouble(value);
+            if (shown != NULL) {
+                PyErr_Format(self->check_error, "%U is %R at cycle %lld: a non-finite value crossing a connection "
+                             "is a fault (allow_nonfinite = true on the connection lets it through)",
+                             PyTuple_GET_ITEM(self->check_labels, i), shown, (long long)cycle);
+                Py_DECREF(shown);
+            }
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static int publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
+    if (self->n_checks && check_finite(self, cycle) < 0)
+        return -1;
     if (self->output != NULL) {
         aword *slot = self->output + HEADER_WORDS + (self->published % self->output_slots) * self->output_slot_words;
-        int64_t seq = LOAD(&slot[0], relaxed) + 1;
-        STORE(&slot[0], seq, relaxed); /* odd: slot being written */
+        int64_t seq = LOAD(&slot[SLOT_SEQ], relaxed) + 1;
+        STORE(&slot[SLOT_SEQ], seq, relaxed); /* odd: slot being written */
         atomic_thread_fence(memory_order_release);
         int64_t *values = (int64_t *)self->y;
         for (int64_t i = 0; i < self->n_y; i++)
-            STORE(&slot[2 + i], values[i], relaxed);
-        STORE(&slot[1], publish_ns, relaxed);
-        STORE(&slot[0], seq + 1, release); /* even: slot complete */
+            STORE(&slot[SLOT_VALUES + i], values[i], relaxed);
+        STORE(&slot[SLOT_STAMP_NS], publish_ns, relaxed);
+        STORE(&slot[SLOT_SEQ], seq + 1, release); /* even: slot complete */
         self->published++;
-        STORE(&self->output[0], self->published, release);
+        STORE(&self->output[CHANNEL_PUBLISHED], self->published, release);
     }
     for (Py_ssize_t i = 0; i < self->n_out_ports; i++)
         push(&self->out_ports[i], cycle, self->y + self->out_ports[i].from);
@@ -575,6 +638,7 @@ static void publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
         memcpy(self->record_row + self->n_y, self->u, self->n_u * 8);
         push(&self->record, cycle, self->record_row);
     }
+    return 0;
 }
 
 static int set_tick(Core *self, PyObject *name, int64_t value) {
@@ -617,14 +681,40 @@ static int sleep_until_release(Core *self, int64_t release_ns) {
     }
 }
 
+static int refuse_closed(Core *self) {
+    if (self->closed)
+        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+    return self->closed;
+}
+
+/* The cycle starts at start_ns: stamp it, tell the tick, read the inputs valid at the release. */
+static PyObject *start_cycle(Core *self, int64_t start_ns) {
+    int64_t release_ns = self->release_ns;
+    self->start_ns = start_ns;
+    if (self->scope_mode == SCOPE_TOGGLE) { /* an edge at every release */
+        self->scope_level ^= 1;
+        scope_write(self, self->scope_level);
+    }
+    if (self->measure_busy)
+        self->busy_wake_ns = start_ns;
+    if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
+        set_tick(self, str_start_ns, start_ns) < 0)
+        return NULL;
+    read_inputs(self, release_ns);
+    if (self->scope_mode == SCOPE_STEP)
+        scope_write(self, 1);
+    Py_RETURN_TRUE;
+}
+
+static int time_to_stop(Core *self) {
+    return self->release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed);
+}
+
 /* begin(): sleep to the release, stamp the start, read the inputs. False: stop. */
 static PyObject *Core_begin(Core *self, PyObject *unused) {
-    if (self->closed) {
-        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+    if (refuse_closed(self))
         return NULL;
-    }
-    int64_t release_ns = self->release_ns;
-    if (release_ns >= self->end_ns || LOAD(&self->control[CONTROL_STOP], relaxed))
+    if (time_to_stop(self))
         Py_RETURN_FALSE;
     if (self->measure_busy && self->busy_wake_ns) { /* the whole iteration since the last wake-up */
         int64_t busy_ns = now_ns() - self->busy_wake_ns;
@@ -633,40 +723,34 @@ static PyObject *Core_begin(Core *self, PyObject *unused) {
         if (busy_ns > self->busy_max_ns)
             self->busy_max_ns = busy_ns;
     }
-    int reached = sleep_until_release(self, release_ns);
+    int reached = sleep_until_release(self, self->release_ns);
     if (reached < 0)
         return NULL;
     if (!reached)
         Py_RETURN_FALSE;
-    self->start_ns = now_ns();
-    if (self->scope_mode == SCOPE_TOGGLE) { /* an edge at every release */
-        self->scope_level ^= 1;
-        scope_write(self, self->scope_level);
-    }
-    if (self->measure_busy)
-        self->busy_wake_ns = self->start_ns;
-    if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
-        set_tick(self, str_start_ns, self->start_ns) < 0)
-        return NULL;
-    read_inputs(self, release_ns);
-    if (self->scope_mode == SCOPE_STEP)
-        scope_write(self, 1);
-    Py_RETURN_TRUE;
+    return start_cycle(self, now_ns());
 }
 
-/* finish(): publish the outputs valid from release + P, record the cycle, go to the next release. */
-static PyObject *Core_finish(Core *self, PyObject *unused) {
-    if (self->closed) {
-        PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
+/* begin_at(start_ns): begin() on a given clock, without sleeping (the seam the twins' tests drive). */
+static PyObject *Core_begin_at(Core *self, PyObject *arg) {
+    int64_t start_ns = PyLong_AsLongLong(arg);
+    if ((start_ns == -1 && PyErr_Occurred()) || refuse_closed(self))
         return NULL;
-    }
-    if (self->scope_mode == SCOPE_STEP)
-        scope_write(self, 0);
+    if (time_to_stop(self))
+        Py_RETURN_FALSE;
+    return start_cycle(self, start_ns);
+}
+
+/* The cycle ended at end_ns: record it, count a miss, move to the next release as the policy says. */
+static PyObject *end_cycle(Core *self, int64_t end_ns) {
     int64_t cycle = self->cycle, release_ns = self->release_ns, start_ns = self->start_ns;
     int64_t period_ns = self->period_ns;
-    publish_outputs(self, cycle, release_ns + period_ns);
-    int64_t end_ns = self->last_end_ns = now_ns();
-    int64_t record[4] = {cycle, release_ns, start_ns, end_ns};
+    self->last_end_ns = end_ns;
+    int64_t record[TIMING_RECORD_WORDS];
+    record[TIMING_CYCLE] = cycle;
+    record[TIMING_RELEASE_NS] = release_ns;
+    record[TIMING_START_NS] = start_ns;
+    record[TIMING_END_NS] = end_ns;
     push(&self->timing, 0, record);
     aword *status = self->status;
     STORE(&status[STATUS_CYCLE], cycle, relaxed);
@@ -697,6 +781,29 @@ static PyObject *Core_finish(Core *self, PyObject *unused) {
     return PyBool_FromLong(go_on); /* False: max_misses deadline misses in a row */
 }
 
+/* finish(): publish the outputs valid from release + P, record the cycle, go to the next release. */
+static PyObject *Core_finish(Core *self, PyObject *unused) {
+    if (refuse_closed(self))
+        return NULL;
+    if (self->scope_mode == SCOPE_STEP)
+        scope_write(self, 0);
+    if (publish_outputs(self, self->cycle, self->release_ns + self->period_ns) < 0)
+        return NULL;
+    return end_cycle(self, now_ns());
+}
+
+/* finish_at(end_ns): finish() on a given clock (the seam the twins' tests drive). */
+static PyObject *Core_finish_at(Core *self, PyObject *arg) {
+    int64_t end_ns = PyLong_AsLongLong(arg);
+    if ((end_ns == -1 && PyErr_Occurred()) || refuse_closed(self))
+        return NULL;
+    if (self->scope_mode == SCOPE_STEP)
+        scope_write(self, 0);
+    if (publish_outputs(self, self->cycle, self->release_ns + self->period_ns) < 0)
+        return NULL;
+    return end_cycle(self, end_ns);
+}
+
 /* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
 static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
     if (self->closed) {
@@ -722,11 +829,14 @@ static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssiz
     int64_t cycle = PyLong_AsLongLong(args[0]), publish_ns = PyLong_AsLongLong(args[1]);
     if (PyErr_Occurred())
         return NULL;
-    publish_outputs(self, cycle, publish_ns);
+    if (publish_outputs(self, cycle, publish_ns) < 0)
+        return NULL;
     Py_RETURN_NONE;
 }
 
 static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
+static PyObject *Core_get_cycle(Core *self, void *closure) { return PyLong_FromLongLong(self->cycle); }
+static PyObject *Core_get_release_ns(Core *self, void *closure) { return PyLong_FromLongLong(self->release_ns); }
 
 /* set_scope_pin(fd, request, bit, mode): mode 1 toggles the line at every release, 2 holds it high
    while step() runs, 0 stops; fd is a GPIO line request, request its SET_VALUES ioctl number. */
@@ -761,6 +871,8 @@ static PyObject *Core_get_busy(Core *self, void *closure) {
 
 static int Core_traverse(Core *self, visitproc visit, void *arg) {
     Py_VISIT(self->tick);
+    Py_VISIT(self->check_labels);
+    Py_VISIT(self->check_error);
     for (Py_ssize_t i = 0; i < self->n_views; i++)
         Py_VISIT(self->views[i].obj);
     return 0;
@@ -776,6 +888,9 @@ static int Core_clear(Core *self) {
     self->u = self->y = NULL;
     self->control = self->status = self->output = NULL;
     Py_CLEAR(self->tick);
+    Py_CLEAR(self->check_labels);
+    Py_CLEAR(self->check_error);
+    self->n_checks = 0;
     return 0;
 }
 
@@ -800,6 +915,8 @@ static void Core_dealloc(Core *self) {
     PyMem_Free(self->out_ports);
     PyMem_Free(self->record_row);
     PyMem_Free(self->input_log_row);
+    PyMem_Free(self->check_index);
+    PyMem_Free(self->check_fault);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -816,6 +933,10 @@ static PyMethodDef Core_methods[] = {
     {"start", (PyCFunction)(void (*)(void))Core_start, METH_FASTCALL, "start(t0_ns, end_ns, stale_reads)"},
     {"begin", (PyCFunction)Core_begin, METH_NOARGS, "Sleep to the release, read inputs; False: stop."},
     {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},
+    {"set_finite_check", (PyCFunction)Core_set_finite_check, METH_VARARGS,
+     "set_finite_check(indices, faults, labels, error_type): NaN/inf crossing a connection."},
+    {"begin_at", (PyCFunction)Core_begin_at, METH_O, "begin() on a given clock: begin_at(start_ns), no sleep."},
+    {"finish_at", (PyCFunction)Core_finish_at, METH_O, "finish() on a given clock: finish_at(end_ns)."},
     {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
     {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
     {"set_scope_pin", (PyCFunction)Core_set_scope_pin, METH_VARARGS,
@@ -827,6 +948,8 @@ static PyMethodDef Core_methods[] = {
 
 static PyGetSetDef Core_getset[] = {
     {"stale_reads", (getter)Core_get_stale_reads, NULL, "Reads that found older data than due.", NULL},
+    {"cycle", (getter)Core_get_cycle, NULL, "The cycle begin() runs next (or runs now).", NULL},
+    {"release_ns", (getter)Core_get_release_ns, NULL, "Its release time.", NULL},
     {"busy", (getter)Core_get_busy, NULL, "(total ns, iterations, max ns) wake-up → next sleep.", NULL},
     {NULL, NULL, NULL, NULL, NULL},
 };
@@ -871,6 +994,22 @@ static struct PyModuleDef hotpath_module = {
     PyModuleDef_HEAD_INIT, "_hotpath", "rtloop's compiled per-cycle path (see hotpath.py).", -1, module_methods,
 };
 
+/* _hotpath.SCHEMA: every constant this module was built with (hotpath.py compares it with schema.py) */
+static int export_schema(PyObject *schema) {
+#define EXPORT(name)                                                                                             \
+    do {                                                                                                         \
+        PyObject *value = PyLong_FromLongLong(name);                                                             \
+        if (value == NULL || PyDict_SetItemString(schema, #name, value) < 0) {                                   \
+            Py_XDECREF(value);                                                                                   \
+            return -1;                                                                                           \
+        }                                                                                                        \
+        Py_DECREF(value);                                                                                        \
+    } while (0);
+    RTLOOP_SCHEMA(EXPORT)
+#undef EXPORT
+    return 0;
+}
+
 PyMODINIT_FUNC PyInit__hotpath(void) {
     if (PyType_Ready(&CoreType) < 0)
         return NULL;
@@ -883,19 +1022,9 @@ PyMODINIT_FUNC PyInit__hotpath(void) {
     if (module == NULL)
         return NULL;
     Py_INCREF(&CoreType);
-    if (PyModule_AddObject(module, "Core", (PyObject *)&CoreType) < 0 ||
-        PyModule_AddIntConstant(module, "HEADER_WORDS", HEADER_WORDS) < 0 ||
-        PyModule_AddObject(module, "NO_STAMP", PyLong_FromLongLong(NO_STAMP)) < 0 ||
-        PyModule_AddIntConstant(module, "READ_RETRIES", READ_RETRIES) < 0 ||
-        PyModule_AddObject(module, "STOP_POLL_NS", PyLong_FromLongLong(STOP_POLL_NS)) < 0 ||
-        PyModule_AddIntConstant(module, "CONTROL_STOP", CONTROL_STOP) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_CYCLE", STATUS_CYCLE) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_OVERRUNS", STATUS_OVERRUNS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_DEADLINE_MISSES", STATUS_DEADLINE_MISSES) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_STALE_READS", STATUS_STALE_READS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_LATENCY_LAST_NS", STATUS_LATENCY_LAST_NS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_EXEC_LAST_NS", STATUS_EXEC_LAST_NS) < 0 ||
-        PyModule_AddIntConstant(module, "STATUS_MISSES_IN_A_ROW_MAX", STATUS_MISSES_IN_A_ROW_MAX) < 0) {
+    PyObject *schema = PyDict_New();
+    if (schema == NULL || PyModule_AddObject(module, "Core", (PyObject *)&CoreType) < 0 ||
+        PyModule_AddObject(module, "SCHEMA", schema) < 0 || export_schema(schema) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from rtloop.ipc.schema import HEADER_WORDS, NO_STAMP, READ_RETRIES, ChannelWord, PortWord, QueueWord, SlotWord
 from rtloop.ipc.segments import Segment, fence
 
-HEADER_WORDS = 8
-NO_STAMP = -(2**62)
-READ_RETRIES = 64
+__all__ = ["HEADER_WORDS", "NO_STAMP", "READ_RETRIES", "LatestValue", "LetChannel", "SampleQueue"]
 
 
 class LetChannel:
@@ -32,28 +31,28 @@ class LetChannel:
 
     def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
         self.words = segment.buffer[offset_bytes:].cast("q")
-        self.n_values = int(self.words[1])
-        self.n_slots = int(self.words[2])
-        self.slot_words = 2 + self.n_values
+        self.n_values = int(self.words[ChannelWord.N_VALUES])
+        self.n_slots = int(self.words[ChannelWord.N_SLOTS])
+        self.slot_words = SlotWord.VALUES + self.n_values
         floats = segment.array(
             np.float64, HEADER_WORDS + self.n_slots * self.slot_words, offset_bytes
         )
         self.bases = [self._base(i) for i in range(self.n_slots)]
-        self.values = [floats[base + 2 : base + 2 + self.n_values] for base in self.bases]
-        self.published = int(self.words[0])
+        self.values = [floats[base + SlotWord.VALUES : base + SlotWord.VALUES + self.n_values] for base in self.bases]
+        self.published = int(self.words[ChannelWord.PUBLISHED])
 
     @staticmethod
     def size_bytes(n_values: int, n_slots: int) -> int:
-        return (HEADER_WORDS + n_slots * (2 + n_values)) * 8
+        return (HEADER_WORDS + n_slots * (SlotWord.VALUES + n_values)) * 8
 
     @classmethod
     def initialise(cls, segment: Segment, n_values: int, n_slots: int, offset_bytes: int = 0) -> LetChannel:
         words = segment.buffer[offset_bytes:].cast("q")
-        for i in range(HEADER_WORDS + n_slots * (2 + n_values)):
+        for i in range(HEADER_WORDS + n_slots * (SlotWord.VALUES + n_values)):
             words[i] = 0
-        words[1], words[2] = n_values, n_slots
+        words[ChannelWord.N_VALUES], words[ChannelWord.N_SLOTS] = n_values, n_slots
         for i in range(n_slots):
-            words[HEADER_WORDS + i * (2 + n_values) + 1] = NO_STAMP
+            words[HEADER_WORDS + i * (SlotWord.VALUES + n_values) + SlotWord.STAMP_NS] = NO_STAMP
         return cls(segment, offset_bytes)
 
     def _base(self, slot: int) -> int:
@@ -65,15 +64,15 @@ class LetChannel:
         published = self.published
         slot = published % self.n_slots
         base = self.bases[slot]
-        seq = words[base] + 1
-        words[base] = seq  # odd: slot being written
+        seq = words[base + SlotWord.SEQ] + 1
+        words[base + SlotWord.SEQ] = seq  # odd: slot being written
         fence()
         self.values[slot][:] = values
-        words[base + 1] = stamp_ns
+        words[base + SlotWord.STAMP_NS] = stamp_ns
         fence()
-        words[base] = seq + 1  # even: slot complete
+        words[base + SlotWord.SEQ] = seq + 1  # even: slot complete
         self.published = published + 1
-        words[0] = published + 1
+        words[ChannelWord.PUBLISHED] = published + 1
 
     # --- reader (RT) ---------------------------------------------------------------------
     def source_views(self, source: slice) -> list[np.ndarray]:
@@ -87,21 +86,21 @@ class LetChannel:
         ``published`` only says where to start looking; each slot's seqlock decides.
         """
         words, bases, n_slots = self.words, self.bases, self.n_slots
-        published = words[0]
+        published = words[ChannelWord.PUBLISHED]
         back, tries = 1, 0
         while back <= published and back <= n_slots and tries < READ_RETRIES * n_slots:
             tries += 1
             slot = (published - back) % n_slots
             base = bases[slot]
-            seq = words[base]
+            seq = words[base + SlotWord.SEQ]
             if seq & 1:
                 continue  # being written: look again
             fence()
-            stamp = words[base + 1]
+            stamp = words[base + SlotWord.STAMP_NS]
             if stamp <= time_ns:
                 np.copyto(out, sources[slot])
             fence()
-            if words[base] != seq:
+            if words[base + SlotWord.SEQ] != seq:
                 continue  # changed under us: look again (the writer may have lapped it)
             if stamp <= time_ns:
                 return stamp
@@ -119,7 +118,7 @@ class LatestValue:
 
     def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
         self.words = segment.buffer[offset_bytes:].cast("q")
-        self.n_values = int(self.words[3])
+        self.n_values = int(self.words[PortWord.N_VALUES])
         self.values = segment.array(np.float64, HEADER_WORDS + self.n_values, offset_bytes)[
             HEADER_WORDS:
         ]
@@ -137,48 +136,48 @@ class LatestValue:
         words = segment.buffer[offset_bytes:].cast("q")
         for i in range(HEADER_WORDS):
             words[i] = 0
-        words[3] = len(initial)
-        words[4] = int(fed_by_profile)
+        words[PortWord.N_VALUES] = len(initial)
+        words[PortWord.FED_BY_PROFILE] = int(fed_by_profile)
         channel = cls(segment, offset_bytes)
         channel.values[:] = initial
         return channel
 
     @property
     def fed_by_profile(self) -> bool:
-        return bool(self.words[4])
+        return bool(self.words[PortWord.FED_BY_PROFILE])
 
     @property
     def writes(self) -> int:
-        return int(self.words[1])
+        return int(self.words[PortWord.WRITES])
 
     @property
     def reads(self) -> int:
-        return int(self.words[2])
+        return int(self.words[PortWord.READS])
 
     def write(self, values: np.ndarray) -> None:
         words = self.words
-        words[0] += 1
+        words[PortWord.SEQ] += 1
         fence()
         self.values[:] = values
         fence()
-        words[0] += 1
-        words[1] += 1
+        words[PortWord.SEQ] += 1
+        words[PortWord.WRITES] += 1
 
     def read_into(self, out: np.ndarray) -> bool:
         """Copy the newest complete value into ``out``; False if none could be read."""
         words = self.words
         for _ in range(READ_RETRIES):
-            seq = words[0]
+            seq = words[PortWord.SEQ]
             if seq & 1:
                 continue
             fence()
             np.copyto(self.scratch, self.values)
             fence()
-            if words[0] == seq:
+            if words[PortWord.SEQ] == seq:
                 np.copyto(out, self.scratch)
                 if seq != self.last_seq_seen:
                     self.last_seq_seen = seq
-                    words[2] += 1
+                    words[PortWord.READS] += 1
                 return True
         return False
 
@@ -192,14 +191,14 @@ class SampleQueue:
 
     def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
         self.words = segment.buffer[offset_bytes:].cast("q")
-        self.n_values = int(self.words[3])
-        self.capacity = int(self.words[4])
+        self.n_values = int(self.words[QueueWord.WIDTH])
+        self.capacity = int(self.words[QueueWord.CAPACITY])
         ticks_at = offset_bytes + HEADER_WORDS * 8
         self.ticks = segment.array(np.int64, self.capacity, ticks_at)
         self.rows = segment.array(
             np.float64, self.capacity * self.n_values, ticks_at + self.capacity * 8
         ).reshape(self.capacity, self.n_values)
-        self.written = int(self.words[0])
+        self.written = int(self.words[QueueWord.WRITTEN])
 
     @staticmethod
     def size_bytes(n_values: int, capacity: int) -> int:
@@ -210,43 +209,43 @@ class SampleQueue:
         words = segment.buffer[offset_bytes:].cast("q")
         for i in range(HEADER_WORDS):
             words[i] = 0
-        words[3], words[4] = n_values, capacity
+        words[QueueWord.WIDTH], words[QueueWord.CAPACITY] = n_values, capacity
         return cls(segment, offset_bytes)
 
     # --- producer (RT) -------------------------------------------------------------------
     def push(self, tick: int, values: np.ndarray) -> bool:
         words = self.words
         written = self.written
-        if written - words[1] >= self.capacity:
-            words[2] += 1
+        if written - words[QueueWord.READ] >= self.capacity:
+            words[QueueWord.DROPPED] += 1
             return False
         index = written % self.capacity
         self.ticks[index] = tick
         self.rows[index] = values
         fence()  # the row must be visible before the count that announces it
         self.written = written + 1
-        words[0] = written + 1
+        words[QueueWord.WRITTEN] = written + 1
         return True
 
     # --- consumer (non-RT) ---------------------------------------------------------------
     @property
     def sent(self) -> int:
-        return int(self.words[0])
+        return int(self.words[QueueWord.WRITTEN])
 
     @property
     def received(self) -> int:
-        return int(self.words[1])
+        return int(self.words[QueueWord.READ])
 
     @property
     def dropped(self) -> int:
-        return int(self.words[2])
+        return int(self.words[QueueWord.DROPPED])
 
     def drain(self, max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Copy out the waiting records: (ticks, rows). Never blocks."""
         words = self.words
-        written = words[0]
+        written = words[QueueWord.WRITTEN]
         fence()
-        read = words[1]
+        read = words[QueueWord.READ]
         count = written - read
         if max_rows is not None:
             count = min(count, max_rows)
@@ -255,5 +254,5 @@ class SampleQueue:
         indices = (read + np.arange(count)) % self.capacity
         ticks, rows = self.ticks[indices].copy(), self.rows[indices].copy()
         fence()  # finish copying before handing the slots back
-        words[1] = read + count
+        words[QueueWord.READ] = read + count
         return ticks, rows

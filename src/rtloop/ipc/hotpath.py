@@ -15,9 +15,14 @@ import fcntl
 import os
 import struct
 import sys
-from typing import Any
+from typing import Protocol
 
-from rtloop.ipc.status import ControlWord, StatusWord
+import numpy as np
+
+from rtloop.errors import NonFiniteOutput
+from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
+from rtloop.ipc.segments import RecordRing
+from rtloop.ipc.wiring import TaskWiring
 from rtloop.rt import AbsoluteSleeper, now_ns
 
 try:
@@ -26,26 +31,59 @@ except ImportError as error:  # no compiler when the package was installed
     _hotpath = None
     _NOT_BUILT = f"the C hot path rtloop.ipc._hotpath is not built ({error})"
 else:
-    _NOT_BUILT = ""
-    assert (_hotpath.CONTROL_STOP, _hotpath.STATUS_CYCLE, _hotpath.STATUS_OVERRUNS, _hotpath.STATUS_DEADLINE_MISSES,
-            _hotpath.STATUS_STALE_READS, _hotpath.STATUS_LATENCY_LAST_NS, _hotpath.STATUS_EXEC_LAST_NS,
-            _hotpath.STATUS_MISSES_IN_A_ROW_MAX) == (
-        ControlWord.STOP, StatusWord.CYCLE, StatusWord.OVERRUNS, StatusWord.DEADLINE_MISSES,
-        StatusWord.STALE_READS, StatusWord.LATENCY_LAST_NS, StatusWord.EXEC_LAST_NS,
-        StatusWord.MISSES_IN_A_ROW_MAX), "C and Python layouts differ"
+    _differ = sorted(name for name, value in constants().items() if getattr(_hotpath, "SCHEMA", {}).get(name) != value)
+    # A stale build (an older schema.py) would read and write the wrong words: use Python instead.
+    _NOT_BUILT = f"the C hot path was built from another schema (differs in {', '.join(_differ)}): rebuild it" \
+        if _differ else ""
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
-SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = 0, 1, 2
+SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = ScopeMode.OFF, ScopeMode.TOGGLE, ScopeMode.STEP
 """Scope pin modes (``set_scope_pin``): none, toggle at every release, high while step() runs."""
 _SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
-STOP_POLL_NS = 100_000_000
-"""A task sleeping towards a release further away than this looks at the stop flag this often."""
 _announced = False
 
 
 def c_built() -> bool:
-    """Whether the C hot path was built (pip needs a compiler for it)."""
-    return _hotpath is not None
+    """Whether the C hot path was built (pip needs a compiler for it) from this schema."""
+    return _hotpath is not None and not _NOT_BUILT
+
+
+class Tick(Protocol):
+    """What a cycle tells the runnable (``TickInfo``)."""
+
+    cycle: int
+    release_ns: int
+    start_ns: int
+
+
+class Words(Protocol):
+    """A block of int64 words indexed by a schema enum (``status.WordBlock``)."""
+
+    words: memoryview
+
+    def __getitem__(self, word: int) -> int: ...
+    def __setitem__(self, word: int, value: int) -> None: ...
+
+
+class CycleWork(Protocol):
+    """One task's per-cycle framework work: ``PythonCycle`` or ``_hotpath.Core``."""
+
+    cycle: int
+    """The cycle begin() runs next (or runs now)."""
+    release_ns: int
+    """Its release time."""
+
+    @property
+    def stale_reads(self) -> int: ...
+    def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None: ...
+    def begin(self) -> bool: ...
+    def finish(self) -> bool: ...
+    def begin_at(self, start_ns: int) -> bool: ...
+    def finish_at(self, end_ns: int) -> bool: ...
+    def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None: ...
+    def read_inputs(self, release_ns: int) -> None: ...
+    def publish_outputs(self, cycle: int, publish_ns: int) -> None: ...
+    def close(self) -> None: ...
 
 
 def why_python() -> str:
@@ -72,8 +110,8 @@ def announce_once() -> None:
 class PythonCycle:
     """One task's per-cycle framework work, in Python (the reference for ``_hotpath.Core``)."""
 
-    def __init__(self, tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-                 catch_up: bool, max_misses: int | None = None) -> None:
+    def __init__(self, tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+                 period_ns: int, catch_up: bool, max_misses: int | None = None) -> None:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
         self.misses_in_a_row = 0
@@ -109,12 +147,21 @@ class PythonCycle:
 
     def begin(self) -> bool:
         """Sleep to the release, then read the inputs valid at it. False: time to stop."""
+        if self.release_ns >= self.end_ns or self.control[ControlWord.STOP]:
+            return False
+        if not self.sleep_until_release(self.release_ns):
+            return False
+        return self._start_cycle(now_ns())
+
+    def begin_at(self, start_ns: int) -> bool:
+        """``begin()`` on a given clock, without sleeping: the seam the twins' tests drive."""
+        if self.release_ns >= self.end_ns or self.control[ControlWord.STOP]:
+            return False
+        return self._start_cycle(start_ns)
+
+    def _start_cycle(self, start_ns: int) -> bool:
         release_ns = self.release_ns
-        if release_ns >= self.end_ns or self.control[ControlWord.STOP]:
-            return False
-        if not self.sleep_until_release(release_ns):
-            return False
-        self.start_ns = now_ns()
+        self.start_ns = start_ns
         if self.scope_mode == SCOPE_TOGGLE:  # an edge at every release
             self.scope_level ^= 1
             self._scope(self.scope_level)
@@ -145,11 +192,22 @@ class PythonCycle:
         """Publish outputs valid from release + P, record the cycle, move to the next release.
 
         False: this was the ``max_misses``-th deadline miss in a row (the task should stop)."""
+        self._publish()
+        return self._end_cycle(now_ns())
+
+    def finish_at(self, end_ns: int) -> bool:
+        """``finish()`` on a given clock: the seam the twins' tests drive."""
+        self._publish()
+        return self._end_cycle(end_ns)
+
+    def _publish(self) -> None:
         if self.scope_mode == SCOPE_STEP:
             self._scope(0)
+        self.wiring.publish_outputs(self.cycle, self.release_ns + self.period_ns, self.wiring.y)
+
+    def _end_cycle(self, end_ns: int) -> bool:
         cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
-        self.wiring.publish_outputs(cycle, release_ns + period_ns, self.wiring.y)
-        end_ns = self.last_end_ns = now_ns()
+        self.last_end_ns = end_ns
         self.timing.push4(cycle, release_ns, start_ns, end_ns)
         status = self.status
         status[StatusWord.CYCLE] = cycle
@@ -186,17 +244,16 @@ class PythonCycle:
         self.wiring.publish_outputs(cycle, publish_ns, self.wiring.y)
 
 
-def _index_in(base: Any, view: Any) -> int:
+def _index_in(base: np.ndarray, view: np.ndarray) -> int:
     """Where the numpy view ``view`` starts inside ``base`` (in float64 elements)."""
     return (view.__array_interface__["data"][0] - base.__array_interface__["data"][0]) // 8
 
 
-def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-                   catch_up: bool, max_misses: int | None = None) -> Any:
-    """A ``_hotpath.Core`` over the same shared memory as ``wiring`` (a TaskWiring)."""
-    import numpy as np
-
-    assert _hotpath is not None
+def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+                   period_ns: int, catch_up: bool, max_misses: int | None = None) -> CycleWork:
+    """A ``_hotpath.Core`` over the same shared memory as ``wiring``."""
+    if _hotpath is None or _NOT_BUILT:
+        raise RuntimeError(_NOT_BUILT)
     u, y = wiring.u, wiring.y
     core = _hotpath.Core(tick, u, y, control.words, status.words, timing.memory, period_ns, catch_up,
                          max_misses or 0)
@@ -222,11 +279,15 @@ def compiled_cycle(tick: Any, wiring: Any, control: Any, status: Any, timing: An
         core.add_output_port(queue.words, _index_in(y, source))
     if wiring.record is not None:
         core.set_record(wiring.record.words)
+    if wiring.finite_checks:
+        checks = wiring.finite_checks
+        core.set_finite_check(tuple(c.index for c in checks), tuple(c.fault for c in checks),
+                              tuple(c.label for c in checks), NonFiniteOutput)
     return core
 
 
-def cycle_work(tick: Any, wiring: Any, control: Any, status: Any, timing: Any, period_ns: int,
-               catch_up: bool, max_misses: int | None = None) -> Any:
+def cycle_work(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+               period_ns: int, catch_up: bool, max_misses: int | None = None) -> CycleWork:
     """The per-cycle work of a task, built once before its loop: C when available, else Python."""
     kind = compiled_cycle if hot_path() == "c" else PythonCycle
     return kind(tick, wiring, control, status, timing, period_ns, catch_up, max_misses)

@@ -42,7 +42,7 @@ from rtloop.ipc.segments import (
     process_uid,
     shorten,
 )
-from rtloop.ipc.status import STATUS_WORDS, WordBlock
+from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
 
 REGISTRY_MAX_BYTES = 1 << 20
 
@@ -121,7 +121,7 @@ class RunningApp:
         pids: dict[str, int] = {}
         for task, segment_name in self.registry["tasks"].items():
             segment = self.segment(segment_name)
-            pids[task] = WordBlock(segment, 0, STATUS_WORDS)[1]
+            pids[task] = WordBlock(segment, 0, STATUS_WORDS)[StatusWord.PID]
         return pids
 
 

@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rtloop.errors import RtloopError
+from rtloop.ipc.schema import HEADER_WORDS, QueueWord, ring_size_bytes
 
 SHM_DIR = Path("/dev/shm")
 SEGMENT_PREFIX = "rtloop-"
@@ -254,13 +255,13 @@ class RecordRing:
     Layout (int64 words): ``[written, read, dropped, width, capacity] + records``.
     """
 
-    HEADER_WORDS = 8
+    HEADER_WORDS = HEADER_WORDS
 
     def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
         header = segment.array(np.int64, self.HEADER_WORDS, offset_bytes)
         self._header = header
-        self.width = int(header[3])
-        self.capacity = int(header[4])
+        self.width = int(header[QueueWord.WIDTH])
+        self.capacity = int(header[QueueWord.CAPACITY])
         data_offset = offset_bytes + self.HEADER_WORDS * 8
         self._data = segment.array(np.int64, self.capacity * self.width, data_offset).reshape(
             self.capacity, self.width
@@ -268,20 +269,20 @@ class RecordRing:
         # Scalar stores through a memoryview are single aligned 8-byte writes, and fast.
         self._header_words = segment.buffer[offset_bytes : data_offset].cast("q")
         self._data_words = segment.buffer[data_offset : data_offset + self.capacity * self.width * 8].cast("q")
-        self._written = int(header[0])
+        self._written = int(header[QueueWord.WRITTEN])
         self.memory = segment.buffer[offset_bytes : data_offset + self.capacity * self.width * 8]
         """Header and records as one buffer (for the compiled hot path)."""
 
     @staticmethod
     def size_bytes(capacity: int, width: int) -> int:
-        return (RecordRing.HEADER_WORDS + capacity * width) * 8
+        return ring_size_bytes(capacity, width)
 
     @staticmethod
     def initialise(segment: Segment, capacity: int, width: int, offset_bytes: int = 0) -> RecordRing:
         header = segment.array(np.int64, RecordRing.HEADER_WORDS, offset_bytes)
         header[:] = 0
-        header[3] = width
-        header[4] = capacity
+        header[QueueWord.WIDTH] = width
+        header[QueueWord.CAPACITY] = capacity
         return RecordRing(segment, offset_bytes)
 
     # --- producer side (RT): allocation-free -------------------------------------------
@@ -289,8 +290,8 @@ class RecordRing:
         """Append one 4-word record; returns False (and counts a drop) if full."""
         words = self._header_words
         written = self._written
-        if written - words[1] >= self.capacity:
-            words[2] += 1
+        if written - words[QueueWord.READ] >= self.capacity:
+            words[QueueWord.DROPPED] += 1
             return False
         base = (written % self.capacity) * 4
         data = self._data_words
@@ -300,25 +301,25 @@ class RecordRing:
         data[base + 3] = d
         fence()  # the record must be visible before the count that announces it
         self._written = written + 1
-        words[0] = written + 1
+        words[QueueWord.WRITTEN] = written + 1
         return True
 
     # --- consumer side (non-RT) --------------------------------------------------------
     @property
     def dropped(self) -> int:
-        return int(self._header_words[2])
+        return int(self._header_words[QueueWord.DROPPED])
 
     @property
     def written_total(self) -> int:
         """Records the producer has pushed so far (not counting drops)."""
-        return int(self._header_words[0])
+        return int(self._header_words[QueueWord.WRITTEN])
 
     def drain(self, max_records: int | None = None) -> np.ndarray:
         """Copy out the records written since the last drain, at most ``max_records`` (shape: n × width)."""
         words = self._header_words
-        written = words[0]
+        written = words[QueueWord.WRITTEN]
         fence()
-        read = words[1]
+        read = words[QueueWord.READ]
         count = written - read
         if max_records is not None:
             count = min(count, max_records)
@@ -328,5 +329,5 @@ class RecordRing:
         indices = (start + np.arange(count)) % self.capacity
         records = self._data[indices].copy()
         fence()  # finish copying before handing the slots back to the producer
-        words[1] = read + count
+        words[QueueWord.READ] = read + count
         return records

@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import enum
 
+from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord
 from rtloop.ipc.segments import Segment, fence
+
+__all__ = ["CONTROL_WORDS", "STATUS_WORDS", "ControlWord", "StatusWord", "TaskState", "WordBlock", "publish_epoch",
+           "read_epoch"]
 
 
 class TaskState(enum.IntEnum):
@@ -21,35 +25,6 @@ class TaskState(enum.IntEnum):
     STOPPED = 3
     FAILED = 4
     POSTRUN = 5
-
-
-class ControlWord(enum.IntEnum):
-    T0_NS = 0
-    END_NS = 1
-    STOP = 2
-
-
-class StatusWord(enum.IntEnum):
-    STATE = 0
-    PID = 1
-    CYCLE = 2
-    OVERRUNS = 3
-    DEADLINE_MISSES = 4
-    STALE_READS = 5
-    LATENCY_LAST_NS = 6
-    LATENCY_MAX_NS = 7
-    EXEC_LAST_NS = 8
-    EXEC_MAX_NS = 9
-    POLICY = 10
-    PRIORITY = 11
-    CPU = 12
-    RT = 13
-    TIMING_DROPPED = 14
-    MISSES_IN_A_ROW_MAX = 15
-
-
-CONTROL_WORDS = 8
-STATUS_WORDS = 16
 
 
 class WordBlock:

@@ -45,6 +45,10 @@ class TaskSummary:
     """Names of y[0], y[1], ... if the runnable gives them."""
     host_exec_ns: dict[str, float] | None = None
     """Simulation only: what ``step`` cost on the host (count, mean, max), not real time."""
+    nonfinite_values: int = 0
+    """NaN or ±inf outputs headed across a connection (a fault unless the connection allows them)."""
+    nonfinite_first: str = ""
+    """The first of them: ``plant.y[1] (speed) at cycle 304`` ('' when none)."""
 
     def to_json(self) -> dict[str, Any]:
         timing = self.timing.to_json()
@@ -60,10 +64,18 @@ class TaskSummary:
             "stale_reads": self.stale_reads,
             "timing_samples_dropped": self.timing_samples_dropped,
             "misses_in_a_row_max": self.misses_in_a_row_max,
+            "nonfinite_values": self.nonfinite_values,
+            "nonfinite_first": self.nonfinite_first,
             "input_names": list(self.input_names) if self.input_names else None,
             "output_names": list(self.output_names) if self.output_names else None,
             **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
         }
+
+
+def nonfinite_notes(tasks: dict[str, TaskSummary]) -> list[str]:
+    """A sentence for each task that sent NaN or ±inf across a connection."""
+    return [f"{name}: {task.nonfinite_values} non-finite values (NaN or ±inf) crossed or tried to cross a "
+            f"connection, the first {task.nonfinite_first}" for name, task in tasks.items() if task.nonfinite_values]
 
 
 def signal_names(runnable: object) -> dict[str, tuple[str, ...] | None]:

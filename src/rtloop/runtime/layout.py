@@ -2,7 +2,7 @@
 
 ``AppLayout.create`` makes every segment the run needs (control block, a status block
 and timing ring per task, an output channel per connected task, port and record
-queues), and the :class:`~rtloop.runtime.wiring.TaskWiringPlan` each task process attaches to.
+queues), and the :class:`~rtloop.ipc.wiring.TaskWiringPlan` each task process attaches to.
 ``close`` removes them all; segments of a run that died are removed by the next run.
 """
 
@@ -18,6 +18,13 @@ import numpy as np
 from rtloop.app.builder import App, PortSpec
 from rtloop.app.profiles import load_profile
 from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.schema import (
+    CONTROL_WORDS,
+    STATUS_WORDS,
+    TASK_TIMING_OFFSET_BYTES,
+    TIMING_RECORD_WORDS,
+    task_segment_size,
+)
 from rtloop.ipc.segments import (
     SHM_DIR,
     RecordRing,
@@ -27,9 +34,17 @@ from rtloop.ipc.segments import (
     remove_stale_segments,
     unlink_in_shm,
 )
-from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
-from rtloop.runtime.task import TaskSegments, task_segment_size
-from rtloop.runtime.wiring import READ_LOG_WIDTH, InputLink, InputPortLink, OutputPortLink, Profile, TaskWiringPlan
+from rtloop.ipc.status import WordBlock
+from rtloop.ipc.wiring import (
+    READ_LOG_WIDTH,
+    InputLink,
+    InputPortLink,
+    OutputPortLink,
+    Profile,
+    TaskSegments,
+    TaskWiringPlan,
+    finite_checks_of,
+)
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
@@ -170,7 +185,8 @@ class AppLayout:
         for name, spec in app.tasks.items():
             task_segment = segment(f"{name}.task", task_segment_size(TIMING_RING_CAPACITY))
             status = WordBlock(task_segment, 0, STATUS_WORDS)
-            timing = RecordRing.initialise(task_segment, TIMING_RING_CAPACITY, 4, STATUS_WORDS * 8)
+            timing = RecordRing.initialise(task_segment, TIMING_RING_CAPACITY, TIMING_RECORD_WORDS,
+                                           TASK_TIMING_OFFSET_BYTES)
             record = None
             if name in recorded_tasks:
                 width = spec.runnable.n_outputs + spec.runnable.n_inputs
@@ -210,6 +226,9 @@ class AppLayout:
                 input_log=input_log_segment.name if input_log_segment is not None else None,
                 read_log=read_log_segment.name if read_log_segment is not None else None,
                 segments=tuple(sorted(w for w in wanted if w)),
+                finite_checks=finite_checks_of(
+                    name, [(c.source.slice, c.allow_nonfinite) for c in app.connections if c.source.task == name],
+                    getattr(spec.runnable, "output_names", None)),
             )
             segments_of_task = TaskSegments(control_segment.name, task_segment.name)
             tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log, read_log)

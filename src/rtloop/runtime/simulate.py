@@ -23,13 +23,13 @@ from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
 from rtloop.io.host import TaskDevices
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
-from rtloop.record.summary import RunSummary, TaskSummary, signal_names, slow_step_notes
+from rtloop.ipc.wiring import TaskWiring, nonfinite_fields
+from rtloop.record.summary import RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout
 from rtloop.runtime.session import RunSession
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
-from rtloop.runtime.wiring import TaskWiring
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
 
@@ -248,6 +248,7 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
             timing_samples_dropped=0,
             host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
             **signal_names(spec.runnable),
+            **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),  # type: ignore[arg-type]
         )
     capabilities = rt.probe()
     notes = [*slow_step_notes(summaries), *session.notes()]
@@ -257,6 +258,6 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
         ports=port_summaries(layout, recorder.latest_ns), stopped_by=outcome.stopped_by,
         failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
-        notes=notes, elapsed_s=recorder.latest_ns / 1e9,
+        notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9,
         recording={**recorder.to_json(), **session.losses.to_json()},
     )

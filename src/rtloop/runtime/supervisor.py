@@ -33,8 +33,9 @@ from rtloop.errors import DeviceError, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
+from rtloop.ipc.wiring import nonfinite_fields
 from rtloop.lean import single_threaded_children
-from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, signal_names, slow_step_notes
+from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession, RunState
@@ -469,6 +470,7 @@ class Supervisor:
                 misses_in_a_row_max=status[StatusWord.MISSES_IN_A_ROW_MAX],
                 timing_samples_dropped=dropped,
                 **signal_names(spec.runnable),
+                **nonfinite_fields(status, layout.tasks[name].plan),  # type: ignore[arg-type]
             )
         bridges = self.bridges.summary() if self.bridges is not None else {}
         return RunSummary(
@@ -484,7 +486,8 @@ class Supervisor:
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
             notes=[*slow_step_notes(tasks),
-                   *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems)],
+                   *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
+                   *nonfinite_notes(tasks)],
             bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,

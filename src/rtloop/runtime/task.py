@@ -14,7 +14,6 @@ import os
 import signal
 import time
 import traceback
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,29 +24,16 @@ from rtloop.app.byvalue import loads_runnable
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import cycle_work
+from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
 from rtloop.ipc.segments import RecordRing, Segment
-from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState, WordBlock, read_epoch
+from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
+from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
 from rtloop.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
-from rtloop.runtime.wiring import TaskWiring, TaskWiringPlan
 
 T0_POLL_S = 0.001
 
 
-
-
-@dataclass(frozen=True, slots=True)
-class TaskSegments:
-    """Names of the shared memory a task process attaches to."""
-
-    control: str
-    """The app's control block (T0, end time, stop flag)."""
-    task: str
-    """This task's status block followed by its timing ring."""
-
-
-def task_segment_size(timing_capacity: int) -> int:
-    return STATUS_WORDS * 8 + RecordRing.size_bytes(timing_capacity, 4)
 
 
 class RealtimeTask:
@@ -177,7 +163,7 @@ def task_process_main(
     if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
         return
     status = WordBlock(task_segment, 0, STATUS_WORDS)
-    timing = RecordRing(task_segment, STATUS_WORDS * 8)
+    timing = RecordRing(task_segment, TASK_TIMING_OFFSET_BYTES)
     status[StatusWord.PID] = os.getpid()
     try:  # the runnable's class and modules load here: a failure is "loading", not prerun
         runnable: Runnable = loads_runnable(runnable_bytes)

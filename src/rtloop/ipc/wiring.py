@@ -8,13 +8,27 @@ run every cycle without allocating.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.schema import READ_LOG_RECORD_WORDS, NudgeMode
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import StatusWord, WordBlock
+
+
+@dataclass(frozen=True, slots=True)
+class TaskSegments:
+    """Names of the shared memory a task process attaches to (layout: ``schema``)."""
+
+    control: str
+    """The app's control block (T0, end time, stop flag)."""
+    task: str
+    """This task's status block followed by its timing ring."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,7 +43,7 @@ class InputLink:
     """The writing task's name (names the link in the read log, ``reads.csv``)."""
 
 
-READ_LOG_WIDTH = 4
+READ_LOG_WIDTH = READ_LOG_RECORD_WORDS
 """A read-log record, times in ns since T0: ``[release, writer index, stamp got (or NO_STAMP), stamp due]``."""
 
 
@@ -43,7 +57,7 @@ class Profile:
     """One row per time (float64)."""
 
 
-NUDGE_MODES = {"offset": 1, "override": 2}
+NUDGE_MODES = {"offset": NudgeMode.OFFSET, "override": NudgeMode.OVERRIDE}
 """How live writes combine with a port's profile (0: no live writes to a fed port)."""
 
 
@@ -70,6 +84,18 @@ class OutputPortLink:
 
 
 @dataclass(frozen=True, slots=True)
+class FiniteCheck:
+    """An output that crosses a connection: a NaN or ±inf there is counted, and a fault unless allowed."""
+
+    index: int
+    """Its place in ``y``."""
+    fault: bool
+    """False only when every connection from it says ``allow_nonfinite``."""
+    label: str
+    """How messages name it: ``plant.y[1] (speed)``."""
+
+
+@dataclass(frozen=True, slots=True)
 class TaskWiringPlan:
     output_channel: str | None = None
     inputs: tuple[InputLink, ...] = ()
@@ -84,6 +110,8 @@ class TaskWiringPlan:
     """Segment of the ring of reads that did not get the sample logical execution time promised
     (a stale read): one ``READ_LOG_WIDTH`` record each, nothing in a clean cycle (for replay)."""
     segments: tuple[str, ...] = field(default=())
+    finite_checks: tuple[FiniteCheck, ...] = ()
+    """Outputs crossing a connection, checked for NaN and ±inf before they are published."""
 
     def writers(self) -> list[str]:
         """The writing tasks in the order the task reads them (the writer index of the read log)."""
@@ -178,6 +206,24 @@ class TaskWiring:
         self.record_row = np.zeros(len(y) + len(u))
         self.record_y, self.record_u = self.record_row[: len(y)], self.record_row[len(y) :]
         self.initial_y = y.copy()
+        self.finite_checks = plan.finite_checks
+
+    def check_finite(self, cycle: int, y: np.ndarray) -> None:
+        """Count NaN and ±inf headed across a connection; raise NonFiniteOutput where not allowed."""
+        for check in self.finite_checks:
+            value = float(y[check.index])
+            if math.isfinite(value):
+                continue
+            status = self.status
+            if status is not None:
+                if not status[StatusWord.NONFINITE_VALUES]:
+                    status[StatusWord.NONFINITE_FIRST_CYCLE] = cycle
+                    status[StatusWord.NONFINITE_FIRST_OUTPUT] = check.index
+                status[StatusWord.NONFINITE_VALUES] += 1
+            if check.fault:
+                raise NonFiniteOutput(f"{check.label} is {value!r} at cycle {cycle}: a non-finite value crossing "
+                                      "a connection is a fault (allow_nonfinite = true on the connection lets it "
+                                      "through)")
 
     def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
         t0_ns = self.t0_ns
@@ -213,6 +259,8 @@ class TaskWiring:
         self.input_log.push(since_t0_ns, row)  # type: ignore[union-attr]
 
     def publish_outputs(self, cycle: int, publish_ns: int, y: np.ndarray) -> None:
+        if self.finite_checks:
+            self.check_finite(cycle, y)  # before anything leaves: a NaN never crosses unless allowed
         if self.output is not None:
             self.output.publish(publish_ns, y)
         for queue, source in self.output_ports:
@@ -235,3 +283,27 @@ class TaskWiring:
             np.copyto(self.record_u, self.u)
             self.record.push(-1, self.record_row)
 
+
+
+def finite_checks_of(task: str, connections: Iterable[tuple[slice, bool]], output_names: Sequence[str] | None
+                     ) -> tuple[FiniteCheck, ...]:
+    """The outputs of ``task`` that cross a connection (source slice, allow_nonfinite), once each."""
+    allowed: dict[int, bool] = {}
+    for source, allow in connections:
+        for index in range(source.start, source.stop):
+            allowed[index] = allowed.get(index, True) and allow
+    checks = []
+    for index in sorted(allowed):
+        name = f" ({output_names[index]})" if output_names and index < len(output_names) else ""
+        checks.append(FiniteCheck(index, not allowed[index], f"{task}.y[{index}]{name}"))
+    return tuple(checks)
+
+
+def nonfinite_fields(status: WordBlock, plan: TaskWiringPlan) -> dict[str, int | str]:
+    """``nonfinite_values`` and ``nonfinite_first`` of a task's summary, from its status block."""
+    count = status[StatusWord.NONFINITE_VALUES]
+    if not count:
+        return {"nonfinite_values": 0, "nonfinite_first": ""}
+    index, cycle = status[StatusWord.NONFINITE_FIRST_OUTPUT], status[StatusWord.NONFINITE_FIRST_CYCLE]
+    label = next((check.label for check in plan.finite_checks if check.index == index), f"y[{index}]")
+    return {"nonfinite_values": count, "nonfinite_first": f"{label} at cycle {cycle}"}
