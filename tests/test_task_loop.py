@@ -170,6 +170,7 @@ def test_the_epoch_is_published_end_first_with_a_fence_and_read_t0_first(monkeyp
 
 def test_the_supervisor_publishes_the_epoch_through_the_ordered_store(monkeypatch) -> None:
     from rtloop.runtime import supervisor
+    from rtloop.runtime.session import Limits
 
     published = []
     monkeypatch.setattr(supervisor, "publish_epoch", lambda control, t0_ns, end_ns: published.append((t0_ns, end_ns)))
@@ -184,6 +185,7 @@ def test_the_supervisor_publishes_the_epoch_through_the_ordered_store(monkeypatc
 
     runner, layout = supervisor.Supervisor.__new__(supervisor.Supervisor), Layout()
     runner.duration_s = 1.0
+    runner.limits = Limits()
     runner._start_epoch(layout, Recorder())
     assert published == [(runner.t0_ns, runner.end_ns)] and not layout.control
 
