@@ -73,6 +73,11 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
     out = capsys.readouterr().out
     assert "step of plant.speed_rad_s" in out and "overshoot" in out
     assert (tmp_path / "s" / "sweep.csv").is_file() and (tmp_path / "s" / "0" / "signals.csv").is_file()
+    again = ["sweep", str(DCMOTOR), "--param", "pi.kp=0.02:0.1:2", "--duration", "0.3", "--out", str(tmp_path / "s"),
+             "--processes", "1"]
+    assert cli_main(again) == 2 and "holds a sweep already" in capsys.readouterr().err  # never overwritten
+    assert cli_main([*again, "--force"]) == 0
+    capsys.readouterr()
     for argv, words in (
         (["--param", "pi.kp=0.1:1"], "START:STOP:COUNT"),
         (["--param", "pi.nope=0.1:1:3"], "unknown parameter 'nope'"),

@@ -25,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--setpoint", default=None, metavar="NAME", help="its setpoint (default: its pair's)")
     parser.add_argument("--feed", action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile")
+    parser.add_argument("--force", action="store_true", help="replace a sweep already in --out")
     parser.add_argument("--processes", type=int, default=None, metavar="N", help="worker processes (default: CPUs)")
     return parser
 
@@ -41,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.processes is not None and args.processes < 1:
         raise AppError("--processes must be at least 1")
     result = sweep(args.app, parameters, duration_s=args.duration, out=args.out, signal=args.signal,
-                   setpoint=args.setpoint, processes=args.processes, feeds=feeds)
+                   setpoint=args.setpoint, processes=args.processes, feeds=feeds, force=args.force)
     print(f"step of {result.signal}" + (f" (setpoint {result.setpoint})" if result.setpoint else ""))
     print(format_table(result))
     simulated_s = args.duration * len(result.rows)

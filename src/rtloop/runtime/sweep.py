@@ -128,7 +128,8 @@ def parse_parameter(text: str) -> tuple[str, list[float]]:
 
 def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]], *, duration_s: float,
           out: str | os.PathLike[str], signal: str | None = None, setpoint: str | None = None,
-          processes: int | None = None, feeds: dict[str, str | os.PathLike[str]] | None = None) -> SweepResult:
+          processes: int | None = None, feeds: dict[str, str | os.PathLike[str]] | None = None,
+          force: bool = False) -> SweepResult:
     """Simulate ``app`` at every point of the grid ``parameters`` (``{"pi.kp": [...], ...}``), in parallel.
 
     ``app`` is an :class:`~rtloop.App` (sent to the workers by pickling: its runnables'
@@ -148,10 +149,13 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
     for name in names:
         _set_parameter(probe, name, parameters[name][0])
     out = Path(out)
+    if (out / "sweep.csv").exists() and not force:
+        raise AppError(f"--out {out} holds a sweep already (sweep.csv): choose another folder, "
+                       "or --force to replace it (force=True in Python)")
     out.mkdir(parents=True, exist_ok=True)
     width = len(str(len(points) - 1))
-    jobs = [(source, dict(zip(names, point, strict=True)), duration_s, str(out / f"{i:0{width}d}"), signal, setpoint)
-            for i, point in enumerate(points)]
+    jobs = [(source, dict(zip(names, point, strict=True)), duration_s, str(out / f"{i:0{width}d}"), signal, setpoint,
+             force) for i, point in enumerate(points)]
     workers = max(1, min(processes or os.cpu_count() or 1, len(jobs)))
     started = time.perf_counter()
     if workers == 1:
@@ -220,7 +224,7 @@ def _set_parameter(app: App, name: str, value: float) -> None:
 
 
 def _simulate_point(source: _AppSource, values: dict[str, float], duration_s: float, out: str,
-                    signal: str | None, setpoint: str | None) -> dict[str, Any]:
+                    signal: str | None, setpoint: str | None, force: bool) -> dict[str, Any]:
     """One point of the grid, in a worker: build, set, simulate, measure."""
     from rtloop.record.load import load
     from rtloop.runtime.simulate import simulate
@@ -230,7 +234,7 @@ def _simulate_point(source: _AppSource, values: dict[str, float], duration_s: fl
         app = source.build()
         for name, value in values.items():
             _set_parameter(app, name, value)
-        simulate(app, duration_s, out)
+        simulate(app, duration_s, out, force=force)
         run = load(out)
     except RtloopError as error:  # a point that fails (a model diverging to NaN, say) is a row, not the end
         row["error"] = str(error).splitlines()[0][:200]
