@@ -1,34 +1,16 @@
-"""The test guest's device map, for the driver tests (``tools/rtkernel-vm.sh`` writes it).
-
-Outside the guest, or when the guest could not set a device up, the tests that need it skip
-and say why."""
+"""Helpers of the driver tests in the PREEMPT_RT test guest: gpio-sim lines, allocation counting."""
 
 from __future__ import annotations
 
-import json
-import os
 import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
 
-import pytest
+# the guest's device map, as the guest's conftest reads it (skips outside the guest, with the reason)
+from conftest import guest_device
 
-GUEST_COMMAND = "tools/rtkernel-vm.sh .venv/bin/python -m pytest tests/test_io_*.py"
-
-
-def guest_device(name: str) -> dict[str, Any]:
-    """The entry ``name`` (vcan, can, gpio, spi, i2c, serial) of the guest's device map, or skip."""
-    path = os.environ.get("RTLOOP_GUEST_DEVICES", "")
-    if not os.environ.get("RTLOOP_GUEST") or not path:
-        pytest.skip(f"needs the {name} device of the PREEMPT_RT test guest: run {GUEST_COMMAND}")
-    devices = json.loads(Path(path).read_text())["devices"]
-    entry = devices.get(name)
-    if entry is None:
-        pytest.skip(f"the test guest has no {name} device")
-    if not entry.get("present"):
-        pytest.skip(f"the test guest could not set up {name}: {entry.get('reason', '?')}")
-    return entry
+__all__ = ["KEPT_BYTES_ALLOWED", "SimLine", "bytes_kept_by", "guest_device"]
 
 
 class SimLine:

@@ -36,6 +36,7 @@ def drive(interface, **settings):
     return build_device("can", "drive", table, "app.toml")
 
 
+@pytest.mark.rtkernel
 @pytest.mark.parametrize("bus", ["vcan", "can"])
 def test_frames_go_out_every_cycle_with_the_heartbeat_and_come_in(bus):
     entry = guest_device(bus)
@@ -61,6 +62,7 @@ def test_frames_go_out_every_cycle_with_the_heartbeat_and_come_in(bus):
         peer.close()
 
 
+@pytest.mark.rtkernel
 def test_a_missing_frame_is_a_fault_or_a_stale_read():
     entry = guest_device("vcan")
     device = drive(entry["interface"])
@@ -84,6 +86,7 @@ def test_a_missing_frame_is_a_fault_or_a_stale_read():
         peer.close()
 
 
+@pytest.mark.rtkernel
 def test_the_newest_frame_of_an_id_wins_and_other_ids_are_filtered_out():
     entry = guest_device("vcan")
     device = drive(entry["interface"])
@@ -101,6 +104,7 @@ def test_the_newest_frame_of_an_id_wins_and_other_ids_are_filtered_out():
         peer.close()
 
 
+@pytest.mark.rtkernel
 def test_fd_frames_on_vcan():
     entry = guest_device("vcan")
     signals = [{"name": f"s{i}", "start_byte": 8 * i, "type": "f64"} for i in range(8)]
@@ -120,6 +124,7 @@ def test_fd_frames_on_vcan():
         peer.close()
 
 
+@pytest.mark.rtkernel
 def test_a_missing_interface_is_one_line():
     guest_device("vcan")
     with pytest.raises(DeviceError, match=r"devices\.drive\.interface: no network interface 'can7' \(CAN interfaces "
@@ -127,6 +132,7 @@ def test_a_missing_interface_is_one_line():
         drive("can7").check()
 
 
+@pytest.mark.rtkernel
 def test_no_allocation_in_the_loop():
     entry = guest_device("vcan")
     device = drive(entry["interface"])

@@ -13,6 +13,8 @@ from rtloop.errors import DeviceError
 from rtloop.io.device import build_device
 from rtloop.io.gpio import EmergencyStop
 
+pytestmark = pytest.mark.rtkernel  # real kernel interfaces: the PREEMPT_RT test guest
+
 
 @pytest.fixture
 def gpio():

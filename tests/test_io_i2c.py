@@ -9,6 +9,8 @@ from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError
 from rtloop.io.device import build_device
 
+pytestmark = pytest.mark.rtkernel  # real kernel interfaces: the PREEMPT_RT test guest
+
 
 def chip(i2c, **settings):
     table = {"bus": i2c["bus"], "address": i2c["addresses"][0], **settings}

@@ -9,6 +9,8 @@ from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import build_device
 
+pytestmark = pytest.mark.rtkernel  # real kernel interfaces: the PREEMPT_RT test guest
+
 SIGNALS = [{"name": "pwm_pan", "start_byte": 1, "type": "i16", "scale": 0.001},
            {"name": "pwm_tilt", "start_byte": 3, "type": "i16", "scale": 0.001},
            {"name": "enable", "start_byte": 5, "type": "u8"}]
