@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import scaled_ns
 from io_guest_devices import guest_device
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "jiwy_can"
@@ -29,8 +30,8 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
     name = f"jiwy_can_{os.getpid()}"
     text = (EXAMPLE / "jiwy_can.toml").read_text().replace('name = "jiwy_can"', f'name = "{name}"')
     text = text.replace('interface = "vcan0"', f'interface = "{entry["interface"]}"')
-    # 40 ms, not the example's 10 ms: the guest is emulated, and the plant node is Python in it too
-    text = text.replace("period_ns = 10_000_000", "period_ns = 40_000_000")
+    # the example's 10 ms stretched by the emulated guest's slowdown (the plant node is Python in it too)
+    text = text.replace("period_ns = 10_000_000", f"period_ns = {max(scaled_ns(10_000_000), 10_000_000)}")
     text = text.replace('feed = "../jiwy/setpoints/step.csv"', f'feed = "{EXAMPLE.parent / "jiwy/setpoints/step.csv"}"')
     app.write_text(text)
     for module in ("jiwy_can_models.py",):

@@ -60,6 +60,7 @@ def main() -> int:
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    Plant(step_size_s=args.step_size_s).step(np.zeros(2), np.zeros(2))  # warm up: the first answer is not late
     plant = Plant(step_size_s=args.step_size_s)
     plant.prerun()
     steering = np.zeros(2)  # numpy vectors, as the twin gets them in rtloop simulate
