@@ -98,6 +98,7 @@ class Sampler(threading.Thread):
         os.close(self.fd)
 
 
+@pytest.mark.rtkernel
 @pytest.mark.timeout(1200)
 @pytest.mark.parametrize("hot_path", ["c", "python"])
 @pytest.mark.parametrize("mode", ["toggle", "step"])
