@@ -114,6 +114,11 @@ def test_the_pi_closes_the_loop_over_a_pty_and_equals_its_simulation(tmp_path: P
     driver.wait_for("output disabled by the host")
     assert any("output 0 V" in line for line in driver.lines())  # the safe value reached the driver
     assert not any("no request for" in line for line in driver.lines())  # the host said stop: no heartbeat trip
+    driver.stop()
+    from rtloop.runtime.replay import replay
+
+    replayed = replay(tmp_path / "run", tmp_path / "replay")  # the driver is gone: its readings play back
+    assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 
 def _task_pid(supervisor: int) -> int:

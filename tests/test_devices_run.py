@@ -235,3 +235,17 @@ def test_simulate_needs_a_twin_for_every_device(tmp_path: Path) -> None:
     with pytest.raises(DeviceError, match=r"devices\.dev\.twin: missing"):
         rtloop.simulate(app, 1.0, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_hardware_run_replays_without_the_hardware(tmp_path: Path) -> None:
+    """The device's readings are recorded (the task inputs they feed); rtloop replay plays them back in
+    its place, so the replay equals the run even with a twin that answers differently (here: gain 3)."""
+    from rtloop.runtime.replay import replay
+
+    rtloop.run(echo_app(tmp_path, "dev_replay", gain=0.5), 0.2, tmp_path / "run")
+    result = replay(tmp_path / "run", tmp_path / "replay", echo_app(tmp_path / "unused", "dev_replay", gain=3.0))
+    assert result.rows_compared > 10
+    assert result.equal, result.divergence.describe() if result.divergence else result.cannot
+    simulated = tmp_path / "sim"
+    rtloop.simulate(echo_app(tmp_path / "unused", "dev_replay_sim", gain=3.0), 0.2, simulated)
+    assert signals(simulated)[3] != signals(tmp_path / "run")[3]  # the gain-3 twin alone would not reproduce it

@@ -459,6 +459,8 @@ class App:
             raise AppError(f"{what}: device {device.name!r} runs in task {device.task!r}'s process and is wired "
                            f"to that task only; route {other!r}'s signals through {device.task!r}")
         self.device_links.append(connection)
+        if dst.task in self.tasks:  # a reading: recorded, so `rtloop replay` can play it back without the device
+            self.record(dst)
         return connection
 
     def port(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rtloop.errors import DeviceFault
 from rtloop.io.device import Device, FloatVector
 from rtloop.runnable import Runnable
 
@@ -38,3 +39,19 @@ class TwinDevice(Device):
 
     def close(self) -> None:
         self.twin.postrun()
+
+
+class PlaybackTwin(Runnable):
+    """What a device read in a real run, played back by cycle: ``rtloop replay`` puts it in the
+    device's place, so a hardware run replays offline without the hardware."""
+
+    def __init__(self, name: str, n_inputs: int, n_outputs: int, readings: dict[int, FloatVector]) -> None:
+        self.name, self.n_inputs, self.n_outputs = name, n_inputs, n_outputs
+        self.readings = readings
+        """Cycle → the device's ``y`` as the task took it (elements no connection uses stay 0)."""
+
+    def step(self, u: FloatVector, y: FloatVector) -> None:
+        row = self.readings.get(self.tick.cycle)
+        if row is None:
+            raise DeviceFault(f"device {self.name!r}: the run logged no reading at cycle {self.tick.cycle}")
+        y[:] = row

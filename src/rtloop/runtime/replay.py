@@ -138,6 +138,37 @@ def load_replay_app(run_dir: Path) -> tuple[App, float | None]:
     return app, None if duration_s is None else float(duration_s)
 
 
+def play_back_devices(app: App, run_dir: Path) -> None:
+    """Put in each device's place what it read in the run: the task inputs it fed, as recorded
+    (a device's readings are always recorded, in the row of the release that read them)."""
+    from rtloop.io.twin import PlaybackTwin
+
+    with open(run_dir / "signals.csv", newline="") as file:
+        rows = list(csv.reader(file))
+    header = {name: index for index, name in enumerate(rows[0])} if rows else {}
+    for spec in app.devices.values():
+        device, owner = spec.device, app.tasks[spec.task]
+        period_ns = owner.config.period_ns
+        readings: dict[int, np.ndarray] = {}
+        for link in app.device_links:
+            if link.source.task != spec.name:
+                continue
+            names = column_names(link.target, owner.runnable.input_names, owner.runnable.output_names)
+            missing = [name for name in names if name not in header]
+            if missing:
+                raise AppError(f"{run_dir}: signals.csv has no column {missing[0]} (what device {spec.name!r} "
+                               "read): a run of an older rtloop; it cannot be replayed without the device")
+            columns = [header[name] for name in names]
+            for row in rows[1:]:
+                t_ns = round(float(row[0]) * 1e9)
+                cycle = t_ns // period_ns  # inputs are recorded at the release that read them (outputs at t + P)
+                if cycle < 0 or t_ns % period_ns or any(row[c] == "" for c in columns):
+                    continue
+                values = readings.setdefault(cycle, np.zeros(device.n_outputs))
+                values[link.source.slice] = [float(row[c]) for c in columns]
+        spec.twin = PlaybackTwin(spec.name, device.n_inputs, device.n_outputs, readings)
+
+
 def port_writes(run_dir: Path) -> PortWrites:
     path = run_dir / "inputs.csv"
     writes: PortWrites = {}
@@ -401,6 +432,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     summary = read_summary(run_dir)
     if app is None:
         app, _duration_s = load_replay_app(run_dir)
+    if app.devices:
+        play_back_devices(app, run_dir)
     pristine = copy.deepcopy(app)  # runnables as before any prerun, for a second pass
     recording = summary.get("recording") or {}
     if recording.get("keep_s") is not None:
