@@ -185,6 +185,8 @@ setup_serial
 export RTLOOP_GUEST=1 RTLOOP_GUEST_DEVICES=$map RTLOOP_GUEST_ACCEL=$ACCEL
 # how much slower than the host Python runs here: real-time tests stretch periods and durations by it
 export RTLOOP_TEST_SLOWDOWN=${SLOWDOWN:-$([ "$ACCEL" = tcg ] && echo 20 || echo 1)}
+# starting a task process (Python, numpy, mlockall) takes that much longer too
+export RTLOOP_STARTUP_ALLOWANCE_S=$((30 * ${RTLOOP_TEST_SLOWDOWN%.*}))
 [ -d "$PROJECT/.venv/bin" ] && export PATH="$PROJECT/.venv/bin:$PATH" VIRTUAL_ENV="$PROJECT/.venv"
 mapfile -d '' argv < "$ctl/argv"
 cd "$PROJECT" || { say "no $PROJECT"; power_off; }

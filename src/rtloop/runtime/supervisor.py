@@ -29,7 +29,7 @@ from typing import Any
 from rtloop import rt
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import DeviceError, TaskFailed
+from rtloop.errors import AppError, DeviceError, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
@@ -74,11 +74,29 @@ class _TaskRun:
     stuck: bool = False  # the watchdog gave up on it: SIGTERM sent, SIGKILL follows
 
 
+STARTUP_ALLOWANCE_ENV = "RTLOOP_STARTUP_ALLOWANCE_S"  # more where start-up is slow: emulation, a small board
+
+
+def startup_allowance_s(default_s: float) -> float:
+    """``default_s``, or the seconds RTLOOP_STARTUP_ALLOWANCE_S gives (1 to 3600)."""
+    text = os.environ.get(STARTUP_ALLOWANCE_ENV)
+    if text is None:
+        return default_s
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 1 <= seconds <= 3600:  # also NaN
+        raise AppError(f"{STARTUP_ALLOWANCE_ENV}={text!r}: a number of seconds from 1 to 3600 is expected")
+    return seconds
+
+
 class Supervisor:
     def __init__(self, app: App, duration_s: float | None, out: Path, *, trim: int,
                  keep_s: float | None = None, force: bool = False, limits: Limits = DEFAULT_LIMITS,
                  on_progress: Callable[[Progress], None] | None = None, on_notice: Callable[[str], None] | None = None,
                  ) -> None:
+        limits = dataclasses.replace(limits, startup_allowance_s=startup_allowance_s(limits.startup_allowance_s))
         self.session = RunSession(app, out, mode="run", duration_s=duration_s, keep_s=keep_s, trim=trim,
                                   force=force, limits=limits)
         for device in app.devices.values():  # a missing interface or permission: exit 2, nothing started
