@@ -219,3 +219,26 @@ def test_a_skipped_release_without_losses_holds_the_last_value(tmp_path: Path) -
     writer.close()
     by_time = {row[0]: row[1] for row in read_rows(path)[1:]}
     assert by_time["0.002"] == "1.0" and by_time["0.003"] == "1.0"  # under LET the last output holds
+
+
+# --- full precision ----------------------------------------------------------------------------
+
+
+def test_signals_csv_values_read_back_as_the_same_floats(tmp_path: Path) -> None:
+    path = tmp_path / "signals.csv"
+    rng = np.random.default_rng(7)
+    values = np.concatenate((rng.standard_normal((500, 3)) * 10.0 ** rng.integers(-300, 300, (500, 3)),
+                             [[np.nan, np.inf, -np.inf], [5e-324, 1.7976931348623157e308, -0.0],
+                              [0.1, 1 / 3, 2 / 3]]))
+    ticks = np.arange(-1, len(values) - 1)
+    writer = SignalsCsv(path, [SignalRef("a", "y", 0, 3)], {"a": 3_000_017}, {"a": 3})
+    writer.add("a", ticks, values)
+    writer.flush(final=True)
+    writer.close()
+    rows = read_rows(path)[1:]
+    assert len(rows) == len(values)
+    read = np.array([[float(cell) for cell in row[1:]] for row in rows])
+    assert np.array_equal(read, values, equal_nan=True)
+    assert np.array_equal(np.signbit(read), np.signbit(values))
+    assert rows[-1][1:] == ["0.1", "0.3333333333333333", "0.6666666666666666"]  # repr: the shortest exact text
+    assert [round(float(row[0]) * 1e9) for row in rows] == [(k + 1) * 3_000_017 for k in ticks.tolist()]

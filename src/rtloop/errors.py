@@ -2,7 +2,14 @@
 
 Every rtloop error derives from :class:`RtloopError` and also from the built-in
 exception it resembles, so ``except ValueError`` keeps working for callers that do
-not know rtloop.
+not know rtloop. Each survives pickling (a task process, a ``multiprocessing`` pool or a
+notebook's worker hands it on whole): those built from several fields say how with
+``__reduce__``.
+
+Exit codes of the ``rtloop`` command follow one rule (``cli/main.py:exit_code_for``):
+2 for bad input (an :class:`AppError`, any ``ValueError``/``LookupError``/
+``PermissionError``, a missing optional package), 1 for a run that failed
+(:class:`TaskFailed` and every other error), 130 for Ctrl-C.
 """
 
 from __future__ import annotations
@@ -26,6 +33,9 @@ class AppFileError(AppError):
         where = f"{path}: {key}" if key else str(path)
         super().__init__(f"{where}: {problem}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, str, str]]:
+        return type(self), (self.path, self.key, self.problem)  # pickled with what builds it again
+
 
 class ConnectionSizeError(AppError):
     """The two ends of a connection or port have different sizes."""
@@ -43,6 +53,10 @@ class LibcError(RtloopError, OSError):
             message += f" — {hint}"
         super().__init__(errno_value, message)
         self.message = message
+        self.hint = hint
+
+    def __reduce__(self) -> tuple[type, tuple[str, int, str]]:
+        return type(self), (self.call, self.errno, self.hint)
 
     def __str__(self) -> str:
         return self.message
@@ -68,6 +82,9 @@ class TaskFailed(RtloopError, RuntimeError):
         self.traceback_text = traceback_text
         at = f" at cycle {cycle}" if cycle is not None else ""
         super().__init__(f"task {task!r} failed in {phase}{at}: {reason}")
+
+    def __reduce__(self) -> tuple[type, tuple[str, int | None, str, str, str]]:
+        return type(self), (self.task, self.cycle, self.phase, self.reason, self.traceback_text)
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -111,6 +128,9 @@ class DeviceError(AppError):
         self.device, self.source, self.key, self.problem = device, source, key, problem
         where = f"devices.{device}.{key}" if key else f"devices.{device}"
         super().__init__(f"{source}: {where}: {problem}")
+
+    def __reduce__(self) -> tuple[type, tuple[str, str, str, str]]:
+        return type(self), (self.device, self.source, self.key, self.problem)
 
 
 class DeviceFault(RtloopError, RuntimeError):

@@ -143,12 +143,12 @@ def main(argv: list[str] | None = None) -> int:
             module = importlib.import_module(DELEGATED[argv[0]][0])
         except ModuleNotFoundError as error:
             print(f"rtloop {argv[0]}: {missing_extra(error)}", file=sys.stderr)
-            return EXIT_TASK_FAILED
+            return exit_code_for(error)
         try:
             return int(module.main(argv[1:]) or 0)
         except RtloopError as error:
             print(f"rtloop {argv[0]}: {error}", file=sys.stderr)
-            return EXIT_BAD_INPUT if isinstance(error, ValueError | LookupError) else EXIT_TASK_FAILED
+            return exit_code_for(error)
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
@@ -183,14 +183,25 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
         return EXIT_TASK_FAILED
     if isinstance(error, RtloopError):
         print(f"rtloop: {error}", file=sys.stderr)
-        bad_input = isinstance(error, ValueError | PermissionError | LookupError)
-        return EXIT_BAD_INPUT if bad_input else EXIT_TASK_FAILED
+        return exit_code_for(error)
     if isinstance(error, ModuleNotFoundError):
         print(f"rtloop: {missing_extra(error)}", file=sys.stderr)
-        return EXIT_TASK_FAILED
+        return exit_code_for(error)
     # a bug: still one line; the traceback with --debug
     print(f"rtloop: internal error: {type(error).__name__}: {str(error)[:200]} "
           "(run with --debug for the traceback, and please report it)", file=sys.stderr)
+    return EXIT_TASK_FAILED
+
+
+def exit_code_for(error: BaseException) -> int:
+    """The one rule: 2 for bad input (what the user gave is wrong or incomplete, a missing
+    optional package included), 1 for a run that failed (a task's fault, a bug), 130 for Ctrl-C."""
+    if isinstance(error, KeyboardInterrupt):
+        return EXIT_INTERRUPTED
+    if isinstance(error, TaskFailed):
+        return EXIT_TASK_FAILED
+    if isinstance(error, ModuleNotFoundError | ValueError | LookupError | PermissionError):
+        return EXIT_BAD_INPUT
     return EXIT_TASK_FAILED
 
 

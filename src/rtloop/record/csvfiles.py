@@ -11,7 +11,6 @@ signals.csv ``t_s`` then one column per recorded signal. A row holds the values 
 
 from __future__ import annotations
 
-import heapq
 from pathlib import Path
 from typing import TextIO
 
@@ -37,9 +36,9 @@ class TimingCsv:
         self.file = self._open(path)
 
     def append(self, task: str, records: np.ndarray) -> None:
-        if len(records):
-            lines = [f"{task},{c},{r},{s},{e}\n" for c, r, s, e in records.tolist()]
-            self.file.writelines(lines)
+        if len(records):  # one % formatting call per block: the text is built in C
+            line = task.replace("%", "%%") + ",%d,%d,%d,%d\n"
+            self.file.write((line * len(records)) % tuple(records.ravel().tolist()))
 
     def flush(self) -> None:
         self.file.flush()
@@ -165,7 +164,13 @@ class SignalsCsv:
     gives them (``plant.AnglePan``), else by index (``plant.y[0]``).
 
     Rows are written once every recorded stream has delivered the values up to that
-    time, so the file grows during the run.
+    time, so the file grows during the run. The work is done on numpy blocks: the union
+    of the streams' times, then for each stream the index of its value valid at each
+    time (``searchsorted``), and one ``%`` formatting call per block for the text
+    (``%r``: the shortest text that reads back as the same float).
+
+    Lost rows (a record queue that was full) are gaps: from the first lost row's time on,
+    the stream's cells are empty until its next recorded row.
     """
 
     def __init__(
@@ -188,10 +193,17 @@ class SignalsCsv:
                 names.append(name)
         self.names = names
         self.streams = sorted({stream for stream, _ in self.columns})
+        # Per stream: which record-row elements it takes, and where they go in a signals.csv row.
+        self.takes = {s: np.array([i for st, i in self.columns if st == s], dtype=np.intp) for s in self.streams}
+        self.places = {s: np.array([c for c, (st, _) in enumerate(self.columns) if st == s], dtype=np.intp)
+                       for s in self.streams}
         self.periods_ns = periods_ns
-        self.pending: dict[tuple[str, str], list[tuple[int, np.ndarray]]] = {s: [] for s in self.streams}
+        self.pending: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {
+            s: [] for s in self.streams}
+        """Per stream, blocks of (times ns, values, lost?) not written yet, in time order."""
         self.delivered_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
-        self.held: dict[tuple[str, str], np.ndarray | None] = dict.fromkeys(self.streams)
+        self.held = {s: np.full(len(self.takes[s]), np.nan) for s in self.streams}
+        """Per stream, the values valid at the last row written (NaN: none yet)."""
         self.gap: dict[tuple[str, str], bool] = dict.fromkeys(self.streams, False)
         """Whether a stream's newest value was lost (its cells are empty until the next one)."""
         self.last_tick: dict[str, int] = {}
@@ -215,19 +227,26 @@ class SignalsCsv:
         """Rows of ``task``'s record queue; ``lost_so_far``: rows its queue has dropped in all (gaps)."""
         if not len(ticks):
             return
-        gaps = self._gaps(task, ticks, lost_so_far)
+        ticks = np.asarray(ticks, dtype=np.int64)
+        gaps = np.array(self._gaps(task, ticks, lost_so_far), dtype=np.int64)
         period = self.periods_ns[task]
         for side, shift in (("y", 1), ("u", 0)):  # y of tick k holds from (k+1)·P, u from k·P
             stream = (task, side)
             if stream not in self.pending:
                 continue
-            times = ((ticks + shift) * period).tolist()
-            entries = [(t, row) for t, row in zip(times, rows, strict=True) if t >= 0]
-            if gaps:
-                entries += [((tick + shift) * period, None) for tick in gaps]
-                entries.sort(key=lambda entry: entry[0])
-            self.pending[stream].extend(entries)
-            self.delivered_ns[stream] = max(self.delivered_ns[stream], times[-1])
+            times = (ticks + shift) * period
+            kept = times >= 0
+            block_times, values = times[kept], rows[kept][:, self.takes[stream]]
+            lost = np.zeros(len(block_times), dtype=bool)
+            if gaps.size:
+                block_times = np.concatenate((block_times, (gaps + shift) * period))
+                values = np.concatenate((values, np.full((gaps.size, values.shape[1]), np.nan)))
+                lost = np.concatenate((lost, np.ones(gaps.size, dtype=bool)))
+                order = np.argsort(block_times, kind="stable")
+                block_times, values, lost = block_times[order], values[order], lost[order]
+            if block_times.size:
+                self.pending[stream].append((block_times, values, lost))
+            self.delivered_ns[stream] = max(self.delivered_ns[stream], int(times[-1]))
 
     def _gaps(self, task: str, ticks: np.ndarray, lost_so_far: int) -> list[int]:
         """First ticks of the gaps lost rows left (a skipped release leaves a gap too: it is no loss).
@@ -253,51 +272,65 @@ class SignalsCsv:
         self.unexplained[task] = max(0, unexplained)
         return firsts
 
-    def flush(self, final: bool = False) -> tuple[list[int], list[list[float | None]]]:
+    def flush(self, final: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Write every row whose time all recorded streams have reached; return those rows.
 
         Returns (times since T0 in ns, values) of the rows written, NaN where a signal
-        has no value yet, for other recorders (run.mcap) to take the same rows.
+        has no value yet or was lost, for other recorders (run.mcap) to take the same rows.
         """
+        empty = np.empty(0, dtype=np.int64), np.empty((0, len(self.columns)))
         if not self.streams:
-            return [], []
+            return empty
         if final:  # rows lost at the very end: no later row shows their gap, so mark it here
             for task, count in self.unexplained.items():
                 if count > 0 and task in self.last_tick:
                     tick = self.last_tick[task] + 1
                     for side, shift in (("y", 1), ("u", 0)):
-                        if (task, side) in self.pending:
-                            self.pending[(task, side)].append(((tick + shift) * self.periods_ns[task], None))
+                        stream = (task, side)
+                        if stream in self.pending:
+                            width = len(self.takes[stream])
+                            self.pending[stream].append((np.array([(tick + shift) * self.periods_ns[task]]),
+                                                         np.full((1, width), np.nan), np.ones(1, dtype=bool)))
             self.unexplained.clear()
         horizon = max(self.delivered_ns.values()) if final else min(self.delivered_ns.values())
-        streams = [[(t, s, row) for t, row in self.pending[s] if t <= horizon] for s in self.streams]
-        for s in self.streams:
-            self.pending[s] = [(t, row) for t, row in self.pending[s] if t > horizon]
-        times: list[int] = []
-        rows: list[list[float | None]] = []
-        current_t: int | None = None
-        for t_ns, stream, row in heapq.merge(*streams, key=lambda item: item[0]):
-            if current_t is not None and t_ns != current_t:
-                times.append(current_t)
-                rows.append(self._row())
-            current_t = t_ns
-            if row is None:
-                self.gap[stream] = True
-            else:
-                self.held[stream], self.gap[stream] = row, False
-        if current_t is not None:
-            times.append(current_t)
-            rows.append(self._row())
-        self.file.writelines(_csv_line(t, row) for t, row in zip(times, rows, strict=True))
-        self.rows_written += len(rows)
+        ready: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        for stream in self.streams:
+            blocks = self.pending[stream]
+            if not blocks:
+                continue
+            times = np.concatenate([b[0] for b in blocks]) if len(blocks) > 1 else blocks[0][0]
+            values = np.concatenate([b[1] for b in blocks]) if len(blocks) > 1 else blocks[0][1]
+            lost = np.concatenate([b[2] for b in blocks]) if len(blocks) > 1 else blocks[0][2]
+            cut = int(np.searchsorted(times, horizon, side="right"))
+            ready[stream] = times[:cut], values[:cut], lost[:cut]
+            self.pending[stream] = [(times[cut:], values[cut:], lost[cut:])] if cut < times.size else []
+        if not ready:
+            return empty
+        union = np.unique(np.concatenate([r[0] for r in ready.values()]))
+        if not union.size:
+            return empty
+        table = np.empty((union.size, len(self.columns)))
+        lost_cells = np.zeros((union.size, len(self.columns)), dtype=bool)
+        for stream in self.streams:
+            places = self.places[stream]
+            if stream not in ready or not ready[stream][0].size:
+                table[:, places] = self.held[stream]
+                lost_cells[:, places] = self.gap[stream]
+                continue
+            times, values, lost = ready[stream]
+            index = np.searchsorted(times, union, side="right") - 1
+            before = index < 0  # rows before this stream's first new value hold its previous one
+            taken = np.maximum(index, 0)
+            table[:, places] = np.where(before[:, None], self.held[stream], values[taken])
+            lost_cells[:, places] = np.where(before, self.gap[stream], lost[taken])[:, None]
+            self.gap[stream] = bool(lost[-1])
+            if not lost[-1]:
+                self.held[stream] = values[-1]
+        self.file.write(_csv_block(union, table, lost_cells))
+        self.rows_written += int(union.size)
         self.file.flush()
-        return times, rows
-
-    def _row(self) -> list[float | None]:
-        """The values valid now: None where they were lost (an empty cell), NaN where none came yet."""
-        nan = float("nan")
-        return [None if self.gap[stream] else nan if (held := self.held[stream]) is None else float(held[index])
-                for stream, index in self.columns]
+        table[lost_cells] = np.nan
+        return union, table
 
     def close(self) -> None:
         """Close the file; ``flush(final=True)`` first writes what is still pending."""
@@ -321,7 +354,19 @@ def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
     return out
 
 
-def _csv_line(t_ns: int, row: list[float | None]) -> str:
-    # NaN as nan, ±inf as inf/-inf, a lost value as an empty cell
-    cells = [repr(t_ns / 1e9)] + ["" if value is None else repr(value) for value in row]
-    return ",".join(cells) + "\n"
+def _csv_block(t_ns: np.ndarray, table: np.ndarray, lost_cells: np.ndarray) -> str:
+    """signals.csv lines: ``repr`` of every value (NaN as nan, ±inf as inf/-inf), a lost value as an empty cell.
+
+    One ``%`` formatting call for the rows without a lost cell: Python's ``%r`` of a float
+    is its ``repr``, the shortest text that reads back as the same float.
+    """
+    width = table.shape[1]
+    cells = np.column_stack((t_ns / 1e9, table)) if width else (t_ns / 1e9)[:, None]
+    if not lost_cells.any():
+        line = ",".join(["%r"] * (width + 1)) + "\n"
+        return (line * len(t_ns)) % tuple(cells.ravel().tolist())
+    lines = []
+    for row, lost in zip(cells.tolist(), lost_cells.tolist(), strict=True):
+        lines.append(",".join([repr(row[0])] + ["" if gone else repr(v) for v, gone in zip(row[1:], lost,
+                                                                                           strict=True)]) + "\n")
+    return "".join(lines)

@@ -114,6 +114,10 @@ class RunMcapWriter:
         self._timing = self._register("rtloop_msgs/msg/CycleTiming", CYCLE_TIMING_SCHEMA)
         self._float64 = (self._register("std_msgs/msg/Float64", FLOAT64_SCHEMA)
                          if per_signal_topics else None)
+        # Block encoders, each used only after it gave the very bytes mcap_ros2's encoder gives.
+        self._timing_layout_checked = _same_bytes(
+            encode_cycle_timing(_PROBE_TIMING), [self._timing.encode(m) for m in _timing_messages(_PROBE_TIMING)])
+        self._joint_state_layout = JointStateLayout.checked(self.signal_names, self._joint_state.encode)
         self._channels: dict[str, _Channel] = {}
         self._first_log_time_ns: int | None = None
         self._last_log_time_ns: int | None = None
@@ -140,6 +144,12 @@ class RunMcapWriter:
 
     def _write(self, topic: str, schema: _Schema, message: dict[str, Any], log_time_ns: int) -> None:
         """Write one message; the channel's message count is also its sequence number."""
+        self._write_many(topic, schema, [schema.encode(message)], [log_time_ns])
+
+    def _write_many(self, topic: str, schema: _Schema, payloads: Sequence[bytes], log_times_ns: Sequence[int]) -> None:
+        """Write encoded messages in order; the channel's message count is also its sequence number."""
+        if not payloads:
+            return
         channel = self._channels.get(topic)
         if channel is None:
             from mcap.well_known import MessageEncoding
@@ -149,14 +159,16 @@ class RunMcapWriter:
                 topic, MessageEncoding.CDR, schema.schema_id,
                 metadata={"offered_qos_profiles": qos})  # as rosbag2's MCAP storage does
             channel = self._channels[topic] = _Channel(channel_id, schema, qos)
-        self._writer.add_message(channel.channel_id, log_time=log_time_ns,
-                                 data=schema.encode(message), publish_time=log_time_ns,
-                                 sequence=channel.message_count)
-        channel.message_count += 1
-        if self._first_log_time_ns is None or log_time_ns < self._first_log_time_ns:
-            self._first_log_time_ns = log_time_ns
-        if self._last_log_time_ns is None or log_time_ns > self._last_log_time_ns:
-            self._last_log_time_ns = log_time_ns
+        add, channel_id, sequence = self._writer.add_message, channel.channel_id, channel.message_count
+        for data, log_time_ns in zip(payloads, log_times_ns, strict=True):
+            add(channel_id, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=sequence)
+            sequence += 1
+        channel.message_count = sequence
+        first, last = min(log_times_ns), max(log_times_ns)
+        if self._first_log_time_ns is None or first < self._first_log_time_ns:
+            self._first_log_time_ns = first
+        if self._last_log_time_ns is None or last > self._last_log_time_ns:
+            self._last_log_time_ns = last
 
     @property
     def messages_written(self) -> int:
@@ -183,11 +195,19 @@ class RunMcapWriter:
         times = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         rows = np.asarray(values, dtype=np.float64).reshape(len(times), len(self.signal_names))
         names = self.signal_names
+        wall_ns = self.wall_t0_ns + times
+        if self._joint_state_layout is not None:  # the whole block in numpy
+            payloads = self._joint_state_layout.encode(wall_ns, rows)
+            self._write_many(SIGNALS_TOPIC, self._joint_state, payloads, wall_ns.tolist())
+            if self._float64 is None:
+                return
         for t, row in zip(times.tolist(), rows.tolist(), strict=True):
             wall_ns = self.wall_t0_ns + t
-            message = {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names,
-                       "position": row, "velocity": [], "effort": []}
-            self._write(SIGNALS_TOPIC, self._joint_state, message, wall_ns)
+            wall_ns = self.wall_t0_ns + t
+            if self._joint_state_layout is None:
+                message = {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names,
+                           "position": row, "velocity": [], "effort": []}
+                self._write(SIGNALS_TOPIC, self._joint_state, message, wall_ns)
             if self._float64 is not None:
                 for topic, value in zip(self.signal_topics, row, strict=True):
                     self._write(topic, self._float64, {"data": value}, wall_ns)
@@ -201,6 +221,9 @@ class RunMcapWriter:
         topic = TIMING_TOPIC_PREFIX + topic_token(task)
         table = np.asarray(records, dtype=np.int64).reshape(-1, 4)
         offset = self.wall_t0_ns - self.t0_ns
+        if self._timing_layout_checked:  # the whole block in numpy
+            self._write_many(topic, self._timing, encode_cycle_timing(table), (table[:, 1] + offset).tolist())
+            return
         for cycle, release, start, end in table.tolist():
             message = {"cycle": cycle, "release_ns": release, "start_ns": start,
                        "end_ns": end, "latency_ns": start - release, "exec_ns": end - start}
@@ -287,3 +310,76 @@ def merge_mcap_files(sources: Sequence[str | PathLike[str]], target: str | PathL
             writer.start(profile="ros2")
         writer.finish()
     return count
+
+
+CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"
+"""The encapsulation header of a little-endian CDR payload (ROS 2's default)."""
+_PROBE_TIMING = np.array([[7, 1_000_000_123, 1_000_012_456, 1_000_031_789], [2**40, -5, 3, 2**62]], dtype=np.int64)
+_PROBE_T_NS = np.array([1_700_000_000_123_456_789, 1_700_000_001_000_000_000], dtype=np.int64)
+
+
+def _timing_messages(table: np.ndarray) -> list[dict[str, int]]:
+    return [{"cycle": c, "release_ns": r, "start_ns": s, "end_ns": e, "latency_ns": s - r, "exec_ns": e - s}
+            for c, r, s, e in table.tolist()]
+
+
+def _same_bytes(payloads: list[bytes], expected: list[bytes]) -> bool:
+    return [bytes(p) for p in payloads] == [bytes(e) for e in expected]
+
+
+def _split(raw: bytes, size: int, count: int) -> list[bytes]:
+    return [raw[i * size:(i + 1) * size] for i in range(count)]
+
+
+def encode_cycle_timing(table: np.ndarray) -> list[bytes]:
+    """CDR payloads of ``rtloop_msgs/msg/CycleTiming`` for rows (cycle, release, start, end), all at once.
+
+    Six 8-byte integers right after the encapsulation header: 8-aligned, so no padding.
+    """
+    count = len(table)
+    layout = np.dtype([("header", "V4"), ("fields", "<i8", (6,))])  # packed: 52 bytes
+    block = np.zeros(count, dtype=layout)
+    block["header"] = np.frombuffer(CDR_LITTLE_ENDIAN, dtype="V4")[0]
+    fields = block["fields"]
+    fields[:, :4] = table
+    fields[:, 4] = table[:, 2] - table[:, 1]
+    fields[:, 5] = table[:, 3] - table[:, 2]
+    return _split(block.tobytes(), layout.itemsize, count)
+
+
+class JointStateLayout:
+    """``sensor_msgs/msg/JointState`` payloads for a fixed list of names, encoded a block at a time.
+
+    Only the stamp and the positions change from row to row: the bytes around them are taken
+    from one message encoded by mcap_ros2, and :meth:`checked` uses the layout only if it
+    reproduces that encoder's bytes for sample rows.
+    """
+
+    def __init__(self, template: bytes, n_values: int) -> None:
+        self.template = np.frombuffer(template, dtype=np.uint8)
+        self.size = len(template)
+        self.positions_at = self.size - 8 - 8 * n_values  # then velocity's and effort's empty lengths
+        self.n_values = n_values
+
+    @classmethod
+    def checked(cls, names: list[str], encode: Callable[[Any], bytes]) -> JointStateLayout | None:
+        def message(wall_ns: int, row: list[float]) -> dict[str, Any]:
+            return {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names, "position": row,
+                    "velocity": [], "effort": []}
+
+        layout = cls(encode(message(0, [0.0] * len(names))), len(names))
+        rows = np.arange(2 * len(names), dtype=np.float64).reshape(2, len(names)) * 1.25 - 0.5
+        expected = [encode(message(int(t), r)) for t, r in zip(_PROBE_T_NS, rows.tolist(), strict=True)]
+        return layout if layout.positions_at >= 12 and _same_bytes(layout.encode(_PROBE_T_NS, rows), expected) \
+            else None
+
+    def encode(self, wall_ns: np.ndarray, rows: np.ndarray) -> list[bytes]:
+        count = len(wall_ns)
+        block = np.empty((count, self.size), dtype=np.uint8)
+        block[:] = self.template
+        seconds, nanoseconds = np.divmod(np.asarray(wall_ns, dtype=np.int64), NS_PER_S)
+        block[:, 4:8] = seconds.astype("<i4").view(np.uint8).reshape(count, 4)
+        block[:, 8:12] = nanoseconds.astype("<u4").view(np.uint8).reshape(count, 4)
+        values = np.ascontiguousarray(rows, dtype="<f8").view(np.uint8).reshape(count, 8 * self.n_values)
+        block[:, self.positions_at:self.positions_at + 8 * self.n_values] = values
+        return _split(block.tobytes(), self.size, count)

@@ -218,10 +218,10 @@ class Recorder:
             self.reads.flush()
         if self.signals is not None:
             times, rows = self.signals.flush(final=final)
-            if self.mcap is not None and times:
-                self.mcap.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
-            if self.live is not None and times:
-                self.live.add_rows(np.array(times, dtype=np.int64), np.array(rows, dtype=np.float64))
+            if self.mcap is not None and len(times):
+                self.mcap.add_rows(times, rows)
+            if self.live is not None and len(times):
+                self.live.add_rows(times, rows)
         if self.window is not None and not final and self.window.due(self.latest_ns):
             self._rotate()
 

@@ -42,7 +42,7 @@ from rtloop.record.summary import RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout
 
 RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
-             "inputs.csv", "replay.json", "report.html")
+             "inputs.csv", "reads.csv", "replay.json", "report.html")
 """Files a run (and ``rtloop report``) writes into its folder."""
 LEFTOVERS = (".summary-reserve", ".summary.json.tmp", ".signals.json.tmp")
 """Files of a run that are not its data (a reserve, a half-written temporary): removed, never a reason to refuse."""
