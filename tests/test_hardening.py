@@ -17,7 +17,7 @@ from rtloop.app.builder import MAX_DURATION_S, App, check_duration
 from rtloop.cli.main import main
 from rtloop.errors import AppError, PortValueError
 from rtloop.ipc.ports import connect_app, validate_values
-from rtloop.record.csvfiles import _csv_line
+from rtloop.record.csvfiles import _csv_block
 from rtloop.record.recorder import give_to_invoking_user
 from rtloop.ros.bridge import narrowest_range
 from rtloop.ros.validate import MessageValidator
@@ -208,7 +208,8 @@ def test_ros_subscription_range_is_checked_and_counted(tmp_path: Path) -> None:
 
 
 def test_csv_writes_nan_and_inf_as_python_reads_them() -> None:
-    line = _csv_line(1_500_000_000, [math.nan, math.inf, -math.inf, 0.1])
+    values = np.array([[math.nan, math.inf, -math.inf, 0.1]])
+    line = _csv_block(np.array([1_500_000_000]), values, np.zeros(values.shape, dtype=bool))
     assert line == "1.5,nan,inf,-inf,0.1\n"
     assert math.isnan(float(line.split(",")[1]))
 
