@@ -109,6 +109,11 @@ class CanDevice(Device):
                             zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True)]
         self._send = sock.sock.send
 
+    def activate(self) -> None:
+        """At T0: drop what came before it — a drive's answers to the safe frames written at
+        configure are not this run's readings (the first read waits for the answer to cycle 0's)."""
+        self.socket._drain()
+
     def write(self, u: FloatVector) -> None:
         send, u = self._send, self._u.of(u)
         try:
