@@ -127,3 +127,13 @@ def test_bench_hotpath_measures_the_iteration_in_c(tmp_path: Path) -> None:
     assert measured[0] == "n/a" and 0 < float(measured[1]) < 1000
     result = json.loads(out.read_text())
     assert result["task_process"]["VmLck_MB"] > 0
+
+
+def test_bench_recorder_prints_rates_beside_numpy(tmp_path: Path) -> None:
+    result = subprocess.run([sys.executable, str(BENCHMARKS / "bench_recorder.py"), "--records", "20000",
+                             "--json", str(tmp_path / "r.json")], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    rows = table_rows(result.stdout, "| what | count | recorder /s | numpy tofile /s | recorder ÷ tofile |")
+    assert [row[0] for row in rows] == ["timing records", "signal rows"]
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert set(data["results"]) == {"timing records", "signal rows"}
