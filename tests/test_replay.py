@@ -5,10 +5,12 @@ from __future__ import annotations
 import csv
 import json
 import os
+import pickle
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -29,6 +31,8 @@ from rtloop.runnable import TickInfo
 P = 1_000_000
 T0 = 5_000_000_000
 HOG_LOAD_PERCENT = 20
+JIWY = Path(__file__).resolve().parent.parent / "examples" / "jiwy"
+LONG_TESTS_ENV = "RTLOOP_LONG_TESTS"
 
 
 def _stale_reads_logged(kind: str, monkeypatch) -> tuple[list[list[int]], list[float], int]:
@@ -326,3 +330,143 @@ def test_a_run_with_no_signal_rows_is_never_called_equal(tmp_path: Path) -> None
     signals.write_text(signals.read_text().splitlines(keepends=True)[0])
     result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_empty"))
     assert not result.equal and "holds no rows" in result.cannot
+
+
+# --- --keep runs: a window replayed from the snapshots kept at its start -------------------------
+
+
+def _keep_app(name: str, fmu: Path) -> App:
+    """JIWY: the Python PID controller and the plant as an FMU (its state through FMI), one core."""
+    from jiwy_models import JiwyController
+
+    from rtloop.models import ModelRunnable
+    from rtloop.models.fmu import FmuModel
+
+    app = App(name)
+    controller = app.add_task("controller", JiwyController(), period_ns=P, cpu=other_cpu())
+    plant = app.add_task("plant", ModelRunnable(FmuModel(fmu)), period_ns=P, priority=81, cpu=other_cpu())
+    app.connect(plant.y[0:2], controller.u[0:2])
+    app.connect(controller.y[0:2], plant.u[0:2])
+    app.port("setpoint", to=controller.u[2:4])
+    app.record(plant.y, controller.y, controller.u)
+    return app
+
+
+@pytest.fixture(scope="module")
+def jiwy_fmu(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not installed: cannot build the JIWY FMU")
+    from rtloop.models.fmu_build import build_fmu
+
+    return build_fmu(JIWY / "models" / "fmu", tmp_path_factory.mktemp("fmu") / "JiwyPlant.fmu")
+
+
+def _keep_run_replays_its_window(tmp_path: Path, fmu: Path, duration_s: float, keep_s: float) -> None:
+    from rtloop.ipc.ports import connect_app
+    from rtloop.runtime.replay import replay
+
+    name = f"replay_keep_{os.getpid()}"
+    done = threading.Event()
+
+    def write_setpoints() -> None:  # live port writes all along, some before the window, some in it
+        app = connect_app(name, timeout_s=60)
+        step = 0
+        while not done.wait(0.7):
+            app.write("setpoint", [0.3 * (-1) ** step, 0.05 * (step % 4)])
+            step += 1
+
+    writer = threading.Thread(target=write_setpoints, daemon=True)
+    writer.start()
+    try:
+        rtloop.run(_keep_app(name, fmu), duration_s, tmp_path / "run", keep_s=keep_s)
+    finally:
+        done.set()
+        writer.join(10)
+    snapshots = sorted((tmp_path / "run" / "snapshots").glob("*.pkl"))
+    assert snapshots, "a --keep run keeps the task snapshots of its kept segments"
+    result = replay(tmp_path / "run", tmp_path / "replay", app=_keep_app(name, fmu))
+    assert result.cannot is None and result.divergence is None, (result.cannot, result.divergence)
+    assert result.equal and result.from_s > 0, "the files no longer hold the run from t = 0: a window"
+    assert duration_s - result.from_s >= keep_s, "the replay covers at least the kept window"
+    assert result.rows_compared == result.rows_in_run >= keep_s * 1000 * 0.5
+    assert result.port_inputs >= 1, "setpoints written inside the window were fed back"
+
+
+@pytest.mark.rt
+@pytest.mark.timeout(400)
+def test_a_keep_run_replays_its_last_window_python_and_fmu_tasks(tmp_path: Path, jiwy_fmu: Path) -> None:
+    # 16 one-second segments, more than the flight recorder keeps (12 pinned + the window):
+    # the early ones are gone, so the replay must start from a snapshot
+    _keep_run_replays_its_window(tmp_path, jiwy_fmu, 16.0, 1.0)
+
+
+@pytest.mark.rt
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.skipif(os.environ.get(LONG_TESTS_ENV) != "1", reason=f"a 60 s run: set {LONG_TESTS_ENV}=1 to run it "
+                    "(test_a_keep_run_replays_its_last_window_python_and_fmu_tasks is its 16 s variant)")
+def test_a_keep_10_run_of_60_s_replays_its_last_window_python_and_fmu_tasks(tmp_path: Path, jiwy_fmu: Path) -> None:
+    _keep_run_replays_its_window(tmp_path, jiwy_fmu, 60.0, 10.0)
+
+
+def test_a_window_whose_task_state_was_not_saved_says_so(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import window_start
+    from rtloop.runtime.snapshot import SNAPSHOTS_DIR, TaskSnapshot
+
+    folder = tmp_path / SNAPSHOTS_DIR
+    folder.mkdir()
+    snapshots = [TaskSnapshot("controller", 3 * P, 3, 2, (0.0,) * 4, (0.0,) * 2, b"state"),
+                 TaskSnapshot("plant", 3 * P, 3, 2, (0.0,) * 2, (0.0,) * 2, None,
+                              "StateNotCaptured: 20-sim-cpp model 'Plant' keeps its state in compiled code")]
+    with open(folder / "000004.pkl", "wb") as file:
+        pickle.dump(snapshots, file)
+    why = window_start(tmp_path, {"controller": [], "plant": []}, {"controller": P, "plant": P}, {})
+    assert why == ("the window from t = 0.003 s cannot be replayed: the state of task 'plant' could not be saved "
+                   "(StateNotCaptured: 20-sim-cpp model 'Plant' keeps its state in compiled code)")
+
+
+def test_model_states_are_saved_and_restored_or_refused_with_the_reason(tmp_path: Path, jiwy_fmu: Path) -> None:
+    from jiwy_models import JiwyController
+
+    from rtloop.models import ModelRunnable
+    from rtloop.models.base import StateNotCaptured
+    from rtloop.models.fmu import FmuModel
+    from rtloop.runtime.snapshot import restore_state, save_state
+
+    def steps(runnable, n: int, u: np.ndarray) -> list[float]:
+        y = np.zeros(runnable.n_outputs)
+        out = []
+        for k in range(n):
+            runnable.tick = TickInfo(cycle=k, period_ns=P)
+            runnable.step(u, y)
+            out += y.tolist()
+        return out
+
+    for make in (JiwyController, lambda: ModelRunnable(FmuModel(jiwy_fmu))):
+        first, second = make(), make()
+        for runnable in (first, second):
+            if hasattr(runnable, "check_period"):
+                runnable.check_period(P)
+            runnable.prerun()
+        u = np.array([0.1, -0.2, 0.3, 0.05][: first.n_inputs])
+        steps(first, 50, u)
+        state, reason = save_state(first)
+        assert state is not None, reason
+        expected = steps(first, 30, u)
+        restore_state(second, state)
+        assert steps(second, 30, u) == expected, type(first).__name__
+        first.postrun()
+        second.postrun()
+
+    class Opaque:  # what compiled code without a way to read its state out looks like to us
+        kind, n_inputs, n_outputs = "20sim-cpp", 1, 1
+        input_names = output_names = step_size_s = None
+        path = "models/Plant"
+
+        def initialize(self, u, y, t_s) -> None:
+            pass
+
+    state, reason = save_state(ModelRunnable(Opaque()))
+    assert state is None and reason.startswith("StateNotCaptured: 20sim-cpp model 'models/Plant' keeps its state")
+    with pytest.raises(StateNotCaptured):
+        ModelRunnable(Opaque()).save_state()

@@ -293,7 +293,8 @@ def _replay(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     if result.equal:
-        print(f"replay of {args.run_dir}: signals equal bit for bit over the whole run ({result.rows_compared} rows; "
+        span = "the whole run" if not result.from_s else f"the kept window from t = {result.from_s:g} s to the end"
+        print(f"replay of {args.run_dir}: signals equal bit for bit over {span} ({result.rows_compared} rows; "
               f"{followed}); artifacts in {args.out}/")
         return 0
     if result.divergence is not None:

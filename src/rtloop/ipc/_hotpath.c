@@ -31,6 +31,7 @@ typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
 /* Every word and offset of shared memory, generated from schema.py (hotpath.py checks the
    built module agrees with it: _hotpath.SCHEMA). */
 #include "_schema.h"
+#define SNAPSHOT_DUE 2 /* finish(): the supervisor asked for the task's state before the next release */
 
 #define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
 #define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
@@ -98,6 +99,7 @@ typedef struct {
     int64_t max_misses, misses_in_a_row; /* max_misses 0: no limit */
     int64_t cycle, release_ns, start_ns, stale_reads;
     int64_t last_end_ns; /* when the last cycle ended (or start()): is the next sleep a long one? */
+    int64_t snapshot_taken_ns; /* the last SNAPSHOT_NS answered */
     int closed; /* after close(): no shared memory held, every call refused */
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
@@ -778,6 +780,11 @@ static PyObject *end_cycle(Core *self, int64_t end_ns) {
     }
     self->cycle = cycle;
     self->release_ns = release_ns;
+    int64_t wanted_ns = LOAD(&self->control[CONTROL_SNAPSHOT_NS], relaxed);
+    if (go_on && wanted_ns > self->snapshot_taken_ns && release_ns >= wanted_ns) {
+        self->snapshot_taken_ns = wanted_ns;
+        return PyLong_FromLong(SNAPSHOT_DUE);
+    }
     return PyBool_FromLong(go_on); /* False: max_misses deadline misses in a row */
 }
 

@@ -40,6 +40,8 @@ PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = ScopeMode.OFF, ScopeMode.TOGGLE, ScopeMode.STEP
 """Scope pin modes (``set_scope_pin``): none, toggle at every release, high while step() runs."""
 _SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
+SNAPSHOT_DUE = 2
+"""What ``finish()`` returns when the supervisor asked for the task's state before the next release."""
 _announced = False
 
 
@@ -116,6 +118,7 @@ class PythonCycle:
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
         self.misses_in_a_row = 0
         self.scope_mode = SCOPE_OFF
+        self.snapshot_taken_ns = 0
         self.sleeper = AbsoluteSleeper()
         self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = self.last_end_ns = 0
 
@@ -188,10 +191,11 @@ class PythonCycle:
             if self.control[ControlWord.STOP]:
                 return False
 
-    def finish(self) -> bool:
+    def finish(self) -> bool | int:
         """Publish outputs valid from release + P, record the cycle, move to the next release.
 
-        False: this was the ``max_misses``-th deadline miss in a row (the task should stop)."""
+        False: this was the ``max_misses``-th deadline miss in a row (the task should stop);
+        ``SNAPSHOT_DUE``: the supervisor asked for the task's state before the next release."""
         self._publish()
         return self._end_cycle(now_ns())
 
@@ -231,6 +235,10 @@ class PythonCycle:
         else:
             self.misses_in_a_row = 0
         self.cycle, self.release_ns = cycle, release_ns
+        wanted_ns = self.control[ControlWord.SNAPSHOT_NS]
+        if go_on and wanted_ns > self.snapshot_taken_ns and release_ns >= wanted_ns:
+            self.snapshot_taken_ns = wanted_ns
+            return SNAPSHOT_DUE
         return go_on
 
     def close(self) -> None:

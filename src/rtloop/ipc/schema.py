@@ -38,6 +38,8 @@ class ControlWord(enum.IntEnum):
     T0_NS = 0
     END_NS = 1
     STOP = 2
+    SNAPSHOT_NS = 3
+    """A --keep run asks every task for its state before its first release at or after this time."""
 
 
 class StatusWord(enum.IntEnum):

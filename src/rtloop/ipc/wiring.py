@@ -274,14 +274,17 @@ class TaskWiring:
         """Remember the outputs left by ``prerun`` (initial conditions), published at T0."""
         self.initial_y[:] = y
 
-    def stamp_initial(self, t0_ns: int) -> None:
+    def stamp_initial(self, t0_ns: int, *, last_cycle: int = -1, period_ns: int = 0) -> None:
+        """Publish the initial outputs as those of ``last_cycle`` (-1: before the first, valid from T0).
+
+        A replay that resumes a task from a snapshot passes the cycle the snapshot followed."""
         self.t0_ns = t0_ns
         if self.output is not None:
-            self.output.publish(t0_ns, self.initial_y)
+            self.output.publish(t0_ns + (last_cycle + 1) * period_ns, self.initial_y)
         if self.record is not None:  # tick -1: the outputs that hold from T0 (signals.csv row t = 0)
             np.copyto(self.record_y, self.initial_y)
             np.copyto(self.record_u, self.u)
-            self.record.push(-1, self.record_row)
+            self.record.push(last_cycle, self.record_row)
 
 
 

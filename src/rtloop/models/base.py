@@ -26,6 +26,7 @@ rates); copy the outputs to ``y``.
 
 from __future__ import annotations
 
+import pickle
 import warnings
 from typing import Protocol, runtime_checkable
 
@@ -40,6 +41,7 @@ __all__ = [
     "ModelBuildError",
     "ModelError",
     "ModelRunnable",
+    "StateNotCaptured",
     "StepSizeWarning",
     "apply_parameters",
 ]
@@ -70,6 +72,14 @@ class ModelBuildError(ModelError):
 
 class FmuError(ModelError, ValueError):
     """An FMU cannot be used by rtloop (wrong kind, unknown variable, ...)."""
+
+
+NOT_STATE = ("tick", "model", "_parameter_live")
+"""Attributes a saved state leaves out: the framework's tick, the model itself, views of ``u``."""
+
+
+class StateNotCaptured(ModelError):
+    """A task's state cannot be saved (a ``--keep`` window starting there cannot be replayed)."""
 
 
 class StepSizeWarning(UserWarning):
@@ -218,6 +228,41 @@ class ModelRunnable(Runnable):
                 self.model.calculate(u, y)
         self.catch_up_steps += steps
         return steps
+
+    def save_state(self) -> bytes:
+        """Everything the next steps depend on, after a step (a ``--keep`` window is replayed from it).
+
+        The model's own ``save_state`` where it has one (an FMU: FMI's serialised FMU state), a
+        Python model's attributes by pickling; compiled code that keeps its state to itself
+        raises :class:`StateNotCaptured` saying so.
+        """
+        model = self.model
+        own = {key: value for key, value in vars(self).items() if key not in NOT_STATE}
+        if model is self:
+            model_state = None
+        elif getattr(model, "save_state", None) is not None:
+            model_state = model.save_state()  # type: ignore[attr-defined]
+        elif model.kind == "python":
+            model_state = pickle.dumps(vars(model))
+        else:
+            raise StateNotCaptured(f"{model.kind} model {describe(model)} keeps its state in compiled code "
+                                   "that rtloop cannot read out")
+        try:
+            return pickle.dumps({"runnable": own, "model": model_state})
+        except Exception as error:  # whatever the user's attributes hold
+            raise StateNotCaptured(f"{type(self).__name__}'s attributes do not pickle ({error})") from None
+
+    def restore_state(self, saved: bytes) -> None:
+        """Take back a state from :meth:`save_state` (after ``prerun``, which loaded the model)."""
+        state = pickle.loads(saved)
+        vars(self).update(state["runnable"])
+        model = self.model
+        if state["model"] is None:
+            return
+        if getattr(model, "restore_state", None) is not None:
+            model.restore_state(state["model"])  # type: ignore[attr-defined]
+        else:
+            vars(model).update(pickle.loads(state["model"]))
 
     def postrun(self) -> None:
         """``terminate`` the model (zero inputs; the outputs it writes are not published)."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import pickle
 import shutil
 import sys
 import zipfile
@@ -33,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.errors import StopRequested
-from rtloop.models.base import FmuError, ModelError
+from rtloop.models.base import FmuError, ModelError, StateNotCaptured
 from rtloop.models.fmi_variables import UNSUPPORTED, Element, carried, elements_of
 from rtloop.runnable import FloatVector
 
@@ -149,6 +150,9 @@ class FmuModel:
         self.instance_name = instance_name or self.model_identifier
         self.has_event_mode = bool(getattr(md.coSimulation, "hasEventMode", False))
         self.variable_step = bool(md.coSimulation.canHandleVariableCommunicationStepSize)
+        self.can_save_state = bool(getattr(md.coSimulation, "canGetAndSetFMUstate", False)
+                                   and getattr(md.coSimulation, "canSerializeFMUstate", False))
+        """The FMU can hand out its state as bytes and take it back (FMI getFMUstate + serialize)."""
         self._check_binary(md)
 
         self.variables = {v.name: v for v in md.modelVariables}
@@ -608,6 +612,38 @@ class FmuModel:
                 self._step(start, t0 + (k + i + 1) * h - start)  # type: ignore[operator]
             self.catch_up_steps += skipped
         self._k += skipped
+
+    def save_state(self) -> bytes:
+        """The FMU's serialised state and our place on its timeline (``--keep`` windows are replayed from it)."""
+        fmu = self._fmu
+        if not self.can_save_state:
+            raise StateNotCaptured(f"FMU {str(self.path)!r} cannot serialise its state "
+                                   "(canGetAndSetFMUstate and canSerializeFMUstate are not both true)")
+        if fmu is None:
+            raise StateNotCaptured(f"FMU {str(self.path)!r} is not instantiated")
+        fmi2 = self.fmi_version == "2.0"
+        state = fmu.getFMUstate() if fmi2 else fmu.getFMUState()
+        try:
+            data = fmu.serializeFMUstate(state) if fmi2 else fmu.serializeFMUState(state)
+        finally:
+            fmu.freeFMUstate(state) if fmi2 else fmu.freeFMUState(state)
+        return pickle.dumps({"fmu": bytes(data), "k": self._k, "t0_s": self._t0_s,
+                             "communication_step_s": self.communication_step_s})
+
+    def restore_state(self, saved: bytes) -> None:
+        """Take back a state from :meth:`save_state` (the FMU instantiated by ``initialize``)."""
+        values = pickle.loads(saved)
+        fmu = self._fmu
+        if fmu is None:
+            raise ModelError(f"FMU {str(self.path)!r}: restore_state before initialize")
+        fmi2 = self.fmi_version == "2.0"
+        state = fmu.deSerializeFMUstate(values["fmu"]) if fmi2 else fmu.deserializeFMUState(values["fmu"])
+        try:
+            fmu.setFMUstate(state) if fmi2 else fmu.setFMUState(state)
+        finally:
+            fmu.freeFMUstate(state) if fmi2 else fmu.freeFMUState(state)
+        self._k, self._t0_s = values["k"], values["t0_s"]
+        self.communication_step_s = values["communication_step_s"]
 
     def terminate(self, u: FloatVector, y: FloatVector) -> None:
         """Terminate, free the instance, unload and delete the extracted files."""

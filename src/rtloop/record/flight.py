@@ -10,8 +10,12 @@ the cycles just before and just after every event are kept. At most
 are always kept). At the end, :meth:`FlightWindow.stitch` joins the segments left into the
 usual files and removes the folder.
 
-Disk bound: at most ``WINDOW_SEGMENTS + 1`` segments of the window plus
-``MAX_PINNED_SEGMENTS`` pinned ones, i.e. (7 + 12)·S/6 ≈ 3.2·S seconds' worth of recording,
+The window keeps one segment more than the last S seconds need: the tasks' state is
+saved a little after a segment starts (``runtime/snapshot.py``), so the segment before the
+last S seconds holds the snapshot a replay of those S seconds starts from.
+
+Disk bound: at most ``WINDOW_SEGMENTS + 2`` segments of the window plus
+``MAX_PINNED_SEGMENTS`` pinned ones, i.e. (8 + 12)·S/6 ≈ 3.3·S seconds' worth of recording,
 plus one extra copy of run.mcap while it is stitched.
 """
 
@@ -72,7 +76,7 @@ class FlightWindow:
         self.current.end_ns = latest_ns
         self.segments.append(Segment(self.current.index + 1, latest_ns, pinned=self.pin_next))
         self.pin_next = False
-        horizon_ns = latest_ns - self.keep_ns
+        horizon_ns = latest_ns - self.keep_ns - self.segment_ns  # one more: its snapshot starts the replay
         kept: list[Segment] = []
         for segment in self.segments:
             if segment.end_ns is not None and segment.end_ns <= horizon_ns and not segment.pinned:
@@ -103,6 +107,14 @@ class FlightWindow:
             if not parts:
                 continue
             target = out / name
+            if name.endswith(".pkl"):  # one file per segment, kept side by side: NNNNNN.pkl
+                folder = out / name.removesuffix(".pkl")
+                folder.mkdir(exist_ok=True)
+                for old in folder.glob("*.pkl"):  # an earlier run's, in the same folder
+                    old.unlink()
+                for part in parts:
+                    os.replace(part, folder / f"{part.name.removesuffix(f'-{name}')}.pkl")
+                continue
             if name.endswith(".mcap"):
                 if len(parts) == 1:
                     os.replace(parts[0], target)

@@ -32,7 +32,7 @@ from rtloop.record.sidecar import sidecar_content, units_by_column, write_sideca
 from rtloop.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.timing_stream import StreamingTaskTiming
 
-FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap"]
+FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap", "snapshots.pkl"]
 
 
 class Recorder:
@@ -66,6 +66,8 @@ class Recorder:
         self._writers = {name: list(dict.fromkeys(c.source.task for c in app.connections if c.target.task == name))
                          for name in app.tasks}
         self.reads: ReadsCsv | None = None
+        self.snapshots: list[Any] = []
+        """Task snapshots taken in the current --keep segment (``snapshots.pkl`` beside its files)."""
         self.reads_dropped: dict[str, int] = {}
         """Per task, stale reads its read log could not keep (ring full): replay cannot follow them."""
         self._has_live_ports = bool(live_ports)
@@ -137,6 +139,7 @@ class Recorder:
             self.signals.switch_to(self._path("signals.csv"))
         if self.reads is not None:
             self.reads.switch_to(self._path("reads.csv"))
+        self.snapshots = []
         if not self.mcap_note:
             self._open_mcap()
 
@@ -172,6 +175,26 @@ class Recorder:
             self.reads_dropped[task] = dropped
         if self.reads is not None and len(records):
             self._guard(self.reads.append, task, self.periods_ns[task], self._writers[task], records)
+
+    @property
+    def segment_index(self) -> int | None:
+        """The --keep segment being written (None: no --keep)."""
+        return self.window.current.index if self.window is not None else None
+
+    def add_snapshot(self, snapshot: Any) -> None:
+        """A task's state at the start of this --keep segment (the window's replay starts from it)."""
+        if self.window is None:
+            return
+        self.snapshots.append(snapshot)
+        self._guard(self._write_snapshots)
+
+    def _write_snapshots(self) -> None:
+        import pickle
+
+        path = self._path("snapshots.pkl")
+        with open(f"{path}.tmp", "wb") as file:  # readers see the old list or the new one, never half
+            pickle.dump(self.snapshots, file)
+        os.replace(f"{path}.tmp", path)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         if not len(records):

@@ -34,6 +34,7 @@ from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
 from rtloop.runtime.session import check_out_dir
 from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
+from rtloop.runtime.snapshot import SNAPSHOTS_DIR, TaskSnapshot, read_snapshots, restore_state
 
 DIVERGENCE_DIR = "divergence"
 """Inside the replay's folder: the short second replay that captures the inputs of the first divergence."""
@@ -96,6 +97,8 @@ class ReplayResult:
     port_inputs: int = 0
     """Port values the run took, fed back at the cycles that took them."""
     notes: tuple[str, ...] = field(default=())
+    from_s: float = 0.0
+    """Where the replay starts: 0, or the start of a ``--keep`` run's kept window (a snapshot)."""
 
     @property
     def equal(self) -> bool:
@@ -222,7 +225,11 @@ class RunTimeline(LetTimeline):
     """
 
     def __init__(self, app: App, cycles: dict[str, list[int]],
-                 reads: list[tuple[str, int, str, int | None, int]]) -> None:
+                 reads: list[tuple[str, int, str, int | None, int]],
+                 resume: dict[str, TaskSnapshot] | None = None) -> None:
+        self.app = app
+        self.resume = resume or {}
+        """Per task, the snapshot a ``--keep`` window starts from (none: the task starts from prerun)."""
         self.periods_ns = {name: task.config.period_ns for name, task in app.tasks.items()}
         self.cycles = cycles
         self._next: dict[str, dict[int, int]] = {
@@ -245,6 +252,22 @@ class RunTimeline(LetTimeline):
         self.captured: dict[tuple[str, int], np.ndarray] = {}
         self.capture: set[tuple[str, int]] = set()
         """(task, cycle) whose inputs to keep in :attr:`captured` (a divergence report)."""
+
+    def start(self, task: Any, layout: Any, t0_ns: int) -> None:
+        """From a snapshot: the runnable's state, ``u``, ``y`` and the live ports' values as they stood."""
+        snapshot = self.resume.get(task.name)
+        if snapshot is None:
+            task.wiring.stamp_initial(t0_ns)
+            return
+        assert snapshot.state is not None
+        restore_state(task.runnable, snapshot.state)
+        task.u[:] = snapshot.u
+        task.y[:] = task.wiring.initial_y[:] = snapshot.y
+        task.wiring.stamp_initial(t0_ns, last_cycle=snapshot.last_cycle, period_ns=task.period_ns)
+        self.published(task.name, snapshot.last_cycle, task.y)
+        for name, port in self.app.ports.items():  # a port holds its last value; the task reads it again
+            if port.direction == "in" and port.feed is None and port.signal.task == task.name:
+                layout.input_ports[name].write(np.asarray(snapshot.u[port.signal.slice], dtype=np.float64))
 
     def first_cycle(self, task: str) -> int | None:
         run = self.cycles.get(task)
@@ -288,15 +311,17 @@ class RunTimeline(LetTimeline):
 
 
 def check_timeline(cycles: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
-                   dropped: dict[str, int]) -> tuple[int, str] | None:
-    """The first place where ``timing.csv`` cannot be the whole timeline: (release since T0, why)."""
+                   dropped: dict[str, int], starts: dict[str, int] | None = None) -> tuple[int, str] | None:
+    """The first place where ``timing.csv`` cannot be the whole timeline from each task's start
+    cycle (``starts``, default 0): (release since T0, why)."""
     first: tuple[int, str] | None = None
     for task, records in cycles.items():
         period = periods_ns[task]
+        start = (starts or {}).get(task, 0)
         lost = f" (its timing ring dropped {dropped[task]} records)" if dropped.get(task) else ""
         problem = None
-        if records and records[0].cycle != 0:
-            problem = (0, f"timing.csv starts {task} at cycle {records[0].cycle}, not 0{lost}")
+        if records and records[0].cycle != start:
+            problem = (start * period, f"timing.csv starts {task} at cycle {records[0].cycle}, not {start}{lost}")
         for before, after in pairwise(records):
             if problem is not None:
                 break
@@ -324,16 +349,18 @@ def _column_owners(app: App) -> list[tuple[str, str]]:
     return owners
 
 
-def compare_replay(run_csv: Path, replay_csv: Path, app: App,
-                    until_ns: int | None = None) -> tuple[int, int, Divergence | None]:
-    """(rows in the run, rows equal from the first, the first divergence) up to ``until_ns`` (None: all)."""
+def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | None = None,
+                    from_ns: int = 0) -> tuple[int, int, Divergence | None]:
+    """(rows in the run, rows equal from the first, the first divergence) from ``from_ns`` up to
+    ``until_ns`` (None: the end)."""
     with open(run_csv, newline="") as a, open(replay_csv, newline="") as b:
         run_rows, replay_rows = list(csv.reader(a)), list(csv.reader(b))
     if not run_rows:
         return 0, 0, None
     header, rows = run_rows[0], run_rows[1:]
-    if until_ns is not None:
-        rows = [row for row in rows if round(float(row[0]) * 1e9) < until_ns]
+    rows = [row for row in rows if from_ns <= round(float(row[0]) * 1e9) and (
+        until_ns is None or round(float(row[0]) * 1e9) < until_ns)]
+    replay_rows = replay_rows[:1] + [row for row in replay_rows[1:] if round(float(row[0]) * 1e9) >= from_ns]
     if replay_rows[:1] != [header]:
         got = replay_rows[0] if replay_rows else []
         return len(rows), 0, Divergence(0.0, "", 0, (("columns", ",".join(header), ",".join(got)),))
@@ -426,6 +453,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     """Re-simulate the run in ``run_dir`` along its real timeline into ``out``; compare every signal row.
 
     ``out`` may not be ``run_dir`` nor inside it; a folder holding another run needs ``force``.
+    A ``--keep`` run is replayed from the earliest point its files hold the rest of the run
+    from: t = 0 if they still do, else the start of its kept window (a snapshot of every task).
     """
     run_dir, out = Path(run_dir), Path(out)
     check_out_dir(out, protect=[run_dir])  # before reading anything: refusals come first
@@ -436,9 +465,6 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         play_back_devices(app, run_dir)
     pristine = copy.deepcopy(app)  # runnables as before any prerun, for a second pass
     recording = summary.get("recording") or {}
-    if recording.get("keep_s") is not None:
-        raise AppError(f"{run_dir}: recorded with --keep, so its files hold a window, not the run from t = 0; "
-                       "the replay of a window needs the state kept at its start (not recorded by this run)")
     periods = {name: task.config.period_ns for name, task in app.tasks.items()}
     records, _t0_ns = read_timing(run_dir, periods)
     dropped = {name: int(task.get("timing_samples_dropped") or 0) for name, task in summary.get("tasks", {}).items()}
@@ -451,48 +477,96 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         notes.append("the run has no reads.csv (recorded by an older rtloop): stale reads are not followed")
     for task, count in (recording.get("reads_dropped") or {}).items():
         notes.append(f"the run's read log of {task} dropped {count} stale reads (ring full): they are not followed")
-    timeline = RunTimeline(app, {name: [r.cycle for r in run] for name, run in records.items()}, reads)
-    writes = port_writes(run_dir)
+    resume: dict[str, TaskSnapshot] = {}
+    if recording.get("keep_s") is not None and check_timeline(records, periods, dropped) is not None:
+        start = window_start(run_dir, records, periods, dropped)
+        if isinstance(start, str):
+            return ReplayResult(0, 0, None, cannot=start, notes=tuple(notes))
+        resume = start
+    starts = {name: snapshot.next_cycle for name, snapshot in resume.items()}
+    from_ns = max((s.at_ns for s in resume.values()), default=0)
+    records = {name: [r for r in run if r.cycle >= starts.get(name, 0)] for name, run in records.items()}
+    reads = [read for read in reads if read[1] >= starts.get(read[0], 0)]
+    writes = {key: value for key, value in port_writes(run_dir).items() if key[1] >= starts.get(key[0], 0)}
+
+    cycles = {name: [r.cycle for r in run] for name, run in records.items()}
+    followed = RunTimeline(app, cycles, reads, resume)
     last_release_ns = max((run[-1].release_ns + periods[name] for name, run in records.items() if run), default=0)
     if not last_release_ns:
         raise AppError(f"{run_dir}: timing.csv holds no cycle: nothing to replay")
-    simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=timeline, force=force,
+    simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=followed, force=force,
              protect=(run_dir,))
-    gap = check_timeline(records, periods, dropped)
-    problems = sorted(timeline.problems + ([gap] if gap else []))
+    gap = check_timeline(records, periods, dropped, starts)
+    problems = sorted(followed.problems + ([gap] if gap else []))
     cannot = None
     if problems:
         at_ns, why = problems[0]
         cannot = f"from t = {at_ns / 1e9!r} s: {why}"
     skipped = sum(b.cycle - a.cycle - 1 for run in records.values() for a, b in pairwise(run))
-    common = {"cannot": cannot, "skipped_releases": skipped, "stale_reads": len(reads),
-              "port_inputs": sum(len(v) for v in writes.values()), "notes": tuple(notes)}
+    common: dict[str, Any] = {"cannot": cannot, "skipped_releases": skipped, "stale_reads": len(reads),
+                              "port_inputs": sum(len(v) for v in writes.values()), "notes": tuple(notes),
+                              "from_s": from_ns / 1e9}
     if not (run_dir / "signals.csv").exists():
         return ReplayResult(0, 0, None, **{**common, "cannot": cannot or "the run recorded no signals.csv: "
                                            "nothing to compare"})
     until_ns = problems[0][0] if problems else None
-    rows, equal_rows, divergence = compare_replay(run_dir / "signals.csv", out / "signals.csv", app, until_ns)
+    rows, equal_rows, divergence = compare_replay(run_dir / "signals.csv", out / "signals.csv", app, until_ns,
+                                                   from_ns)
     if not rows and common["cannot"] is None:
         common["cannot"] = "the run's signals.csv holds no rows: nothing to compare"
     if divergence is not None and divergence.task:
-        divergence = _explain(divergence, pristine, run_dir, out, timeline, writes, records)
+        again = RunTimeline(pristine, cycles, reads, resume)
+        divergence = _explain(divergence, again, out, writes, records, periods)
     return ReplayResult(rows, equal_rows, divergence, **common)
 
 
-def _explain(divergence: Divergence, app: App, run_dir: Path, out: Path, timeline: RunTimeline,
-             writes: PortWrites, records: dict[str, list[CycleRecord]]) -> Divergence:
-    """Add the inputs of the diverging cycle: replay again up to it, keeping its ``u``."""
+def window_start(run_dir: Path, records: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
+                 dropped: dict[str, int]) -> dict[str, TaskSnapshot] | str:
+    """The snapshots of the earliest instant from which the run's files hold every cycle to the end,
+    or why there is none."""
+    folder = run_dir / SNAPSHOTS_DIR
+    found: dict[int, dict[str, TaskSnapshot]] = {}
+    for path in sorted(folder.glob("*.pkl")) if folder.is_dir() else []:
+        try:
+            for snapshot in read_snapshots(path):
+                found.setdefault(snapshot.at_ns, {})[snapshot.task] = snapshot
+        except (OSError, ValueError, EOFError) as error:
+            raise AppError(f"{path}: cannot read task snapshots ({error})") from None
+    if not found:
+        return ("the run was recorded with --keep and its files no longer hold it from t = 0, but it kept no "
+                f"task snapshot ({SNAPSHOTS_DIR}/ is missing or empty): its window cannot be replayed")
+    why = ""
+    for at_ns in sorted(found):
+        snapshots = found[at_ns]
+        missing = sorted(set(periods_ns) - set(snapshots))
+        lost = [s for s in snapshots.values() if s.state is None]
+        if missing:
+            why = f"at t = {at_ns / 1e9!r} s no snapshot of {', '.join(missing)}"
+            continue
+        if lost:
+            why = (f"the window from t = {at_ns / 1e9!r} s cannot be replayed: the state of task "
+                   f"{lost[0].task!r} could not be saved ({lost[0].reason})")
+            continue
+        starts = {name: snapshot.next_cycle for name, snapshot in snapshots.items()}
+        tail = {name: [r for r in run if r.cycle >= starts[name]] for name, run in records.items()}
+        if check_timeline(tail, periods_ns, dropped, starts) is None:
+            return snapshots
+        why = f"the files do not hold every cycle after the snapshot at t = {at_ns / 1e9!r} s"
+    return why
+
+
+def _explain(divergence: Divergence, again: RunTimeline, out: Path, writes: PortWrites,
+             records: dict[str, list[CycleRecord]], periods: dict[str, int]) -> Divergence:
+    """Add the inputs of the diverging cycle: replay again (a fresh app) up to it, keeping its ``u``."""
     task, cycle = divergence.task, divergence.cycle
-    period_ns = app.tasks[task].config.period_ns
-    again = RunTimeline(app, timeline.cycles, read_reads_csv(run_dir / "reads.csv")
-                        if (run_dir / "reads.csv").exists() else [])
+    period_ns = periods[task]
     again.capture.add((task, cycle))
     scratch = out / DIVERGENCE_DIR
     try:
-        simulate(app, (cycle + 1) * period_ns / 1e9, scratch, port_writes=writes, timeline=again, force=True)
+        simulate(again.app, (cycle + 1) * period_ns / 1e9, scratch, port_writes=writes, timeline=again, force=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     inputs = again.captured.get((task, cycle))
-    log = _run_log_of(task, cycle, timeline, writes, records.get(task, []), period_ns)
+    log = _run_log_of(task, cycle, again, writes, records.get(task, []), period_ns)
     return Divergence(divergence.t_s, task, cycle, divergence.signals,
                       None if inputs is None else tuple(inputs.tolist()), log)

@@ -52,8 +52,8 @@ class _SimTask:
         self.host_exec = HostExecution()
         self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
 
-    def start(self, layout: AppLayout, t0_ns: int, end_ns: int) -> None:
-        self.wiring.stamp_initial(t0_ns)
+    def start(self, layout: AppLayout, t0_ns: int, end_ns: int, timeline: LetTimeline) -> None:
+        timeline.start(self, layout, t0_ns)
         self.io = cycle_work(self.tick, self.wiring, layout.control, self.handles.status, self.handles.timing,
                              self.period_ns, catch_up=False)
         self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
@@ -103,6 +103,10 @@ class LetTimeline:
     A replay (:mod:`rtloop.runtime.replay`) follows a run's real timeline instead: the cycles
     it ran and skipped, and the older samples its late reads got.
     """
+
+    def start(self, task: Any, layout: AppLayout, t0_ns: int) -> None:
+        """Before the first release: ``task`` (a simulated task) publishes its initial outputs at T0."""
+        task.wiring.stamp_initial(t0_ns)
 
     def first_cycle(self, task: str) -> int | None:
         """The first cycle ``task`` runs (None: it runs none)."""
@@ -181,7 +185,7 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
             tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
             timeline.published(name, -1, tasks[name].y)
         for task in tasks.values():
-            task.start(layout, t0_ns, end_ns)
+            task.start(layout, t0_ns, end_ns, timeline)
         phase = "step"
         # (release time, task order, cycle, name): a heap of the next release of each task
         order = {name: i for i, name in enumerate(tasks)}

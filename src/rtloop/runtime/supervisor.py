@@ -115,6 +115,8 @@ class Supervisor:
         self.live: Any = None
         self.bridges: Bridges | None = None
         self.dma_latency_held = False
+        self.snapshots: list[Any] = []  # task snapshots received, not yet handed to the recorder
+        self.snapshot_segment = 0  # the --keep segment whose start the tasks were last asked to snapshot
 
     @property
     def state(self) -> RunState:
@@ -170,6 +172,7 @@ class Supervisor:
                 layout.control[ControlWord.STOP] = 1
             self._join(layout)
             session.drain()
+            self._keep_snapshots(layout, recorder)
         finally:
             self.bridges.stop()
             if self.live is not None:
@@ -268,6 +271,7 @@ class Supervisor:
                 self.state = RunState.SIGNAL  # a task process was sent SIGTERM: it stops the app
             behind = session.drain(self.limits.drain_budget_s)
             self._poll(layout)
+            self._keep_snapshots(layout, recorder)
             self._watch(layout, recorder)
             assert self.bridges is not None
             self.bridges.poll()
@@ -295,6 +299,22 @@ class Supervisor:
             session.write_summary_if_due()
             if self.on_progress is not None:
                 self.on_progress(self._progress(layout, session))
+
+    def _keep_snapshots(self, layout: AppLayout, recorder: Any) -> None:
+        """--keep: at each new recording segment, ask every task for its state at a common release
+        a little ahead (so the kept window can be replayed from it); hand what came to the recorder."""
+        from rtloop.runtime.snapshot import SNAPSHOT_MARGIN_NS, common_instant_ns
+
+        for snapshot in self.snapshots:
+            recorder.add_snapshot(snapshot)
+        self.snapshots.clear()
+        segment = recorder.segment_index
+        if segment is None or segment == self.snapshot_segment:
+            return
+        self.snapshot_segment = segment
+        periods = [task.config.period_ns for task in self.app.tasks.values()]
+        at_ns = common_instant_ns(recorder.latest_ns + SNAPSHOT_MARGIN_NS, periods)
+        layout.control[ControlWord.SNAPSHOT_NS] = self.t0_ns + at_ns
 
     def _watch(self, layout: AppLayout, recorder: Any) -> None:
         """The watchdog: a running task whose cycle count stands still too long is stuck."""
@@ -404,6 +424,8 @@ class Supervisor:
                 kind = message.get("kind")
                 if kind == "settings":
                     task_run.settings = message["settings"]
+                elif kind == "snapshot":
+                    self.snapshots.append(message["snapshot"])
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
                 elif kind == "device_error":

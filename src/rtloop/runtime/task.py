@@ -23,7 +23,7 @@ from rtloop.app.builder import TaskConfig
 from rtloop.app.byvalue import loads_runnable
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
 from rtloop.io.host import DeviceWiring, TaskDevices
-from rtloop.ipc.hotpath import cycle_work
+from rtloop.ipc.hotpath import SNAPSHOT_DUE, cycle_work
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
@@ -60,6 +60,8 @@ class RealtimeTask:
         self.devices = TaskDevices(config.name, config.period_ns, (), self.u, self.y)
         self.in_loop = False
         self.safe_ns = 0
+        self.on_snapshot: Any = None
+        """Called with (next cycle, T0) when the supervisor asked for this task's state."""
 
     @property
     def cycle(self) -> int:
@@ -92,7 +94,10 @@ class RealtimeTask:
                 runnable.step(u, y)
                 if devices:
                     devices.after_step(tick.cycle)  # io = "immediate" devices write at once
-                if not cycle.finish():  # too many deadline misses in a row (max_consecutive_misses)
+                done = cycle.finish()
+                if done == SNAPSHOT_DUE:  # a --keep run wants the state here, to replay a window from it
+                    self.on_snapshot(cycle.cycle, t0_ns)
+                elif not done:  # too many deadline misses in a row (max_consecutive_misses)
                     raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
         finally:
             self.in_loop = False
@@ -185,6 +190,18 @@ def task_process_main(
     _report(pipe, kind="settings", settings=settings)
 
     task = RealtimeTask(config, runnable, control, status, timing)
+
+    def send_snapshot(next_cycle: int, t0_ns: int) -> None:
+        from rtloop.runtime.snapshot import take
+
+        at_ns = control[ControlWord.SNAPSHOT_NS] - t0_ns
+        why_not = "its devices' state is not saved" if task.devices else ""
+        if task.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
+            why_not = f"it was asked after it had passed t = {at_ns / 1e9} s"
+        _report(pipe, kind="snapshot", snapshot=take(config.name, runnable, at_ns, next_cycle, task.cycle,
+                                                     task.u, task.y, why_not))
+
+    task.on_snapshot = send_snapshot
     wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
     task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y)
     phase = "configure"

@@ -146,19 +146,56 @@ FMI2_EXPORT fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference 
 FMI2_EXPORT fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr,
 	const fmi2String value[]) { (void)c; (void)vr; (void)value; return nvr ? fmi2Error : fmi2OK; }
 
-/* FMU state, directional derivatives: not supported (capability flags say so) */
+/* FMU state: a copy of the instance (plain numbers), serialised as its bytes */
 FMI2_EXPORT fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *s)
-{ (void)c; (void)s; return fmi2Error; }
+{
+	Instance *copy = *s != NULL ? *s : malloc(sizeof(Instance));
+	if (copy == NULL)
+		return fmi2Error;
+	memcpy(copy, c, sizeof(Instance));
+	*s = copy;
+	return fmi2OK;
+}
 FMI2_EXPORT fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate s)
-{ (void)c; (void)s; return fmi2Error; }
+{
+	if (s == NULL)
+		return fmi2Error;
+	memcpy(c, s, sizeof(Instance));
+	return fmi2OK;
+}
 FMI2_EXPORT fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *s)
-{ (void)c; (void)s; return fmi2Error; }
+{
+	(void)c;
+	free(*s);
+	*s = NULL;
+	return fmi2OK;
+}
 FMI2_EXPORT fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate s, size_t *n)
-{ (void)c; (void)s; (void)n; return fmi2Error; }
-FMI2_EXPORT fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate s, fmi2Byte b[],
-	size_t n) { (void)c; (void)s; (void)b; (void)n; return fmi2Error; }
+{
+	(void)c; (void)s;
+	*n = sizeof(Instance);
+	return fmi2OK;
+}
+FMI2_EXPORT fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate s, fmi2Byte b[], size_t n)
+{
+	(void)c;
+	if (s == NULL || n != sizeof(Instance))
+		return fmi2Error;
+	memcpy(b, s, n);
+	return fmi2OK;
+}
 FMI2_EXPORT fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte b[], size_t n,
-	fmi2FMUstate *s) { (void)c; (void)b; (void)n; (void)s; return fmi2Error; }
+	fmi2FMUstate *s)
+{
+	Instance *copy;
+	(void)c;
+	if (n != sizeof(Instance) || (copy = malloc(sizeof(Instance))) == NULL)
+		return fmi2Error;
+	memcpy(copy, b, n);
+	*s = copy;
+	return fmi2OK;
+}
+/* directional derivatives: not supported (capability flags say so) */
 FMI2_EXPORT fmi2Status fmi2GetDirectionalDerivative(fmi2Component c,
 	const fmi2ValueReference vu[], size_t nu, const fmi2ValueReference vk[], size_t nk,
 	const fmi2Real dvk[], fmi2Real dvu[])
