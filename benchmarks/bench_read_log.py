@@ -9,7 +9,9 @@ task without the log is what every task was before it):
 1. ``read_inputs`` of 1 and 4 connections in a clean cycle (every writer published the
    sample due) and in a stale one (every writer is one period late: a record per read);
 2. the whole no-op iteration ``begin(); step(u, y); finish()`` of a task with one clean
-   connection, releases in the past (``clock_nanosleep`` returns at once).
+   connection, releases in the past (``clock_nanosleep`` returns at once);
+3. a ``--keep`` snapshot (``snapshot.take``, once per recording segment, in the loop) of
+   JIWY's Python controller and of the JIWY plant FMU (built with gcc if there is one).
 
 Figures are medians of 11 batches (µs per call); the ring is drained between batches.
 
@@ -99,6 +101,47 @@ def median_us(call: Any, repeats: int, rings: list[RecordRing | None]) -> float:
     return float(np.median(samples)) / 1000
 
 
+def snapshot_costs(args: argparse.Namespace) -> dict[str, float]:
+    """µs per ``snapshot.take`` (median of 200) after one step of each JIWY model."""
+    import shutil
+    import tempfile
+
+    from rtloop.models import ModelRunnable
+    from rtloop.runtime.snapshot import take
+
+    jiwy = Path(__file__).resolve().parent.parent / "examples" / "jiwy"
+    sys.path.insert(0, str(jiwy))
+    from jiwy_models import JiwyController
+
+    makers: dict[str, Any] = {"JIWY controller (Python model)": JiwyController}
+    folder = tempfile.mkdtemp(prefix="bench-readlog-")
+    if shutil.which("gcc"):
+        from rtloop.models.fmu import FmuModel
+        from rtloop.models.fmu_build import build_fmu
+
+        fmu = build_fmu(jiwy / "models" / "fmu", Path(folder) / "JiwyPlant.fmu")
+        makers["JIWY plant (FMU, FMI serialize)"] = lambda: ModelRunnable(FmuModel(fmu))
+    costs = {}
+    try:
+        for label, make in makers.items():
+            runnable = make()
+            runnable.check_period(1_000_000)  # the models are made for 1 ms
+            runnable.prerun()
+            runnable.tick = TickInfo(cycle=0, period_ns=1_000_000)
+            u, y = np.zeros(runnable.n_inputs), np.zeros(runnable.n_outputs)
+            runnable.step(u, y)
+            samples = []
+            for _ in range(200):
+                started = time.perf_counter_ns()
+                take("bench", runnable, 0, 1, 0, u, y)
+                samples.append(time.perf_counter_ns() - started)
+            costs[f"snapshot.take: {label}"] = float(np.median(samples)) / 1000
+            runnable.postrun()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return costs
+
+
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     os.sched_setaffinity(0, {args.cpu})
     try:
@@ -137,6 +180,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                 row[f"no-op iteration, 1 conn, {label}"] = median_us(iterate, min(args.repeats, 5000), [log, timing])
                 work.close()
             results[kind] = row
+        results["snapshot"] = snapshot_costs(args)
     finally:
         rig.close()
         os.environ.pop(hotpath.PURE_PYTHON_ENV, None)
@@ -145,12 +189,16 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def report_markdown(result: dict[str, Any]) -> str:
-    kinds = list(result["costs_us"])
-    cases = list(next(iter(result["costs_us"].values())))
-    rows = [[case, *(f"{result['costs_us'][kind][case]:.3f}" for kind in kinds)] for case in cases]
+    costs = dict(result["costs_us"])
+    snapshot = costs.pop("snapshot", {})
+    kinds = list(costs)
+    cases = list(next(iter(costs.values())))
+    rows = [[case, *(f"{costs[kind][case]:.3f}" for kind in kinds)] for case in cases]
     title = (f"#### Read log: µs per call, medians of 11 × {result['repeats']} calls, CPU {result['cpu']}, "
              f"{result['scheduling']}")
-    return "\n".join([title, "", markdown_table(["case", *kinds], rows), "", facts_markdown(result["machine"])])
+    snapshots = markdown_table(["snapshot", "µs (median of 200)"], [[k, f"{v:.1f}"] for k, v in snapshot.items()])
+    return "\n".join([title, "", markdown_table(["case", *kinds], rows), "", snapshots, "",
+                      facts_markdown(result["machine"])])
 
 
 def main(argv: list[str] | None = None) -> int:
