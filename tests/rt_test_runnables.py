@@ -47,6 +47,15 @@ class RaiseAt(Runnable):
             1 / 0  # noqa: B018
 
 
+class RaiseFrom(RaiseAt):
+    """Raises ZeroDivisionError in the first step at or after a given cycle (a late task may skip it)."""
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle >= self.fail_cycle:
+            1 / 0  # noqa: B018
+
+
 class ReportSettings(Runnable):
     """Outputs what the kernel says about this process: policy, priority, CPUs, locked kB."""
 

@@ -26,7 +26,7 @@ from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
 
 import rtloop
-from rt_test_runnables import Counter, Integrator, RaiseAt
+from rt_test_runnables import Counter, Integrator, RaiseFrom
 from rtloop import App, TaskFailed
 from rtloop.record.rosbag2 import (
     METADATA_FILE,
@@ -187,9 +187,9 @@ def test_strings_are_quoted_so_yaml_reads_them_back_unchanged() -> None:
 @pytest.mark.parametrize("how", ["simulate", "run"])
 def test_a_run_that_ends_by_a_fault_is_still_a_bag(tmp_path: Path, how: str) -> None:
     app = App(f"rosbag_fault_{how}_{os.getpid()}")
-    bad = app.add_task("bad", RaiseAt(cycle=37), period_ns=P, policy="other")
+    bad = app.add_task("bad", RaiseFrom(cycle=37), period_ns=P, policy="other")
     app.record(bad.y)
-    with pytest.raises(TaskFailed):
+    with pytest.raises(TaskFailed) as failed:
         (rtloop.simulate if how == "simulate" else rtloop.run)(app, 5, tmp_path)
     _, rows = read_csv(tmp_path / "signals.csv")
     timing = timing_rows(tmp_path, "bad")
@@ -197,7 +197,9 @@ def test_a_run_that_ends_by_a_fault_is_still_a_bag(tmp_path: Path, how: str) -> 
     assert bag["__counts__"] == {SIGNALS: len(rows), "/rtloop/timing/bad": len(timing)}
     assert [m.position[0] for _, m, _ in bag[SIGNALS]] == [float(r[1]) for r in rows]
     assert [m.cycle for _, m, _ in bag["/rtloop/timing/bad"]] == [t[0] for t in timing]
-    assert timing[-1][0] == bag[SIGNALS][-1][1].position[0] == 36  # the cycles before the fault
+    # The last step that finished is the last row of both (36, unless a loaded machine skipped it).
+    assert timing[-1][0] == bag[SIGNALS][-1][1].position[0] < failed.value.cycle
+    assert failed.value.cycle >= 37 and (how == "run" or timing[-1][0] == 36)
 
 
 KILLED_RUN = """

@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -108,13 +109,15 @@ def test_exception_in_prerun_is_reported_before_the_loop(tmp_path: Path) -> None
 
 
 def test_a_runnable_that_cannot_reach_its_process_is_refused_before_running(tmp_path: Path) -> None:
-    class Local(Noop):
-        pass
+    class HoldsALock(Noop):  # a local class travels by value; a lock held before prerun cannot travel at all
+        def __init__(self) -> None:
+            self.lock = threading.Lock()
 
-    app = App("local")
-    app.add_task("t", Local(), period_ns=P)
-    with pytest.raises(AppError, match="task 't': its runnable cannot be sent"):
-        rtloop.run(app, 1, tmp_path)
+    app = App(f"unsendable_{os.getpid()}")
+    app.add_task("t", HoldsALock(), period_ns=P)
+    with pytest.raises(AppError, match=r"task 't': HoldsALock cannot be sent to its task process .*prerun"):
+        rtloop.run(app, 1, tmp_path / "out")
+    assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
 def _start_cli(app_file: Path, out: Path, env: dict[str, str], duration: float = 30) -> subprocess.Popen:
