@@ -21,6 +21,6 @@ if [ "${1:-}" != "--no-apt" ]; then
 fi
 
 python3 -m venv .venv
-.venv/bin/pip install -q --upgrade pip
+.venv/bin/pip install -q --upgrade pip 'setuptools>=77'  # setup.py build_ext (tests) reads the SPDX license string
 .venv/bin/pip install -q -e '.[all,test]'
 echo "rtloop installed in .venv: .venv/bin/rtloop (real-time runs need root: tools/as-root .venv/bin/rtloop run ...)"
