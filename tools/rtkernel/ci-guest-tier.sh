@@ -27,7 +27,7 @@ selection=(tests/test_rtkernel_guest.py tests/test_run.py::test_rt_settings_are_
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
-RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-1500} tools/rtkernel-vm.sh \
+RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-2400} tools/rtkernel-vm.sh \
     .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 -k "not test_jiwy_runs_on_the_rt_kernel and not test_jiwy_over_can_equals_its_simulation and not test_an_estop_edge_stops_the_app" "${selection[@]}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
