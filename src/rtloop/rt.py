@@ -14,6 +14,7 @@ import platform
 import resource
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -141,15 +142,17 @@ def child_pids(pid: int | None = None) -> set[int]:
     return children
 
 
-def end_strays(keep: set[int] = frozenset(), rounds: int = 20) -> list[int]:  # type: ignore[assignment]
-    """SIGKILL every child of this process not in ``keep``, and reap them; returns their ids.
+def end_strays(keep: set[int] = frozenset(), rounds: int = 20,  # type: ignore[assignment]
+               only: Callable[[int], bool] | None = None) -> list[int]:
+    """SIGKILL every child of this process not in ``keep`` (and, given ``only``, for which it is
+    true), and reap them; returns their ids.
 
     With :func:`become_subreaper`, the children include every orphaned descendant, so
     repeating until none is left ends whole trees, also processes that double-forked.
     """
     ended: list[int] = []
     for _ in range(rounds):
-        strays = child_pids() - set(keep)
+        strays = {pid for pid in child_pids() - set(keep) if only is None or only(pid)}
         if not strays:
             break
         for pid in strays:

@@ -644,20 +644,7 @@ def _end_task_strays(token: str, keep: set[int]) -> None:
     is reparented to init, as without rtloop).
     """
     mark = f"{TASK_MARK_ENV}={os.getpid()}-{token}".encode()
-    for _ in range(20):
-        strays = [pid for pid in rt.child_pids() - keep if _carries_mark(pid, mark)]
-        if not strays:
-            return
-        for pid in strays:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        for pid in strays:
-            try:
-                os.waitpid(pid, 0)
-            except ChildProcessError:
-                pass
+    rt.end_strays(keep, only=lambda pid: _carries_mark(pid, mark))
 
 
 def port_summaries(layout: AppLayout, last_release_ns: int = 0) -> dict[str, PortSummary]:
