@@ -213,7 +213,8 @@ class Monitor:
     def _task_view(self, name: str, tracked: _Tracked) -> TaskView:
         status = tracked.status
         now_s = time.monotonic()
-        tracked.latency_max_ns = max(tracked.latency_max_ns, status[StatusWord.LATENCY_LAST_NS])
+        latency_now_ns = status[StatusWord.LATENCY_LAST_NS]  # read once: the task writes it every cycle
+        tracked.latency_max_ns = max(tracked.latency_max_ns, latency_now_ns)
         state_value = status[StatusWord.STATE]
         state = TaskState(state_value).name if state_value in TaskState._value2member_map_ else str(state_value)
         pid = status[StatusWord.PID]
@@ -242,7 +243,7 @@ class Monitor:
         return TaskView(
             name=name, state=state, pid=pid, cpu=cpu, sched=sched, cycles=cycles, cycles_per_s=rate,
             overruns=status[StatusWord.OVERRUNS], deadline_misses=status[StatusWord.DEADLINE_MISSES],
-            stale_reads=status[StatusWord.STALE_READS], latency_now_ns=status[StatusWord.LATENCY_LAST_NS],
+            stale_reads=status[StatusWord.STALE_READS], latency_now_ns=latency_now_ns,
             latency_max_ns=tracked.latency_max_ns, exec_last_ns=status[StatusWord.EXEC_LAST_NS],
             cpu_percent=cpu_percent,
             nonvoluntary_ctxt_switches=proc.nonvoluntary_ctxt_switches if proc else None,
