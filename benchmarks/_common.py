@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from rtloop import Runnable, rt
+from rtloop import Runnable
+from rtloop.linux import rt
 
 PERCENTILES = (("min", 0.0), ("p50", 50.0), ("p99", 99.0), ("p99.9", 99.9), ("max", 100.0))
 STAT_COLUMNS = tuple(name for name, _ in PERCENTILES)

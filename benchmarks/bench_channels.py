@@ -56,10 +56,10 @@ from _common import (
     write_json,
 )
 
-from rtloop import rt
 from rtloop.app.builder import App
 from rtloop.ipc.channels import LetChannel, SampleQueue
 from rtloop.ipc.segments import Segment, new_run_token
+from rtloop.linux import rt
 
 TRANSPORTS = ("LetChannel", "SampleQueue", "raw numpy")
 LOW_BITS = 1 << 32

@@ -37,13 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import NoOp, PmQos, facts_markdown, machine_facts, markdown_table, stats_us, write_json
 from bench_channels import START_MARGIN_NS, _realtime, _wait_for_t0, decode, encode
 
-from rtloop import rt
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
+from rtloop.linux import rt
 from rtloop.runnable import TickInfo
 
 KINDS = ("raw numpy", "rtloop python", "rtloop C")

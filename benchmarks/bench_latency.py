@@ -177,12 +177,12 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     Uses the real loop, status block and timing ring (shared memory); runs in this
     process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
-    from rtloop import rt
     from rtloop.ipc.hotpath import PythonCycle
     from rtloop.ipc.schema import task_segment_size
     from rtloop.ipc.segments import RecordRing, Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
     from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
+    from rtloop.linux import rt
     from rtloop.runtime.task import RealtimeTask, TaskConfig
 
     token = new_run_token()

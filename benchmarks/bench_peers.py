@@ -38,7 +38,7 @@ from _common import PmQos, markdown_table, stats_us
 from bench_channels import _realtime
 from bench_hotpath import collect_hops
 
-from rtloop import rt
+from rtloop.linux import rt
 
 
 class Stamped(ctypes.Structure):

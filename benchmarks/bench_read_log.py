@@ -36,13 +36,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_json
 
-from rtloop import rt
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import RecordRing, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
+from rtloop.linux import rt
 from rtloop.runnable import TickInfo
 
 P = 1_000

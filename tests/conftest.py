@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
-from rtloop import rt
+from rtloop.linux import rt
 
 # Property tests draw the same examples on every run (derandomized), so a red run on any
 # machine, CI's included, reproduces with the same command. HYPOTHESIS_PROFILE=explore

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 
 import rtloop
-from rtloop import rt
 from rtloop.ipc import segments as shm
+from rtloop.linux import rt
 
 MACHINE = platform.machine()
 ELF_MACHINE = {"x86_64": 0x3E, "aarch64": 0xB7, "armv7l": 0x28, "riscv64": 0xF3}

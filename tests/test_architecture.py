@@ -22,16 +22,19 @@ PACKAGE = SRC / "rtloop"
 FLOOR = "floor"
 ALLOWED: dict[str, set[str]] = {
     FLOOR: set(),
+    "linux": {FLOOR},
+    "stats": {FLOOR},
     "ros.types": set(),
-    "ipc": {FLOOR},
+    "ipc": {FLOOR, "linux"},
     "models": {FLOOR},
     "io": {FLOOR},
     "app": {FLOOR, "models", "ros.types", "io"},
-    "record": {FLOOR, "app", "ros.types"},
-    "ros": {FLOOR, "ros.types", "app", "ipc"},
-    "runtime": {FLOOR, "app", "io", "ipc", "models", "record", "ros", "ros.types"},
-    "report": {FLOOR, "record"},
-    "cli": {FLOOR, "app", "io", "ipc", "models", "record", "ros", "ros.types", "runtime", "report", "cli"},
+    "ros": {FLOOR, "linux", "ros.types", "app", "ipc"},
+    "record": {FLOOR, "stats", "app", "ipc", "ros", "ros.types"},
+    "runtime": {FLOOR, "linux", "stats", "app", "io", "ipc", "models", "record", "ros", "ros.types"},
+    "report": {FLOOR, "stats", "record"},
+    "cli": {FLOOR, "linux", "stats", "app", "io", "ipc", "models", "record", "ros", "ros.types", "runtime",
+            "report", "cli"},
 }
 
 

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from rtloop import rt
 from rtloop.cli import bench
 from rtloop.cli.main import main as cli_main
+from rtloop.linux import rt
 
 DURATION = "1"
 

@@ -12,7 +12,7 @@ import pytest
 
 from rtloop.cli import doctor
 from rtloop.cli.doctor import Check, format_human, main, run_checks, to_json, verdict
-from rtloop.rt import CAP_IPC_LOCK, CAP_SYS_NICE
+from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE
 
 LIMITS_HEADER = "Limit                     Soft Limit           Hard Limit           Units     \n"
 

@@ -11,7 +11,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from rtloop.histogram import Histogram, HistogramError, _bit_length
+from rtloop.stats.histogram import Histogram, HistogramError, _bit_length
 
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 

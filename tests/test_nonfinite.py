@@ -17,6 +17,7 @@ import rtloop
 from conftest import other_cpu
 from rt_test_runnables import Gain
 from rtloop import App, Runnable, TaskFailed
+from rtloop.linux import rt
 
 P = 1_000_000
 
@@ -48,7 +49,7 @@ def _app(name: str, allow: bool) -> App:
 
 @pytest.mark.parametrize("mode", ["simulate", "run"])
 def test_a_nan_crossing_a_connection_is_a_fault_naming_task_cycle_and_output(tmp_path: Path, hot_path, mode) -> None:
-    if mode == "run" and not rtloop.rt.probe().may_use_rt:
+    if mode == "run" and not rt.probe().may_use_rt:
         pytest.skip("needs real-time scheduling")
     run = rtloop.simulate if mode == "simulate" else rtloop.run
     with pytest.raises(TaskFailed) as failed:

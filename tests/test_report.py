@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rtloop import report, timing
+from rtloop import report
 from rtloop.report import figures
+from rtloop.stats import timing
 
 PERIOD_NS = 1_000_000
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -25,7 +26,7 @@ def write_run(
     failure: dict | None = None,
     mode: str = "run",
 ) -> Path:
-    """A run directory whose summary.json is computed by rtloop.timing, as the supervisor does."""
+    """A run directory whose summary.json is computed by rtloop.stats.timing, as the supervisor does."""
     out.mkdir(parents=True, exist_ok=True)
     lines = ["task,cycle,release_ns,start_ns,end_ns"]
     entries = {}

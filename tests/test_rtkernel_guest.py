@@ -37,7 +37,7 @@ def test_the_kernel_is_preempt_rt(rtkernel_guest: dict) -> None:
 
 def test_sched_fifo_and_mlockall_are_granted(rtkernel_guest: dict) -> None:
     probe = (
-        "import os; from rtloop import rt\n"
+        "import os; from rtloop.linux import rt\n"
         "os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80)); rt.lock_memory()\n"
         "locked = [line for line in open('/proc/self/status') if line.startswith('VmLck')][0].split()[1]\n"
         "print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, locked)\n"

@@ -18,9 +18,10 @@ import pytest
 
 import rtloop
 from rt_test_runnables import Counter
-from rtloop import App, rt
+from rtloop import App
 from rtloop.app.builder import SignalRef
 from rtloop.ipc.segments import SHM_DIR
+from rtloop.linux import rt
 from rtloop.record.csvfiles import SignalsCsv
 
 P = 1_000_000

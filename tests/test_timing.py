@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rtloop.timing import (
+from rtloop.stats.timing import (
     Distribution,
     TimingSamples,
     cycle_to_cycle_jitter_ns,

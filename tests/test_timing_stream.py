@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rtloop.timing import (
+from rtloop.stats.timing import (
     TaskTiming,
     TimingSamples,
     cycle_to_cycle_jitter_ns,
@@ -18,7 +18,7 @@ from rtloop.timing import (
     task_timing,
     wakeup_latency_ns,
 )
-from rtloop.timing_stream import StreamingTaskTiming, TimingOrderError
+from rtloop.stats.timing_stream import StreamingTaskTiming, TimingOrderError
 
 P = 1_000_000
 T0 = 10**12

@@ -20,7 +20,7 @@ from rtloop.errors import StopRequested as StopRequested
 from rtloop.errors import TaskFailed as TaskFailed
 from rtloop.runnable import Runnable as Runnable
 from rtloop.runnable import TickInfo as TickInfo
-from rtloop.timing import TaskTiming as TaskTiming
+from rtloop.stats.timing import TaskTiming as TaskTiming
 from rtloop.version import __version__ as __version__
 
 if TYPE_CHECKING:

@@ -36,12 +36,13 @@ from typing import Any
 
 import numpy as np
 
-from rtloop import rt, timing
 from rtloop.app.builder import App
 from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import RtloopError
+from rtloop.linux import rt
 from rtloop.runnable import Runnable
 from rtloop.runtime.supervisor import run
+from rtloop.stats import timing
 
 EXPERIMENTS = ("affinity", "stress", "cyclictest")
 PERIOD_NS = 1_000_000

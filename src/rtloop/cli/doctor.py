@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
-from rtloop.rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list, preemption_model
+from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list, preemption_model
 
 Status = Literal["ok", "warn", "fail"]
 
@@ -105,7 +105,7 @@ def _is_live(root: Path) -> bool:
 
 
 def _preemption_model_under(root: Path) -> str:
-    """:func:`rtloop.rt.preemption_model` on the live system, the same sources under a tree.
+    """:func:`rtloop.linux.rt.preemption_model` on the live system, the same sources under a tree.
 
     rt.preemption_model() reads fixed paths and ``platform.version()`` (= the file
     /proc/sys/kernel/version), so for a fake tree the same three sources are read here.

@@ -270,7 +270,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def refuse_unless_real_time(app: Any) -> None:
     """``--require-rt``: an AppError (exit 2) naming why this run would not be real time."""
-    from rtloop import rt
+    from rtloop.linux import rt
 
     capabilities = rt.probe()
     if not capabilities.may_use_rt:

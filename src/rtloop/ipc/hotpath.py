@@ -23,7 +23,7 @@ from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
 from rtloop.ipc.segments import RecordRing
 from rtloop.ipc.wiring import TaskWiring
-from rtloop.rt import AbsoluteSleeper, now_ns
+from rtloop.linux.rt import AbsoluteSleeper, now_ns
 
 try:
     from rtloop.ipc import _hotpath

@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rtloop.errors import RtloopError
-from rtloop.timing import TimingSamples
+from rtloop.stats.timing import TimingSamples
 
 BLOCK_BYTES = 8 << 20
 """How much of a file is parsed at once."""

@@ -1,6 +1,6 @@
 """All of a run's recordings behind one object, shared by ``run`` and ``simulate``.
 
-Statistics stream into fixed-size histograms (:mod:`rtloop.timing_stream`), so the
+Statistics stream into fixed-size histograms (:mod:`rtloop.stats.timing_stream`), so the
 recorder's memory does not grow with the run. Files: timing.csv and signals.csv always;
 run.mcap too when the ``mcap`` packages are installed (``pip install 'rtloop[ros]'``), else
 the summary says why it is missing; beside run.mcap, metadata.yaml makes the run
@@ -29,8 +29,8 @@ from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
 from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
-from rtloop.timing import DEFAULT_TRIM, TaskTiming
-from rtloop.timing_stream import StreamingTaskTiming
+from rtloop.stats.timing import DEFAULT_TRIM, TaskTiming
+from rtloop.stats.timing_stream import StreamingTaskTiming
 
 FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap", "snapshots.pkl"]
 

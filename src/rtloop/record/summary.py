@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rtloop.timing import TaskTiming
+from rtloop.stats.timing import TaskTiming
 
 
 @dataclass(frozen=True, slots=True)

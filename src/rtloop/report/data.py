@@ -2,7 +2,7 @@
 
 Runs are read by :func:`rtloop.load` (numpy arrays, memory-mapped when large); everything
 here recomputes the distributions with the *same* functions and the
-same trimming as ``summary.json`` (:mod:`rtloop.timing`), so a histogram's extremes and
+same trimming as ``summary.json`` (:mod:`rtloop.stats.timing`), so a histogram's extremes and
 sample count agree with the summary table printed beside it.
 """
 
@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from rtloop import timing
 from rtloop.errors import RtloopError
 from rtloop.record.load import LoadError, RunData, Signals, load
+from rtloop.stats import timing
 
 FloatArray = npt.NDArray[np.float64]
 HISTOGRAM_BINS = 100

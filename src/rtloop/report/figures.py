@@ -17,7 +17,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from rtloop.report.data import Histogram, Run, TaskSeries, histogram
-from rtloop.timing import THESIS_JITTER_FRACTION
+from rtloop.stats.timing import THESIS_JITTER_FRACTION
 
 US = 1e3  # ns per µs
 FIGURE_WIDTH_IN = 13.0

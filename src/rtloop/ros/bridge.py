@@ -163,7 +163,7 @@ def _sender(publisher: RosPublisher, topic: RosTopic, size: int) -> Any:
 
 def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> None:
     """Publish what an output port sends, until stopped, waking on the task's timeline."""
-    from rtloop import rt
+    from rtloop.linux import rt
 
     info = app.ports[topic.port]
     publisher = RosPublisher(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id)
@@ -242,7 +242,7 @@ def narrowest_range(*ranges: tuple[float, float] | None) -> tuple[float, float] 
 
 def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -> None:
     """Entry point of a bridge process started by the supervisor."""
-    from rtloop import rt
+    from rtloop.linux import rt
 
     rt.die_with_parent(signal.SIGTERM)
     app = app_from_registry(Path(registry_path), owner_uid=os.geteuid())

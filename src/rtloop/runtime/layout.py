@@ -83,8 +83,8 @@ def check_memory(app: App, shm_dir: Path = SHM_DIR, memlock_limit_bytes: int | N
     ``memlock_limit_bytes``: the limit that applies (default: this process's, unless it may
     lock any amount). Returns the bytes the app needs.
     """
-    from rtloop import rt
     from rtloop.errors import AppError
+    from rtloop.linux import rt
 
     needed = shared_memory_bytes(app)
     stats = os.statvfs(shm_dir)

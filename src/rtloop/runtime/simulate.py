@@ -17,13 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from rtloop import rt
 from rtloop.app.builder import App
 from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
 from rtloop.io.host import TaskDevices
 from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.ipc.wiring import TaskWiring, nonfinite_fields
+from rtloop.linux import rt
 from rtloop.record.summary import RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rtloop import rt
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
 from rtloop.errors import AppError, DeviceError, TaskFailed
@@ -34,7 +33,8 @@ from rtloop.io.device import check_device
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.ipc.wiring import nonfinite_fields
-from rtloop.lean import single_threaded_children
+from rtloop.linux import rt
+from rtloop.linux.lean import single_threaded_children
 from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
@@ -129,7 +129,7 @@ class Supervisor:
     # --- lifecycle -------------------------------------------------------------------------
     def run(self) -> RunSummary:
         if self.app.live_view is not None:  # a missing foxglove-sdk stops the run before anything starts
-            from rtloop.ros.live import import_foxglove
+            from rtloop.record.foxglove_live import import_foxglove
 
             import_foxglove()
         capabilities = rt.probe()
@@ -195,7 +195,7 @@ class Supervisor:
         """Start the Foxglove server if the app asks for one (in this non-real-time process)."""
         if self.app.live_view is None:
             return
-        from rtloop.ros.live import LiveView
+        from rtloop.record.foxglove_live import LiveView
 
         recorder = session.recorder
         names = recorder.signals.names if recorder.signals is not None else []

@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from rtloop import rt
 from rtloop.app.builder import TaskConfig
 from rtloop.app.byvalue import loads_runnable
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
@@ -28,7 +27,8 @@ from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BY
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
-from rtloop.lean import unlock_what_the_loop_never_needs
+from rtloop.linux import rt
+from rtloop.linux.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
 
 T0_POLL_S = 0.001

@@ -32,7 +32,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from .errors import RtloopError
+from rtloop.errors import RtloopError
 
 DEFAULT_SIGNIFICANT_DIGITS = 2
 _MAGNITUDE_BITS = 64  # magnitudes of int64 values go up to 2^63, which needs 64 bits

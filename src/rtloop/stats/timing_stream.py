@@ -1,9 +1,9 @@
 """Timing statistics of one task, fed batch by batch, in memory that does not grow with the run.
 
-:func:`rtloop.timing.task_timing` needs every sample of a run; a controller that runs for
+:func:`rtloop.stats.timing.task_timing` needs every sample of a run; a controller that runs for
 days cannot keep them. :class:`StreamingTaskTiming` takes the same (cycle, release, start,
 end) records in cycle order, as the supervisor drains them, and gives the same
-:class:`~rtloop.timing.TaskTiming` at any moment:
+:class:`~rtloop.stats.timing.TaskTiming` at any moment:
 
 - exactly the same: cycles, trimmed, deadline misses, overruns, jitter over 3 %, and each
   distribution's min, max and mean (the mean exact here; ``task_timing``'s float64 mean
@@ -23,7 +23,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from .errors import RtloopError
+from rtloop.errors import RtloopError
+
 from .histogram import DEFAULT_SIGNIFICANT_DIGITS, Histogram, exact_sum
 from .timing import (
     DEFAULT_TRIM,
@@ -41,7 +42,7 @@ class TimingOrderError(RtloopError, ValueError):
 
 
 class StreamingTaskTiming:
-    """Streaming counterpart of :func:`rtloop.timing.task_timing` for one task."""
+    """Streaming counterpart of :func:`rtloop.stats.timing.task_timing` for one task."""
 
     def __init__(
         self,
@@ -201,7 +202,7 @@ class StreamingTaskTiming:
 
 
 def distribution_of(histogram: Histogram) -> Distribution:
-    """A :class:`~rtloop.timing.Distribution` from a histogram (all NaN when it is empty)."""
+    """A :class:`~rtloop.stats.timing.Distribution` from a histogram (all NaN when it is empty)."""
     if histogram.count == 0:
         return Distribution.of([])
     assert histogram.min is not None and histogram.max is not None

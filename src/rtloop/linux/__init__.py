@@ -1,0 +1,6 @@
+"""Linux primitives for real-time processes: scheduling, memory locking, clocks, subreapers.
+
+:mod:`rt` is the thin checked layer over libc (every call raises
+:class:`~rtloop.errors.LibcError` naming itself); :mod:`lean` keeps task processes to one
+thread and only the memory the loop needs locked. Nothing here knows of apps or runs.
+"""

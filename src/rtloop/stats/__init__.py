@@ -1,0 +1,6 @@
+"""Timing statistics: samples of a run's cycles into the figures ``summary.json`` and the report show.
+
+:mod:`timing` holds the definitions (latency, jitter, misses) as pure functions over every
+sample; :mod:`timing_stream` computes the same record from batches in fixed memory
+(:mod:`histogram`), as a days-long run needs. Nothing here does I/O.
+"""
