@@ -100,6 +100,11 @@ class DeadlineMissesExceeded(RtloopError, RuntimeError):
     """A task missed more consecutive deadlines than its ``max_consecutive_misses`` allows."""
 
 
+class WatchdogExpired(RtloopError, RuntimeError):
+    """A real-time task ran past its watchdog limit without sleeping (the kernel's RLIMIT_RTTIME
+    told it with SIGXCPU): a step spinning at a real-time priority."""
+
+
 class NonFiniteOutput(RtloopError, ValueError):
     """A NaN or infinite output was headed across a connection that does not allow it."""
 

@@ -247,6 +247,19 @@ def leave_realtime() -> bool:
     return True
 
 
+def limit_realtime_cpu(soft_s: float, hard_s: float) -> None:
+    """Let the kernel end a real-time spin: RLIMIT_RTTIME counts the CPU time this thread uses
+    at a real-time priority without blocking (each sleep resets it). At ``soft_s`` it sends
+    SIGXCPU (once a second after), at ``hard_s`` SIGKILL. Unlike the supervisor's watchdog it
+    needs no CPU time of its own: it works when busy tasks hold every core."""
+    soft_us, hard_us = round(soft_s * 1e6), round(hard_s * 1e6)
+    try:
+        resource.setrlimit(resource.RLIMIT_RTTIME, (soft_us, hard_us))
+    except (OSError, ValueError) as error:
+        raise LibcError(f"setrlimit(RLIMIT_RTTIME, {soft_us} µs, {hard_us} µs)", getattr(error, "errno", 0) or 0,
+                        "a hard limit above the current one needs root (CAP_SYS_RESOURCE)") from None
+
+
 def lock_memory() -> None:
     """mlockall(MCL_CURRENT | MCL_FUTURE): no page faults from swapping in the loop."""
     _check(

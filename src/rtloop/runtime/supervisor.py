@@ -217,7 +217,8 @@ class Supervisor:
             handles = layout.tasks[name]
             process = context.Process(
                 target=task_process_main,
-                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name]),
+                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name],
+                      self._spin_limit_s(spec.config)),
                 name=f"rtloop-{self.app.name}-{name}",
             )
             # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
@@ -347,6 +348,13 @@ class Supervisor:
             except ProcessLookupError:
                 pass
 
+    def _spin_limit_s(self, config: Any) -> tuple[float, float] | None:
+        """The kernel's side of the watchdog (RLIMIT_RTTIME in the task): the same limit, then the grace."""
+        if not config.watchdog_periods:
+            return None
+        limit_s = max(config.watchdog_periods * config.period_ns / 1e9, self.limits.watchdog_min_s)
+        return limit_s, limit_s + self.limits.watchdog_grace_s
+
     def _cycle_after(self, name: str, recorder: Any) -> int:
         """The cycle a task works on: the one after its newest timing record."""
         last = recorder.last_record[name]
@@ -402,7 +410,7 @@ class Supervisor:
                 )
             if task_run.failure is not None and self.failure is None:
                 self.failure = task_run.failure
-                self.state = RunState.FAULT
+                self.state = RunState.WATCHDOG if self.failure.reason.startswith("WatchdogExpired") else RunState.FAULT
                 layout.control[ControlWord.STOP] = 1
 
     def _phase_of(self, layout: AppLayout, name: str) -> tuple[str, int | None]:

@@ -20,7 +20,7 @@ import numpy as np
 
 from rtloop.app.builder import TaskConfig
 from rtloop.app.byvalue import loads_runnable
-from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested
+from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import SNAPSHOT_DUE, cycle_work
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
@@ -147,8 +147,10 @@ def task_process_main(
     segments: TaskSegments,
     pipe: Any,
     devices: tuple[DeviceWiring, ...] | bytes = (),
+    spin_limit_s: tuple[float, float] | None = None,
 ) -> None:
-    """Entry point of a task process (spawned by the supervisor)."""
+    """Entry point of a task process (spawned by the supervisor). ``spin_limit_s``: how long the
+    loop may run at a real-time priority without sleeping before it fails, then is killed."""
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     control_segment = Segment.attach(segments.control)
@@ -220,6 +222,8 @@ def task_process_main(
         status[StatusWord.STATE] = TaskState.RUNNING
         if t0_ns:
             task.devices.activate()
+            if settings.rt and spin_limit_s:
+                _end_a_spin_after(*spin_limit_s, task)
             try:
                 task.run_loop(t0_ns, end_ns)
             except StopRequested as request:  # the runnable ended the run (a model's end): stop in order
@@ -262,6 +266,19 @@ def _on_sigterm(control: WordBlock, task: RealtimeTask | None) -> None:
     if control[ControlWord.STOP] and task is not None and task.devices and task.in_loop:
         raise TimeoutError("stopped by SIGTERM while its step did not return (the devices were made safe)")
     control[ControlWord.STOP] = 1
+
+
+def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
+    """The kernel's watchdog for a step that spins: the supervisor's needs CPU time, which busy
+    real-time tasks on every core never leave it. SIGXCPU fails the step (safe values written on
+    the way out), SIGKILL follows if it cannot (a loop inside C code)."""
+    def fail(_signum: int, _frame: Any) -> None:
+        if task.in_loop:
+            raise WatchdogExpired(f"watchdog: ran {fail_s:g} s at a real-time priority without sleeping "
+                                  "(the kernel's RLIMIT_RTTIME); the step is stuck in an endless loop")
+
+    signal.signal(signal.SIGXCPU, fail)
+    rt.limit_realtime_cpu(fail_s, kill_s)
 
 
 def _report_device_problems(pipe: Any, problems: list[str]) -> None:
