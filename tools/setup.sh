@@ -23,4 +23,6 @@ fi
 python3 -m venv .venv
 .venv/bin/pip install -q --upgrade pip 'setuptools>=77'  # setup.py build_ext (tests) reads the SPDX license string
 .venv/bin/pip install -q -e '.[all,test]'
+# Bytecode now, as the user: runs through sudo (tools/as-root) read it and write none.
+.venv/bin/python -m compileall -q src examples tests >/dev/null || true
 echo "rtloop installed in .venv: .venv/bin/rtloop (real-time runs need root: tools/as-root .venv/bin/rtloop run ...)"

@@ -57,11 +57,20 @@ def installed_origin(module_name: str) -> str | None:
 
 
 def check_owner(path: Path) -> None:
-    """Refuse a module file owned by someone other than the caller or root."""
+    """Refuse a module file owned by someone other than the caller or root (under sudo, the
+    user who ran sudo is the caller too: they could run anything as root already)."""
     owner = os.stat(path).st_uid
-    if owner not in (0, os.geteuid()):
+    if owner not in _trusted_uids():
         raise ModuleRefused(f"{path} is owned by uid {owner}, not by you (uid {os.geteuid()}) or root; "
                             "rtloop will not run it")
+
+
+def _trusted_uids() -> set[int]:
+    uids = {0, os.geteuid()}
+    sudo_uid = os.environ.get("SUDO_UID", "")
+    if os.geteuid() == 0 and sudo_uid.isdigit():
+        uids.add(int(sudo_uid))
+    return uids
 
 
 def load_module_file(module_name: str, path: str | Path) -> ModuleType:

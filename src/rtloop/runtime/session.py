@@ -37,7 +37,7 @@ from pathlib import Path
 
 from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
 from rtloop.errors import AppError
-from rtloop.record.recorder import Recorder
+from rtloop.record.recorder import Recorder, give_to_invoking_user
 from rtloop.record.summary import RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout
 
@@ -64,7 +64,10 @@ def prepare_out_dir(out: Path, *, force: bool = False, protect: Iterable[Path] =
     """
     check_out_dir(out, protect=protect)
     if not out.exists():
+        missing = [folder for folder in (out, *out.parents) if not folder.exists()]
         out.mkdir(parents=True)
+        for folder in reversed(missing):  # under sudo, `runs/` stays the user's to write in
+            give_to_invoking_user(folder)
         return out
     for name in LEFTOVERS:
         if os.path.lexists(out / name):
@@ -262,6 +265,7 @@ class RunSession:
         if self.summarise is not None:
             self.summary = self.summarise(False)
             self.summary_file.write(self.summary)
+            give_to_invoking_user(self.out)  # the last summary.json is a new file (written, then renamed)
 
     def _close_resources(self) -> None:
         hooks, self.before_close = self.before_close, []

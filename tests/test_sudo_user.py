@@ -1,0 +1,57 @@
+"""A user who runs rtloop through sudo (tools/as-root): their own files run, what rtloop writes
+stays theirs. Runs as root, playing the sudo user with SUDO_UID/SUDO_GID."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+import rtloop
+from rt_test_runnables import Counter
+from rtloop.app.modules import ModuleRefused, check_owner
+from rtloop.runtime.session import prepare_out_dir
+
+SUDO_USER_ID = 4242  # no such user needed: ownership is a number
+OTHER_USER_ID = 4343
+
+pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="plays a sudo user: needs root to chown")
+
+
+@pytest.fixture
+def under_sudo(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SUDO_UID", str(SUDO_USER_ID))
+    monkeypatch.setenv("SUDO_GID", str(SUDO_USER_ID))
+
+
+def owned_by(path: Path, uid: int) -> Path:
+    path.write_text("x = 1\n")
+    os.chown(path, uid, uid)
+    return path
+
+
+def test_the_sudo_users_own_module_runs_another_users_does_not(tmp_path: Path, under_sudo: None) -> None:
+    check_owner(owned_by(tmp_path / "mine.py", SUDO_USER_ID))
+    with pytest.raises(ModuleRefused, match=f"owned by uid {OTHER_USER_ID}"):
+        check_owner(owned_by(tmp_path / "planted.py", OTHER_USER_ID))
+
+
+def test_without_sudo_root_runs_only_roots_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("SUDO_UID", raising=False)
+    with pytest.raises(ModuleRefused):
+        check_owner(owned_by(tmp_path / "mine.py", SUDO_USER_ID))
+
+
+def test_new_folders_and_the_last_summary_belong_to_the_sudo_user(tmp_path: Path, under_sudo: None) -> None:
+    out = tmp_path / "runs" / "day1" / "first"
+    prepare_out_dir(out)
+    assert [(tmp_path / p).stat().st_uid for p in ("runs", "runs/day1", "runs/day1/first")] == [SUDO_USER_ID] * 3
+    assert tmp_path.stat().st_uid == 0  # what existed before is not touched
+
+    app = rtloop.App(f"sudo_user_{os.getpid()}")
+    app.add_task("count", Counter(), period_ns=1_000_000, policy="other")
+    run = tmp_path / "runs" / "sim"
+    rtloop.simulate(app, 0.05, run)
+    not_theirs = [p.name for p in (run, *run.iterdir()) if p.stat().st_uid != SUDO_USER_ID]
+    assert not_theirs == []
