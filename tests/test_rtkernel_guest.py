@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import guest_device, scaled_ns, scaled_s
+from conftest import guest_device, scaled_ns, scaled_s, slowdown
 
 pytestmark = pytest.mark.rtkernel
 
@@ -287,14 +287,17 @@ def _first_unclean_release_ns(timing_csv: Path, period_ns: int) -> int:
 def test_jiwy_runs_on_the_rt_kernel_writes_its_report_and_reproduces_its_simulation(
     tmp_path: Path, rtloop_env: dict[str, str], rtkernel_guest: dict
 ) -> None:
-    # The demo as it is, at a rate emulation keeps up with (1 kHz on hardware, 50 Hz under TCG):
-    # run == simulate is a property of the schedule, whatever the period.
-    period_ns = scaled_ns(1_000_000)
+    # The demo as it is, at a rate the machine keeps up with: run == simulate is a property of the
+    # schedule, whatever the period. 1 kHz on hardware (1,000 cycles, the step at 0.5 s). Under
+    # emulation JIWY's step takes a few ms, but a busy host stalls the whole guest for tens of ms
+    # at a time, which ends a 20 ms cycle late: 10 Hz there (200 cycles, the step at cycle 5).
+    emulated = slowdown() > 1
+    period_ns = scaled_ns(5_000_000 if emulated else 1_000_000)
     text = (JIWY / "jiwy.toml").read_text()
     assert text.count("period_ns = 1_000_000") == 2
     app = tmp_path / "jiwy.toml"
     app.write_text(text.replace("period_ns = 1_000_000", f"period_ns = {period_ns}"))
-    duration_s = str(scaled_s(1.0))  # the step at 0.5 s and 1,000 cycles, on hardware as under emulation
+    duration_s = str((200 if emulated else 1000) * period_ns / 1e9)
     feed = f"setpoint={JIWY / 'setpoints' / 'step.csv'}"
     rtloop = [sys.executable, "-m", "rtloop.cli"]
     timeout_s = scaled_s(60)
@@ -306,12 +309,14 @@ def test_jiwy_runs_on_the_rt_kernel_writes_its_report_and_reproduces_its_simulat
 
     cli("simulate", str(app), "--duration", duration_s, "--feed", feed, "--out", str(tmp_path / "sim"), "-q")
     simulated = (tmp_path / "sim" / "signals.csv").read_text().splitlines()
-    compared_rows, horizons = 0, []
+    compared_rows, misses = 0, []
     for attempt in range(3):  # a host that stalls the whole guest can spoil a run; the rule stays the same
         out = tmp_path / f"run{attempt}"
         cli("run", str(app), "--duration", duration_s, "--feed", feed, "--out", str(out), "-q")
         horizon_ns = _first_unclean_release_ns(out / "timing.csv", period_ns)
-        horizons.append(horizon_ns)
+        tasks = json.loads((out / "summary.json").read_text())["tasks"]
+        misses.append((horizon_ns / 1e9, {name: (task["cycles"], task["overruns"], task["stale_reads"])
+                                          for name, task in tasks.items()}))
         ran = (out / "signals.csv").read_text().splitlines()
         assert ran[0] == simulated[0]
         compared_rows = 0
@@ -322,7 +327,8 @@ def test_jiwy_runs_on_the_rt_kernel_writes_its_report_and_reproduces_its_simulat
             compared_rows += 1
         if compared_rows >= 100:
             break
-    assert compared_rows >= 100, f"no run stayed on schedule long enough to compare: first misses at {horizons} ns"
+    assert compared_rows >= 100, ("no run stayed on schedule for 100 cycles: (first late or skipped release in s, "
+                                  f"{{task: (cycles, overruns, stale reads)}}) of each run: {misses}")
     cli("report", str(out))
     assert (out / "report.html").stat().st_size > 0
     summary = json.loads((out / "summary.json").read_text())

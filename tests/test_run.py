@@ -1,4 +1,9 @@
-"""Running apps for real: artifacts, RT settings, faults, signals, the unprivileged fallback."""
+"""Running apps for real: artifacts, RT settings, faults, signals, the unprivileged fallback.
+
+The real-time tests count cycles; in the emulated PREEMPT_RT guest (docs/rtkernel-guest.md)
+they run with periods and durations stretched by ``scaled_ns``/``scaled_s``, so the same
+number of cycles runs and the same behaviour is asserted, never time itself.
+"""
 
 from __future__ import annotations
 
@@ -16,12 +21,12 @@ from pathlib import Path
 import pytest
 
 import rtloop
-from conftest import other_cpu
+from conftest import other_cpu, scaled_ns, scaled_s
 from rt_test_runnables import BadPrerun, Counter, Noop, RaiseAt, ReportSettings, Sleepy
 from rtloop import App, AppError, TaskFailed
 from rtloop.ipc.ports import connect_app
 
-P = 1_000_000
+P = scaled_ns(1_000_000)  # 1 kHz here, slower where Python is (the emulated guest)
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
@@ -36,9 +41,10 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     a = app.add_task("a", Counter(), period_ns=P, priority=70, cpu=other_cpu())
     app.add_task("b", Noop(), period_ns=2 * P, priority=60, cpu=other_cpu())
     app.record(a.y)
-    summary = rtloop.run(app, 0.5, tmp_path)
+    duration_s = scaled_s(0.5)  # 500 cycles
+    summary = rtloop.run(app, duration_s, tmp_path)
     data = json.loads((tmp_path / "summary.json").read_text())
-    assert data["app"] == "two_counters" and data["duration_s"] == 0.5 and data["rt_capable"] is True
+    assert data["app"] == "two_counters" and data["duration_s"] == duration_s and data["rt_capable"] is True
     task = data["tasks"]["a"]
     assert (task["rt"], task["policy"], task["priority"], task["cpu"]) == (True, "fifo", 70, other_cpu())
     for key in ("period_ns", "cycles", "trimmed", "latency_ns", "period_jitter_ns", "exec_ns",
@@ -57,9 +63,9 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     assert first_b["release_ns"] == next(r for r in a_rows if r["cycle"] == "0")["release_ns"]
     signals = read_csv(tmp_path / "signals.csv")
     assert list(signals[0]) == ["t_s", "a.y[0]", "a.y[1]"]
-    # the row at t holds what is valid from t on: the job released at 2 ms publishes at 3 ms
+    # the row at t holds what is valid from t on: the job released at 2P publishes at 3P
     assert signals[0]["t_s"] == "0.0" and float(signals[0]["a.y[0]"]) == 0.0  # initial outputs
-    assert signals[3]["t_s"] == "0.003" and float(signals[3]["a.y[1]"]) == 0.002
+    assert signals[3]["t_s"] == repr(3 * P / 1e9) and float(signals[3]["a.y[1]"]) == 2 * P * 1e-9
 
 
 @pytest.mark.rt
@@ -67,7 +73,7 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
     app = App("settings")
     t = app.add_task("probe", ReportSettings(), period_ns=P, priority=42, cpu=other_cpu(), policy="rr")
     app.record(t.y)
-    rtloop.run(app, 0.1, tmp_path)
+    rtloop.run(app, scaled_s(0.1), tmp_path)
     row = read_csv(tmp_path / "signals.csv")[1]  # [0] holds the initial outputs (t = 0)
     assert float(row["probe.y[0]"]) == os.SCHED_RR
     assert float(row["probe.y[1]"]) == 42
@@ -84,7 +90,7 @@ def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(
     app.add_task("good", Counter(), period_ns=P, cpu=other_cpu(), priority=70)
     app.record(bad.y)
     with pytest.raises(TaskFailed) as caught:
-        rtloop.run(app, 5, tmp_path)
+        rtloop.run(app, scaled_s(5), tmp_path)
     failure = caught.value
     assert (failure.task, failure.cycle, failure.phase) == ("bad", 123, "step")
     assert "ZeroDivisionError" in failure.reason and "rt_test_runnables.py" in failure.traceback_text
@@ -120,7 +126,7 @@ def test_a_runnable_that_cannot_reach_its_process_is_refused_before_running(tmp_
     assert not (tmp_path / "out").exists()  # refused before anything was written
 
 
-def _start_cli(app_file: Path, out: Path, env: dict[str, str], duration: float = 30) -> subprocess.Popen:
+def _start_cli(app_file: Path, out: Path, env: dict[str, str], duration: float = scaled_s(30)) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration), "--out", str(out)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -133,22 +139,22 @@ def _app_file(tmp_path: Path, name: str) -> Path:
         f'name = "{name}"\n'
         "[tasks.counter]\n"
         'runnable = "rt_test_runnables:Counter"\n'
-        f"period_ns = 1_000_000\npriority = 70\ncpu = {other_cpu()}\n"
+        f"period_ns = {P}\npriority = 70\ncpu = {other_cpu()}\n"
         "[tasks.idle]\n"
         'runnable = "rt_test_runnables:Noop"\n'
-        f"period_ns = 1_000_000\npriority = 60\ncpu = {other_cpu()}\n"
+        f"period_ns = {P}\npriority = 60\ncpu = {other_cpu()}\n"
         "[record]\nsignals = ['counter.y']\n"
     )
     return path
 
 
 def _wait_running(name: str) -> dict[str, int]:
-    app = connect_app(name, timeout_s=20)
-    deadline = time.monotonic() + 20
+    app = connect_app(name, timeout_s=scaled_s(20))
+    deadline = time.monotonic() + scaled_s(20)
     while time.monotonic() < deadline:
         pids = app.task_pids()
         if all(pids.values()):
-            time.sleep(0.5)  # let it run a few hundred cycles
+            time.sleep(scaled_s(0.5))  # let it run a few hundred cycles
             return pids
         time.sleep(0.05)
     raise AssertionError("tasks did not start")
@@ -161,7 +167,7 @@ def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path,
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
     _wait_running(name)
     process.send_signal(signum)
-    _, stderr = process.communicate(timeout=20)
+    _, stderr = process.communicate(timeout=scaled_s(20))
     assert process.returncode == 0, stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["stopped_by"] == "signal" and summary["failure"] is None
@@ -179,7 +185,7 @@ def test_killed_task_process_is_reported_and_the_rest_is_kept(tmp_path: Path, rt
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
     pids = _wait_running(name)
     os.kill(pids["idle"], signal.SIGKILL)
-    _, stderr = process.communicate(timeout=20)
+    _, stderr = process.communicate(timeout=scaled_s(20))
     assert process.returncode == 1
     assert "task 'idle' failed" in stderr and "SIGKILL" in stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -197,9 +203,10 @@ def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: 
     command = [
         "setpriv", "--inh-caps=-all", "--bounding-set=-all", "--",
         "prlimit", "--rtprio=0", "--memlock=65536", "--",
-        sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.3", "--out", str(tmp_path / "out"),
+        sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(scaled_s(0.3)),
+        "--out", str(tmp_path / "out"),
     ]
-    result = subprocess.run(command, env=rtloop_env, capture_output=True, text=True, timeout=60)
+    result = subprocess.run(command, env=rtloop_env, capture_output=True, text=True, timeout=scaled_s(60))
     assert result.returncode == 0, result.stderr
     assert "did NOT run real-time" in result.stdout
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -213,8 +220,8 @@ def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: 
 @pytest.mark.rt
 def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> None:
     app = App("overrun")
-    app.add_task("slow", Sleepy(0.0035, every=50), period_ns=P, cpu=other_cpu())
-    summary = rtloop.run(app, 0.5, tmp_path)
+    app.add_task("slow", Sleepy(scaled_s(0.0035), every=50), period_ns=P, cpu=other_cpu())
+    summary = rtloop.run(app, scaled_s(0.5), tmp_path)
     timing = summary.tasks["slow"].timing
     assert timing.overruns >= 3 * 9  # each sleep of 3.5 ms skips at least 3 releases
     assert timing.cycles + timing.overruns == 500
@@ -227,7 +234,7 @@ def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: 
     app.add_task("t", ReportSettings(), period_ns=P, policy="deadline")
     with pytest.raises(AppError, match="cannot be pinned"):
         app.add_task("pinned", Noop(), period_ns=P, policy="deadline", cpu=0)
-    summary = rtloop.run(app, 0.2, tmp_path)
+    summary = rtloop.run(app, scaled_s(0.2), tmp_path)
     task = summary.tasks["t"]
     assert (task.policy, task.rt, task.rt_reason) == ("deadline", True, "")
     assert task.timing.cycles + task.timing.overruns == 200
@@ -236,15 +243,16 @@ def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: 
 @pytest.mark.rt
 def test_cli_cpu_option_pins_every_task(tmp_path: Path, rtloop_env) -> None:
     app_file = _app_file(tmp_path, "pinned")
+    duration = str(scaled_s(0.2))
     result = subprocess.run(
-        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.2", "--out", str(tmp_path / "o"),
-         "--cpu", "0", "-q"], env=rtloop_env, capture_output=True, text=True, timeout=60)
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", duration, "--out", str(tmp_path / "o"),
+         "--cpu", "0", "-q"], env=rtloop_env, capture_output=True, text=True, timeout=scaled_s(60))
     assert result.returncode == 0, result.stderr
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert {task["cpu"] for task in summary["tasks"].values()} == {0}
     bad = subprocess.run(
-        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "0.2", "--out", str(tmp_path / "o"),
-         "--cpu", "99"], env=rtloop_env, capture_output=True, text=True, timeout=60)
+        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", duration, "--out", str(tmp_path / "o"),
+         "--cpu", "99"], env=rtloop_env, capture_output=True, text=True, timeout=scaled_s(60))
     assert bad.returncode == 2 and "cpu 99 is not one of this machine's CPUs" in bad.stderr
 
 

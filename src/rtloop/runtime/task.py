@@ -212,13 +212,16 @@ def task_process_main(
         phase = "prerun"
         runnable.prerun()
         wiring.publish_initial(initial_outputs(runnable, task.y))
+        # Collect before READY, not after T0: T0 follows the last READY by a short margin
+        # (start_margin_ns), and a full collection takes ~5 ms here, several times that on a
+        # small board, ~20 times under emulation; tasks sharing a CPU would pay it one after another.
+        gc.collect()
+        gc.freeze()  # everything alive now is never scanned again
+        gc.disable()  # and no collection pauses inside the loop
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
         phase = "step"
         wiring.stamp_initial(t0_ns)
-        gc.collect()
-        gc.freeze()  # everything alive now is never scanned again
-        gc.disable()  # and no collection pauses inside the loop
         status[StatusWord.STATE] = TaskState.RUNNING
         if t0_ns:
             task.devices.activate()
