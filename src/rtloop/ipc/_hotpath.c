@@ -528,6 +528,8 @@ static void read_inputs(Core *self, int64_t release_ns) {
     for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
         Input *input = &self->inputs[i];
         int64_t stamp = read_channel(input, release_ns);
+        if (stamp == INITIAL_STAMP) /* the writer's initial outputs, published before T0: valid from T0 */
+            stamp = self->t0_ns;
         if (stamp != NO_STAMP)
             for (int64_t s = 0; s < input->n_spans; s++) {
                 Span *span = &input->spans[s];

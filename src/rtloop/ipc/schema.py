@@ -156,6 +156,9 @@ TASK_TIMING_OFFSET_BYTES = STATUS_WORDS * 8
 """Where a task segment's timing ring starts (its status block comes first)."""
 NO_STAMP = -(2**62)
 """The stamp of a LET slot never written."""
+INITIAL_STAMP = 0
+"""The stamp of a task's initial outputs, published at prerun (before T0 is known): a reader takes
+it as stamped T0. So they are there before any task's first release, however late a task starts."""
 READ_RETRIES = 64
 """Seqlock read attempts (per slot) before a reader gives up for this cycle."""
 STOP_POLL_NS = 100_000_000
@@ -187,7 +190,7 @@ def constants() -> dict[str, int]:
     named = {f"{prefix}_{word.name}": int(word) for prefix, block in _BLOCKS for word in block}
     named.update(HEADER_WORDS=HEADER_WORDS, CONTROL_WORDS=CONTROL_WORDS, STATUS_WORDS=STATUS_WORDS,
                  TIMING_RECORD_WORDS=TIMING_RECORD_WORDS, READ_LOG_RECORD_WORDS=READ_LOG_RECORD_WORDS,
-                 NO_STAMP=NO_STAMP, READ_RETRIES=READ_RETRIES,
+                 NO_STAMP=NO_STAMP, INITIAL_STAMP=INITIAL_STAMP, READ_RETRIES=READ_RETRIES,
                  STOP_POLL_NS=STOP_POLL_NS)
     return named
 

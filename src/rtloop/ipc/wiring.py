@@ -16,7 +16,7 @@ import numpy as np
 
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
-from rtloop.ipc.schema import READ_LOG_RECORD_WORDS, NudgeMode
+from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import StatusWord, WordBlock
 
@@ -229,6 +229,8 @@ class TaskWiring:
         t0_ns = self.t0_ns
         for index, link in enumerate(self.links):
             stamp = link.channel.read_valid_at(release_ns, link.sources, link.scratch)
+            if stamp == INITIAL_STAMP:  # the writer's initial outputs, published before T0: valid from T0
+                stamp = t0_ns
             if stamp != NO_STAMP:
                 for source, target in link.copies:
                     np.copyto(target, source)
@@ -271,15 +273,22 @@ class TaskWiring:
             self.record.push(cycle, self.record_row)
 
     def publish_initial(self, y: np.ndarray) -> None:
-        """Remember the outputs left by ``prerun`` (initial conditions), published at T0."""
+        """Publish the outputs left by ``prerun`` (initial conditions), valid from T0.
+
+        Called before the task is ready, so before T0 is known and before any task's first release:
+        stamped :data:`INITIAL_STAMP`, which readers take as T0. A reader released at T0 finds them
+        even when this task sees T0 late (a loaded machine), as in a simulation."""
         self.initial_y[:] = y
+        if self.output is not None:
+            self.output.publish(INITIAL_STAMP, self.initial_y)
 
     def stamp_initial(self, t0_ns: int, *, last_cycle: int = -1, period_ns: int = 0) -> None:
-        """Publish the initial outputs as those of ``last_cycle`` (-1: before the first, valid from T0).
+        """Take T0 and record the initial outputs as those of ``last_cycle`` (-1: before the first).
 
-        A replay that resumes a task from a snapshot passes the cycle the snapshot followed."""
+        A replay that resumes a task from a snapshot passes the cycle the snapshot followed: its
+        outputs (``initial_y``) are published again, stamped as that cycle's."""
         self.t0_ns = t0_ns
-        if self.output is not None:
+        if self.output is not None and last_cycle >= 0:
             self.output.publish(t0_ns + (last_cycle + 1) * period_ns, self.initial_y)
         if self.record is not None:  # tick -1: the outputs that hold from T0 (signals.csv row t = 0)
             np.copyto(self.record_y, self.initial_y)
