@@ -303,6 +303,13 @@ def _replay(args: argparse.Namespace) -> int:
     if result.cannot is not None:
         print(f"replay of {args.run_dir}: cannot reproduce the run {result.cannot} "
               f"({result.rows_compared} rows before that equal)", file=sys.stderr)
+    if result.lost:
+        found = "" if result.divergence or result.cannot else (
+            f"the {result.rows_compared} rows it holds are equal where it kept their values ({followed}), but ")
+        print(f"replay of {args.run_dir}: {found}the run lost part of what it did, so it is not called equal:",
+              file=sys.stderr)
+        for line in result.lost:
+            print(f"  lost: {line}", file=sys.stderr)
     return EXIT_TASK_FAILED
 
 

@@ -13,7 +13,11 @@ had; :func:`compare_replay` checks every row, and a difference comes back as a
 
 Where the replay cannot follow the run (a timing record the run lost, early cycles a
 ``--keep`` run did not keep), :attr:`ReplayResult.cannot` says why and from where, and
-the result is not called equal.
+the result is not called equal. Whatever else the run's summary says it lost on the way
+(``recording.lost``: signal rows, port values it took but did not log; stale reads its read
+log dropped; a recording that stopped) is named in :attr:`ReplayResult.lost`: the replay
+compares what the files hold, leaves out the cells the run lost, and never calls the
+result equal over data it does not have.
 """
 
 from __future__ import annotations
@@ -99,11 +103,15 @@ class ReplayResult:
     notes: tuple[str, ...] = field(default=())
     from_s: float = 0.0
     """Where the replay starts: 0, or the start of a ``--keep`` run's kept window (a snapshot)."""
+    lost: tuple[str, ...] = field(default=())
+    """What the run lost on the way (its summary's ``recording``), each with where: the replay
+    cannot check it, so the result is never equal while this is not empty."""
 
     @property
     def equal(self) -> bool:
-        """Every row of the run compared, and equal bit for bit (never True when nothing was compared)."""
-        return (self.cannot is None and self.divergence is None and self.rows_in_run > 0
+        """Every row of the run compared, and equal bit for bit (never True when nothing was compared,
+        nor when the run lost part of what it did)."""
+        return (self.cannot is None and self.divergence is None and not self.lost and self.rows_in_run > 0
                 and self.rows_compared == self.rows_in_run)
 
     @property
@@ -332,6 +340,12 @@ def check_timeline(cycles: dict[str, list[CycleRecord]], periods_ns: dict[str, i
                 problem = ((before.cycle + 1) * period,
                            f"timing.csv lacks {task} cycles {before.cycle + 1}..{after.cycle - 1}, which "
                            f"followed a cycle that ended in time{lost}: the replay cannot know what they did")
+            elif after.cycle > before.cycle + 1 and dropped.get(task):
+                # after an overrun: skipped releases, or records the ring dropped; the files cannot tell
+                problem = ((before.cycle + 1) * period,
+                           f"timing.csv lacks {task} cycles {before.cycle + 1}..{after.cycle - 1} after an "
+                           f"overrun, and the run lost {dropped[task]} of {task}'s timing records "
+                           "(recording.lost): skipped releases or lost cycles, the replay cannot tell which")
         if problem is not None and (first is None or problem[0] < first[0]):
             first = problem
     return first
@@ -349,10 +363,32 @@ def _column_owners(app: App) -> list[tuple[str, str]]:
     return owners
 
 
+@dataclass
+class LostCells:
+    """Cells of the run's signals.csv that are empty: values the run lost (its record queue was full)."""
+
+    rows: int = 0
+    first_s: float = 0.0
+    last_s: float = 0.0
+    columns: set[str] = field(default_factory=set)
+
+    def add(self, t_s: float, columns: list[str]) -> None:
+        self.first_s = t_s if not self.rows else self.first_s
+        self.rows, self.last_s = self.rows + 1, t_s
+        self.columns.update(columns)
+
+    def describe(self, counts: dict[str, int]) -> str:
+        by_task = ", ".join(f"{task} {count}" for task, count in counts.items()) or "not counted"
+        return (f"signals.csv: {self.rows} rows from t = {self.first_s!r} s to {self.last_s!r} s hold cells the run "
+                f"lost ({', '.join(sorted(self.columns))}; recording.lost.signal_rows: {by_task}): those cells "
+                "are not compared")
+
+
 def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | None = None,
-                    from_ns: int = 0) -> tuple[int, int, Divergence | None]:
+                   from_ns: int = 0, lost: LostCells | None = None) -> tuple[int, int, Divergence | None]:
     """(rows in the run, rows equal from the first, the first divergence) from ``from_ns`` up to
-    ``until_ns`` (None: the end)."""
+    ``until_ns`` (None: the end). An empty cell of the run is a value it lost: not compared, kept
+    in ``lost``."""
     with open(run_csv, newline="") as a, open(replay_csv, newline="") as b:
         run_rows, replay_rows = list(csv.reader(a)), list(csv.reader(b))
     if not run_rows:
@@ -366,6 +402,7 @@ def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | No
         return len(rows), 0, Divergence(0.0, "", 0, (("columns", ",".join(header), ",".join(got)),))
     owners = _column_owners(app)
     periods = {name: task.config.period_ns for name, task in app.tasks.items()}
+    lost = LostCells() if lost is None else lost
     for index, run_row in enumerate(rows):
         replay_row = replay_rows[index + 1] if index + 1 < len(replay_rows) else None
         if replay_row == run_row:
@@ -374,12 +411,17 @@ def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | No
         if replay_row is None or replay_row[0] != run_row[0]:
             other = "none" if replay_row is None else f"t = {replay_row[0]}"
             return len(rows), index, Divergence(float(run_row[0]), "", 0, (("row", f"t = {run_row[0]}", other),))
+        empty = [i for i in range(1, len(header)) if run_row[i] == ""]
+        if empty:
+            lost.add(float(run_row[0]), [header[i] for i in empty])
         differing = [(header[i], run_row[i], replay_row[i]) for i in range(1, len(header))
-                     if run_row[i] != replay_row[i]]
+                     if run_row[i] != replay_row[i] and run_row[i] != ""]
+        if not differing:
+            continue
         # the earliest cycle behind a differing column: a y holds from (k+1)·P, a u was read at k·P
         causes = []
         for i in range(1, len(header)):
-            if run_row[i] != replay_row[i]:
+            if run_row[i] != replay_row[i] and run_row[i] != "":
                 task, side = owners[i - 1]
                 cycle = t_ns // periods[task] - (1 if side == "y" else 0)
                 causes.append((cycle * periods[task], task, cycle))
@@ -467,7 +509,10 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     recording = summary.get("recording") or {}
     periods = {name: task.config.period_ns for name, task in app.tasks.items()}
     records, _t0_ns = read_timing(run_dir, periods)
-    dropped = {name: int(task.get("timing_samples_dropped") or 0) for name, task in summary.get("tasks", {}).items()}
+    tasks = summary.get("tasks") or {}
+    lost_timing = recording_losses(recording, run_dir).get("timing_records", {})
+    dropped = {name: max(int((tasks.get(name) or {}).get("timing_samples_dropped") or 0), lost_timing.get(name, 0))
+               for name in periods}
     try:
         reads = read_reads_csv(run_dir / "reads.csv") if (run_dir / "reads.csv").exists() else []
     except ValueError as error:
@@ -475,13 +520,12 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     notes = []
     if app.connections and not (run_dir / "reads.csv").exists():
         notes.append("the run has no reads.csv (recorded by an older rtloop): stale reads are not followed")
-    for task, count in (recording.get("reads_dropped") or {}).items():
-        notes.append(f"the run's read log of {task} dropped {count} stale reads (ring full): they are not followed")
     resume: dict[str, TaskSnapshot] = {}
     if recording.get("keep_s") is not None and check_timeline(records, periods, dropped) is not None:
         start = window_start(run_dir, records, periods, dropped)
         if isinstance(start, str):
-            return ReplayResult(0, 0, None, cannot=start, notes=tuple(notes))
+            return ReplayResult(0, 0, None, cannot=start, notes=tuple(notes),
+                                lost=tuple(lost_on_the_way(recording, run_dir)))
         resume = start
     starts = {name: snapshot.next_cycle for name, snapshot in resume.items()}
     from_ns = max((s.at_ns for s in resume.values()), default=0)
@@ -497,27 +541,75 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=followed, force=force,
              protect=(run_dir,))
     gap = check_timeline(records, periods, dropped, starts)
-    problems = sorted(followed.problems + ([gap] if gap else []))
+    problems = sorted(followed.problems + ([gap] if gap else []) + timing_lost_at_the_end(records, periods, dropped))
     cannot = None
     if problems:
         at_ns, why = problems[0]
         cannot = f"from t = {at_ns / 1e9!r} s: {why}"
     skipped = sum(b.cycle - a.cycle - 1 for run in records.values() for a, b in pairwise(run))
+    lost = lost_on_the_way(recording, run_dir)
     common: dict[str, Any] = {"cannot": cannot, "skipped_releases": skipped, "stale_reads": len(reads),
                               "port_inputs": sum(len(v) for v in writes.values()), "notes": tuple(notes),
-                              "from_s": from_ns / 1e9}
+                              "from_s": from_ns / 1e9, "lost": tuple(lost)}
     if not (run_dir / "signals.csv").exists():
         return ReplayResult(0, 0, None, **{**common, "cannot": cannot or "the run recorded no signals.csv: "
                                            "nothing to compare"})
     until_ns = problems[0][0] if problems else None
+    lost_cells = LostCells()
     rows, equal_rows, divergence = compare_replay(run_dir / "signals.csv", out / "signals.csv", app, until_ns,
-                                                   from_ns)
+                                                  from_ns, lost_cells)
+    if lost_cells.rows:
+        common["lost"] += (lost_cells.describe(recording_losses(recording, run_dir).get("signal_rows", {})),)
     if not rows and common["cannot"] is None:
         common["cannot"] = "the run's signals.csv holds no rows: nothing to compare"
     if divergence is not None and divergence.task:
         again = RunTimeline(pristine, cycles, reads, resume)
         divergence = _explain(divergence, again, out, writes, records, periods)
     return ReplayResult(rows, equal_rows, divergence, **common)
+
+
+def recording_losses(recording: dict[str, Any], run_dir: Path) -> dict[str, dict[str, int]]:
+    """summary.json's ``recording.lost`` (per kind, per task, counts > 0): {} where it says nothing."""
+    lost = recording.get("lost") or {}
+    try:
+        return {str(kind): {str(task): int(count) for task, count in counts.items() if int(count) > 0}
+                for kind, counts in lost.items()}
+    except (AttributeError, TypeError, ValueError):
+        raise AppError(f"{run_dir / 'summary.json'}: recording.lost is not counts per kind and task") from None
+
+
+def timing_lost_at_the_end(records: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
+                           dropped: dict[str, int]) -> list[tuple[int, str]]:
+    """Tasks that lost timing records although timing.csv shows no gap in their cycles: the records
+    were lost after the last one it holds, and the replay can follow them only up to there."""
+    problems = []
+    for task, run in records.items():
+        if not dropped.get(task) or not run or any(b.cycle != a.cycle + 1 for a, b in pairwise(run)):
+            continue  # nothing lost, nothing to follow, or a gap (check_timeline names it)
+        last = run[-1].cycle
+        problems.append(((last + 1) * periods_ns[task], (
+            f"the run lost {dropped[task]} of {task}'s timing records (recording.lost) and timing.csv shows no "
+            f"gap in its cycles: they were lost after its last record (cycle {last}), so the replay follows "
+            f"{task} only up to there")))
+    return problems
+
+
+def lost_on_the_way(recording: dict[str, Any], run_dir: Path) -> list[str]:
+    """What the run's summary says it lost (besides timing records: those cut the timeline) and the
+    replay therefore cannot check, each with what it means for the replay."""
+    losses = recording_losses(recording, run_dir)
+    lost = []
+    for task, count in losses.get("inputs", {}).items():
+        lost.append(f"the run took {count} values from ports of {task} that it did not log (recording.lost.inputs: "
+                    "its input log was full): the replay cannot feed them, and the run does not say when they "
+                    "came, so rows may differ from then on")
+    for task, count in (recording.get("reads_dropped") or {}).items():
+        lost.append(f"the run's read log of {task} dropped {count} stale reads (recording.reads_dropped: ring "
+                    "full): the replay reads what logical execution time promised there instead")
+    if recording.get("stopped"):
+        lost.append(f"the recording stopped during the run ({recording['stopped']}): its files end there, the rest "
+                    "of the run is not compared")
+    return lost
 
 
 def window_start(run_dir: Path, records: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
