@@ -2,7 +2,9 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -112,6 +114,54 @@ def rtloop_env() -> dict[str, str]:
     paths = [str(TESTS_DIR), str(TESTS_DIR.parent / "examples" / "jiwy"), env.get("PYTHONPATH", "")]
     env["PYTHONPATH"] = os.pathsep.join(paths).rstrip(os.pathsep)
     return env
+
+
+def unique_name(base: str) -> str:
+    """An app name of this test run alone: apps are found by name, and other runs of this suite
+    (another checkout, another user's CI job) may run the same test at the same time."""
+    name = f"{base}_{os.getpid()}"
+    assert len(name) <= 32, f"app names have at most 32 characters: {name!r}"
+    return name
+
+
+def private_ros_domain() -> str:
+    """A ``ROS_DOMAIN_ID`` (0-232) of this test run's own, so bridges of apps run elsewhere on the
+    machine (the JIWY example publishes on the default domain 0) neither see nor feed ours."""
+    return str(1 + os.getpid() % 232)
+
+
+def wait_for_app(name: str, process: subprocess.Popen, timeout_s: float = 60.0):
+    """The running app ``name`` whose supervisor is ``process`` (``rtloop run`` started by the test);
+    fails with the process's stderr at once if it ended instead."""
+    from rtloop.ipc.ports import running_apps
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for app in running_apps():
+            if app.name == name and app.pid == process.pid:
+                return app
+        if process.poll() is not None:
+            pytest.fail(f"rtloop ended (exit {process.returncode}) before app {name!r} ran: {process.communicate()[1]}")
+        time.sleep(0.05)
+    pytest.fail(f"app {name!r} did not start within {timeout_s} s")
+
+
+def wait_for_cycles(app, task: str, cycles: int, process: subprocess.Popen, timeout_s: float = 60.0) -> int:
+    """Until ``task`` of the running ``app`` has computed ``cycles`` cycles (however loaded the machine).
+
+    Returns how many it has computed. The status block holds the last cycle computed (0 before the
+    first too: its execution time tells)."""
+    from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
+
+    status = WordBlock(app.segment(app.registry["tasks"][task]), 0, STATUS_WORDS)
+    deadline = time.monotonic() + timeout_s
+    while (done := status[StatusWord.CYCLE] + 1 if status[StatusWord.EXEC_LAST_NS] > 0 else 0) < cycles:
+        if process.poll() is not None:
+            pytest.fail(f"rtloop ended (exit {process.returncode}) early: {process.communicate()[1]}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"task {task!r} ran {done} cycles in {timeout_s} s, not {cycles}")
+        time.sleep(0.02)
+    return done
 
 
 def other_cpu() -> int:

@@ -123,17 +123,21 @@ class PiController(Runnable):
 
 
 class Sleepy(Runnable):
-    """Sleeps for a while in step (to provoke overruns)."""
+    """Sleeps for a while in the first step at or after every ``every``-th release (to provoke
+    overruns); y[0] counts the sleeps. "At or after": a loaded machine may skip that release."""
 
     n_inputs = 0
-    n_outputs = 0
+    n_outputs = 1
 
     def __init__(self, sleep_s: float, every: int = 1) -> None:
         self.sleep_s, self.every = sleep_s, every
+        self.next_sleep = 0
 
     def step(self, u, y) -> None:
-        if self.tick.cycle % self.every == 0:
+        if self.tick.cycle >= self.next_sleep:
+            self.next_sleep = (self.tick.cycle // self.every + 1) * self.every
             time.sleep(self.sleep_s)
+            y[0] += 1
 
 
 class BadPrerun(Noop):

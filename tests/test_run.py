@@ -15,16 +15,14 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
 
 import rtloop
-from conftest import other_cpu, scaled_ns, scaled_s
+from conftest import other_cpu, scaled_ns, scaled_s, unique_name, wait_for_app, wait_for_cycles
 from rt_test_runnables import BadPrerun, Counter, Noop, RaiseAt, ReportSettings, Sleepy
 from rtloop import App, AppError, TaskFailed
-from rtloop.ipc.ports import connect_app
 
 P = scaled_ns(1_000_000)  # 1 kHz here, slower where Python is (the emulated guest)
 
@@ -148,24 +146,20 @@ def _app_file(tmp_path: Path, name: str) -> Path:
     return path
 
 
-def _wait_running(name: str) -> dict[str, int]:
-    app = connect_app(name, timeout_s=scaled_s(20))
-    deadline = time.monotonic() + scaled_s(20)
-    while time.monotonic() < deadline:
-        pids = app.task_pids()
-        if all(pids.values()):
-            time.sleep(scaled_s(0.5))  # let it run a few hundred cycles
-            return pids
-        time.sleep(0.05)
-    raise AssertionError("tasks did not start")
+def _wait_running(name: str, process: subprocess.Popen) -> dict[str, int]:
+    """The task pids of the app, once its counter has run a few hundred cycles."""
+    app = wait_for_app(name, process, scaled_s(60))
+    wait_for_cycles(app, "counter", 300, process, scaled_s(60))
+    wait_for_cycles(app, "idle", 1, process, scaled_s(60))
+    return app.task_pids()
 
 
 @pytest.mark.rt
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path, rtloop_env, signum) -> None:
-    name = f"stopme_{signum}"
+    name = unique_name(f"stopme_{signum}")
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
-    _wait_running(name)
+    _wait_running(name, process)
     process.send_signal(signum)
     _, stderr = process.communicate(timeout=scaled_s(20))
     assert process.returncode == 0, stderr
@@ -181,9 +175,9 @@ def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path,
 
 @pytest.mark.rt
 def test_killed_task_process_is_reported_and_the_rest_is_kept(tmp_path: Path, rtloop_env) -> None:
-    name = "killme"
+    name = unique_name("killme")
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
-    pids = _wait_running(name)
+    pids = _wait_running(name, process)
     os.kill(pids["idle"], signal.SIGKILL)
     _, stderr = process.communicate(timeout=scaled_s(20))
     assert process.returncode == 1
@@ -214,18 +208,23 @@ def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: 
     task = summary["tasks"]["counter"]
     assert task["rt"] is False and task["policy"] == "other"
     assert "sched_setscheduler" in task["rt_reason"] and "Operation not permitted" in task["rt_reason"]
-    assert task["cycles"] > 200
+    # it ran its loop: every release of the 0.3 s either ran or was skipped (SCHED_OTHER on a busy
+    # machine skips some; how many is the machine's business, not the test's)
+    assert task["cycles"] > 0 and task["cycles"] + task["overruns"] == 300
 
 
 @pytest.mark.rt
 def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> None:
     app = App("overrun")
-    app.add_task("slow", Sleepy(scaled_s(0.0035), every=50), period_ns=P, cpu=other_cpu())
+    slow = app.add_task("slow", Sleepy(scaled_s(0.0035), every=50), period_ns=P, cpu=other_cpu())
+    app.record(slow.y)
     summary = rtloop.run(app, scaled_s(0.5), tmp_path)
     timing = summary.tasks["slow"].timing
-    assert timing.overruns >= 3 * 9  # each sleep of 3.5 ms skips at least 3 releases
+    sleeps = int(float(read_csv(tmp_path / "signals.csv")[-1]["slow.y[0]"]))
+    assert sleeps >= 9
+    assert timing.overruns >= 3 * sleeps  # each sleep of 3.5 ms skips at least 3 releases
     assert timing.cycles + timing.overruns == 500
-    assert timing.deadline_misses >= 9
+    assert timing.deadline_misses >= sleeps
 
 
 @pytest.mark.rt

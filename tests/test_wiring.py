@@ -17,12 +17,12 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu
+from conftest import other_cpu, unique_name, wait_for_app, wait_for_cycles
 from rt_test_runnables import Counter, Gain, Integrator, Noop, PiController
 from rtloop import App, AppError, ConnectionSizeError, PortValueError
 from rtloop.app.appfile import load_app
 from rtloop.ipc.channels import NO_STAMP, LetChannel, SampleQueue
-from rtloop.ipc.ports import RunningApp, running_apps, validate_values
+from rtloop.ipc.ports import validate_values
 from rtloop.ipc.segments import Segment, new_run_token, remove_stale_segments
 
 P = 1_000_000
@@ -293,41 +293,56 @@ def test_bad_profile_is_refused_before_running(tmp_path: Path) -> None:
 # --- a running app, reached from outside ------------------------------------------------------
 
 
-def _jiwy_cli(tmp_path: Path, duration: float) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "rtloop.cli", "run", str(EXAMPLES / "jiwy" / "jiwy.toml"),
-         "--duration", str(duration), "--out", str(tmp_path / "out")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
+def _jiwy_cli(tmp_path: Path, name: str, duration: float | None = None) -> subprocess.Popen:
+    """examples/jiwy/jiwy.toml under a name of its own (other apps here may be called 'jiwy'),
+    without its ROS 2 bridges; runs until SIGINT when ``duration`` is None."""
+    text = (EXAMPLES / "jiwy" / "jiwy.toml").read_text().split("# ROS 2 topics")[0]
+    app_file = tmp_path / f"{name}.toml"
+    app_file.write_text(text.replace('name = "jiwy"', f'name = "{name}"'))
+    run = [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--out", str(tmp_path / "out")]
+    if duration is not None:
+        run += ["--duration", str(duration)]
+    env = {**os.environ, "PYTHONPATH": str(EXAMPLES / "jiwy")}
+    return subprocess.Popen(run, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 @pytest.mark.rt
 @pytest.mark.usefixtures("hot_path")
 def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path) -> None:
-    process = _jiwy_cli(tmp_path, 8)
+    name = unique_name("jiwy_ports")
+    process = _jiwy_cli(tmp_path, name)  # until SIGINT: however slow the machine, it runs while we talk to it
     try:
-        app = _app_of(process)
-        time.sleep(0.5)
+        app = wait_for_app(name, process)
+        wait_for_cycles(app, "plant", 1, process)
         rtloop = [sys.executable, "-m", "rtloop.cli"]
-        bad = subprocess.run([*rtloop, "port", "write", "jiwy", "setpoint", "0.5"], capture_output=True, text=True)
+        bad = subprocess.run([*rtloop, "port", "write", name, "setpoint", "0.5"], capture_output=True, text=True)
         assert bad.returncode == 2 or bad.returncode == 1
         assert "takes 2 values, got 1" in bad.stderr
-        nan = subprocess.run([*rtloop, "port", "write", "jiwy", "setpoint", "0.5", "nan"],
+        nan = subprocess.run([*rtloop, "port", "write", name, "setpoint", "0.5", "nan"],
                              capture_output=True, text=True)
         assert "NaN" in nan.stderr and nan.returncode != 0
-        ok = subprocess.run([*rtloop, "port", "write", "jiwy", "setpoint", "0.5", "0.3"],
+        ok = subprocess.run([*rtloop, "port", "write", name, "setpoint", "0.5", "0.3"],
                             capture_output=True, text=True)
         assert ok.returncode == 0, ok.stderr
-        read = subprocess.run([*rtloop, "port", "read", "jiwy", "angles", "--count", "5"], capture_output=True,
-                              text=True, timeout=20)
+        read = subprocess.run([*rtloop, "port", "read", name, "angles", "--count", "5"], capture_output=True,
+                              text=True, timeout=60)
         assert read.returncode == 0, read.stderr
         header, *lines = read.stdout.strip().splitlines()
         assert header.split() == ["t_s", "plant.y[0]", "plant.y[1]"]
         assert len(lines) == 5 and all(len(line.split()) == 3 for line in lines)
         assert app.ports["setpoint"]["direction"] == "in"
+        # the gimbal settles on a step in about 0.25 s: 1.5 s of its own time after the write
+        written_at = wait_for_cycles(app, "plant", 1, process)
+        wait_for_cycles(app, "plant", written_at + 1500, process)
     finally:
-        process.communicate(timeout=30)
-    assert process.returncode == 0
+        process.send_signal(signal.SIGINT)
+        try:
+            _, stderr = process.communicate(timeout=60)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    assert process.returncode == 0, stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["ports"]["setpoint"]["sent"] == 1 and summary["ports"]["setpoint"]["received"] == 1
     assert summary["ports"]["angles"]["received"] >= 5
@@ -338,8 +353,9 @@ def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path
 
 @pytest.mark.rt
 def test_killing_supervisor_and_task_leaves_nothing_after_the_next_run(tmp_path: Path) -> None:
-    process = _jiwy_cli(tmp_path, 30)
-    app = _app_of(process)
+    name = unique_name("jiwy_killed")
+    process = _jiwy_cli(tmp_path, name, 30)
+    app = wait_for_app(name, process)
     pids = app.task_pids()
     deadline = time.monotonic() + 20
     while not all(pids.values()) and time.monotonic() < deadline:
@@ -348,27 +364,16 @@ def test_killing_supervisor_and_task_leaves_nothing_after_the_next_run(tmp_path:
     os.kill(pids["plant"], signal.SIGKILL)
     os.kill(process.pid, signal.SIGKILL)
     process.communicate(timeout=10)
-    left = list(Path("/dev/shm").glob(f"rtloop-jiwy-{process.pid}-*"))
+    left = list(Path("/dev/shm").glob(f"rtloop-{name}-{process.pid}-*"))
     assert left, "a supervisor killed with SIGKILL cannot clean up: the segments are still there"
     # its remaining task dies with it (parent-death signal), so nothing keeps running at RT priority
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline and _alive(pids["controller"]):
         time.sleep(0.05)
     assert not _alive(pids["controller"])
-    removed = remove_stale_segments()  # what every run does first
-    assert sorted(removed) == sorted(p.name for p in left)
-    assert not list(Path("/dev/shm").glob(f"rtloop-jiwy-{process.pid}-*"))
-
-
-def _app_of(process: subprocess.Popen) -> RunningApp:
-    """The running app whose supervisor is ``process`` (other tests may run a 'jiwy' too)."""
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        for app in running_apps():
-            if app.pid == process.pid:
-                return app
-        time.sleep(0.05)
-    raise AssertionError("the app did not start")
+    removed = remove_stale_segments()  # what every run does first (it may find other dead runs' too)
+    assert {p.name for p in left} <= set(removed)
+    assert not list(Path("/dev/shm").glob(f"rtloop-{name}-{process.pid}-*"))
 
 
 def _alive(pid: int) -> bool:
