@@ -11,6 +11,7 @@ for a name: modules import from where a name is defined.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -91,6 +92,7 @@ def imports_of(module: str, path: Path, modules: dict[str, Path]) -> set[str]:
     return found
 
 
+@functools.cache  # the sources do not change during a run; each of the ~130 tests below used to parse them all
 def import_graph() -> dict[str, set[str]]:
     modules = all_modules()
     return {name: imports_of(name, path, modules) for name, path in modules.items()}
