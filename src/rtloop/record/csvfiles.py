@@ -272,6 +272,11 @@ class SignalsCsv:
         self.unexplained[task] = max(0, unexplained)
         return firsts
 
+    def lost_after_newest(self, task: str, count: int) -> None:
+        """``count`` rows of ``task`` after its newest one are lost for good (the run ended without
+        them): the final flush marks the gap from the tick after the newest row."""
+        self.unexplained[task] = self.unexplained.get(task, 0) + count
+
     def flush(self, final: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Write every row whose time all recorded streams have reached; return those rows.
 

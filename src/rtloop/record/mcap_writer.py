@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from rtloop.record.mcap_file import ChunkPlace, McapFile
 from rtloop.record.rosbag2 import BagContents, BagTopic, offered_qos_profiles
 from rtloop.ros.types import (  # shared with the live view: the same topics and schemas
     CYCLE_TIMING_SCHEMA,
@@ -96,9 +97,9 @@ class RunMcapWriter:
         wall_t0_ns: int,
         per_signal_topics: bool = False,
         metadata: Mapping[str, str] | None = None,
+        timing_tasks: Sequence[str] = (),
     ) -> None:
         from mcap.well_known import Profile
-        from mcap.writer import CompressionType, Writer
 
         self.signal_names = [str(name) for name in signal_names]
         self.t0_ns = int(t0_ns)
@@ -106,10 +107,12 @@ class RunMcapWriter:
         self.per_signal_topics = per_signal_topics
         self.signal_topics = self._signal_topics() if per_signal_topics else []
         self.file_name = Path(path).name if isinstance(path, str | PathLike) else "run.mcap"
-        # Open the file ourselves: mcap's writer takes only str paths and we close it.
         self._file = open(path, "wb") if isinstance(path, str | PathLike) else None  # noqa: SIM115
-        self._writer = Writer(self._file or path, compression=CompressionType.ZSTD)
-        self._writer.start(profile=Profile.ROS2, library="rtloop")
+        self._stream = self._file or path
+        self._mcap = McapFile(self._stream, profile=Profile.ROS2, library="rtloop")
+        info = {"t0_ns": str(self.t0_ns), "wall_t0_ns": str(self.wall_t0_ns),
+                "signals": ",".join(self.signal_names)}
+        self._mcap.add_metadata("rtloop", {**info, **dict(metadata or {})})
         self._joint_state = self._register("sensor_msgs/msg/JointState", JOINT_STATE_SCHEMA)
         self._timing = self._register("rtloop_msgs/msg/CycleTiming", CYCLE_TIMING_SCHEMA)
         self._float64 = (self._register("std_msgs/msg/Float64", FLOAT64_SCHEMA)
@@ -119,12 +122,13 @@ class RunMcapWriter:
             encode_cycle_timing(_PROBE_TIMING), [self._timing.encode(m) for m in _timing_messages(_PROBE_TIMING)])
         self._joint_state_layout = JointStateLayout.checked(self.signal_names, self._joint_state.encode)
         self._channels: dict[str, _Channel] = {}
-        self._first_log_time_ns: int | None = None
-        self._last_log_time_ns: int | None = None
         self._closed = False
-        info = {"t0_ns": str(self.t0_ns), "wall_t0_ns": str(self.wall_t0_ns),
-                "signals": ",".join(self.signal_names)}
-        self._writer.add_metadata("rtloop", {**info, **dict(metadata or {})})
+        # Channels in a fixed order: the segments of a --keep run then share one channel table,
+        # and are joined by copying their chunks (merge_mcap_files).
+        if self.signal_names:
+            self._channel(SIGNALS_TOPIC, self._joint_state)
+        for task in timing_tasks:
+            self._channel(TIMING_TOPIC_PREFIX + topic_token(task), self._timing)
 
     def _signal_topics(self) -> list[str]:
         topics = [SIGNAL_TOPIC_PREFIX + topic_token(name) for name in self.signal_names]
@@ -138,37 +142,33 @@ class RunMcapWriter:
         from mcap.well_known import SchemaEncoding
         from mcap_ros2._dynamic import serialize_dynamic  # the CDR encoder mcap_ros2 uses
 
-        schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2,
-                                                 definition.encode())
+        schema_id = self._mcap.add_schema(type_name, SchemaEncoding.ROS2, definition.encode())
         return _Schema(schema_id, type_name, serialize_dynamic(type_name, definition)[type_name])
 
-    def _write(self, topic: str, schema: _Schema, message: dict[str, Any], log_time_ns: int) -> None:
-        """Write one message; the channel's message count is also its sequence number."""
-        self._write_many(topic, schema, [schema.encode(message)], [log_time_ns])
-
-    def _write_many(self, topic: str, schema: _Schema, payloads: Sequence[bytes], log_times_ns: Sequence[int]) -> None:
-        """Write encoded messages in order; the channel's message count is also its sequence number."""
-        if not payloads:
-            return
+    def _channel(self, topic: str, schema: _Schema) -> _Channel:
         channel = self._channels.get(topic)
         if channel is None:
             from mcap.well_known import MessageEncoding
 
             qos = offered_qos_profiles()
-            channel_id = self._writer.register_channel(
-                topic, MessageEncoding.CDR, schema.schema_id,
-                metadata={"offered_qos_profiles": qos})  # as rosbag2's MCAP storage does
+            channel_id = self._mcap.add_channel(topic, MessageEncoding.CDR, schema.schema_id,
+                                                {"offered_qos_profiles": qos})  # as rosbag2's MCAP storage does
             channel = self._channels[topic] = _Channel(channel_id, schema, qos)
-        add, channel_id, sequence = self._writer.add_message, channel.channel_id, channel.message_count
-        for data, log_time_ns in zip(payloads, log_times_ns, strict=True):
-            add(channel_id, log_time=log_time_ns, data=data, publish_time=log_time_ns, sequence=sequence)
-            sequence += 1
-        channel.message_count = sequence
-        first, last = min(log_times_ns), max(log_times_ns)
-        if self._first_log_time_ns is None or first < self._first_log_time_ns:
-            self._first_log_time_ns = first
-        if self._last_log_time_ns is None or last > self._last_log_time_ns:
-            self._last_log_time_ns = last
+        return channel
+
+    def _write(self, topic: str, schema: _Schema, message: dict[str, Any], log_time_ns: int) -> None:
+        """Write one message; the channel's message count is also its sequence number."""
+        self._write_many(topic, schema, [schema.encode(message)], np.array([log_time_ns]))
+
+    def _write_many(self, topic: str, schema: _Schema, payloads: np.ndarray | Sequence[bytes],
+                    log_times_ns: np.ndarray) -> None:
+        """Write encoded messages in order (an (n, size) uint8 block, or n payloads); the channel's
+        message count is also its sequence number."""
+        if not len(payloads):
+            return
+        channel = self._channel(topic, schema)
+        self._mcap.add_messages(channel.channel_id, log_times_ns, payloads, channel.message_count)
+        channel.message_count += len(payloads)
 
     @property
     def messages_written(self) -> int:
@@ -180,8 +180,8 @@ class RunMcapWriter:
         topics = tuple(BagTopic(topic, channel.schema.type_name, channel.message_count,
                                 channel.qos_profiles)
                        for topic, channel in self._channels.items())
-        first = self._first_log_time_ns or 0
-        last = self._last_log_time_ns or 0
+        first = self._mcap.message_start_ns or 0
+        last = self._mcap.message_end_ns or 0
         return BagContents(self.file_name, topics, first, last - first)
 
     def add_rows(self, t_ns: np.ndarray | Sequence[int], values: np.ndarray) -> None:
@@ -198,11 +198,10 @@ class RunMcapWriter:
         wall_ns = self.wall_t0_ns + times
         if self._joint_state_layout is not None:  # the whole block in numpy
             payloads = self._joint_state_layout.encode(wall_ns, rows)
-            self._write_many(SIGNALS_TOPIC, self._joint_state, payloads, wall_ns.tolist())
+            self._write_many(SIGNALS_TOPIC, self._joint_state, payloads, wall_ns)
             if self._float64 is None:
                 return
         for t, row in zip(times.tolist(), rows.tolist(), strict=True):
-            wall_ns = self.wall_t0_ns + t
             wall_ns = self.wall_t0_ns + t
             if self._joint_state_layout is None:
                 message = {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names,
@@ -222,7 +221,7 @@ class RunMcapWriter:
         table = np.asarray(records, dtype=np.int64).reshape(-1, 4)
         offset = self.wall_t0_ns - self.t0_ns
         if self._timing_layout_checked:  # the whole block in numpy
-            self._write_many(topic, self._timing, encode_cycle_timing(table), (table[:, 1] + offset).tolist())
+            self._write_many(topic, self._timing, encode_cycle_timing(table), table[:, 1] + offset)
             return
         for cycle, release, start, end in table.tolist():
             message = {"cycle": cycle, "release_ns": release, "start_ns": start,
@@ -234,7 +233,7 @@ class RunMcapWriter:
         if not self._closed:
             self._closed = True
             try:
-                self._writer.finish()
+                self._mcap.finish()
             finally:  # a full disk makes finish() fail: the file is closed all the same
                 if self._file is not None:
                     self._file.close()
@@ -277,9 +276,67 @@ def write_run_mcap(
 def merge_mcap_files(sources: Sequence[str | PathLike[str]], target: str | PathLike[str]) -> int:
     """Write the messages of several ``RunMcapWriter`` files into one, in order; return their count.
 
-    The messages are copied as they are (no decoding); schemas and channels are matched by
-    name and topic, the ``rtloop`` metadata is taken from the first file.
+    Files with the same schemas and channels (the segments of one run) are joined by copying
+    their compressed chunks as they are, at the disk's pace; otherwise the messages are copied
+    one by one (no decoding), schemas and channels matched by name and topic. The ``rtloop``
+    metadata is taken from the first file.
     """
+    from mcap.reader import make_reader
+
+    summaries = []
+    for source in sources:
+        with open(source, "rb") as file:
+            summaries.append(make_reader(file).get_summary())
+    first = summaries[0] if summaries else None
+    if first is not None and sorted(first.channels) == list(range(1, len(first.channels) + 1)) and all(
+            s is not None and s.statistics is not None and _same_channels(s, first) for s in summaries):
+        return _copy_chunks(sources, summaries, target)
+    return _merge_messages(sources, target)
+
+
+def _same_channels(summary: Any, reference: Any) -> bool:
+    def table(s: Any) -> tuple[object, ...]:
+        return (sorted((i, c.topic, c.message_encoding, c.schema_id, sorted(c.metadata.items()))
+                       for i, c in s.channels.items()),
+                sorted((i, x.name, x.encoding, x.data) for i, x in s.schemas.items()))
+    return table(summary) == table(reference)
+
+
+def _copy_chunks(sources: Sequence[str | PathLike[str]], summaries: list[Any],
+                 target: str | PathLike[str]) -> int:
+    from mcap.reader import make_reader
+
+    reference = summaries[0]
+    count = 0
+    with open(target, "wb") as out:
+        with open(sources[0], "rb") as file:
+            reader = make_reader(file)
+            mcap = McapFile(out, profile=reader.get_header().profile, library=reader.get_header().library)
+            for record in reader.iter_metadata():
+                mcap.add_metadata(record.name, dict(record.metadata))
+        schema_ids = {i: mcap.add_schema(x.name, x.encoding, x.data) for i, x in sorted(reference.schemas.items())}
+        for i, channel in sorted(reference.channels.items()):
+            given = mcap.add_channel(channel.topic, channel.message_encoding, schema_ids[channel.schema_id],
+                                     dict(channel.metadata))
+            assert given == i, "the chunks name channels by id: they keep theirs"
+        for source, summary in zip(sources, summaries, strict=True):
+            with open(source, "rb") as file:
+                for index in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                    file.seek(index.chunk_start_offset)
+                    raw = file.read(index.chunk_length + index.message_index_length)
+                    mcap.add_chunk(raw, ChunkPlace(
+                        index.message_start_time, index.message_end_time, index.chunk_start_offset,
+                        index.chunk_length, dict(index.message_index_offsets), index.message_index_length,
+                        index.compressed_size, index.uncompressed_size, index.compression))
+            statistics = summary.statistics
+            mcap.add_counts(statistics.channel_message_counts, statistics.message_start_time,
+                            statistics.message_end_time)
+            count += statistics.message_count
+        mcap.finish()
+    return count
+
+
+def _merge_messages(sources: Sequence[str | PathLike[str]], target: str | PathLike[str]) -> int:
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
@@ -323,16 +380,13 @@ def _timing_messages(table: np.ndarray) -> list[dict[str, int]]:
             for c, r, s, e in table.tolist()]
 
 
-def _same_bytes(payloads: list[bytes], expected: list[bytes]) -> bool:
-    return [bytes(p) for p in payloads] == [bytes(e) for e in expected]
+def _same_bytes(payloads: np.ndarray, expected: list[bytes]) -> bool:
+    return [row.tobytes() for row in payloads] == [bytes(e) for e in expected]
 
 
-def _split(raw: bytes, size: int, count: int) -> list[bytes]:
-    return [raw[i * size:(i + 1) * size] for i in range(count)]
-
-
-def encode_cycle_timing(table: np.ndarray) -> list[bytes]:
-    """CDR payloads of ``rtloop_msgs/msg/CycleTiming`` for rows (cycle, release, start, end), all at once.
+def encode_cycle_timing(table: np.ndarray) -> np.ndarray:
+    """CDR payloads of ``rtloop_msgs/msg/CycleTiming`` for rows (cycle, release, start, end), all at once:
+    one row of bytes per message.
 
     Six 8-byte integers right after the encapsulation header: 8-aligned, so no padding.
     """
@@ -344,7 +398,7 @@ def encode_cycle_timing(table: np.ndarray) -> list[bytes]:
     fields[:, :4] = table
     fields[:, 4] = table[:, 2] - table[:, 1]
     fields[:, 5] = table[:, 3] - table[:, 2]
-    return _split(block.tobytes(), layout.itemsize, count)
+    return block.view(np.uint8).reshape(count, layout.itemsize)
 
 
 class JointStateLayout:
@@ -373,7 +427,8 @@ class JointStateLayout:
         return layout if layout.positions_at >= 12 and _same_bytes(layout.encode(_PROBE_T_NS, rows), expected) \
             else None
 
-    def encode(self, wall_ns: np.ndarray, rows: np.ndarray) -> list[bytes]:
+    def encode(self, wall_ns: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """One row of payload bytes per signal row."""
         count = len(wall_ns)
         block = np.empty((count, self.size), dtype=np.uint8)
         block[:] = self.template
@@ -382,4 +437,4 @@ class JointStateLayout:
         block[:, 8:12] = nanoseconds.astype("<u4").view(np.uint8).reshape(count, 4)
         values = np.ascontiguousarray(rows, dtype="<f8").view(np.uint8).reshape(count, 8 * self.n_values)
         block[:, self.positions_at:self.positions_at + 8 * self.n_values] = values
-        return _split(block.tobytes(), self.size, count)
+        return block

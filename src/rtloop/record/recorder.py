@@ -123,7 +123,8 @@ class Recorder:
             self.mcap = RunMcapWriter(self._path("run.mcap"), names, self.t0_ns, self.wall_t0_ns,
                                       metadata={"app": self.app.name, "source": self.app.source,
                                                 "units": json.dumps(units_by_column(self.sidecar))
-                                                if self.sidecar else "{}"})
+                                                if self.sidecar else "{}"},
+                                      timing_tasks=list(self.app.tasks))
         except ModuleNotFoundError as error:
             self.mcap_note = f"run.mcap skipped: no module {error.name!r} (pip install 'rtloop[ros]')"
 
@@ -228,6 +229,11 @@ class Recorder:
         """Record-queue rows of ``task``; ``lost_so_far``: rows its queue dropped in all (marked as gaps)."""
         if self.signals is not None:
             self.signals.add(task, ticks, rows, lost_so_far)
+
+    def signals_lost_at_end(self, task: str, count: int) -> None:
+        """``count`` rows of ``task`` came after the newest one drained and will never be: a gap in signals.csv."""
+        if self.signals is not None:
+            self.signals.lost_after_newest(task, count)
 
     def flush(self, final: bool = False) -> None:
         self._guard(self._flush, final)

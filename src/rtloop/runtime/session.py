@@ -32,14 +32,15 @@ import stat
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
 from rtloop.errors import AppError
+from rtloop.ipc.status import ControlWord
 from rtloop.record.recorder import Recorder, give_to_invoking_user
 from rtloop.record.summary import RunSummary, SummaryFile
-from rtloop.runtime.layout import AppLayout
+from rtloop.runtime.layout import AppLayout, TaskHandles
 
 RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
              "inputs.csv", "reads.csv", "replay.json", "report.html")
@@ -126,6 +127,9 @@ class Limits:
     """Sleep of the supervisor's control loop between two drains."""
     drain_budget_s: float = 0.025
     """Most time one drain may take before the control loop (signals, watchdog, summary) comes back."""
+    stop_drain_budget_s: float = 0.3
+    """Most time the drain after the tasks stopped may take; what is still waiting then is counted
+    as lost, never written (a supervisor that fell behind must not make Ctrl-C wait for its backlog)."""
     summary_interval_s: float = 2.0
     """How often summary.json is rewritten during a run."""
     start_margin_ns: int = 100_000_000
@@ -156,22 +160,34 @@ DRAIN_BATCH_RECORDS = 4096
 
 @dataclass
 class Losses:
-    """What did not reach the recording, per task: counted by the shared-memory queues."""
+    """What did not reach the recording, per task: counted by the shared-memory queues, and
+    what was still waiting in them when the drain after the stop ran out of time."""
 
     timing: dict[str, int]
     signal_rows: dict[str, int]
     inputs: dict[str, int]
+    timing_at_stop: dict[str, int] = field(default_factory=dict)
+    signal_rows_at_stop: dict[str, int] = field(default_factory=dict)
 
     def total(self) -> int:
-        return sum(self.timing.values()) + sum(self.signal_rows.values()) + sum(self.inputs.values())
+        return sum(sum(counts.values()) for counts in (self.timing, self.signal_rows, self.inputs,
+                                                        self.timing_at_stop, self.signal_rows_at_stop))
 
-    def to_json(self) -> dict[str, dict[str, int]]:
-        """summary.json's ``recording.lost``: per kind, per task, only where something was lost."""
-        kinds = {"timing_records": self.timing, "signal_rows": self.signal_rows, "inputs": self.inputs}
+    def to_json(self) -> dict[str, dict[str, dict[str, int]]]:
+        """summary.json's ``recording.lost`` (per kind, per task, only where something was lost):
+        the queues' drops during the run, and (``*_at_stop``) what was left unwritten at the end."""
+        kinds = {"timing_records": self.timing, "signal_rows": self.signal_rows, "inputs": self.inputs,
+                 "timing_records_at_stop": self.timing_at_stop, "signal_rows_at_stop": self.signal_rows_at_stop}
         return {"lost": {kind: {t: n for t, n in counts.items() if n} for kind, counts in kinds.items()}}
 
     def notes(self) -> list[str]:
         lines = []
+        for task in dict.fromkeys([*self.timing_at_stop, *self.signal_rows_at_stop]):
+            timing, rows = self.timing_at_stop.get(task, 0), self.signal_rows_at_stop.get(task, 0)
+            if timing or rows:
+                lines.append(f"task {task}: {timing} timing records and {rows} signal rows not written: still "
+                             "waiting when the time to record after the stop ran out (the supervisor had fallen "
+                             "behind); timing.csv and signals.csv end early, signals.csv marks the gap")
         for task, count in self.timing.items():
             if count:
                 lines.append(f"task {task}: {count} timing records lost (its timing ring was full: the supervisor "
@@ -218,6 +234,8 @@ class RunSession:
         self._opened: list[str] = []
         self._next_summary_s = 0.0
         self.losses = Losses({}, {}, {})
+        self._next_task = 0  # the task the next drain serves first
+        self._timing_drained: dict[str, int] = {}  # per task, timing records taken from its ring
         self.before_close: list[Callable[[], None]] = []
         """Called before the shared memory is removed (the simulator lets go of its views)."""
 
@@ -260,6 +278,7 @@ class RunSession:
             return
         try:
             self.recorder.close()
+
         except Exception as error:  # the recording's own failure is reported, never raised over the run's
             self.recorder.stopped = self.recorder.stopped or f"recording not closed: {error}"
         if self.summarise is not None:
@@ -279,6 +298,11 @@ class RunSession:
         self._opened.clear()
 
     # --- during the run -----------------------------------------------------------------------
+    def stop_tasks(self) -> None:
+        """Ask every task to stop at its next release (one word in shared memory: safe in a signal handler)."""
+        if "layout" in self._opened:
+            self.layout.control[ControlWord.STOP] = 1
+
     def write_summary_if_due(self) -> None:
         now_s = time.monotonic()
         if self.summarise is None or now_s < self._next_summary_s:
@@ -292,31 +316,61 @@ class RunSession:
         Returns whether records were left waiting (the caller comes back soon). ``None``: drain
         everything (at the end, when the tasks have stopped). The budget is what keeps a
         supervisor that cannot keep up serving Ctrl-C, the watchdog and the summary: what it
-        cannot take is dropped by the full queues, counted, and reported.
+        cannot take is dropped by the full queues, counted, and reported. It is looked at after
+        each task's batch, and the next drain starts with the task after the last one served,
+        so a short budget serves every task in turn.
         """
         deadline = None if budget_s is None else time.monotonic() + budget_s
+        tasks = list(self.layout.tasks.items())
+        try:
+            while True:
+                more = False
+                for _ in range(len(tasks)):
+                    name, handles = tasks[self._next_task]
+                    self._next_task = (self._next_task + 1) % len(tasks)
+                    more |= self._drain_task(name, handles)
+                    if more and deadline is not None and time.monotonic() >= deadline:
+                        return True
+                if not more:
+                    return False
+                self.recorder.flush()  # the rows of each round written: memory stays bounded
+        finally:
+            self.recorder.flush()
+            self._count_losses()
+
+    def _drain_task(self, name: str, handles: TaskHandles) -> bool:
+        """One batch of ``name``'s records into the recorder; returns whether more are waiting."""
         recorder = self.recorder
-        while True:
-            more = False
-            for name, handles in self.layout.tasks.items():
-                records = handles.timing.drain(DRAIN_BATCH_RECORDS)
-                recorder.add_timing(name, records)
-                more |= len(records) == DRAIN_BATCH_RECORDS
-                if handles.input_log is not None:
-                    recorder.add_inputs(name, *handles.input_log.drain())
-                if handles.read_log is not None:
-                    recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
-                if handles.record is not None:
-                    ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
-                    recorder.add_signals(name, ticks, rows, lost_so_far=handles.record.dropped)
-                    more |= len(ticks) == DRAIN_BATCH_RECORDS
-            recorder.flush()
-            if not more:
-                self._count_losses()
-                return False
-            if deadline is not None and time.monotonic() >= deadline:
-                self._count_losses()
-                return True
+        records = handles.timing.drain(DRAIN_BATCH_RECORDS)
+        self._timing_drained[name] = self._timing_drained.get(name, 0) + len(records)
+        recorder.add_timing(name, records)
+        more = len(records) == DRAIN_BATCH_RECORDS
+        if handles.input_log is not None:
+            recorder.add_inputs(name, *handles.input_log.drain())
+        if handles.read_log is not None:
+            recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
+        if handles.record is not None:
+            ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
+            recorder.add_signals(name, ticks, rows, lost_so_far=handles.record.dropped)
+            more |= len(ticks) == DRAIN_BATCH_RECORDS
+        return more
+
+    def drain_after_stop(self, budget_s: float) -> None:
+        """The last drain of a run whose tasks have stopped, for at most ``budget_s``.
+
+        What is still waiting then is not written: it is counted (``recording.lost.*_at_stop``
+        and a note in summary.json), and signals.csv marks a gap where its rows would be.
+        """
+        if not self.drain(budget_s):
+            return
+        for name, handles in self.layout.tasks.items():
+            timing_left = handles.timing.written_total - self._timing_drained.get(name, 0)
+            rows_left = handles.record.sent - handles.record.received if handles.record is not None else 0
+            if timing_left > 0:
+                self.losses.timing_at_stop[name] = timing_left
+            if rows_left > 0:
+                self.losses.signal_rows_at_stop[name] = rows_left
+                self.recorder.signals_lost_at_end(name, rows_left)
 
     def _count_losses(self) -> None:
         for name, handles in self.layout.tasks.items():

@@ -177,7 +177,7 @@ class Supervisor:
             else:
                 layout.control[ControlWord.STOP] = 1
             self._join(layout)
-            session.drain()
+            session.drain_after_stop(self.limits.stop_drain_budget_s)
             self._keep_snapshots(layout, recorder)
         finally:
             self.bridges.stop()
@@ -481,6 +481,9 @@ class Supervisor:
         def request_stop(signum: int, _frame: object) -> None:
             if self.state is RunState.RUNNING:
                 self.state = RunState.SIGNAL
+            # The tasks are stopped from here, not at the control loop's next turn: tasks that keep
+            # the processors busy can delay that turn by seconds (the supervisor runs below them).
+            self.session.stop_tasks()
 
         return {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
 
