@@ -167,3 +167,61 @@ def test_deprecated_mcap_ros2_reader_agrees(tmp_path):
     legacy = [m.ros_msg.position for m in legacy_read(str(path), topics=["/rtloop/signals"])]
     got = np.array(legacy, dtype=np.float64)
     assert np.array_equal(got.view(np.uint64), values.view(np.uint64))
+
+
+def _segments(tmp_path, timing_tasks=("c", "d")):
+    """Three files as the --keep window writes them: the same channels, consecutive rows."""
+    t_ns, values, records = make_run(3000)
+    paths = []
+    for number, lo in enumerate(range(0, 3000, 1000)):
+        path = tmp_path / f"{number:06d}-run.mcap"
+        with RunMcapWriter(path, NAMES, T0_NS, WALL_T0_NS, timing_tasks=timing_tasks) as writer:
+            for block in range(lo, lo + 1000, 300):  # uneven drain batches
+                end = min(block + 300, lo + 1000)
+                writer.add_rows(t_ns[block:end], values[block:end])
+                writer.add_timing("c", records[block:end])
+        paths.append(path)
+    return paths, t_ns, values, records
+
+
+def _all_messages(path):
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as stream:  # every record, its CRCs checked (chunks, data section, summary)
+        assert sum(1 for _ in StreamReader(stream, validate_crcs=True).records) > 0
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        return reader.get_summary().statistics, [
+            (channel.topic, message.log_time, message.publish_time, message.data)
+            for _, channel, message in reader.iter_messages(log_time_order=True)]
+
+
+def test_segments_are_joined_by_copying_chunks_and_read_as_if_merged_message_by_message(tmp_path):
+    from rtloop.record.mcap_writer import _merge_messages, merge_mcap_files
+
+    paths, t_ns, values, records = _segments(tmp_path)
+    assert merge_mcap_files(paths, tmp_path / "joined.mcap") == 6000
+    assert _merge_messages(paths, tmp_path / "merged.mcap") == 6000
+    statistics, joined = _all_messages(tmp_path / "joined.mcap")
+    _, merged = _all_messages(tmp_path / "merged.mcap")
+    assert joined == merged
+    assert statistics.message_count == 6000 and statistics.chunk_count >= 3
+    assert statistics.message_start_time == WALL_T0_NS and statistics.message_end_time == WALL_T0_NS + t_ns[-1]
+    got = np.array([m.ros_msg.position for m in read_topic(tmp_path / "joined.mcap", "/rtloop/signals")])
+    assert np.array_equal(got.view(np.uint64), values.view(np.uint64))
+    timing = read_topic(tmp_path / "joined.mcap", "/rtloop/timing/c")
+    assert [m.ros_msg.cycle for m in timing] == records[:, 0].tolist()
+    assert read_topic(tmp_path / "joined.mcap", "/rtloop/timing/d") == []  # declared, never written
+
+
+def test_segments_with_different_channels_are_merged_message_by_message(tmp_path):
+    from rtloop.record.mcap_writer import merge_mcap_files
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = _segments(tmp_path / "a", ("c", "d"))[0][0]
+    other = _segments(tmp_path / "b", ("d", "c"))[0][1]  # channel ids in another order
+    assert merge_mcap_files([first, other], tmp_path / "joined.mcap") == 4000
+    _, messages = _all_messages(tmp_path / "joined.mcap")
+    assert len(messages) == 4000
+    assert {topic for topic, *_ in messages} == {"/rtloop/signals", "/rtloop/timing/c"}
