@@ -17,6 +17,7 @@ from rt_test_runnables import RaiseAt
 from rtloop import App
 from rtloop.errors import DeviceError, TaskFailed
 from rtloop.runtime.replay import compare_signals, first_miss_s
+from rtloop.runtime.session import Limits
 
 PERIOD_NS = 2_000_000
 LIMIT = {"min": -1e6, "max": 1e6, "safe": -7.0}
@@ -145,7 +146,7 @@ def test_the_watchdog_breaks_a_stuck_step_and_the_device_gets_its_safe_value(tmp
     # machine (the supervisor whose watchdog must break it included) for as long as it spins
     app = echo_app(tmp_path, "dev_stop_watchdog", echo=Echo(stuck_at=3), watchdog_periods=1, policy="other")
     with pytest.raises(TaskFailed, match="watchdog"):
-        rtloop.run(app, 60.0, tmp_path / "out")
+        rtloop.run(app, 60.0, tmp_path / "out", limits=Limits(watchdog_min_s=0.5, watchdog_grace_s=1.0))
     log = read_log(tmp_path / "dev.log")
     assert_ends_safe(log)
     # each release wrote what the job before computed, up to the stuck job (the 4th, unless
