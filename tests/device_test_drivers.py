@@ -12,8 +12,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop import Runnable
-from rtloop.errors import DeviceError, StopRequested
+from rtloop.errors import DeviceError
 from rtloop.io.device import Device, Setting
+from rtloop.io.gpio import EmergencyStop
 
 
 def _positive(value: int) -> str | None:
@@ -63,7 +64,7 @@ class LogDevice(Device):
         if self.config["fail_in"] == "read":
             raise OSError("read failed (as asked)")
         if self.config["fail_in"] == "estop" and self.last[0] >= 3:  # what an E-stop input does (io/gpio.py)
-            raise StopRequested("E-stop: falling edge on line 'estop' (as asked)")
+            raise EmergencyStop(self.name, "estop", "falling", time.monotonic_ns())
         n = min(len(y), len(self.last))
         y[:n] = self.last[:n] * self.config["gain"]
 

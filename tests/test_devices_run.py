@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import re
 import signal
 import subprocess
 import sys
@@ -127,7 +128,11 @@ def test_an_e_stop_stops_the_app_in_order_safe_values_first(tmp_path: Path) -> N
     app.connect(ctl.y[0], dev.u[0])
     app.connect(dev.y[0], ctl.u[0])
     summary = rtloop.run(app, 30.0, tmp_path / "out")
-    assert "E-stop: falling edge" in summary.stopped_by and summary.failure is None
+    assert "E-stop: falling edge on line 'estop' of device 'dev'" in summary.stopped_by and summary.failure is None
+    # the summary says when the edge came and when the task's devices were safe after it
+    note = next(n for n in summary.notes if n.startswith("E-stop: edge at"))
+    edge_ns, safe_ns = map(int, re.search(r"edge at (\d+) ns.*safe at (\d+) ns", note).groups())
+    assert 0 < edge_ns < safe_ns, note
     log = read_log(tmp_path / "dev.log")
     assert writes(log) == [0.0, 1.0, 2.0, 3.0]
     assert_ends_safe(log)

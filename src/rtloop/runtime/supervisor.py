@@ -442,16 +442,16 @@ class Supervisor:
                     self.snapshots.append(message["snapshot"])
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
-                elif kind == "device_error":
-                    self.refused = DeviceError(message["device"], message["source"], message["key"],
-                                               message["problem"])
-                elif kind == "device_problems":
-                    self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
                     if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe
                         edge_ns, safe_ns = message["edge_ns"], message.get("safe_ns") or 0
                         self.device_problems.append(
                             f"E-stop: edge at {edge_ns} ns (CLOCK_MONOTONIC, kernel timestamp); task {task_run.name}'s "
                             f"devices safe at {safe_ns} ns, {(safe_ns - edge_ns) / 1e3:.0f} µs after the edge")
+                elif kind == "device_error":
+                    self.refused = DeviceError(message["device"], message["source"], message["key"],
+                                               message["problem"])
+                elif kind == "device_problems":
+                    self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
                 elif kind == "failed":
                     task_run.failure = TaskFailed(
                         task_run.name, message["cycle"], message["phase"], message["reason"],
