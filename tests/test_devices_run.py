@@ -213,6 +213,25 @@ def test_kill_9_of_the_supervisor(tmp_path: Path) -> None:
     assert_ends_safe(read_log(tmp_path / "dev.log"))
 
 
+def test_kill_9_of_the_task_the_supervisor_writes_the_safe_values(tmp_path: Path) -> None:
+    """Nothing runs in a task killed with SIGKILL: the supervisor writes its devices' safe values
+    from outside (a CAN driver sends the safe frames, a GPIO driver drives the lines) and says so."""
+    import json
+    import os
+
+    process = _cli_run(tmp_path, "dev_stop_kill_task")
+    _wait_for_writes(tmp_path, process)
+    os.kill(int((tmp_path / "dev.log.pid").read_text()), signal.SIGKILL)
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode != 0 and "killed by SIGKILL" in err, err
+    log = read_log(tmp_path / "dev.log")
+    assert log[-1] == "safe from the supervisor -7.0", log[-5:]
+    assert "close" not in log  # the task itself never got to its safe values
+    notes = json.loads((tmp_path / "out" / "summary.json").read_text())["notes"]
+    assert any(note.startswith("task ctl was killed by SIGKILL before its device 'dev'") and
+               note.endswith("the supervisor logged the safe values") for note in notes), notes
+
+
 # --- a device that cannot be used: exit 2, nothing started ---------------------------------------------
 
 def test_a_device_that_fails_its_configure_is_bad_input_and_nothing_runs(tmp_path: Path) -> None:

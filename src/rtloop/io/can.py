@@ -142,6 +142,24 @@ class CanDevice(Device):
         if self.socket is not None:
             self.write(u)
 
+    def write_safe_for_dead_task(self, u: FloatVector) -> str:
+        """From the supervisor: the declared frames with the safe values, once, on a socket of its
+        own — and no heartbeat, so a drive that watches it still sees the loop is gone."""
+        from rtloop.io.cansocket import CanSocket
+
+        if not self.sent:
+            return ""
+        sock = CanSocket(self.interface, self.fd, (), f"devices.{self.name}")
+        try:
+            for frame, first in zip(self.sent, _starts(self.sent), strict=True):
+                buffer = frame.new_buffer()
+                frame.layout.pack_into(buffer, DATA_AT, u, first)
+                sock.send(buffer)
+        finally:
+            sock.close()
+        ids = ", ".join(f"0x{frame.can_id:X}" for frame in self.sent)
+        return f"sent its frames {ids} with the safe values on {self.interface} (no heartbeat)"
+
     def close(self) -> None:
         if self.socket is not None:
             self.socket.close()

@@ -19,6 +19,9 @@ call               where, when                 what the driver does
 ``write_safe(u)``  on every way out            send the safe values ``u`` (default: write)
 ``deactivate()``   at the end                  disable outputs
 ``close()``        at the end                  let go of the interface
+``write_safe_for_  supervisor, when the owner  write the safe values from outside (CAN: the
+dead_task(u)``     task was killed (SIGKILL)   safe frames; GPIO: the lines at their safe
+                                               levels), or say it cannot
 =================  ==========================  ============================================
 
 Sizes: ``n_inputs`` is how many values the device *writes* (its ``u``: commands),
@@ -168,6 +171,17 @@ class Device(ABC):
 
     def deactivate(self) -> None:
         """At the end, after the safe values: disable the outputs."""
+
+    # --- when the owner task's process is dead (supervisor) -------------------------------------
+    def write_safe_for_dead_task(self, u: FloatVector) -> str:
+        """The owner task's process died without writing the safe values (SIGKILL, a crash in C):
+        write ``u`` from the supervisor's process if the interface lets another process do it.
+
+        Returns what was done (one phrase for summary.json), or "" when nothing can be done from
+        outside (the device's own heartbeat timeout must then protect the machine). The kernel
+        has closed the dead process's file descriptors, so its lines and sockets are free. Runs
+        once, outside the real-time loop: it may allocate and open what it needs."""
+        return ""
 
     def close(self) -> None:
         """Let go of the interface (also after a failed configure)."""

@@ -273,6 +273,28 @@ class GpioDevice(Device):
         edge = "rising" if event_id == GPIO_V2_LINE_EVENT_RISING_EDGE else "falling"
         raise EmergencyStop(self.name, str(self.estop), edge, timestamp_ns)
 
+    def write_safe_for_dead_task(self, u: FloatVector) -> str:
+        """From the supervisor: request the output lines again (the kernel freed them with the dead
+        process) driven at their safe levels from the request on, and hold them until the run ends
+        (``close``)."""
+        from gpiod import LineSettings
+        from gpiod.line import Direction, Value
+
+        if not self.outputs:
+            return ""
+        chip = self._open_chip()
+        try:
+            levels = [Value.ACTIVE if u[index] >= 0.5 else Value.INACTIVE for index in range(len(self.outputs))]
+            config = {self._offset(chip, "outputs", line): LineSettings(
+                direction=Direction.OUTPUT, output_value=level, active_low=str(line) in self.active_low)
+                for line, level in zip(self.outputs, levels, strict=True)}
+            self._requests.append(chip.request_lines(config, consumer=f"rtloop:{self.name}:safe"[:31]))
+        finally:
+            chip.close()
+        shown = ", ".join(f"{line}={int(level == Value.ACTIVE)}"
+                          for line, level in zip(self.outputs, levels, strict=True))
+        return f"holds its output lines at their safe levels ({shown}) until the run ends"
+
     # --- the scope pin, for the hot path ---------------------------------------------------------
     def scope_output(self) -> tuple[int, int, int, int] | None:
         """The scope pin for the task's hot path (``set_scope_pin``): (line request fd, its

@@ -154,4 +154,35 @@ class TaskDevices:
         self.active = False
 
 
-__all__ = ["DeviceFault", "DeviceWiring", "TaskDevices"]
+def safe_for_dead_task(task: str, wirings: Sequence[DeviceWiring], why: str) -> list[str]:
+    """In the supervisor, when ``task``'s process died without writing its devices' safe values
+    (``why``: killed by SIGKILL, …): each device writes them from outside where its interface
+    allows (:meth:`Device.write_safe_for_dead_task`). Never raises; returns the notes saying what
+    was done for each device, or that only its own watchdog protects it."""
+    notes = []
+    for wiring in wirings:
+        device = wiring.device
+        safe = np.array([limit.safe for limit in wiring.limits], dtype=np.float64)
+        try:
+            done = device.write_safe_for_dead_task(safe)
+        except Exception as error:
+            done, failed = "", f" (writing them from the supervisor failed: {type(error).__name__}: {error})"
+        else:
+            failed = ""
+        what = (f"the supervisor {done}" if done else
+                f"nothing the supervisor can write{failed}: only the device's own heartbeat timeout protects it")
+        notes.append(f"task {task} {why} before its device {device.name!r} ({device.kind or type(device).__name__}) "
+                     f"got its safe values: {what}")
+    return notes
+
+
+def release_after_dead_task(wirings: Sequence[DeviceWiring]) -> None:
+    """At the end of the run: let go of what :func:`safe_for_dead_task` holds (GPIO lines)."""
+    for wiring in wirings:
+        try:
+            wiring.device.close()
+        except Exception:
+            pass  # the lines go with the supervisor's process anyway
+
+
+__all__ = ["DeviceFault", "DeviceWiring", "TaskDevices", "release_after_dead_task", "safe_for_dead_task"]

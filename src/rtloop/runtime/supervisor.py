@@ -30,6 +30,7 @@ from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
 from rtloop.errors import AppError, DeviceError, TaskFailed
 from rtloop.io.device import check_device
+from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.ipc.wiring import nonfinite_fields
@@ -109,6 +110,7 @@ class Supervisor:
             check_device(device.device, app.source)
         self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
         self.device_problems: list[str] = []
+        self.held_for_dead_tasks: list[Any] = []  # devices the supervisor made safe for a killed task (GPIO lines held)
         self.app, self.duration_s, self.out, self.limits = app, duration_s, out, limits
         self.on_progress = on_progress
         self.on_notice = on_notice or _print_notice
@@ -188,7 +190,10 @@ class Supervisor:
             for task_run in self.runs.values():
                 if task_run.process.is_alive():
                     task_run.process.kill()
+                    task_run.process.join()
+                    self._devices_safe_after_death(task_run)
                 task_run.process.join()
+            release_after_dead_task(self.held_for_dead_tasks)
             if previous_scheduling is not None:
                 os.sched_setscheduler(0, *previous_scheduling)
             _end_task_strays(layout.token, keep=children_before | _resource_tracker())
@@ -409,6 +414,8 @@ class Supervisor:
             # It exited: what it sent just before (its traceback) may have come after the read above.
             self._read_messages(task_run)
             task_run.finished = True
+            if process.exitcode < 0:  # killed by a signal: its own way out, safe values first, never ran
+                self._devices_safe_after_death(task_run)
             if task_run.failure is None and process.exitcode != 0:
                 phase, cycle = self._phase_of(layout, task_run.name)
                 task_run.failure = TaskFailed(
@@ -418,6 +425,14 @@ class Supervisor:
                 self.failure = task_run.failure
                 self.state = RunState.WATCHDOG if self.failure.reason.startswith("WatchdogExpired") else RunState.FAULT
                 layout.control[ControlWord.STOP] = 1
+
+    def _devices_safe_after_death(self, task_run: _TaskRun) -> None:
+        """Write the safe values of a killed task's devices from here, where their interface allows."""
+        wirings = self.app.device_wiring(task_run.name)
+        if wirings:
+            why = f"was {_describe_exit(task_run.process.exitcode)}"
+            self.device_problems += safe_for_dead_task(task_run.name, wirings, why)
+            self.held_for_dead_tasks += wirings
 
     def _phase_of(self, layout: AppLayout, name: str) -> tuple[str, int | None]:
         """What a task was doing when it died or hung: its phase and, in step, the cycle in progress."""
