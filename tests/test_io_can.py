@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import socket
 import struct
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -184,3 +186,52 @@ def test_the_driver_loop_over_a_unix_socket_pair_allocates_nothing():
     finally:
         device.close()
         peer.close()
+
+
+def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command():
+    """Anywhere (a UNIX socket pair in place of the bus): a drive answering each command frame, a
+    little later, as a separate process does. Nothing goes out before T0 (an answer to a frame sent
+    at configure, arriving after activate, would be taken for cycle 0's reading and make every
+    reading after it one cycle late); at the end the safe frame goes out with the heartbeat."""
+    from rtloop.io.cansocket import CanSocket
+
+    device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 5000}])
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    seen: list[tuple[int, bytes]] = []
+
+    def answer_each_command() -> None:  # torque × 10 back as the position, after a moment
+        while True:
+            try:
+                data = peer.recv(72)
+            except OSError:
+                return
+            if not data:
+                return
+            can_id = struct.unpack_from("=I", data)[0]
+            seen.append((can_id, data[8:16]))
+            if can_id == 0x200:
+                time.sleep(0.02)
+                torque = struct.unpack_from("<h", data, 8)[0]
+                peer.send(frame(0x180, struct.pack("<i", torque * 10)))
+
+    responder = threading.Thread(target=answer_each_command, daemon=True)
+    responder.start()
+    try:
+        device.write_safe(np.array([-0.5, 0.0]))  # what configure does: nothing may leave before T0
+        device.activate()  # T0 comes before a slow drive's answer would
+        y = np.zeros(1)
+        for cycle in range(6):
+            device.write(np.array([0.25 * (cycle + 1), 1.0]))
+            device.read(y)
+            assert y[0] == pytest.approx(0.25 * (cycle + 1)), cycle  # this cycle's answer, not the one before
+        assert struct.unpack_from("<h", seen[0][1])[0] == 25  # the first frame out was cycle 0's
+        device.write_safe(np.array([-0.5, 0.0]))
+        time.sleep(0.05)
+        assert seen[-2][0] == 0x200 and struct.unpack_from("<h", seen[-2][1])[0] == -50  # the safe torque
+        assert seen[-1][0] == 0x700  # and the heartbeat
+    finally:
+        device.close()
+        peer.shutdown(socket.SHUT_RDWR)
+        peer.close()
+        responder.join(timeout=5)

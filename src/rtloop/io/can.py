@@ -70,11 +70,12 @@ class CanDevice(Device):
         self.output_names = tuple(n for frame in self.received for n in frame.layout.names)
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         self.socket: Any = None
+        self.active = False
         self.stale_reads = 0
         self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "socket": None}  # travels to the task process unopened
+        return {**self.__dict__, "socket": None, "active": False}  # travels to the task process unopened
 
     # --- supervisor ---------------------------------------------------------------------------
     def check(self) -> None:
@@ -110,9 +111,9 @@ class CanDevice(Device):
         self._send = sock.sock.send
 
     def activate(self) -> None:
-        """At T0: drop what came before it — a drive's answers to the safe frames written at
-        configure are not this run's readings (the first read waits for the answer to cycle 0's)."""
+        """At T0: drop what came before it (frames of an earlier run); from now on frames go out."""
         self.socket._drain()
+        self.active = True
 
     def write(self, u: FloatVector) -> None:
         send, u = self._send, self._u.of(u)
@@ -138,8 +139,14 @@ class CanDevice(Device):
                 raise DeviceFault(_missing(self.name, frame))
 
     def write_safe(self, u: FloatVector) -> None:
-        """The safe values, in the declared frames; the heartbeat goes on until ``deactivate``."""
-        if self.socket is not None:
+        """The safe values, in the declared frames, with the heartbeat — once active only.
+
+        Before T0 nothing goes out: a drive answers every command frame, and an answer that
+        arrives after ``activate`` has dropped what came would be taken for the first cycle's
+        reading (and every reading after it one cycle late: the run would leave its simulation
+        with no deadline missed). A drive that has heard no heartbeat yet is disabled by its own
+        watchdog: that is its safe state until the first cycle."""
+        if self.socket is not None and self.active:
             self.write(u)
 
     def write_safe_for_dead_task(self, u: FloatVector) -> str:
@@ -161,6 +168,7 @@ class CanDevice(Device):
         return f"sent its frames {ids} with the safe values on {self.interface} (no heartbeat)"
 
     def close(self) -> None:
+        self.active = False
         if self.socket is not None:
             self.socket.close()
             self.socket = None
