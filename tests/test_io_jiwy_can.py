@@ -67,3 +67,29 @@ def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_he
         pytest.skip(f"the run missed a deadline at {until_s} s, too early to show the equality ({compared} rows; "
                     f"cycles {task['cycles']}, misses {task['deadline_misses']}, overruns {task['overruns']}; "
                     f"timing.csv starts {first_rows})")
+
+
+def test_the_drive_steps_its_plant_with_both_steering_values_as_the_twin_does():
+    """Anywhere: the plant node's logic (no bus) answers each pair of steering frames with the angles
+    the twin computes from the same two values (pan and tilt kept apart), bit for bit."""
+    import struct
+
+    import numpy as np
+
+    sys.path[:0] = [str(EXAMPLE), str(EXAMPLE.parent / "jiwy")]
+    try:
+        from jiwy_can_models import Plant
+        from plant_node import ANGLE_PAN, ANGLE_TILT, FRAME, HEARTBEAT, STEERING_PAN, STEERING_TILT, Drive
+    finally:
+        del sys.path[:2]
+    drive, twin = Drive(0.01, 0.3), Plant(step_size_s=0.01)
+    twin.prerun()
+    angles = np.zeros(2)
+    assert drive.on_frame(HEARTBEAT, bytes(8), 0.0) == []
+    for cycle, (pan, tilt) in enumerate([(1.5, 0.6), (-0.25, 2.0), (3.0, -1.0), (0.0, 0.5)]):
+        assert drive.on_frame(STEERING_PAN, struct.pack("<d", pan), 0.01 * cycle) == []
+        answers = drive.on_frame(STEERING_TILT, struct.pack("<d", tilt), 0.01 * cycle)
+        twin.step(np.array([pan, tilt]), angles)
+        got = {FRAME.unpack(frame)[0]: struct.unpack_from("<d", FRAME.unpack(frame)[2])[0] for frame in answers}
+        assert got == {ANGLE_PAN: angles[0], ANGLE_TILT: angles[1]}, cycle
+    assert angles[0] != angles[1]

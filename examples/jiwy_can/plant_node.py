@@ -41,6 +41,52 @@ def open_bus(interface: str) -> socket.socket:
     return sock
 
 
+class Drive:
+    """The drive's logic, apart from the bus: steering frames in, angle frames out, the watchdog."""
+
+    def __init__(self, step_size_s: float, heartbeat_timeout_s: float) -> None:
+        Plant(step_size_s=step_size_s).step(np.zeros(2), np.zeros(2))  # warm up: the first answer is not late
+        self.plant = Plant(step_size_s=step_size_s)
+        self.plant.prerun()
+        self.steering = np.zeros(2)  # numpy vectors, as the twin gets them in rtloop simulate
+        self.angles = np.zeros(2)
+        self.have = [False, False]
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.last_beat_s = time.monotonic()
+        self.armed = False  # a drive stays disabled until the first heartbeat; its watchdog runs from then on
+        self.safe = True
+
+    def on_frame(self, can_id: int, data: bytes, now_s: float) -> list[bytes]:
+        """Take one frame; the angle frames to answer once both steering frames of a cycle are in."""
+        if can_id == HEARTBEAT:
+            self.last_beat_s = now_s
+            if self.safe:
+                self.safe = False
+                say(f"heartbeat {'back' if self.armed else 'seen'}: enabled")
+                self.armed = True
+            return []
+        axis = 1 if can_id == STEERING_TILT else 0  # an int: a bool would index a numpy vector as a mask
+        self.have[axis] = True
+        self.steering[axis] = VALUE.unpack_from(data)[0]
+        if not all(self.have):
+            return []
+        self.have = [False, False]
+        self.plant.step(self.steering, self.angles)
+        return [FRAME.pack(ANGLE_PAN, 8, VALUE.pack(self.angles[0])),
+                FRAME.pack(ANGLE_TILT, 8, VALUE.pack(self.angles[1]))]
+
+    def on_quiet(self, now_s: float) -> None:
+        """No frame for a while: what a drive's watchdog does when the heartbeat stops (steer zero)."""
+        if self.armed and not self.safe and now_s - self.last_beat_s > self.heartbeat_timeout_s:
+            self.safe = True
+            self.steering[:] = 0.0
+            say("heartbeat lost: steering zero (safe)")
+
+
+def say(text: str) -> None:
+    print(f"plant_node: {text}", file=sys.stderr, flush=True)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description="JIWY's plant behind CAN frames (a simulated drive)")
     parser.add_argument("--interface", default="vcan0")
@@ -60,40 +106,16 @@ def main() -> int:
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
-    Plant(step_size_s=args.step_size_s).step(np.zeros(2), np.zeros(2))  # warm up: the first answer is not late
-    plant = Plant(step_size_s=args.step_size_s)
-    plant.prerun()
-    steering = np.zeros(2)  # numpy vectors, as the twin gets them in rtloop simulate
-    have = [False, False]
-    angles = np.zeros(2)
-    last_beat_s = time.monotonic()
-    armed = False  # a drive stays disabled until the first heartbeat; its watchdog runs from then on
-    safe = True
-    print(f"plant_node: on {args.interface}, waiting for steering frames", file=sys.stderr, flush=True)
+    drive = Drive(args.step_size_s, args.heartbeat_timeout_ms / 1000)
+    say(f"on {args.interface}, waiting for steering frames")
     while running:
         ready, _, _ = select.select([bus], [], [], 0.05)
-        now_s = time.monotonic()
         if not ready:
-            if armed and not safe and now_s - last_beat_s > args.heartbeat_timeout_ms / 1000:
-                safe = True  # what a drive's watchdog does: stop steering
-                steering[:] = 0.0
-                print("plant_node: heartbeat lost: steering zero (safe)", file=sys.stderr, flush=True)
+            drive.on_quiet(time.monotonic())
             continue
         can_id, _length, data = FRAME.unpack(bus.recv(16))
-        if can_id == HEARTBEAT:
-            last_beat_s = now_s
-            if safe:
-                safe = False
-                print(f"plant_node: heartbeat {'back' if armed else 'seen'}: enabled", file=sys.stderr, flush=True)
-                armed = True
-            continue
-        have[can_id == STEERING_TILT] = True
-        steering[can_id == STEERING_TILT] = VALUE.unpack_from(data)[0]
-        if all(have):
-            have[:] = [False, False]
-            plant.step(steering, angles)
-            bus.send(FRAME.pack(ANGLE_PAN, 8, VALUE.pack(angles[0])))
-            bus.send(FRAME.pack(ANGLE_TILT, 8, VALUE.pack(angles[1])))
+        for answer in drive.on_frame(can_id, data, time.monotonic()):
+            bus.send(answer)
     bus.close()
     return 0
 
