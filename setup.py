@@ -1,4 +1,4 @@
-"""Builds the optional C hot path; everything else is in pyproject.toml.
+"""Builds the optional C hot path (and the devices' per-cycle work in C); everything else is in pyproject.toml.
 
 ``optional=True``: without a compiler the build only warns and rtloop runs its
 pure-Python path (and says so once at run time).
@@ -14,6 +14,12 @@ setup(
             depends=["src/rtloop/ipc/_schema.h"],
             extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
             optional=True,
-        )
+        ),
+        Extension(
+            "rtloop.io._devio",
+            sources=["src/rtloop/io/_devio.c"],
+            extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
+            optional=True,
+        ),
     ],
 )

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rtloop.errors import AppError
+from rtloop.io.compiled import devio
 
 # type name -> (struct code, is integer)
 FIELD_TYPES: dict[str, tuple[str, bool]] = {
@@ -125,6 +126,9 @@ class ByteLayout:
             (struct.Struct(BYTE_ORDERS[f.byte_order] + FIELD_TYPES[f.type][0]), f.start_byte, f.scale, f.offset,
              *f.raw_range, FIELD_TYPES[f.type][1])
             for f in self.fields)
+        compiled = devio()  # the same packing in C (io/_devio.c), where it was built
+        self._compiled = compiled.Layout([(FIELD_TYPES[f.type][0], f.start_byte, f.scale, f.offset,
+                                           f.byte_order == "big") for f in self.fields]) if compiled else None
 
     def __len__(self) -> int:
         return len(self.fields)
@@ -139,6 +143,15 @@ class ByteLayout:
 
     def pack_into(self, frame: Any, at: int, values: Any, first: int = 0) -> None:
         """Write ``values[first:first + len(self)]`` into ``frame`` (a writable buffer) from byte ``at``."""
+        if self._compiled is not None:
+            try:
+                bad = self._compiled.pack_into(frame, at, values, first)
+            except TypeError:  # not a float64 vector (a list): the Python way below
+                pass
+            else:
+                if bad >= 0:
+                    raise ValueError(self._not_finite(bad, values[first + bad]))
+                return
         index = first
         try:
             for codec, start, scale, offset, low, high, integer in self._plan:
@@ -158,6 +171,12 @@ class ByteLayout:
 
     def unpack_from(self, frame: Any, at: int, out: Any, first: int = 0) -> None:
         """Read the fields of ``frame`` (from byte ``at``) into ``out[first:first + len(self)]``."""
+        if self._compiled is not None:
+            try:
+                self._compiled.unpack_from(frame, at, out, first)
+                return
+            except TypeError:  # not a float64 vector: the Python way below
+                pass
         index = first
         for codec, start, scale, offset, _low, _high, _integer in self._plan:
             out[index] = codec.unpack_from(frame, at + start)[0] * scale + offset

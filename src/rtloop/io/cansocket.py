@@ -21,6 +21,7 @@ from pathlib import Path
 
 from rtloop.errors import AppError
 from rtloop.io.canframes import CAN_EFF_FLAG, CAN_EFF_MASK, CAN_SFF_MASK, FD_MTU, CanFrame
+from rtloop.io.compiled import devio
 
 ARPHRD_CAN = 280  # /sys/class/net/IF/type of a CAN interface
 CAN_RAW_FILTER = getattr(socket, "CAN_RAW_FILTER", 1)
@@ -83,9 +84,18 @@ class CanSocket:
         self.latest = [bytearray(frame.mtu) for frame in self.receive]
         self.fresh = [False] * len(self.receive)
         self.none_fresh = [False] * len(self.receive)
-        self.unexpected = 0
+        self._unexpected = 0
+        compiled = devio()  # the drain in C (io/_devio.c), where it was built
+        self._receiver = compiled.CanReceiver(self.fileno, [frame.wire_id for frame in self.receive], self.latest,
+                                              self.fresh) if compiled else None
+        if self._receiver is not None:
+            self._drain = self._receiver.drain  # type: ignore[method-assign]
+
+    @property
+    def unexpected(self) -> int:
         """Frames that passed the filter but are not a declared frame's size (an FD frame where a
         classic one was declared, or the stand-in socket's strays): counted, never decoded."""
+        return self._receiver.unexpected if self._receiver is not None else self._unexpected
 
     def _open(self, interface: str, fd: bool, where: str) -> socket.socket:
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
@@ -123,7 +133,7 @@ class CanSocket:
             size = sock.recv_into(incoming)
             index = self.index_of.get(CAN_ID.unpack_from(incoming, 0)[0], -1)
             if index < 0 or size != len(latest[index]):  # not declared, or FD where classic was declared
-                self.unexpected += 1
+                self._unexpected += 1
                 continue
             latest[index][:] = self.incoming_view[:size]
             if not fresh[index]:
@@ -149,6 +159,8 @@ class CanSocket:
             missing -= self._drain()
 
     def close(self) -> None:
+        if self._receiver is not None:
+            self._receiver.release()  # before the descriptor it polls is closed (and its number reused)
         self.sock.close()
 
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
+from rtloop.io.compiled import devio
 from rtloop.io.device import CommandLimit, Device, FloatVector
 from rtloop.io.limits import CommandGuard
 
@@ -44,7 +45,8 @@ class DeviceWiring:
 class _Slot:
     """One device with its vectors, its guard and its copies from and to the task's vectors."""
 
-    __slots__ = ("command_copies", "device", "guard", "reading_copies", "u", "y")
+    __slots__ = ("command_copies", "compiled_guard", "compiled_readings", "device", "guard", "reading_copies", "u",
+                 "y")
 
     def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector) -> None:
         device = self.device = wiring.device
@@ -55,14 +57,35 @@ class _Slot:
         self.y = np.zeros(device.n_outputs)
         self.command_copies = [(task_y[source], self.u[target]) for source, target in wiring.commands]
         self.reading_copies = [(self.y[source], task_u[target]) for source, target in wiring.readings]
+        # The copies and the guard in one C call each (io/_devio.c), where it was built and the
+        # vectors are contiguous; the numpy code stays the reference (same numbers, bit for bit).
+        self.compiled_guard = self.compiled_readings = None
+        compiled = devio()
+        if compiled is not None:
+            guard = self.guard
+            try:
+                self.compiled_guard = compiled.Guard(self.u, guard.low, guard.high, guard.step_max, guard.last,
+                                                     guard.out, self.command_copies, guard.rate_limited)
+                self.compiled_readings = compiled.Copies(self.reading_copies)
+            except (TypeError, ValueError, BufferError):  # a strided slice: the numpy way
+                self.compiled_guard = self.compiled_readings = None
 
     def send(self, task: str, cycle: int) -> None:
+        compiled = self.compiled_guard
+        if compiled is not None:
+            if compiled.apply() >= 0:  # a non-finite command: the reference names it in the fault it raises
+                self.guard.apply(self.u, task, cycle)
+            self.device.write(self.guard.out)
+            return
         for source, target in self.command_copies:
             np.copyto(target, source)
         self.device.write(self.guard.apply(self.u, task, cycle))
 
     def receive(self) -> None:
         self.device.read(self.y)
+        if self.compiled_readings is not None:
+            self.compiled_readings.run()
+            return
         for source, target in self.reading_copies:
             np.copyto(target, source)
 

@@ -1,0 +1,25 @@
+"""The devices' per-cycle work in C (``io/_devio.c``), where it was built.
+
+pip builds ``_devio`` with the system compiler next to the task's C hot path; without a
+compiler, or with ``RTLOOP_PURE_PYTHON=1`` (the same switch as the hot path's), the Python
+references run: the guard of ``io/limits.py``, the layouts of ``io/bytelayout.py``, the drain
+of ``io/cansocket.py``. Both give the same numbers bit for bit (``tests/test_io_compiled.py``).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
+
+
+def devio() -> Any:
+    """The compiled module, or None where the Python references run."""
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return None
+    try:
+        from rtloop.io import _devio
+    except ImportError:
+        return None
+    return _devio
