@@ -12,10 +12,7 @@
 # (test_run.py's other real-time tests count cycles at 1 kHz, which emulation cannot keep; they
 # run on the host. The JIWY test is left out for now: JIWY runs there and writes its report,
 # but under emulation every run's first cycle ends late, so run == simulate has no clean
-# window to compare; see docs/rtkernel-guest.md. Also left out until their owners look: two
-# device tests that failed in the guest on 2026-11-24 (test_jiwy_over_can_equals_its_simulation...:
-# "the run left its simulation at 1.2 s (first miss at None s)"; test_an_estop_edge_stops_the_app...:
-# summary.json had no "E-stop: edge at" note).) Prints the pytest counts and the wall time.
+# window to compare; see docs/rtkernel-guest.md.) Prints the pytest counts and the wall time.
 #
 # Exit status: pytest's. A guest that cannot be prepared or booted on this machine prints
 # "guest tier skipped: REASON" and exits 0 (the tier is not counted as passed); a failing
@@ -28,7 +25,7 @@ log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
 RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-2400} tools/rtkernel-vm.sh \
-    .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 -k "not test_jiwy_runs_on_the_rt_kernel and not test_jiwy_over_can_equals_its_simulation and not test_an_estop_edge_stops_the_app" "${selection[@]}" \
+    .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 -k "not test_jiwy_runs_on_the_rt_kernel" "${selection[@]}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 wall_s=$(($(date +%s) - started_s))
