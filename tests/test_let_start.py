@@ -26,14 +26,14 @@ from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringP
 
 P = 1_000_000
 T0 = 7_000_000_000
-LATE_EPOCH_POLL_S = 0.4
-"""How often the late writer looks for T0: it sees T0 up to this late (the start margin is 0.1 s)."""
+LATE_S = 0.3
+"""How long the late writer dawdles after it has seen T0 (the start margin is 0.1 s)."""
 INITIAL = [0.5, -0.25]
 
 
 class LateStartingPlant(rtloop.Runnable):
-    """A plant with non-zero initial outputs that sees T0 late, as a task held off by other load
-    does: its prerun makes its own process look for the epoch only every 0.4 s."""
+    """A plant with non-zero initial outputs that starts late, as a task held off by other load
+    does: its prerun makes its own process go on 0.3 s after it has seen T0."""
 
     n_inputs = n_outputs = 2
 
@@ -43,9 +43,18 @@ class LateStartingPlant(rtloop.Runnable):
 
     def prerun(self) -> None:
         if multiprocessing.parent_process() is not None:  # in a task process only, never in the tests' own
+            import time
+
             import rtloop.runtime.task as task_process
 
-            task_process.T0_POLL_S = LATE_EPOCH_POLL_S
+            seen = task_process._wait_for_epoch
+
+            def seen_late(control):
+                epoch = seen(control)
+                time.sleep(LATE_S)
+                return epoch
+
+            task_process._wait_for_epoch = seen_late
 
     def step(self, u, y) -> None:
         for i in range(2):
@@ -120,10 +129,13 @@ def test_a_writer_that_sees_t0_late_still_gives_its_initial_outputs_at_the_first
     reads = _rows(tmp_path / "run" / "reads.csv")
     assert reads[0] == ["task", "cycle", "writer", "stamp_ns", "due_ns"]
     follower_reads = [row for row in reads[1:] if row[0] == "follower"]
-    assert follower_reads, "the follower read while the plant had not started: stale reads"
-    assert all(row[3] != "" for row in follower_reads), "a read found no sample: the initial outputs were not there"
-    assert min(int(row[1]) for row in follower_reads) >= 1, "the read at T0 is the LET one: the initial outputs"
     assert summary.tasks["follower"].stale_reads == len(follower_reads)
+    # before the plant's first cycle ended, all it had published were its initial outputs (stamp 0)
+    first_end_cycle = (int(timing[0][4]) - int(timing[0][2])) // P
+    before = [row for row in follower_reads if int(row[1]) < first_end_cycle]
+    assert before, "the follower read while the plant had not started: stale reads"
+    assert all(row[3] == "0" for row in before), "a read found no sample: the initial outputs were not there"
+    assert min(int(row[1]) for row in follower_reads) >= 1, "the read at T0 is the LET one: the initial outputs"
     signals = _rows(tmp_path / "run" / "signals.csv")
     u0 = [signals[0].index("follower.u[0]"), signals[0].index("follower.u[1]")]
     assert [float(signals[1][i]) for i in u0] == INITIAL, "the follower read the initial outputs at T0"

@@ -16,7 +16,7 @@ import numpy as np
 
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
-from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode
+from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode, PortWord, SlotWord
 from rtloop.ipc.segments import RecordRing, Segment
 from rtloop.ipc.status import StatusWord, WordBlock
 
@@ -136,11 +136,11 @@ class _WriterLink:
 
 
 class _ProfileReader:
-    __slots__ = ("index", "live_port", "mode", "nudge", "profile", "t_ns", "target", "values")
+    __slots__ = ("index", "live_port", "mode", "nudge", "port", "profile", "t_ns", "target", "values")
 
     def __init__(self, profile: Profile, target: np.ndarray, mode: int = 0, nudge: np.ndarray | None = None,
-                 live_port: int = -1) -> None:
-        self.profile = profile
+                 live_port: int = -1, port: str = "") -> None:
+        self.profile, self.port = profile, port
         self.t_ns = [int(t) for t in profile.t_ns]
         self.values = [np.array(row, dtype=np.float64) for row in profile.values]
         self.target = target
@@ -195,7 +195,8 @@ class TaskWiring:
                 mode = NUDGE_MODES.get(port.nudge or "", 0)
                 nudge_port = len(self.live_ports) - 1 if mode else -1
                 self.profiles.append(_ProfileReader(port.profile, target, mode,
-                                                    self.live_ports[nudge_port][1] if mode else None, nudge_port))
+                                                    self.live_ports[nudge_port][1] if mode else None, nudge_port,
+                                                    port.name))
         self.fresh = [False] * len(self.live_ports)
         self.input_log = SampleQueue(self._segments[plan.input_log]) if plan.input_log else None
         self.input_log_row = np.zeros(self.input_log.n_values if self.input_log is not None else 0)
@@ -207,6 +208,41 @@ class TaskWiring:
         self.record_y, self.record_u = self.record_row[: len(y)], self.record_row[len(y) :]
         self.initial_y = y.copy()
         self.finite_checks = plan.finite_checks
+
+    def held_nudges(self) -> tuple[tuple[str, tuple[float, ...]], ...]:
+        """(port, its latest live value) of each profile port taking live nudges: part of the task's
+        state a ``--keep`` snapshot keeps, for it is not in ``u`` (an offset is added to the profile's
+        row at every release; an override waits for the next row)."""
+        return tuple((reader.port, tuple(reader.nudge.tolist())) for reader in self.profiles
+                     if reader.nudge is not None)
+
+    def recent_outputs(self) -> tuple[tuple[int, tuple[float, ...]], ...]:
+        """(stamp since T0, values) of the samples still in this task's output channel, oldest first:
+        what a late reader may still get (a ``--keep`` snapshot keeps them). Called by the writer itself."""
+        channel = self.output
+        if channel is None:
+            return ()
+        samples = []
+        for base, values in zip(channel.bases, channel.values, strict=True):
+            stamp = channel.words[base + SlotWord.STAMP_NS]
+            if stamp != NO_STAMP:
+                samples.append((0 if stamp == INITIAL_STAMP else stamp - self.t0_ns, tuple(values.tolist())))
+        return tuple(sorted(samples))
+
+    def resume_profiles(self, since_t0_ns: int, nudges: dict[str, tuple[float, ...]]) -> None:
+        """Profiles as they stood after the release at ``since_t0_ns`` (a replay resuming a snapshot, before
+        the cycle work is built): the row in force then, and the live nudges held (``held_nudges``)."""
+        for reader in self.profiles:
+            index = reader.index
+            while index + 1 < len(reader.t_ns) and reader.t_ns[index + 1] <= since_t0_ns:
+                index += 1
+            reader.index = index
+            if reader.nudge is not None and reader.port in nudges:
+                # the port holds the value too (each read copies it again), seen already: not fresh
+                port, buffer, _index = self.live_ports[reader.live_port]
+                port.write(np.asarray(nudges[reader.port], dtype=np.float64))
+                port.last_seq_seen = port.words[PortWord.SEQ]
+                buffer[:] = nudges[reader.port]
 
     def check_finite(self, cycle: int, y: np.ndarray) -> None:
         """Count NaN and ±inf headed across a connection; raise NonFiniteOutput where not allowed."""

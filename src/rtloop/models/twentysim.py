@@ -17,6 +17,21 @@ its flags, so a second run starts at once. It is loaded in the task process, in
 The shim's C API (``rtloop_*``) takes an instance handle: C++ models may have several
 instances in one process. ANSI-C models keep their state in globals; a second live
 instance in the same process gets a private copy of the library.
+
+A model's state can be saved and restored (a ``--keep`` run's window is replayed from it,
+``runtime/snapshot.py``), through its state arrays, found in the sources (:class:`StateLayout`):
+
+- C++: every ``XXDouble`` array the model's constructor allocates (``m_P = new XXDouble[n]``:
+  parameters, variables, states, rates, ...) and every number member of the model class and
+  of ``Submodel20sim`` (time, step size, the run state flags). The shim's ``rtloop_state``
+  copies them out or in. If that copy does not compile for an export, the library is built
+  without it and the state says why it cannot be saved.
+- ANSI-C: every number the sources define at file scope (``xx_time``, ``xx_P[]``, ``xx_s[]``,
+  ...): the whole model is in them. Their sizes come from the library's symbol table (``nm``).
+
+A member or global rtloop cannot copy (a structure other than 20-sim's matrices, which point into
+the arrays; a ``static`` number at file scope; an integration method that keeps a history)
+makes the state refused, naming it: never saved half.
 """
 
 from __future__ import annotations
@@ -30,10 +45,11 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from rtloop.models.base import ModelBuildError, ModelError
+from rtloop.models.base import ModelBuildError, ModelError, StateNotCaptured
 from rtloop.runnable import FloatVector
 
 __all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
@@ -210,11 +226,148 @@ def _parse_signals(text: str, folder: Path) -> tuple[tuple[str, ...], tuple[str,
     return result[0], result[1]
 
 
-def _shim_source(info: TwentySimInfo) -> str:
+_NUMBER_TYPES = {"XXDouble", "XXBoolean", "XXInteger", "XXFloat", "bool", "int", "double", "float", "long", "short",
+                 "char", "unsigned", "signed"}
+_STRUCTURAL_TYPES = {"XXMatrix"}
+"""20-sim's matrices: pointers into the arrays and their sizes, set when the model is built, never changed."""
+_SINGLE_STEP_METHODS = {"Discrete", "Euler", "RungeKutta2", "RungeKutta4"}
+"""20-sim's integration methods that keep nothing from one step to the next (scratch only)."""
+_NEW_ARRAY_RE = re.compile(r"\b(\w+)\s*=\s*new\s+XXDouble\s*\[\s*([^\]]+?)\s*\]")
+_SIZE_EXPR_RE = re.compile(r"^[\w\s+*()-]+$")
+_MEMBER_RE = re.compile(r"^[ \t]*((?:unsigned\s+|signed\s+)?[A-Za-z_]\w*)[ \t]+([^;(){}\n]+);", re.MULTILINE)
+_C_GLOBAL_RE = re.compile(r"^((?:static\s+)?(?:const\s+)?(?:unsigned\s+|signed\s+)?[A-Za-z_]\w*)\s+"
+                          r"([A-Za-z_]\w*)\s*(\[[^\]]*\])?\s*(?:=[^;]*)?;", re.MULTILINE)
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """What makes up a 20-sim model's state, read from its sources (see the module's docstring)."""
+
+    arrays: tuple[tuple[str, str], ...] = ()
+    """C++: (member, C++ expression of its length) of each ``new XXDouble[...]`` array."""
+    members: tuple[str, ...] = ()
+    """C++: number members (copied whole, ``sizeof``); ANSI-C: the globals."""
+    refused: str = ""
+    """Why the state cannot be saved ("" : it can)."""
+
+
+def _class_body(text: str, name: str) -> str | None:
+    """The text between the braces of ``class name ... {`` (None: not in ``text``)."""
+    found = re.search(rf"\bclass\s+{re.escape(name)}\b[^;{{]*\{{", text)
+    if found is None:
+        return None
+    depth, start = 1, found.end()
+    for index in range(start, len(text)):
+        depth += {"{": 1, "}": -1}.get(text[index], 0)
+        if depth == 0:
+            return text[start:index]
+    return None
+
+
+def _without_comments(text: str) -> str:
+    return re.sub(r"//[^\n]*", "", re.sub(r"/\*.*?\*/", " ", text, flags=re.DOTALL))
+
+
+def _without_bodies(text: str) -> str:
+    """``text`` with every ``{...}`` (function bodies, initialisers) replaced by ``;``, innermost first."""
+    while True:
+        flat = re.sub(r"\{[^{}]*\}", ";", text)
+        if flat == text:
+            return flat
+        text = flat
+
+
+def state_layout(info: TwentySimInfo) -> StateLayout:
+    """The arrays and numbers that hold ``info``'s state, or why rtloop cannot copy it."""
+    texts = {p: _without_comments(p.read_text(errors="replace")) for p in sorted(info.path.rglob("*"))
+             if p.suffix in SOURCE_SUFFIXES and p.is_file()}
+    if info.template == "c":
+        return _c_state_layout(info, texts)
+    bodies = [body for text in texts.values() for name in (info.name, "Submodel20sim")
+              if (body := _class_body(text, name)) is not None]
+    enums = {name for body in bodies for name in re.findall(r"\benum\s+(\w+)", body)}
+    pointers: set[str] = set()
+    members: list[str] = []
+    for body in bodies:
+        body = re.sub(r"\benum\s+\w*\s*\{[^}]*\}\s*;", " ", body)  # the enum's own declaration
+        body = _without_bodies(re.sub(r"\b(?:public|protected|private)\s*:", " ", body))
+        for kind, names in _MEMBER_RE.findall(body):
+            if kind in ("typedef", "friend", "return", "using", "static", "const", "virtual", "enum", "struct", "class",
+                        "union"):
+                continue
+            for declared in names.split(","):
+                declared = declared.strip()
+                name = re.sub(r"\[.*", "", declared).lstrip("*& ").strip()
+                if "*" in declared or "&" in declared:
+                    pointers.add(name)
+                elif kind in _NUMBER_TYPES or kind in enums:
+                    members.append(name)
+                elif kind in _STRUCTURAL_TYPES or kind in _SINGLE_STEP_METHODS:
+                    continue
+                else:
+                    return StateLayout(refused=f"member {name} of type {kind} is not a number rtloop can copy")
+    arrays: dict[str, str] = {}
+    for path in info.sources:
+        for name, size in _NEW_ARRAY_RE.findall(texts.get(path, "")):
+            if name not in pointers:
+                continue
+            if not _SIZE_EXPR_RE.match(size):
+                return StateLayout(refused=f"the length of array {name} ({size}) is not an expression rtloop reads")
+            arrays.setdefault(name, size)
+    if not arrays:
+        return StateLayout(refused="no XXDouble array allocated by its constructor was found (m_s = new XXDouble[...])")
+    return StateLayout(tuple(arrays.items()), tuple(dict.fromkeys(members)))
+
+
+def _c_state_layout(info: TwentySimInfo, texts: dict[Path, str]) -> StateLayout:
+    names = []
+    for path in info.sources:
+        for kind, name, _size in _C_GLOBAL_RE.findall(_without_bodies(texts.get(path, ""))):
+            words = kind.split()
+            base = words[-1]
+            if "const" in words or base in ("return", "typedef", "extern", "struct", "void"):
+                continue
+            if base in _STRUCTURAL_TYPES:
+                continue
+            if base not in _NUMBER_TYPES:
+                return StateLayout(refused=f"global {name} of type {base} is not a number rtloop can copy")
+            if "static" in words:
+                return StateLayout(refused=f"static {name} in {path.name} is not reachable from outside the library")
+            names.append(name)
+    if not names:
+        return StateLayout(refused="no global number was found in its sources (xx_time, xx_s[], ...)")
+    return StateLayout(members=tuple(dict.fromkeys(names)))
+
+
+def _state_shim(info: TwentySimInfo, layout: StateLayout) -> tuple[str, str]:
+    """(member function of RtloopModel, extern "C" entry point) that copy the state of a C++ model."""
+    if layout.refused or info.template != "cpp":
+        return "", ""
+    copies = [f"RTLOOP_COPY({name}, sizeof(XXDouble) * (size_t)({size}))" for name, size in layout.arrays]
+    copies += [f"RTLOOP_COPY(&{name}, sizeof({name}))" for name in layout.members]
+    body = "\n        ".join(copies)
+    member = f"""    /* the state (rtloop.models.twentysim): copied out (out != NULL) or in (in != NULL); its size */
+    size_t rtloop_state(char *out, const char *in)
+    {{
+        size_t n = 0;
+#define RTLOOP_COPY(p, bytes) {{ \\
+    if (out) memcpy(out + n, (p), (bytes)); if (in) memcpy((p), in + n, (bytes)); n += (bytes); }}
+        {body}
+#undef RTLOOP_COPY
+        return n;
+    }}
+"""
+    entry = "size_t rtloop_state(void *m, char *out, const char *in) { return M(m)->rtloop_state(out, in); }\n"
+    return member, entry
+
+
+def _shim_source(info: TwentySimInfo, with_state: bool = True) -> str:
     """The generated ``extern "C"`` entry points (``rtloop_*``) for one model."""
     if info.template == "cpp":
         assert info.header is not None
+        state_member, state_entry = _state_shim(info, state_layout(info)) if with_state else ("", "")
         return f"""/* generated by rtloop: C entry points for the 20-sim model {info.name} */
+#include <cstring>
 #include "{info.header.name}"
 
 namespace {{
@@ -225,7 +378,7 @@ struct RtloopModel : public {info.name} {{
     /* after Initialize set new parameters: evaluate the equations again, as Initialize does */
     void rtloop_reevaluate(XXDouble *y)
     {{ CalculateStatic(); CalculateInput(); CalculateDynamic(); CalculateOutput(); CopyVariablesToOutputs(y); }}
-}};
+{state_member}}};
 inline RtloopModel *M(void *m) {{ return static_cast<RtloopModel *>(m); }}
 }}
 
@@ -242,7 +395,7 @@ void rtloop_reset(void *m, XXDouble t) {{ M(m)->Reset(t); }}
 XXDouble rtloop_step_size(void *m) {{ return M(m)->rtloop_step_size(); }}
 void rtloop_set_parameter(void *m, int i, XXDouble v) {{ M(m)->rtloop_set_parameter(i, v); }}
 void rtloop_reevaluate(void *m, XXDouble *y) {{ M(m)->rtloop_reevaluate(y); }}
-}}
+{state_entry}}}
 """
     p = info.prefix
     return f"""/* generated by rtloop: C entry points for the 20-sim ANSI-C model {info.name} */
@@ -315,6 +468,26 @@ def build_library(
     if library.exists():
         return library
     cache.mkdir(parents=True, exist_ok=True)
+    try:
+        _compile(info, compiler, flags, shim, library)
+    except ModelBuildError as error:
+        plain = _shim_source(info, with_state=False)
+        if plain == shim:
+            raise
+        # the state copy did not compile for this export: the model still runs, its state is not saved
+        _compile(info, compiler, flags, plain, library)
+        first = next((line for line in error.compiler_output.splitlines() if "error" in line), "")
+        _state_note(library).write_text(f"the generated copy of its state did not compile ({first.strip()})")
+    return library
+
+
+def _state_note(library: Path) -> Path:
+    """Beside a library built without its state copy: why."""
+    return library.with_name(library.name + ".no-state")
+
+
+def _compile(info: TwentySimInfo, compiler: str, flags: tuple[str, ...], shim: str, library: Path) -> None:
+    cache = library.parent
     with tempfile.TemporaryDirectory(dir=cache, prefix=".build-") as tmp:
         shim_path = Path(tmp) / ("rtloop_shim.cpp" if info.template == "cpp" else "rtloop_shim.c")
         shim_path.write_text(shim)
@@ -338,7 +511,6 @@ def build_library(
         except OSError as error:
             raise ModelBuildError(str(info.path), command, f"the library built but does not load: {error}\n") from None
         os.replace(output, library)  # atomic: concurrent builds of one model are harmless
-    return library
 
 
 _UNDEFINED_RE = re.compile(r"undefined reference to [`'‘]([^'’`]+)['’`]")
@@ -381,6 +553,21 @@ _CPP_SIGNATURES = {
     "rtloop_set_parameter": ([_VOIDP, ctypes.c_int, _DOUBLE], None),
     "rtloop_reevaluate": ([_VOIDP, _VOIDP], None),
 }
+_STATE_SIGNATURE = ([_VOIDP, _VOIDP, _VOIDP], ctypes.c_size_t)
+
+
+def _exported_sizes(library: str) -> dict[str, int]:
+    """Bytes of each data symbol the library exports (``nm -D -S``), by name."""
+    nm = shutil.which("nm")
+    if nm is None:
+        raise StateNotCaptured("nm (binutils) is not installed: the sizes of the model's globals are unknown")
+    listing = subprocess.run([nm, "-D", "-S", "--defined-only", library], capture_output=True, text=True)
+    sizes = {}
+    for line in listing.stdout.splitlines():
+        parts = line.split()
+        if len(parts) == 4 and parts[2] in "BDGSbdgs":
+            sizes[parts[3]] = int(parts[1], 16)
+    return sizes
 
 
 class TwentySimModel:
@@ -417,6 +604,8 @@ class TwentySimModel:
         self.finish_time_s = finish_time_s
         self.cache_dir = cache_dir
         self.extra_flags = tuple(extra_flags)
+        self.state_layout = state_layout(self.info)
+        """What holds the model's state, or why it cannot be saved (``save_state``)."""
         self.library_path: Path | None = self.build() if build else None
         self._unload()
 
@@ -444,7 +633,7 @@ class TwentySimModel:
 
     def __getstate__(self) -> dict[str, object]:
         state = self.__dict__.copy()
-        for key in ("_lib", "_handle", "_calculate", "_u_bound", "_y_bound", "_private_copy"):
+        for key in ("_lib", "_handle", "_calculate", "_u_bound", "_y_bound", "_private_copy", "_state"):
             state[key] = None
         state["_u_ptr"] = state["_y_ptr"] = None
         return state
@@ -458,6 +647,8 @@ class TwentySimModel:
         self._u_ptr: int | None = None
         self._y_ptr: int | None = None
         self._private_copy: str | None = None
+        self._state: Any = None
+        """C++: the shim's rtloop_state; ANSI-C: a view of each global; or why the state cannot be saved."""
 
     def _load(self) -> None:
         library = str(self.library_path or self.build())
@@ -480,6 +671,64 @@ class TwentySimModel:
         self._lib = lib
         self._calculate = lib.rtloop_calculate
         self._handle = lib.rtloop_new()
+        self._state = self._state_access(lib, library)
+
+    def _state_access(self, lib: ctypes.CDLL, library: str) -> Any:
+        """How to reach the state in this loaded library (found at prerun, not at a snapshot), or why not."""
+        if self.state_layout.refused:
+            return self.state_layout.refused
+        if self.info.template == "cpp":
+            function = getattr(lib, "rtloop_state", None)
+            if function is None:
+                note = _state_note(Path(library))
+                return note.read_text() if note.is_file() else "its library was built without the state copy"
+            function.argtypes, function.restype = _STATE_SIGNATURE
+            return function
+        try:
+            sizes = _exported_sizes(library)
+        except StateNotCaptured as error:
+            return str(error)
+        missing = [name for name in self.state_layout.members if not sizes.get(name)]
+        if missing:
+            return f"global {missing[0]} is not exported by its library"
+        return [(ctypes.c_char * sizes[name]).in_dll(lib, name) for name in self.state_layout.members]
+
+    def save_state(self) -> bytes:
+        """The model's state (see the module's docstring); :class:`StateNotCaptured` says why not."""
+        state = self._state
+        if state is None:
+            raise StateNotCaptured(f"{self.kind} model {str(self.path)!r} is not loaded (initialize first)")
+        if isinstance(state, str):
+            raise StateNotCaptured(f"{self.kind} model {str(self.path)!r}: {state}")
+        if isinstance(state, list):
+            data = b"".join(bytes(view) for view in state)
+        else:
+            size = state(self._handle, None, None)
+            buffer = ctypes.create_string_buffer(size)
+            state(self._handle, buffer, None)
+            data = buffer.raw
+        return Path(str(self.library_path)).name.encode() + b"\0" + data
+
+    def restore_state(self, saved: bytes) -> None:
+        """Take back a state from :meth:`save_state` of the same build of this model (after ``initialize``)."""
+        name, _, data = saved.partition(b"\0")
+        if name.decode(errors="replace") != Path(str(self.library_path)).name:
+            raise ModelError(f"{self.kind} model {str(self.path)!r}: the saved state is of another build "
+                             f"({name.decode(errors='replace')}, not {Path(str(self.library_path)).name})")
+        state = self._state
+        if state is None or isinstance(state, str):
+            raise StateNotCaptured(f"{self.kind} model {str(self.path)!r}: {state or 'not loaded'}")
+        if isinstance(state, list):
+            if len(data) != sum(len(view) for view in state):
+                raise ModelError(f"{self.kind} model {str(self.path)!r}: the saved state has {len(data)} bytes")
+            offset = 0
+            for view in state:
+                ctypes.memmove(view, data[offset:], len(view))
+                offset += len(view)
+            return
+        if len(data) != state(self._handle, None, None):
+            raise ModelError(f"{self.kind} model {str(self.path)!r}: the saved state has {len(data)} bytes")
+        state(self._handle, None, data)
 
     def _bind(self, u: FloatVector, y: FloatVector) -> None:
         """Remember the data pointers of the task's (fixed) u and y arrays."""

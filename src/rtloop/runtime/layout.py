@@ -205,7 +205,9 @@ class AppLayout:
             wanted |= {link.segment for link in links}
             if record is not None:
                 wanted.add(record_segment.name)
-            live = [link for link in links if isinstance(link, InputPortLink) and link.profile is None]
+            # every port that takes live writes logs them (a profile's live nudges too), for replay
+            live = [link for link in links if isinstance(link, InputPortLink)
+                    and (link.profile is None or link.nudge is not None)]
             input_log = input_log_segment = None
             if live:
                 width = 1 + max(link.target.stop - link.target.start for link in live)

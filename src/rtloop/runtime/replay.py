@@ -272,7 +272,11 @@ class RunTimeline(LetTimeline):
         task.u[:] = snapshot.u
         task.y[:] = task.wiring.initial_y[:] = snapshot.y
         task.wiring.stamp_initial(t0_ns, last_cycle=snapshot.last_cycle, period_ns=task.period_ns)
+        for stamp_ns, values in getattr(snapshot, "outputs", ()):  # older samples a late read may still get
+            self.published(task.name, stamp_ns // task.period_ns - 1, np.asarray(values, dtype=np.float64))
         self.published(task.name, snapshot.last_cycle, task.y)
+        # a profile's row in force and its live nudges are not in u: as they stood after the last release
+        task.wiring.resume_profiles(snapshot.last_cycle * task.period_ns, dict(getattr(snapshot, "nudges", ())))
         for name, port in self.app.ports.items():  # a port holds its last value; the task reads it again
             if port.direction == "in" and port.feed is None and port.signal.task == task.name:
                 layout.input_ports[name].write(np.asarray(snapshot.u[port.signal.slice], dtype=np.float64))

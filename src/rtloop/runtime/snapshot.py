@@ -11,10 +11,11 @@ run directory, and :func:`rtloop.runtime.replay.replay` starts a window from the
 one it can.
 
 The saved state is the runnable's own ``save_state()`` where it has one (every model
-runnable: an FMU's serialised FMI state, a Python model's attributes), else the
-runnable's attributes by pickling. What cannot be saved (a 20-sim model's compiled state,
-an attribute that does not pickle) is recorded as a reason: the replay of that window
-says so instead of guessing.
+runnable: an FMU's serialised FMI state, a 20-sim model's state arrays, a Python model's
+attributes), else the runnable's attributes by pickling; beside it, the live values the
+task's nudged profile ports hold (they are not in ``u``). What cannot be saved (a 20-sim
+member rtloop cannot copy, an attribute that does not pickle) is recorded as a reason: the
+replay of that window says so instead of guessing.
 """
 
 from __future__ import annotations
@@ -54,6 +55,11 @@ class TaskSnapshot:
     """The runnable's saved state (None: it could not be saved, see ``reason``)."""
     reason: str = ""
     """Why ``state`` is None."""
+    nudges: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    """(port, latest live value) of each of its profile ports taking live nudges (not in ``u``)."""
+    outputs: tuple[tuple[int, tuple[float, ...]], ...] = ()
+    """(stamp since T0, values) of the samples still in its output channel: a reader that is late
+    just after the snapshot may get one older than ``y``, and its replay needs it."""
 
 
 def save_state(runnable: Runnable) -> tuple[bytes | None, str]:
@@ -77,10 +83,14 @@ def restore_state(runnable: Runnable, state: bytes) -> None:
 
 
 def take(task: str, runnable: Runnable, at_ns: int, next_cycle: int, last_cycle: int,
-         u: np.ndarray, y: np.ndarray, why_not: str = "") -> TaskSnapshot:
-    """The snapshot of a task (``why_not``: a reason it cannot be one, known beforehand)."""
+         u: np.ndarray, y: np.ndarray, why_not: str = "",
+         nudges: tuple[tuple[str, tuple[float, ...]], ...] = (),
+         outputs: tuple[tuple[int, tuple[float, ...]], ...] = ()) -> TaskSnapshot:
+    """The snapshot of a task (``why_not``: a reason it cannot be one, known beforehand; ``nudges``:
+    the live values its nudged profile ports hold; ``outputs``: the samples still in its channel)."""
     state, reason = (None, why_not) if why_not else save_state(runnable)
-    return TaskSnapshot(task, at_ns, next_cycle, last_cycle, tuple(u.tolist()), tuple(y.tolist()), state, reason)
+    return TaskSnapshot(task, at_ns, next_cycle, last_cycle, tuple(u.tolist()), tuple(y.tolist()), state, reason,
+                        nudges, outputs)
 
 
 def common_instant_ns(after_ns: int, periods_ns: list[int]) -> int:

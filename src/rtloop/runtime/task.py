@@ -201,7 +201,8 @@ def task_process_main(
         if task.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
             why_not = f"it was asked after it had passed t = {at_ns / 1e9} s"
         _report(pipe, kind="snapshot", snapshot=take(config.name, runnable, at_ns, next_cycle, task.cycle,
-                                                     task.u, task.y, why_not))
+                                                     task.u, task.y, why_not, wiring.held_nudges(),
+                                                     wiring.recent_outputs()))
 
     task.on_snapshot = send_snapshot
     wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
