@@ -11,7 +11,8 @@ task without the log is what every task was before it):
 2. the whole no-op iteration ``begin(); step(u, y); finish()`` of a task with one clean
    connection, releases in the past (``clock_nanosleep`` returns at once);
 3. a ``--keep`` snapshot (``snapshot.take``, once per recording segment, in the loop) of
-   JIWY's Python controller and of the JIWY plant FMU (built with gcc if there is one).
+   JIWY's Python controller, of the JIWY plant FMU and of the 20-sim C++ and ANSI-C JIWY
+   plants (built with gcc/g++ if there are).
 
 Figures are medians of 11 batches (µs per call); the ring is drained between batches.
 
@@ -121,6 +122,13 @@ def snapshot_costs(args: argparse.Namespace) -> dict[str, float]:
 
         fmu = build_fmu(jiwy / "models" / "fmu", Path(folder) / "JiwyPlant.fmu")
         makers["JIWY plant (FMU, FMI serialize)"] = lambda: ModelRunnable(FmuModel(fmu))
+    if shutil.which("g++") and shutil.which("gcc"):
+        from rtloop.models.twentysim import TwentySimModel
+
+        for model, label in (("Plant", "JIWY plant (20-sim C++, state arrays)"),
+                             ("PlantC", "JIWY plant (20-sim ANSI-C, globals)")):
+            makers[label] = lambda model=model: ModelRunnable(
+                TwentySimModel(jiwy / "models" / model, cache_dir=Path(folder) / "cache"))
     costs = {}
     try:
         for label, make in makers.items():
