@@ -88,3 +88,39 @@ def test_ctrl_c_ends_a_run_that_starves_the_supervisor_and_reports_what_was_lost
     gaps = [row for row in body if "" in row[1:]]
     assert gaps, "lost rows must be marked as empty cells in signals.csv, never filled with the last value"
     assert not list(Path("/dev/shm").glob(f"rtloop-{name}-*")), "shared memory left behind"
+
+
+def test_what_the_drain_after_the_stop_leaves_is_counted_and_marked_as_a_gap(tmp_path: Path) -> None:
+    """No processes: records pushed into the shared-memory queues as a task would, then the
+    drain after the stop with no time at all: one batch is written, the rest counted."""
+    import numpy as np
+
+    from rt_test_runnables import Counter
+    from rtloop import App
+    from rtloop.runtime.session import DRAIN_BATCH_RECORDS, RunSession
+
+    app = App(f"stop_budget_{os.getpid()}")
+    task = app.add_task("a", Counter(), period_ns=1_000_000, policy="other")
+    app.record(task.y)
+    pushed = 3 * DRAIN_BATCH_RECORDS
+    with RunSession(app, tmp_path / "out", mode="run", duration_s=None, keep_s=None, trim=0,
+                    registry=False) as session:
+        handles = session.layout.tasks["a"]
+        assert handles.record is not None
+        for cycle in range(pushed):
+            release_ns = cycle * 1_000_000
+            assert handles.timing.push4(cycle, release_ns, release_ns + 10, release_ns + 20)
+            assert handles.record.push(cycle, np.array([cycle + 1.0, cycle / 1000]))
+        session.drain_after_stop(0.0)
+        assert session.losses.timing_at_stop == {"a": pushed - DRAIN_BATCH_RECORDS}
+        assert session.losses.signal_rows_at_stop == {"a": pushed - DRAIN_BATCH_RECORDS}
+        assert session.losses.to_json()["lost"]["signal_rows_at_stop"] == {"a": pushed - DRAIN_BATCH_RECORDS}
+        assert any("not written" in note for note in session.losses.notes())
+    with open(tmp_path / "out" / "signals.csv", newline="") as file:
+        rows = list(csv.reader(file))[1:]
+    # the rows of the batch written (no initial outputs were pushed), then one row that marks the gap
+    assert len(rows) == DRAIN_BATCH_RECORDS + 1
+    assert rows[-2][1:] == [repr(float(DRAIN_BATCH_RECORDS)), repr((DRAIN_BATCH_RECORDS - 1) / 1000)]
+    assert rows[-1] == [repr((DRAIN_BATCH_RECORDS + 1) / 1000), "", ""]
+    with open(tmp_path / "out" / "timing.csv", newline="") as file:
+        assert len(list(csv.reader(file))) == 1 + DRAIN_BATCH_RECORDS

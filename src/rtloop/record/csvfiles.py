@@ -297,7 +297,8 @@ class SignalsCsv:
                             self.pending[stream].append((np.array([(tick + shift) * self.periods_ns[task]]),
                                                          np.full((1, width), np.nan), np.ones(1, dtype=bool)))
             self.unexplained.clear()
-        horizon = max(self.delivered_ns.values()) if final else min(self.delivered_ns.values())
+        # at the end everything pending is written, the marks of rows lost at the very end included
+        horizon = np.iinfo(np.int64).max if final else min(self.delivered_ns.values())
         ready: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for stream in self.streams:
             blocks = self.pending[stream]
