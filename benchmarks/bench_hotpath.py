@@ -40,7 +40,7 @@ from bench_channels import START_MARGIN_NS, _realtime, _wait_for_t0, decode, enc
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
@@ -87,7 +87,7 @@ def task_io(names: dict[str, Any], kind: str, *, inputs: list[tuple[int, slice, 
         os.environ[hotpath.PURE_PYTHON_ENV] = "1"
     task = Segment.create("bench_hotpath", os.getpid(), new_run_token(), "task", task_segment_size(1 << 16))
     status = WordBlock(task, 0, STATUS_WORDS)
-    timing = RecordRing.initialise(task, 1 << 16, 4, STATUS_WORDS * 8)
+    timing = Int64Ring.initialise(task, 1 << 16, 4, STATUS_WORDS * 8)
     channels = names["channels"]
     plan = TaskWiringPlan(
         output_channel=channels[output] if output is not None else None,

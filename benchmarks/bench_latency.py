@@ -179,7 +179,7 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     """
     from rtloop.ipc.hotpath import PythonCycle
     from rtloop.ipc.schema import task_segment_size
-    from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+    from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
     from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
     from rtloop.linux import rt
@@ -193,7 +193,7 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
         os.sched_setaffinity(0, {cpu})
         control = WordBlock(control_segment, 0, CONTROL_WORDS)
         status = WordBlock(task_segment, 0, STATUS_WORDS)
-        timing = RecordRing.initialise(task_segment, cycles + 8, 4, STATUS_WORDS * 8)
+        timing = Int64Ring.initialise(task_segment, cycles + 8, 4, STATUS_WORDS * 8)
         period_ns = 1_000_000
         task = RealtimeTask(TaskConfig("noop", period_ns), NoOp(), control, status, timing)
         task.wiring = TaskWiring(TaskWiringPlan(), task.u, task.y, status)

@@ -40,7 +40,7 @@ from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_j
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
@@ -64,15 +64,15 @@ class Rig:
         self.made.append(segment)
         return segment
 
-    def task(self, kind: str, n_inputs: int, with_log: bool) -> tuple[Any, RecordRing | None, RecordRing]:
+    def task(self, kind: str, n_inputs: int, with_log: bool) -> tuple[Any, Int64Ring | None, Int64Ring]:
         """The per-cycle work of a reader of the first ``n_inputs`` writers (C or Python)."""
-        log = self._make(f"log{len(self.made)}", RecordRing.size_bytes(RING, READ_LOG_WIDTH)) if with_log else None
+        log = self._make(f"log{len(self.made)}", Int64Ring.size_bytes(RING, READ_LOG_WIDTH)) if with_log else None
         if log is not None:
-            RecordRing.initialise(log, RING, READ_LOG_WIDTH)
+            Int64Ring.initialise(log, RING, READ_LOG_WIDTH)
         control = self._make(f"control{len(self.made)}", CONTROL_WORDS * 8)
         segment = self._make(f"task{len(self.made)}", task_segment_size(RING))
         status = WordBlock(segment, 0, STATUS_WORDS)
-        timing = RecordRing.initialise(segment, RING, 4, STATUS_WORDS * 8)
+        timing = Int64Ring.initialise(segment, RING, 4, STATUS_WORDS * 8)
         plan = TaskWiringPlan(
             inputs=tuple(InputLink(w.name, slice(0, 1), slice(i, i + 1), P, f"w{i}")
                          for i, w in enumerate(self.writers[:n_inputs])),
@@ -82,14 +82,14 @@ class Rig:
         os.environ[hotpath.PURE_PYTHON_ENV] = "1" if kind == "python" else "0"
         work = hotpath.cycle_work(TickInfo(), wiring, WordBlock(control, 0, CONTROL_WORDS), status, timing, P,
                                   catch_up=True)
-        return work, (RecordRing(log) if log is not None else None), timing
+        return work, (Int64Ring(log) if log is not None else None), timing
 
     def close(self) -> None:
         for segment in self.made:
             segment.unlink()
 
 
-def median_us(call: Any, repeats: int, rings: list[RecordRing | None]) -> float:
+def median_us(call: Any, repeats: int, rings: list[Int64Ring | None]) -> float:
     samples = []
     for _ in range(11):
         for ring in rings:

@@ -23,7 +23,7 @@ from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
 from rtloop.ipc.ports import connect_app
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
 from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
@@ -87,7 +87,7 @@ def _reader_of(channel_segment: Segment, n_values: int, spans: list[tuple[slice,
     control = Segment.create("hotpath", os.getpid(), token, "control", CONTROL_WORDS * 8)
     task = Segment.create("hotpath", os.getpid(), token, "task", task_segment_size(16))
     status = WordBlock(task, 0, STATUS_WORDS)
-    timing = RecordRing.initialise(task, 16, 4, STATUS_WORDS * 8)
+    timing = Int64Ring.initialise(task, 16, 4, STATUS_WORDS * 8)
     plan = TaskWiringPlan(
         inputs=tuple(InputLink(channel_segment.name, source, target, period_ns) for source, target in spans),
         segments=(channel_segment.name,),

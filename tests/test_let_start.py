@@ -21,7 +21,7 @@ from conftest import other_cpu
 from rtloop import App
 from rtloop.ipc.channels import NO_STAMP, LetChannel
 from rtloop.ipc.schema import INITIAL_STAMP
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 
 P = 1_000_000
@@ -92,10 +92,10 @@ def test_initial_outputs_are_published_before_t0_and_read_as_stamped_t0(monkeypa
     monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
     token, pid = new_run_token(), os.getpid()
     made = [Segment.create("letstart", pid, token, "w", LetChannel.size_bytes(2, 2)),
-            Segment.create("letstart", pid, token, "reads", RecordRing.size_bytes(8, READ_LOG_WIDTH))]
+            Segment.create("letstart", pid, token, "reads", Int64Ring.size_bytes(8, READ_LOG_WIDTH))]
     try:
         LetChannel.initialise(made[0], 2, 2)
-        RecordRing.initialise(made[1], 8, READ_LOG_WIDTH)
+        Int64Ring.initialise(made[1], 8, READ_LOG_WIDTH)
         writer = TaskWiring(TaskWiringPlan(output_channel=made[0].name, segments=(made[0].name,)),
                             np.zeros(0), np.zeros(2), None)
         writer.publish_initial(np.array(INITIAL))
@@ -107,7 +107,7 @@ def test_initial_outputs_are_published_before_t0_and_read_as_stamped_t0(monkeypa
         reader.read_inputs(T0, reader.u)
         assert reader.u.tolist() == INITIAL and reader.stale_reads == 0
         reader.read_inputs(T0 + P, reader.u)  # the writer has not published cycle 0 yet
-        assert RecordRing(made[1]).drain().tolist() == [[P, 0, INITIAL_STAMP, P]]
+        assert Int64Ring(made[1]).drain().tolist() == [[P, 0, INITIAL_STAMP, P]]
         assert INITIAL_STAMP != NO_STAMP
     finally:
         for segment in made:

@@ -23,7 +23,7 @@ from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
@@ -45,14 +45,14 @@ def _stale_reads_logged(kind: str, monkeypatch) -> tuple[list[list[int]], list[f
     made: list[Segment] = []
     try:
         fast, slow = (Segment.create("readlog", pid, token, name, LetChannel.size_bytes(2, 4)) for name in "ab")
-        log = Segment.create("readlog", pid, token, "reads", RecordRing.size_bytes(16, READ_LOG_WIDTH))
+        log = Segment.create("readlog", pid, token, "reads", Int64Ring.size_bytes(16, READ_LOG_WIDTH))
         control = Segment.create("readlog", pid, token, "control", CONTROL_WORDS * 8)
         task = Segment.create("readlog", pid, token, "task", task_segment_size(16))
         made += [fast, slow, log, control, task]
         writers = [LetChannel.initialise(fast, 2, 4), LetChannel.initialise(slow, 2, 4)]
-        RecordRing.initialise(log, 16, READ_LOG_WIDTH)
+        Int64Ring.initialise(log, 16, READ_LOG_WIDTH)
         status = WordBlock(task, 0, STATUS_WORDS)
-        timing = RecordRing.initialise(task, 16, 4, STATUS_WORDS * 8)
+        timing = Int64Ring.initialise(task, 16, 4, STATUS_WORDS * 8)
         plan = TaskWiringPlan(
             inputs=(InputLink(fast.name, slice(0, 2), slice(0, 2), P, "fast"),
                     InputLink(slow.name, slice(1, 2), slice(2, 3), 2 * P, "slow")),
@@ -74,7 +74,7 @@ def _stale_reads_logged(kind: str, monkeypatch) -> tuple[list[list[int]], list[f
             writers[0].publish(T0 + 3 * P, np.array([1.3, 13.0]))
             writers[1].publish(T0 + 2 * P, np.array([2.2, 22.0]))
             work.read_inputs(T0 + 3 * P)  # clean again
-            records = RecordRing(log).drain().tolist()
+            records = Int64Ring(log).drain().tolist()
             return records, wiring.u.tolist(), status[StatusWord.STALE_READS]
         finally:
             work.close()
@@ -96,16 +96,16 @@ def test_a_read_that_found_no_sample_logs_no_stamp(monkeypatch) -> None:
     monkeypatch.setenv(hotpath.PURE_PYTHON_ENV, "1")
     token, pid = new_run_token(), os.getpid()
     made = [Segment.create("readlog0", pid, token, "a", LetChannel.size_bytes(1, 2)),
-            Segment.create("readlog0", pid, token, "reads", RecordRing.size_bytes(4, READ_LOG_WIDTH))]
+            Segment.create("readlog0", pid, token, "reads", Int64Ring.size_bytes(4, READ_LOG_WIDTH))]
     try:
         LetChannel.initialise(made[0], 1, 2)
-        RecordRing.initialise(made[1], 4, READ_LOG_WIDTH)
+        Int64Ring.initialise(made[1], 4, READ_LOG_WIDTH)
         plan = TaskWiringPlan(inputs=(InputLink(made[0].name, slice(0, 1), slice(0, 1), P, "a"),),
                               read_log=made[1].name, segments=(made[0].name, made[1].name))
         wiring = TaskWiring(plan, np.zeros(1), np.zeros(0), None)
         wiring.t0_ns = T0
         wiring.read_inputs(T0 + 3 * P, wiring.u)
-        assert RecordRing(made[1]).drain().tolist() == [[3 * P, 0, NO_STAMP, 3 * P]]
+        assert Int64Ring(made[1]).drain().tolist() == [[3 * P, 0, NO_STAMP, 3 * P]]
     finally:
         for segment in made:
             segment.unlink()

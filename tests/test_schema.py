@@ -28,7 +28,7 @@ from rtloop.ipc.schema import (
     StatusWord,
     TimingField,
 )
-from rtloop.ipc.segments import RecordRing, Segment, new_run_token
+from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import WordBlock
 from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo
@@ -73,14 +73,14 @@ def test_every_header_word_fits_its_block() -> None:
 def test_the_python_classes_write_the_words_the_schema_names(tmp_path: Path) -> None:
     token = new_run_token()
     size = LetChannel.size_bytes(3, 2) + LatestValue.size_bytes(2) + SampleQueue.size_bytes(2, 4) + \
-        RecordRing.size_bytes(4, TIMING_RECORD_WORDS)
+        Int64Ring.size_bytes(4, TIMING_RECORD_WORDS)
     segment = Segment.create("schema", os.getpid(), token, "all", size)
     try:
         offsets = np.cumsum([0, LetChannel.size_bytes(3, 2), LatestValue.size_bytes(2), SampleQueue.size_bytes(2, 4)])
         channel = LetChannel.initialise(segment, 3, 2, int(offsets[0]))
         port = LatestValue.initialise(segment, np.array([1.0, 2.0]), int(offsets[1]), fed_by_profile=True)
         queue = SampleQueue.initialise(segment, 2, 4, int(offsets[2]))
-        ring = RecordRing.initialise(segment, 4, TIMING_RECORD_WORDS, int(offsets[3]))
+        ring = Int64Ring.initialise(segment, 4, TIMING_RECORD_WORDS, int(offsets[3]))
         words = np.frombuffer(segment.buffer, dtype=np.int64)
 
         def word(offset: np.int64, index: int) -> int:
@@ -119,7 +119,7 @@ def _twin(kind: str, catch_up: bool, max_misses: int | None, made: list[Segment]
     task_segment = Segment.create("twins", os.getpid(), token, f"task{kind}", schema.task_segment_size(64))
     made += [control_segment, task_segment]
     status = WordBlock(task_segment, 0, STATUS_WORDS)
-    timing = RecordRing.initialise(task_segment, 64, TIMING_RECORD_WORDS, TASK_TIMING_OFFSET_BYTES)
+    timing = Int64Ring.initialise(task_segment, 64, TIMING_RECORD_WORDS, TASK_TIMING_OFFSET_BYTES)
     wiring = TaskWiring(TaskWiringPlan(), np.zeros(0), np.zeros(0), status)
     make = hotpath.compiled_cycle if kind == "c" else hotpath.PythonCycle
     work = make(TickInfo(), wiring, WordBlock(control_segment, 0, CONTROL_WORDS), status, timing, P, catch_up,

@@ -9,7 +9,7 @@
 #   root     an arm64 Debian 12 root made by debootstrap, cached in ROOT_DIR (built once)
 #   install  rtloop from this checkout (copied in) into a venv in the root, with [fmu,report], mcap, pytest;
 #            the C hot path (rtloop.ipc._hotpath) must build with the root's gcc and import
-#   checks   architecture facts inside the root (tests/test_arch.py), and the hot path's ordered
+#   checks   architecture facts inside the root (tests/test_cpu_facts.py), and the hot path's ordered
 #            instructions counted with the root's objdump
 #   tests    a part of the test suite inside the root (RTLOOP_AARCH64_TESTS)
 #   compare  JIWY simulated on aarch64 and on this host, signals.csv compared bit for bit
@@ -226,7 +226,7 @@ main() {
 
     # --- aarch64 facts ---------------------------------------------------------------------------
     stage_start checks
-    run_pytest -v tests/test_arch.py | tee "$out/checks.txt"
+    run_pytest -v tests/test_cpu_facts.py | tee "$out/checks.txt"
     [ "${PIPESTATUS[0]}" = 0 ] || fail "architecture checks inside the aarch64 root (see above)"
     # The figures behind test_the_compiled_hot_path_orders_its_seqlocks_with_aarch64_acquire_release.
     hotpath_so=$(run_in_root /usr/bin/env --chdir=/ "$venv/bin/python" -c 'from rtloop.ipc import _hotpath; print(_hotpath.__file__)')

@@ -64,9 +64,9 @@ typedef struct { /* a setpoint profile, piecewise constant in time since T0 */
 } Profile;
 
 
-typedef struct { /* SampleQueue (or the timing RecordRing, same header) */
+typedef struct { /* SampleQueue (or the timing Int64Ring, same header) */
     aword *words;
-    int64_t *ticks; /* NULL for a RecordRing: its records hold everything */
+    int64_t *ticks; /* NULL for an Int64Ring: its records hold everything */
     int64_t *rows;
     int64_t width, capacity, written, from;
 } Queue;
@@ -933,7 +933,7 @@ static PyMethodDef Core_methods[] = {
     {"add_input", (PyCFunction)Core_add_input, METH_VARARGS, "Attach every connection from one writer."},
     {"add_live_port", (PyCFunction)Core_add_live_port, METH_VARARGS, "Attach an input port (LatestValue)."},
     {"set_input_log", (PyCFunction)Core_set_input_log, METH_O, "Attach the input log (SampleQueue) for replay."},
-    {"set_read_log", (PyCFunction)Core_set_read_log, METH_O, "Attach the read log (RecordRing) for replay."},
+    {"set_read_log", (PyCFunction)Core_set_read_log, METH_O, "Attach the read log (Int64Ring) for replay."},
     {"close", (PyCFunction)Core_close, METH_NOARGS, "Release the shared memory and the tick (idempotent)."},
     {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
     {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},

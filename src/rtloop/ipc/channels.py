@@ -185,6 +185,9 @@ class LatestValue:
 class SampleQueue:
     """Bounded single-producer/single-consumer queue of (tick, values) records.
 
+    A task's record queue (the signals it records) and each queued port are such queues;
+    the same header as :class:`~rtloop.ipc.segments.Int64Ring`, which holds int64 records only.
+
     Header words: ``[written, read, dropped, n_values, capacity]``, then ``capacity``
     ticks (int64), then ``capacity × n_values`` values (float64).
     """

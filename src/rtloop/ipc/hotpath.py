@@ -21,7 +21,7 @@ import numpy as np
 
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
-from rtloop.ipc.segments import RecordRing
+from rtloop.ipc.segments import Int64Ring
 from rtloop.ipc.wiring import TaskWiring
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
 
@@ -112,7 +112,7 @@ def announce_once() -> None:
 class PythonCycle:
     """One task's per-cycle framework work, in Python (the reference for ``_hotpath.Core``)."""
 
-    def __init__(self, tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+    def __init__(self, tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: Int64Ring,
                  period_ns: int, catch_up: bool, max_misses: int | None = None) -> None:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
@@ -257,7 +257,7 @@ def _index_in(base: np.ndarray, view: np.ndarray) -> int:
     return (view.__array_interface__["data"][0] - base.__array_interface__["data"][0]) // 8
 
 
-def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: Int64Ring,
                    period_ns: int, catch_up: bool, max_misses: int | None = None) -> CycleWork:
     """A ``_hotpath.Core`` over the same shared memory as ``wiring``."""
     if _hotpath is None or _NOT_BUILT:
@@ -294,7 +294,7 @@ def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words
     return core
 
 
-def cycle_work(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: RecordRing,
+def cycle_work(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: Int64Ring,
                period_ns: int, catch_up: bool, max_misses: int | None = None) -> CycleWork:
     """The per-cycle work of a task, built once before its loop: C when available, else Python."""
     kind = compiled_cycle if hot_path() == "c" else PythonCycle

@@ -69,7 +69,7 @@ class StatusWord(enum.IntEnum):
 
 
 class QueueWord(enum.IntEnum):
-    """Header of a single-producer ring or queue (RecordRing, SampleQueue)."""
+    """Header of a single-producer ring or queue (Int64Ring, SampleQueue)."""
 
     WRITTEN = 0
     READ = 1

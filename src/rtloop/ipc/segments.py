@@ -246,8 +246,11 @@ def remove_stale_segments() -> list[str]:
     return removed
 
 
-class RecordRing:
+class Int64Ring:
     """Bounded single-producer/single-consumer ring of fixed-width int64 records.
+
+    A task's timing ring and its read log are such rings; a task's recorded signals go
+    through a :class:`~rtloop.ipc.channels.SampleQueue` (the record queue) instead.
 
     The producer (an RT task) never blocks: when the ring is full the record is
     dropped and counted. The consumer drains all available records in one batch.
@@ -278,12 +281,12 @@ class RecordRing:
         return ring_size_bytes(capacity, width)
 
     @staticmethod
-    def initialise(segment: Segment, capacity: int, width: int, offset_bytes: int = 0) -> RecordRing:
-        header = segment.array(np.int64, RecordRing.HEADER_WORDS, offset_bytes)
+    def initialise(segment: Segment, capacity: int, width: int, offset_bytes: int = 0) -> Int64Ring:
+        header = segment.array(np.int64, Int64Ring.HEADER_WORDS, offset_bytes)
         header[:] = 0
         header[QueueWord.WIDTH] = width
         header[QueueWord.CAPACITY] = capacity
-        return RecordRing(segment, offset_bytes)
+        return Int64Ring(segment, offset_bytes)
 
     # --- producer side (RT): allocation-free -------------------------------------------
     def push4(self, a: int, b: int, c: int, d: int) -> bool:

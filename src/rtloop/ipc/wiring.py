@@ -17,7 +17,7 @@ import numpy as np
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
 from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode, PortWord, SlotWord
-from rtloop.ipc.segments import RecordRing, Segment
+from rtloop.ipc.segments import Int64Ring, Segment
 from rtloop.ipc.status import StatusWord, WordBlock
 
 
@@ -181,7 +181,7 @@ class TaskWiring:
         for link in plan.inputs:
             by_writer.setdefault(link.channel_segment, []).append(link)
         self.links = [_WriterLink(LetChannel(self._segments[name]), links, u) for name, links in by_writer.items()]
-        self.read_log = RecordRing(self._segments[plan.read_log]) if plan.read_log else None
+        self.read_log = Int64Ring(self._segments[plan.read_log]) if plan.read_log else None
         # A live port writes its slice of u, or, for a profile's nudges, a buffer of its own.
         self.live_ports: list[tuple[LatestValue, np.ndarray, float]] = []
         self.profiles: list[_ProfileReader] = []

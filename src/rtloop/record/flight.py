@@ -35,7 +35,10 @@ MIN_SEGMENT_NS = 1_000_000_000
 
 
 @dataclass
-class Segment:
+class RecordingSegment:
+    """A stretch of the recording in its own files (the flight window keeps the newest few);
+    not a shared-memory :class:`~rtloop.ipc.segments.Segment`."""
+
     index: int
     start_ns: int
     """Run time (since T0) of the first data it holds."""
@@ -49,7 +52,7 @@ class FlightWindow:
         self.directory = out / SEGMENTS_DIR
         self.keep_ns = round(keep_s * 1e9)
         self.segment_ns = max(MIN_SEGMENT_NS, self.keep_ns // WINDOW_SEGMENTS)
-        self.segments = [Segment(0, 0)]
+        self.segments = [RecordingSegment(0, 0)]
         self.pin_next = False
         self.events = 0
         """Events (misses, stale reads, faults) reported."""
@@ -60,10 +63,10 @@ class FlightWindow:
             stale.unlink()
 
     @property
-    def current(self) -> Segment:
+    def current(self) -> RecordingSegment:
         return self.segments[-1]
 
-    def path(self, name: str, segment: Segment | None = None) -> Path:
+    def path(self, name: str, segment: RecordingSegment | None = None) -> Path:
         """Where ``name`` (``timing.csv``, ...) of ``segment`` (default: the current one) goes."""
         return self.directory / f"{(segment or self.current).index:06d}-{name}"
 
@@ -74,10 +77,10 @@ class FlightWindow:
     def rotate(self, latest_ns: int, names: list[str]) -> None:
         """Start a new segment at ``latest_ns``; delete the files of segments no longer needed."""
         self.current.end_ns = latest_ns
-        self.segments.append(Segment(self.current.index + 1, latest_ns, pinned=self.pin_next))
+        self.segments.append(RecordingSegment(self.current.index + 1, latest_ns, pinned=self.pin_next))
         self.pin_next = False
         horizon_ns = latest_ns - self.keep_ns - self.segment_ns  # one more: its snapshot starts the replay
-        kept: list[Segment] = []
+        kept: list[RecordingSegment] = []
         for segment in self.segments:
             if segment.end_ns is not None and segment.end_ns <= horizon_ns and not segment.pinned:
                 for name in names:

@@ -27,7 +27,7 @@ from rtloop.ipc.schema import (
 )
 from rtloop.ipc.segments import (
     SHM_DIR,
-    RecordRing,
+    Int64Ring,
     Segment,
     new_run_token,
     open_in_shm,
@@ -70,7 +70,7 @@ def shared_memory_bytes(app: App) -> int:
             total += LatestValue.size_bytes(port.signal.size)
     total += len(app.tasks) * task_segment_size(TIMING_RING_CAPACITY)
     readers = {connection.target.task for connection in app.connections}
-    total += len(readers) * RecordRing.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH)
+    total += len(readers) * Int64Ring.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH)
     for name in {ref.task for ref in app.recorded}:
         runnable = app.tasks[name].runnable
         total += SampleQueue.size_bytes(runnable.n_outputs + runnable.n_inputs, RECORD_QUEUE_CAPACITY)
@@ -113,12 +113,12 @@ class TaskHandles:
 
     segments: TaskSegments
     status: WordBlock
-    timing: RecordRing
+    timing: Int64Ring
     plan: TaskWiringPlan
     record: SampleQueue | None = None
     input_log: SampleQueue | None = None
     """Port values the task took, with the release that took them (``inputs.csv``)."""
-    read_log: RecordRing | None = None
+    read_log: Int64Ring | None = None
     """Reads of connections that got another sample than logical execution time promised (``reads.csv``)."""
 
 
@@ -185,7 +185,7 @@ class AppLayout:
         for name, spec in app.tasks.items():
             task_segment = segment(f"{name}.task", task_segment_size(TIMING_RING_CAPACITY))
             status = WordBlock(task_segment, 0, STATUS_WORDS)
-            timing = RecordRing.initialise(task_segment, TIMING_RING_CAPACITY, TIMING_RECORD_WORDS,
+            timing = Int64Ring.initialise(task_segment, TIMING_RING_CAPACITY, TIMING_RECORD_WORDS,
                                            TASK_TIMING_OFFSET_BYTES)
             record = None
             if name in recorded_tasks:
@@ -216,8 +216,8 @@ class AppLayout:
                 wanted.add(input_log_segment.name)
             read_log = read_log_segment = None
             if inputs:
-                read_log_segment = segment(f"{name}.reads", RecordRing.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH))
-                read_log = RecordRing.initialise(read_log_segment, READ_LOG_CAPACITY, READ_LOG_WIDTH)
+                read_log_segment = segment(f"{name}.reads", Int64Ring.size_bytes(READ_LOG_CAPACITY, READ_LOG_WIDTH))
+                read_log = Int64Ring.initialise(read_log_segment, READ_LOG_CAPACITY, READ_LOG_WIDTH)
                 wanted.add(read_log_segment.name)
             plan = TaskWiringPlan(
                 output_channel=channels.get(name),

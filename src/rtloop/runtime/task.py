@@ -24,7 +24,7 @@ from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested, Wa
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import SNAPSHOT_DUE, cycle_work
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
-from rtloop.ipc.segments import RecordRing, Segment
+from rtloop.ipc.segments import Int64Ring, Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
@@ -45,7 +45,7 @@ class RealtimeTask:
         runnable: Runnable,
         control: WordBlock,
         status: WordBlock,
-        timing: RecordRing,
+        timing: Int64Ring,
     ) -> None:
         self.config = config
         self.runnable = runnable
@@ -170,7 +170,7 @@ def task_process_main(
     if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
         return
     status = WordBlock(task_segment, 0, STATUS_WORDS)
-    timing = RecordRing(task_segment, TASK_TIMING_OFFSET_BYTES)
+    timing = Int64Ring(task_segment, TASK_TIMING_OFFSET_BYTES)
     status[StatusWord.PID] = os.getpid()
     try:  # the runnable's class and modules load here: a failure is "loading", not prerun
         runnable: Runnable = loads_runnable(runnable_bytes)
