@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from rtloop.app.appfile import load_app
 from rtloop.cli.main import main
 from rtloop.errors import AppError, PortValueError
-from rtloop.ipc.ports import validate_values
+from rtloop.ipc.values import validate_values
 from rtloop.runtime.layout import check_memory
 
 FUZZ = settings(deadline=None, suppress_health_check=list(HealthCheck), database=None)

@@ -16,7 +16,8 @@ from rtloop.app.appfile import load_app
 from rtloop.app.builder import MAX_DURATION_S, App, check_duration
 from rtloop.cli.main import main
 from rtloop.errors import AppError, PortValueError
-from rtloop.ipc.ports import connect_app, validate_values
+from rtloop.ipc.ports import connect_app
+from rtloop.ipc.values import validate_values
 from rtloop.record.csvfiles import _csv_block
 from rtloop.record.recorder import give_to_invoking_user
 from rtloop.ros.bridge import narrowest_range
@@ -186,7 +187,7 @@ def test_validate_values_range() -> None:
     assert validate_values([1, 2], 2, value_range=(0, 2)).tolist() == [1.0, 2.0]
     with pytest.raises(PortValueError, match="outside its range"):
         validate_values([1, 3], 2, value_range=(0, 2))
-    with pytest.raises(PortValueError, match="not numbers"):
+    with pytest.raises(PortValueError, match="expected numbers"):
         validate_values(["x" * 10_000], 1)
     try:
         validate_values(["x" * 10_000], 1)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from rtloop.errors import PortValueError
-from rtloop.ros.validate import MessageValidator, RateLimitedWarner, RejectedValues, validate_values
+from rtloop.ipc.values import RejectedValues, validate_values
+from rtloop.ros.validate import MessageValidator, RateLimitedWarner
 
 
 def test_accepts_numbers_and_returns_a_float64_copy():
@@ -22,10 +23,10 @@ def test_accepts_numbers_and_returns_a_float64_copy():
 @pytest.mark.parametrize(
     ("values", "reason", "text"),
     [
-        ([1.0, 2.0, 3.0], "length", "expected 2 values, got 3"),
-        ([1.0], "length", "expected 2 values, got 1"),
-        ([1.0, float("nan")], "nonfinite", "element 1 is nan"),
-        ([float("-inf"), 0.0], "nonfinite", "element 0 is -inf"),
+        ([1.0, 2.0, 3.0], "length", "takes 2 values, got 3"),
+        ([1.0], "length", "takes 2 values, got 1"),
+        ([1.0, float("nan")], "nonfinite", "NaN or infinite value at index [1] of [1.0, nan]"),
+        ([float("-inf"), 0.0], "nonfinite", "NaN or infinite value at index [0] of [-inf, 0.0]"),
         ([[1.0, 2.0]], "shape", "shape (1, 2)"),
         (["1", "2"], "type", "expected numbers"),
         ([1.0, None], "type", "expected numbers"),
@@ -35,7 +36,7 @@ def test_accepts_numbers_and_returns_a_float64_copy():
 )
 def test_rejects_with_a_reason(values, reason, text):
     with pytest.raises(PortValueError) as info:
-        validate_values(values, 2, what="/jiwy/setpoint")
+        validate_values(values, 2, where="/jiwy/setpoint")
     assert isinstance(info.value, RejectedValues) and isinstance(info.value, ValueError)
     assert info.value.reason == reason
     assert text in str(info.value) and "/jiwy/setpoint" in str(info.value)

@@ -72,11 +72,12 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, _clip, _short, parse_signal
+from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, parse_signal
 from rtloop.app.modules import ModuleRefused, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
 from rtloop.io.device import build_device
 from rtloop.runnable import Runnable
+from rtloop.text import clip, shorten
 
 MAX_APP_FILE_BYTES = 1 << 20
 
@@ -113,14 +114,14 @@ TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an arr
 
 def _check_keys(path: str, where: str, table: dict[str, Any], allowed: dict[str, type]) -> None:
     for key, value in table.items():
-        full = f"{where}.{_clip(key, 40)}" if where else _clip(key, 40)
+        full = f"{where}.{clip(key, 40)}" if where else clip(key, 40)
         if key not in allowed:
             close = [k for k in allowed if _similar(k, key)]
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise AppFileError(path, full, f"unknown key{hint}; expected one of {sorted(allowed)}")
         expected = allowed[key]
         if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-            raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {_short(value)}")
+            raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {shorten(value)}")
 
 
 def _similar(a: str, b: str) -> bool:
@@ -132,7 +133,7 @@ def _similar(a: str, b: str) -> bool:
 def load_app(path: str | Path) -> App:
     """Read and validate an app file; builds the runnables (in this process)."""
     file = Path(path)
-    shown = _clip(str(path), 200)
+    shown = clip(str(path), 200)
     try:
         if file.is_dir():
             raise AppFileError(shown, "", "is a directory; expected an app file (TOML)")
@@ -148,7 +149,7 @@ def load_app(path: str | Path) -> App:
     except UnicodeDecodeError as error:
         raise AppFileError(shown, "", f"not UTF-8 text (byte {error.start}); an app file is TOML") from None
     except tomllib.TOMLDecodeError as error:
-        raise AppFileError(shown, "", f"not valid TOML: {_clip(str(error), 160)}") from None
+        raise AppFileError(shown, "", f"not valid TOML: {clip(str(error), 160)}") from None
     _check_keys(shown, "", data, TOP_KEYS)
     if "name" not in data:
         raise AppFileError(shown, "name", "missing; every app needs a name")
@@ -163,7 +164,7 @@ def load_app(path: str | Path) -> App:
     if not isinstance(data["tasks"], dict):
         raise AppFileError(shown, "tasks", "expected tables [tasks.NAME]")
     for task_name, table in data["tasks"].items():
-        where = f"tasks.{_clip(task_name, 40)}"
+        where = f"tasks.{clip(task_name, 40)}"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [tasks.NAME]")
         _check_keys(shown, where, table, TASK_KEYS)
@@ -201,7 +202,7 @@ def load_app(path: str | Path) -> App:
             raise AppFileError(shown, where, str(error)) from None
 
     for port_name, table in data.get("ports", {}).items():
-        where = f"ports.{_clip(port_name, 40)}"
+        where = f"ports.{clip(port_name, 40)}"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [ports.NAME]")
         _check_keys(shown, where, table, PORT_KEYS)
@@ -256,7 +257,7 @@ def _load_plots(shown: str, plots: list[Any], app: App) -> None:
 def _load_devices(shown: str, devices: dict[str, Any], app: App, base_dir: Path) -> None:
     """``[devices.NAME]``: kind, task, io, twin, limits, then the kind's own settings."""
     for name, table in devices.items():
-        where = f"devices.{_clip(name, 40)}"
+        where = f"devices.{clip(name, 40)}"
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [devices.NAME]")
         common = {key: value for key, value in table.items() if key in DEVICE_KEYS}
@@ -345,16 +346,16 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
         except RtloopError as error:  # incl. a model that does not build: the compiler's own words, whole
             raise AppFileError(shown, f"{where}.model", str(error)) from error
         except (OSError, ValueError, TypeError) as error:
-            raise AppFileError(shown, f"{where}.model", _clip(str(error), 300)) from error
+            raise AppFileError(shown, f"{where}.model", clip(str(error), 300)) from error
         except Exception as error:  # a model library or FMU failing in a way of its own
             raise AppFileError(shown, f"{where}.model", f"{type(error).__name__}: "
-                               f"{_clip(str(error), 200)}") from error
+                               f"{clip(str(error), 200)}") from error
     target = table["runnable"]
     module_name, _, class_name = target.partition(":")
     args_key = f"{where}.{'args' if key == 'runnable' else key + '_args'}"
     key = f"{where}.{key}"
     if not _is_dotted_name(module_name) or not class_name.isidentifier():
-        raise AppFileError(shown, key, f'{_short(target)}: expected "module:Class"')
+        raise AppFileError(shown, key, f'{shorten(target)}: expected "module:Class"')
     module = _import_runnable_module(shown, key, module_name, base_dir)
     cls = getattr(module, class_name, None)
     if not isinstance(cls, type) or not issubclass(cls, Runnable):
@@ -363,8 +364,8 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     try:
         runnable = cls(**args)
     except Exception as error:  # the constructor is user code: whatever it raises is a bad app
-        raise AppFileError(shown, args_key, f"{_clip(target)}({_short(args, 60)}) failed: "
-                           f"{type(error).__name__}: {_clip(str(error), 120)}") from error
+        raise AppFileError(shown, args_key, f"{clip(target)}({shorten(args, 60)}) failed: "
+                           f"{type(error).__name__}: {clip(str(error), 120)}") from error
     if not isinstance(runnable, Runnable):
         raise AppFileError(shown, key, f"{target} is not a subclass of rtloop.Runnable")
     if parameters is not None:
@@ -405,7 +406,7 @@ def _import_runnable_module(shown: str, key: str, module_name: str, base_dir: Pa
             installed = installed_origin(module_name)
             if installed is not None and Path(installed).resolve() != beside.resolve():
                 raise AppFileError(shown, key, f"{beside} would shadow the installed module {module_name!r} "
-                                   f"({_clip(installed, 100)}); rename the file beside the app file")
+                                   f"({clip(installed, 100)}); rename the file beside the app file")
             return load_module_file(module_name, beside.resolve())
         return importlib.import_module(module_name)
     except AppFileError:
@@ -414,9 +415,9 @@ def _import_runnable_module(shown: str, key: str, module_name: str, base_dir: Pa
         raise AppFileError(shown, key, str(error)) from None
     except ImportError as error:
         raise AppFileError(shown, key, f"cannot import module {module_name!r} (looked for {module_name}.py "
-                           f"beside the app file, then installed modules): {_clip(str(error), 120)}") from error
+                           f"beside the app file, then installed modules): {clip(str(error), 120)}") from error
     except BaseException as error:  # SyntaxError, or anything the module raises while importing
         if isinstance(error, KeyboardInterrupt):
             raise
         raise AppFileError(shown, key, f"module {module_name!r} failed to import: {type(error).__name__}: "
-                           f"{_clip(str(error), 120)}") from error
+                           f"{clip(str(error), 120)}") from error

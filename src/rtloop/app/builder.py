@@ -30,6 +30,7 @@ from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
 from rtloop.io.host import DeviceWiring
 from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
+from rtloop.text import clip, shorten
 
 Side = Literal["u", "y"]
 NAME_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,31}$")
@@ -270,7 +271,7 @@ class App:
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):
-            raise AppError(f"app name {_short(self.name)}: use letters, digits and underscores, at most 32")
+            raise AppError(f"app name {shorten(self.name)}: use letters, digits and underscores, at most 32")
 
     # --- building ------------------------------------------------------------------------
     def add_task(
@@ -290,7 +291,7 @@ class App:
         """Add a periodic task running ``runnable`` every ``period_ns``; returns its handle."""
         where = f"task {name!r}"
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
-            raise AppError(f"task {_short(name)}: a task name uses letters, digits and underscores, at most 32")
+            raise AppError(f"task {shorten(name)}: a task name uses letters, digits and underscores, at most 32")
         if name in self.tasks:
             raise AppError(f"{where}: defined twice")
         if not isinstance(runnable, Runnable):
@@ -298,7 +299,7 @@ class App:
         if not isinstance(period_ns, int) or isinstance(period_ns, bool) \
                 or not MIN_PERIOD_NS <= period_ns <= MAX_PERIOD_NS:
             raise AppError(f"{where}: period_ns must be an integer from {MIN_PERIOD_NS} (100 kHz) to "
-                           f"{MAX_PERIOD_NS} (1 hour), got {_short(period_ns)}")
+                           f"{MAX_PERIOD_NS} (1 hour), got {shorten(period_ns)}")
         if policy not in ("fifo", "rr", "other", "deadline"):
             raise AppError(f"{where}: policy {policy!r}; expected fifo, rr, other or deadline")
         low = 0 if policy in ("other", "deadline") else 1
@@ -318,12 +319,12 @@ class App:
             raise AppError(f"{where}: max_consecutive_misses {max_consecutive_misses!r}; "
                            "expected an integer ≥ 1 (or none: count misses and go on)")
         if not isinstance(lock_blas_buffer, bool):
-            raise AppError(f"{where}: lock_blas_buffer must be true or false, got {_short(lock_blas_buffer)}")
+            raise AppError(f"{where}: lock_blas_buffer must be true or false, got {shorten(lock_blas_buffer)}")
         runnable.add_parameter_inputs()  # live parameters become inputs after the declared ones
         for side, count in (("n_inputs", runnable.n_inputs), ("n_outputs", runnable.n_outputs)):
             if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_VECTOR_SIZE:
                 raise AppError(f"{where}: {type(runnable).__name__}.{side} must be an integer from 0 to "
-                               f"{MAX_VECTOR_SIZE}, got {_short(count)}")
+                               f"{MAX_VECTOR_SIZE}, got {shorten(count)}")
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
@@ -359,13 +360,13 @@ class App:
         """
         source = self.source
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
-            raise AppError(f"device {_short(name)}: a device name uses letters, digits and underscores, at most 32")
+            raise AppError(f"device {shorten(name)}: a device name uses letters, digits and underscores, at most 32")
         if name in self.devices or name in self.tasks:
             raise DeviceError(name, source, "", "the name is taken (task and device names share one namespace)")
         if task not in self.tasks:
-            raise DeviceError(name, source, "task", f"unknown task {_short(task)}; tasks are {sorted(self.tasks)}")
+            raise DeviceError(name, source, "task", f"unknown task {shorten(task)}; tasks are {sorted(self.tasks)}")
         if io not in IO_MODES:
-            raise DeviceError(name, source, "io", f"{_short(io)}; expected one of {list(IO_MODES)}")
+            raise DeviceError(name, source, "io", f"{shorten(io)}; expected one of {list(IO_MODES)}")
         if isinstance(kind, Device):
             if settings:
                 raise DeviceError(name, source, "", "settings go to the Device's constructor when it is built already")
@@ -488,7 +489,7 @@ class App:
         values written from outside that fall outside it are refused and counted, like NaN;
         ``range=`` is accepted as the same.
         """
-        what = f"port {_short(name)}"
+        what = f"port {shorten(name)}"
         if range is not None:
             if value_range is not None:
                 raise AppError(f"{what}: give range= or value_range= (the same), not both")
@@ -511,10 +512,10 @@ class App:
                     raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
                 initial_values = tuple(_number(what, "initial", v) for v in initial)
                 if checked_range and any(not checked_range[0] <= v <= checked_range[1] for v in initial_values):
-                    raise AppError(f"{what}: initial {_short(list(initial_values))} is outside its range "
+                    raise AppError(f"{what}: initial {shorten(list(initial_values))} is outside its range "
                                    f"{list(checked_range)}")
             if nudge is not None and nudge not in NUDGE_MODES:
-                raise AppError(f"{what}: nudge {_short(nudge)}; expected one of {list(NUDGE_MODES)}")
+                raise AppError(f"{what}: nudge {shorten(nudge)}; expected one of {list(NUDGE_MODES)}")
             spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
                             Path(feed) if feed is not None else None, checked_range, nudge)
         else:
@@ -530,7 +531,7 @@ class App:
                 raise AppError(f"{what}: nudge applies to ports into a task fed from a profile")
             if not isinstance(capacity, int) or isinstance(capacity, bool) or not 2 <= capacity <= MAX_PORT_CAPACITY:
                 raise AppError(f"{what}: capacity must be an integer from 2 to {MAX_PORT_CAPACITY}, "
-                               f"got {_short(capacity)}")
+                               f"got {shorten(capacity)}")
             spec = PortSpec(name, "out", ref, capacity=capacity)
         self.ports[name] = spec
         return spec
@@ -567,7 +568,7 @@ class App:
         ``value_range=(lo, hi)``: messages with a value outside it are rejected and counted, like NaN
         (the port's own range, if any, applies too).
         """
-        checked = _check_range(f"ros subscribe {_short(topic)}", value_range)
+        checked = _check_range(f"ros subscribe {shorten(topic)}", value_range)
         topic_spec = self._ros("subscribe", topic, port, msg_type, qos, (), 1, domain_id)
         if checked is not None:
             self.ros_topics[-1] = topic_spec = dataclasses.replace(topic_spec, value_range=checked)
@@ -636,7 +637,7 @@ class App:
 
     def plot(self, *signals: SignalRef | SignalVector, title: str = "") -> PlotSpec:
         """Draw these signals on one axis of the report (e.g. a setpoint over what it sets)."""
-        what = f"plot {_short(title)}" if title else "plot"
+        what = f"plot {shorten(title)}" if title else "plot"
         if not isinstance(title, str) or len(title) > 120 or not title.isprintable():
             raise AppError(f"{what}: title must be printable text of at most 120 characters")
         if not signals:
@@ -652,7 +653,7 @@ class App:
         They take precedence over what the runnable or model declares.
         """
         if task not in self.tasks:
-            raise AppError(f"units of {_short(task)}: unknown task; tasks are {sorted(self.tasks)}")
+            raise AppError(f"units of {shorten(task)}: unknown task; tasks are {sorted(self.tasks)}")
         if not isinstance(units, dict):
             raise AppError(f"units of task {task!r}: expected a table of signal name → unit")
         for key, unit in units.items():
@@ -682,7 +683,7 @@ class App:
 
 def _check_twin(name: str, source: str, device: Device, twin: object) -> None:
     if not isinstance(twin, Runnable):
-        raise DeviceError(name, source, "twin", f"{_short(twin)} is not an rtloop.Runnable")
+        raise DeviceError(name, source, "twin", f"{shorten(twin)} is not an rtloop.Runnable")
     if (twin.n_inputs, twin.n_outputs) != (device.n_inputs, device.n_outputs):
         raise DeviceError(name, source, "twin", f"{type(twin).__name__} has {twin.n_inputs} inputs and "
                           f"{twin.n_outputs} outputs; the device writes {device.n_inputs} and reads "
@@ -700,20 +701,20 @@ def _resolve_limits(name: str, source: str, device: Device,
         raise DeviceError(name, source, "limits", f"expected a table of commands {list(commands)}")
     limits = dict(device.default_limits())
     for command, limit in given.items():
-        key = f"limits.{_clip(str(command), 40)}"
+        key = f"limits.{clip(str(command), 40)}"
         if command not in commands:
             raise DeviceError(name, source, key, f"no such command; the device writes {list(commands)}")
         if isinstance(limit, dict):
             unknown = sorted(set(limit) - set(LIMIT_KEYS))
             if unknown:
-                raise DeviceError(name, source, f"{key}.{_clip(str(unknown[0]), 40)}",
+                raise DeviceError(name, source, f"{key}.{clip(str(unknown[0]), 40)}",
                                   f"unknown key; expected {list(LIMIT_KEYS)}")
             missing = [k for k in ("min", "max", "safe") if k not in limit]
             if missing:
                 raise DeviceError(name, source, f"{key}.{missing[0]}", "missing; a command needs min, max and safe")
             limit = CommandLimit(limit["min"], limit["max"], limit["safe"], limit.get("rate_per_s", math.inf))
         if not isinstance(limit, CommandLimit):
-            raise DeviceError(name, source, key, f"expected a table with {list(LIMIT_KEYS)}, got {_short(limit)}")
+            raise DeviceError(name, source, key, f"expected a table with {list(LIMIT_KEYS)}, got {shorten(limit)}")
         problem = limit.problem()
         if problem:
             raise DeviceError(name, source, key, problem)
@@ -729,35 +730,25 @@ def check_duration(duration_s: float) -> float:
     """A run's length: a finite number of seconds, more than 0 and at most :data:`MAX_DURATION_S`."""
     if isinstance(duration_s, bool) or not isinstance(duration_s, int | float) \
             or not 0 < duration_s <= MAX_DURATION_S:
-        raise AppError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} seconds, got {_short(duration_s)}")
+        raise AppError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} seconds, "
+                       f"got {shorten(duration_s)}")
     return float(duration_s)
-
-
-def _short(value: object, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters: errors quote input, never a 5 MB of it."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 5] + "…" + text[-4:]
-
-
-def _clip(text: str, limit: int = 80) -> str:
-    """``text`` cut to ``limit`` characters (for quoting messages of other errors)."""
-    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _number(what: str, key: str, value: object) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise AppError(f"{what}: {key} must hold numbers, got {_short(value)}")
+        raise AppError(f"{what}: {key} must hold numbers, got {shorten(value)}")
     try:
         return float(value)
     except OverflowError:
-        raise AppError(f"{what}: {key} value {_short(value)} does not fit a float64") from None
+        raise AppError(f"{what}: {key} value {shorten(value)} does not fit a float64") from None
 
 
 def _check_range(what: str, value_range: object) -> tuple[float, float] | None:
     if value_range is None:
         return None
     if not isinstance(value_range, list | tuple) or len(value_range) != 2:
-        raise AppError(f"{what}: range must be [lo, hi], got {_short(value_range)}")
+        raise AppError(f"{what}: range must be [lo, hi], got {shorten(value_range)}")
     low, high = (_number(what, "range", v) for v in value_range)
     if not (math.isfinite(low) and math.isfinite(high) and low <= high):
         raise AppError(f"{what}: range [{low!r}, {high!r}] must be finite with lo ≤ hi")
@@ -783,11 +774,11 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
         named = _named_signal(text, app)
         if named is not None:
             return named
-        raise AppError(f"{where}: {_short(text)} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
+        raise AppError(f"{where}: {shorten(text)} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
     task, side, start, stop = match.groups()
     block = app.block(task)
     if block is None:
-        raise AppError(f"{where}: {_short(text)} names unknown task {_short(task)}; tasks are {sorted(app.tasks)}")
+        raise AppError(f"{where}: {shorten(text)} names unknown task {shorten(task)}; tasks are {sorted(app.tasks)}")
     vector = getattr(block, side)
     if start is None:
         return vector.all

@@ -27,6 +27,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from rtloop.errors import AppError
+from rtloop.text import clip
 
 __all__ = ["RunnableNotSendable", "children_without_main", "dumps_runnable", "loads_runnable"]
 
@@ -50,7 +51,7 @@ def dumps_runnable(runnable: object, task: str) -> bytes:
     except Exception as error:  # whatever pickle raises for an attribute it cannot send
         raise RunnableNotSendable(
             f"task {task!r}: {type(runnable).__name__} cannot be sent to its task process "
-            f"({type(error).__name__}: {str(error)[:160]}); keep only numbers, arrays and plain objects in its "
+            f"({type(error).__name__}: {clip(str(error), 160)}); keep only numbers, arrays and plain objects in its "
             "attributes before prerun (open files, devices and libraries in prerun)") from None
     return buffer.getvalue()
 

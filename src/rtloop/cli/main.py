@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from rtloop.cli.arguments import positive_seconds
 from rtloop.errors import AppError, RtloopError, TaskFailed
 from rtloop.record.summary import RunSummary
+from rtloop.text import clip
 
 if TYPE_CHECKING:
     from rtloop.runtime.supervisor import Progress
@@ -188,7 +189,7 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
         print(f"rtloop: {missing_extra(error)}", file=sys.stderr)
         return exit_code_for(error)
     # a bug: still one line; the traceback with --debug
-    print(f"rtloop: internal error: {type(error).__name__}: {str(error)[:200]} "
+    print(f"rtloop: internal error: {type(error).__name__}: {clip(str(error), 200)} "
           "(run with --debug for the traceback, and please report it)", file=sys.stderr)
     return EXIT_TASK_FAILED
 

@@ -52,6 +52,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rtloop.errors import DeviceError, DeviceFault
+from rtloop.text import shorten
 
 __all__ = ["KINDS", "CommandLimit", "Device", "DeviceError", "DeviceFault", "Setting", "device_class"]
 
@@ -258,9 +259,8 @@ def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value, ok = float(value), True
     if not ok:
-        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:56] + "…"
         raise DeviceError(device, source, key, f"expected {_TYPE_NAMES.get(expected, expected.__name__)}, "
-                          f"got {shown}")
+                          f"got {shorten(value, 60)}")
     if expected is float and not math.isfinite(value):
         raise DeviceError(device, source, key, f"must be finite, got {value!r}")
     if setting.check is not None:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import difflib
 import fcntl
 import json
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -40,9 +39,10 @@ from rtloop.ipc.segments import (
     open_in_shm,
     pid_alive,
     process_uid,
-    shorten,
 )
 from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
+from rtloop.ipc.values import validate_values
+from rtloop.text import shorten
 
 REGISTRY_MAX_BYTES = 1 << 20
 
@@ -164,29 +164,6 @@ class PortReader:
 def port_range(info: dict[str, Any]) -> tuple[float, float] | None:
     value = info.get("range")
     return (float(value[0]), float(value[1])) if value else None
-
-
-def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, where: str = "value",
-                    value_range: tuple[float, float] | None = None) -> np.ndarray:
-    """Check a value for a port: right length, numbers, finite unless allowed, inside its range."""
-    try:
-        array = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError, OverflowError):
-        raise PortValueError(f"{where}: {shorten(values)} are not numbers") from None
-    if array.size != size:
-        raise PortValueError(f"{where}: takes {size} value{'s' if size != 1 else ''}, got {array.size}")
-    if not allow_nonfinite and not np.all(np.isfinite(array)):
-        bad = [i for i, v in enumerate(array) if not math.isfinite(v)]
-        raise PortValueError(f"{where}: NaN or infinite value at index {shorten(bad)} of "
-                             f"{shorten([float(v) for v in array.tolist()])}")
-    if value_range is not None:
-        low, high = value_range
-        outside = np.flatnonzero(~((array >= low) & (array <= high)) & ~np.isnan(array))
-        if outside.size:
-            first = int(outside[0])
-            raise PortValueError(f"{where}: value {float(array[first])!r} at index {first} is outside its range "
-                                 f"[{float(low)!r}, {float(high)!r}]")
-    return array
 
 
 def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp:

@@ -33,6 +33,7 @@ import numpy.typing as npt
 
 from rtloop.errors import RtloopError
 from rtloop.ipc.schema import HEADER_WORDS, QueueWord, ring_size_bytes
+from rtloop.text import shorten
 
 SHM_DIR = Path("/dev/shm")
 SEGMENT_PREFIX = "rtloop-"
@@ -84,12 +85,6 @@ def check_segment_name(name: str) -> re.Match[str]:
     if match is None or ".." in name:
         raise SegmentRefused(f"{shorten(name)} is not an rtloop segment name (expected {SEGMENT_NAME.pattern})")
     return match
-
-
-def shorten(value: object, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters, for error messages that quote input."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 5] + "…" + text[-4:]
 
 
 def open_in_shm(name: str, flags: int, *, mode: int = 0o600, owner_uid: int | None = None,

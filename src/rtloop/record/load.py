@@ -37,6 +37,7 @@ import numpy.typing as npt
 
 from rtloop.errors import RtloopError
 from rtloop.stats.timing import TimingSamples
+from rtloop.text import shorten
 
 BLOCK_BYTES = 8 << 20
 """How much of a file is parsed at once."""
@@ -297,7 +298,7 @@ def _blocks(paths: list[Path], header: bytes | None, problems: list[str]) -> Ite
             if not first:
                 continue  # created, nothing written yet
             if header is not None and first.rstrip(b"\r\n") != header:
-                problems.append(f"{part.name}: unexpected header {first[:80]!r}; file skipped")
+                problems.append(f"{part.name}: unexpected header {shorten(first)}; file skipped")
                 continue
             line, rest = 2, b""
             while block := file.read(BLOCK_BYTES):
@@ -336,7 +337,7 @@ def _parse_block(block: bytes, width: int, dtype: type, where: str, first_line: 
     if bad:
         number, line = bad[0]
         more = f" and {len(bad) - 1} more line(s) of this block" if len(bad) > 1 else ""
-        problems.append(f"{where} line {number}: not {width} numbers ({line[:60]!r}){more}; left out")
+        problems.append(f"{where} line {number}: not {width} numbers ({shorten(line, 60)}){more}; left out")
     return np.array(good, dtype=dtype).reshape(-1, width)
 
 
@@ -393,7 +394,7 @@ def _load_signals(path: Path, summary: dict[str, Any], spill: _SpillPlace, probl
     with open(parts[0], "rb") as file:
         header = file.readline().rstrip(b"\r\n").decode("utf-8", "replace").split(",")
     if header[0] != "t_s" or len(header) < 2:
-        problems.append(f"signals.csv: unexpected header {','.join(header)[:80]!r}; signals not loaded")
+        problems.append(f"signals.csv: unexpected header {shorten(','.join(header))}; signals not loaded")
         return None
     names = tuple(header[1:])
     rows = _Rows(len(header), np.float64, spill.file() if spill.wanted(parts) else None)
@@ -466,7 +467,7 @@ def _load_inputs(path: Path, summary: dict[str, Any], problems: list[str]) -> di
             task, cycle, port, values = [*text.split(","), "", "", ""][:4]
             row = _numbers(values.strip().replace(" ", ",").encode(), np.float64)
             if not cycle.isdigit() or row is None or task not in periods:
-                problems.append(f"{where} line {number}: not task,cycle,port,values ({text[:60]!r}); left out")
+                problems.append(f"{where} line {number}: not task,cycle,port,values ({shorten(text, 60)}); left out")
                 continue
             entry = collected.setdefault(port, (task, [], []))
             entry[1].append(int(cycle))

@@ -1,10 +1,10 @@
-"""Checking values that arrive from ROS 2 before they reach a real-time task.
+"""Checking a stream of messages (a ROS 2 topic, the Foxglove live view's input) before it reaches a task.
 
 A bridge must never pass a message of the wrong size or a NaN into a controller, and
 must not flood the log when a misconfigured node sends a bad message at 1 kHz. So:
-:func:`validate_values` checks one message, :class:`RateLimitedWarner` limits how
-often a problem is logged, and :class:`MessageValidator` combines both and counts
-what was accepted and rejected.
+:func:`~rtloop.ipc.values.validate_values` (the one check every port's values pass) checks
+one message, :class:`RateLimitedWarner` limits how often a problem is logged, and
+:class:`MessageValidator` combines both and counts what was accepted and rejected.
 """
 
 from __future__ import annotations
@@ -17,78 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from rtloop.errors import PortValueError
+from rtloop.ipc.values import REASONS, RejectedValues, validate_values
 
 logger = logging.getLogger("rtloop.ros")
-
-REASONS = ("type", "shape", "length", "nonfinite", "range")
-"""Why a message can be rejected: not numbers, not flat, wrong length, NaN or inf, outside the range."""
-
-
-class RejectedValues(PortValueError):
-    """Values rejected by :func:`validate_values`; ``reason`` is one of :data:`REASONS`."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        self.reason = reason
-        super().__init__(message)
-
-
-def validate_values(
-    values: Any,
-    expected_length: int,
-    allow_nonfinite: bool = False,
-    what: str = "message",
-    value_range: tuple[float, float] | None = None,
-) -> np.ndarray:
-    """Return ``values`` as a new flat float64 array, or raise naming what is wrong.
-
-    Args:
-        values: a sequence of numbers (list, tuple, numpy array, DDS sequence).
-        expected_length: the number of elements the receiving port holds.
-        allow_nonfinite: accept NaN and ±inf (off by default: one NaN fed back into a
-            controller makes every later output NaN).
-        what: how to name the values in the error, e.g. ``"/jiwy/setpoint data"``.
-        value_range: ``(lo, hi)``: a value outside it is rejected (NaN, when allowed, passes).
-
-    Raises:
-        PortValueError: (a :class:`RejectedValues`) the values are not numbers, not
-            one-dimensional, of the wrong length, or not finite.
-    """
-    try:
-        raw = np.asarray(values)
-    except ValueError:  # ragged nested sequences
-        raw = np.empty(0, dtype=object)
-    # Only ints and floats: numpy would otherwise parse strings such as "1.5".
-    if raw.dtype.kind not in "iuf":
-        raise RejectedValues("type", f"{what}: expected numbers, got {_short(values)}")
-    array = raw.astype(np.float64)  # always a copy: the caller may reuse its buffer
-    if array.ndim != 1:
-        raise RejectedValues("shape", f"{what}: expected a flat sequence of "
-                             f"{expected_length} numbers, got shape {array.shape}")
-    if array.size != expected_length:
-        raise RejectedValues("length", f"{what}: expected {expected_length} values, "
-                             f"got {array.size}")
-    if not allow_nonfinite:
-        bad = np.flatnonzero(~np.isfinite(array))
-        if bad.size:
-            first = int(bad[0])
-            raise RejectedValues("nonfinite", f"{what}: element {first} is "
-                                 f"{float(array[first])!r}; {bad.size} non-finite value(s) "
-                                 "(NaN/inf are not allowed)")
-    if value_range is not None:
-        low, high = value_range
-        outside = np.flatnonzero(((array < low) | (array > high)) & ~np.isnan(array))
-        if outside.size:
-            first = int(outside[0])
-            raise RejectedValues("range", f"{what}: element {first} is {float(array[first])!r}, outside "
-                                 f"[{low!r}, {high!r}]; {outside.size} value(s) out of range")
-    return array
-
-
-def _short(values: Any, limit: int = 60) -> str:
-    text = repr(values)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
 
 class RateLimitedWarner:
     """Logs a warning at most once per ``interval_s`` for each key.
@@ -186,8 +117,8 @@ class MessageValidator:
     def check(self, values: Any) -> np.ndarray | None:
         """Return the values as a float64 array, or ``None`` if rejected (counted, warned)."""
         try:
-            array = validate_values(values, self.expected_length, self.allow_nonfinite,
-                                    self.what, self.value_range)
+            array = validate_values(values, self.expected_length, allow_nonfinite=self.allow_nonfinite,
+                                    where=self.what, value_range=self.value_range)
         except RejectedValues as exc:
             self.counts.rejected[exc.reason] += 1
             self.warner.warn(f"dropped {exc}", key=f"{self.what}:{exc.reason}")

@@ -33,6 +33,7 @@ import numpy as np
 
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import AppError, RtloopError
+from rtloop.text import shorten
 
 MAX_POINTS = 10_000
 METRICS = ("rise_time_s", "overshoot_pct", "settling_time_s", "steady_state_error")
@@ -70,10 +71,10 @@ def grid(text: str) -> list[float]:
         else:
             values = [float(v) for v in text.split(",")]
     except ValueError:
-        raise AppError(f"sweep values {text[:60]!r}: expected START:STOP:COUNT (e.g. 0.1:1.0:10) "
+        raise AppError(f"sweep values {shorten(text, 60)}: expected START:STOP:COUNT (e.g. 0.1:1.0:10) "
                        "or a list (0.1,0.2,0.5)") from None
     if not values or not all(math.isfinite(v) for v in values):
-        raise AppError(f"sweep values {text[:60]!r}: need finite numbers")
+        raise AppError(f"sweep values {shorten(text, 60)}: need finite numbers")
     return values
 
 
@@ -122,7 +123,7 @@ def parse_parameter(text: str) -> tuple[str, list[float]]:
     name, sep, values = text.partition("=")
     task, dot, parameter = name.strip().partition(".")
     if not sep or not dot or not task or not parameter.isidentifier():
-        raise AppError(f"--param {text[:60]!r}: expected TASK.PARAMETER=START:STOP:COUNT, e.g. pi.kp=0.1:1.0:10")
+        raise AppError(f"--param {shorten(text, 60)}: expected TASK.PARAMETER=START:STOP:COUNT, e.g. pi.kp=0.1:1.0:10")
     return f"{task}.{parameter}", grid(values)
 
 
