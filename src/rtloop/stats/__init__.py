@@ -2,5 +2,7 @@
 
 :mod:`timing` holds the definitions (latency, jitter, misses) as pure functions over every
 sample; :mod:`timing_stream` computes the same record from batches in fixed memory
-(:mod:`histogram`), as a days-long run needs. Nothing here does I/O.
+(:mod:`histogram`), as a days-long run needs, with those same functions: ``summary.json``
+(the recorder streams), ``rtloop bench`` and the report's figures all count a cycle alike.
+Nothing here does I/O.
 """

@@ -13,6 +13,11 @@ end) records in cycle order, as the supervisor drains them, and gives the same
   interpolates linearly between the two neighbouring ranks;
 - to float rounding: the standard deviations and the drift (streamed co-moments).
 
+One engine: every value here is computed by :mod:`~rtloop.stats.timing`'s own functions
+(wake-up latency, execution time, period and cycle-to-cycle jitter, misses, late starts) on
+each batch, the same functions ``task_timing`` and the report use; only how a distribution
+is summarised differs (a histogram here, every sample there).
+
 Trimming as ``task_timing``: the first ``trim`` cycles are dropped as they arrive; the last
 ``trim`` are held back in a small fixed buffer and enter the distributions only when newer
 cycles push them out, so at any moment the statistics leave out the newest ``trim`` cycles.
@@ -32,6 +37,14 @@ from .timing import (
     THESIS_JITTER_FRACTION,
     Distribution,
     TaskTiming,
+    TimingSamples,
+    cycle_to_cycle_jitter_ns,
+    deadline_misses,
+    execution_ns,
+    jitter_over_fraction,
+    late_starts,
+    period_jitter_ns,
+    wakeup_latency_ns,
 )
 
 _PERCENTILES = (50.0, 99.0, 99.9)
@@ -75,8 +88,7 @@ class StreamingTaskTiming:
         self.cycle_jitter = Histogram(significant_digits)
         self.execution = Histogram(significant_digits)
         self._jitter_over_3pct = 0
-        self._previous: tuple[int, int] | None = None  # (cycle, start_ns) of the last core cycle
-        self._previous_period: tuple[int, bool] | None = None  # its actual period, and whether consecutive
+        self._last_core = np.empty((0, 4), dtype=np.int64)  # the newest two core rows: periods span batches
         self._drift = _CoMoments()
 
     # --- feeding ----------------------------------------------------------------------------
@@ -119,13 +131,14 @@ class StreamingTaskTiming:
 
     def _count_every_cycle(self, cycle: npt.NDArray[np.int64], release: npt.NDArray[np.int64],
                            start: npt.NDArray[np.int64], end: npt.NDArray[np.int64]) -> None:
-        """What task_timing counts over every cycle, trimmed or not."""
+        """What task_timing counts over every cycle, trimmed or not (with its own functions)."""
         if self._first_cycle is None:
             self._first_cycle = int(cycle[0])
         self._last_cycle = int(cycle[-1])
         self.cycles += int(cycle.size)
-        self._deadline_misses += int(np.count_nonzero(end > release + self.period_ns))
-        self._late_starts += int(np.count_nonzero(start - release >= self.period_ns))
+        batch = TimingSamples(cycle, release, start, end)
+        self._deadline_misses += deadline_misses(batch, self.period_ns)
+        self._late_starts += late_starts(batch, self.period_ns)
 
     def _push_through_tail(self, rows: npt.NDArray[np.int64]) -> None:
         """Hold back the newest ``trim`` rows; the rows they push out join the statistics."""
@@ -143,31 +156,24 @@ class StreamingTaskTiming:
             self._add_core(released)
 
     def _add_core(self, rows: npt.NDArray[np.int64]) -> None:
-        """Feed rows of the trimmed core, in order, to the distributions."""
-        cycle, release, start, end = (rows[:, i] for i in range(4))
-        latency = start - release
+        """Feed rows of the trimmed core, in order, to the distributions.
+
+        The values are task_timing's own functions of the samples. A period spans two rows
+        and a change of period three, so the newest two core rows of the previous batch go
+        in front: each pair and triple is counted once, in the batch of its last row.
+        """
+        batch = TimingSamples(*(rows[:, i] for i in range(4)))
+        joined = np.concatenate((self._last_core, rows))
+        with_previous = TimingSamples(*(joined[-(rows.shape[0] + 1):, i] for i in range(4)))
+        with_two_previous = TimingSamples(*(joined[:, i] for i in range(4)))
+        latency = wakeup_latency_ns(batch)
         self.latency.record_many(latency)
-        self.execution.record_many(end - start)
-        self._drift.add(cycle, latency)
-
-        if self._previous is not None:  # pair the first row with the last core row before it
-            cycle = np.concatenate(([self._previous[0]], cycle))
-            start = np.concatenate(([self._previous[1]], start))
-        periods = np.diff(start)
-        consecutive = np.diff(cycle) == 1
-        jitter = (periods - self.period_ns)[consecutive]
-        self.period_jitter.record_many(jitter)
-        self._jitter_over_3pct += int(np.count_nonzero(np.abs(jitter) > THESIS_JITTER_FRACTION * self.period_ns))
-
-        if self._previous_period is not None:
-            periods = np.concatenate(([self._previous_period[0]], periods))
-            consecutive = np.concatenate(([self._previous_period[1]], consecutive))
-        both = consecutive[1:] & consecutive[:-1]
-        self.cycle_jitter.record_many(np.diff(periods)[both])
-
-        self._previous = int(cycle[-1]), int(start[-1])
-        if periods.size:
-            self._previous_period = int(periods[-1]), bool(consecutive[-1])
+        self.execution.record_many(execution_ns(batch))
+        self._drift.add(batch.cycle, latency)
+        self.period_jitter.record_many(period_jitter_ns(with_previous, self.period_ns))
+        self._jitter_over_3pct += jitter_over_fraction(with_previous, self.period_ns, THESIS_JITTER_FRACTION)
+        self.cycle_jitter.record_many(cycle_to_cycle_jitter_ns(with_two_previous))
+        self._last_core = joined[-2:].copy()
 
     # --- answers ----------------------------------------------------------------------------
     @property
