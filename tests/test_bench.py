@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from rtloop.cli import bench
+from rtloop.runtime import bench as experiments
 from rtloop.cli.main import main as cli_main
 from rtloop.linux import rt
 
@@ -26,7 +27,7 @@ def table_rows(text: str) -> list[tuple[str, str]]:
     rows = []
     for line in text.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if line.startswith("| ") and cells[0] not in ("run",) and len(cells) == len(bench.COLUMNS):
+        if line.startswith("| ") and cells[0] not in ("run",) and len(cells) == len(experiments.COLUMNS):
             rows.append((cells[0], cells[1]))
     return rows
 
@@ -53,7 +54,7 @@ def no_rt(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.rt
 def test_affinity_runs_same_and_different_cores(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert bench.main(["affinity", "--duration", DURATION, "--out", str(tmp_path)]) == 0
-    cpu, other = bench.choose_cpus(None)
+    cpu, other = experiments.choose_cpus(None)
     same, different = summary(tmp_path / "same-core"), summary(tmp_path / "different-cores")
     assert [same["tasks"][t]["cpu"] for t in ("primes1", "primes2")] == [cpu, cpu]
     assert [different["tasks"][t]["cpu"] for t in ("primes1", "primes2")] == [other, cpu]
@@ -143,18 +144,18 @@ def test_cli_delegates_to_bench(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_unknown_cpu_is_refused() -> None:
-    with pytest.raises(bench.BenchError, match="--cpu 4096"):
-        bench.choose_cpus(4096)
+    with pytest.raises(experiments.BenchError, match="--cpu 4096"):
+        experiments.choose_cpus(4096)
 
 
 # --- pieces --------------------------------------------------------------------------------------
 def test_cyclictest_samples_use_rtloops_statistics() -> None:
     text = "Thread 0 using cpu 1.\n" + "".join(f"       0:{k:8d}:{20_000 + k:8d}\n" for k in range(100))
     text += "       0:     100: 1500000\n"  # a wake-up later than one period
-    samples = bench.parse_cyclictest_samples(text)
+    samples = experiments.parse_cyclictest_samples(text)
     assert len(samples) == 101
-    settings = bench.Settings(1.0, Path("unused"), 1, 0, "fifo", trim=0)
-    row = bench.cyclictest_row(samples, settings)
+    settings = experiments.Settings(1.0, Path("unused"), 1, 0, "fifo", trim=0)
+    row = experiments.cyclictest_row(samples, settings)
     assert (row.run, row.cycles, row.deadline_misses, row.overruns) == ("cyclictest", 101, 1, "n/a")
     assert row.latency_p50_us == pytest.approx(20.05)
     assert row.latency_max_us == pytest.approx(1500.0)
@@ -164,12 +165,12 @@ def test_markdown_table_has_one_row_per_task() -> None:
     stats = {"cpu": 1, "policy": "fifo", "priority": 80, "cycles": 10, "deadline_misses": 0, "overruns": 2,
              "jitter_over_3pct": 3, "latency_ns": {"p50": 1500.0, "p99": 2500.0, "max": None},
              "exec_ns": {"p50": 100.0}}
-    rows = bench.rows_from_summary("quiet", {"tasks": {"a": stats, "b": stats}})
-    table = bench.markdown_table(rows)
+    rows = experiments.rows_from_summary("quiet", {"tasks": {"a": stats, "b": stats}})
+    table = experiments.markdown_table(rows)
     assert table_rows(table) == [("quiet", "a"), ("quiet", "b")]
     assert "| quiet | a | 1 | fifo/80 | 10 | 1.5 | 2.5 | n/a | 0.1 | 0 | 2 | 3 |" in table
 
 
 def test_rt_neighbours_leaves_out_this_process() -> None:
-    found = bench.rt_neighbours(set(os.sched_getaffinity(0)))
+    found = experiments.rt_neighbours(set(os.sched_getaffinity(0)))
     assert all(f"pid {os.getpid()} " not in entry for entry in found)

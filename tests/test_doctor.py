@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli import doctor
-from rtloop.cli.doctor import Check, format_human, main, run_checks, to_json, verdict
+from rtloop.cli.doctor import main
+from rtloop.linux import readiness
+from rtloop.linux.readiness import Check, format_human, run_checks, to_json, verdict
 from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE
 
 LIMITS_HEADER = "Limit                     Soft Limit           Hard Limit           Units     \n"
@@ -74,7 +75,7 @@ def check_named(checks: list[Check], name: str) -> Check:
 @pytest.fixture
 def holds_dma_latency(monkeypatch: pytest.MonkeyPatch) -> None:
     """Pretend rtloop already holds /dev/cpu_dma_latency at 0 while running."""
-    monkeypatch.setattr(doctor, "RTLOOP_HOLDS_CPU_DMA_LATENCY", True)
+    monkeypatch.setattr(readiness, "RTLOOP_HOLDS_CPU_DMA_LATENCY", True)
 
 
 def test_ready_pi_is_ok_everywhere(tmp_path: Path, holds_dma_latency: None) -> None:
@@ -186,7 +187,7 @@ def test_check_verdicts(
 
 
 def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(doctor, "RTLOOP_HOLDS_CPU_DMA_LATENCY", False)
+    monkeypatch.setattr(readiness, "RTLOOP_HOLDS_CPU_DMA_LATENCY", False)
     check = check_named(run_checks(make_tree(tmp_path)), "cpu_dma_latency")
     assert check.status == "warn"
     assert "does not hold it" in check.detail
@@ -196,7 +197,7 @@ def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path, monkeyp
 def test_cpu_dma_latency_not_writable(
     tmp_path: Path, holds_dma_latency: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(doctor, "_writable", lambda path: False)
+    monkeypatch.setattr(readiness, "_writable", lambda path: False)
     check = check_named(run_checks(make_tree(tmp_path)), "cpu_dma_latency")
     assert check.status == "warn"
     assert "udev" in check.fix
