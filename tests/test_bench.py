@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from rtloop.cli import bench
-from rtloop.runtime import bench as experiments
 from rtloop.cli.main import main as cli_main
 from rtloop.linux import rt
+from rtloop.runtime import bench as experiments
 
 DURATION = "1"
 
