@@ -1,16 +1,11 @@
 """The thesis's chapter-6 experiments (section 6.3) on this machine: the engine of ``rtloop bench``.
 
-- ``affinity``: two tasks finding the primes up to 700 at 1 kHz, priorities 80 and 79,
-  on the same core (``same-core``) and on different cores (``different-cores``).
-- ``stress``: one task alone on its core (``quiet``) and with ``stress-ng`` load pinned
-  to that core (``stressed``).
-- ``cyclictest``: a no-op task and ``cyclictest`` with the same priority, core and period,
-  one after the other.
-
-Each run is an ordinary run directory; each experiment writes ``table.md``, ``bench.json``
-and, through :attr:`Settings.write_report`, a comparison report into its directory. The
-runnables live here, at module level, so the spawned task processes can import them.
-:mod:`rtloop.cli.bench` is the command line.
+Three experiments (:data:`EXPERIMENTS`; :mod:`rtloop.cli.bench` describes them and is the
+command line): two primes tasks on one core and on two, one task with and without
+``stress-ng`` load, a no-op task beside ``cyclictest``. Each run is an ordinary run
+directory; each experiment writes ``table.md``, ``bench.json`` and, through
+:attr:`Settings.write_report`, a comparison report into its directory. The runnables live
+here, at module level, so the spawned task processes can import them.
 """
 
 from __future__ import annotations
