@@ -187,3 +187,14 @@ def test_a_garbled_recording_lost_is_one_clear_error(tmp_path: Path, garbled) ->
     _lose(run, timing_records=garbled)
     with pytest.raises(AppError, match=r"recording\.lost is not counts per kind and task"):
         replay(run, tmp_path / "replay", app=_app("lost_garbled"))
+
+
+def test_timing_records_said_lost_where_timing_csv_shows_no_place_for_them_are_named(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    run = _run(tmp_path, "lost_nowhere")
+    _lose(run, timing_records={"plant": 1})  # every cycle in timing.csv, to the run's end: where was it lost?
+    result = replay(run, tmp_path / "replay", app=_app("lost_nowhere"))
+    assert not result.equal and result.cannot is None
+    assert result.lost == ("the run says it lost 1 of plant's timing records (recording.lost), yet timing.csv shows "
+                           "no place they could have been: the replay cannot tell what they were",)

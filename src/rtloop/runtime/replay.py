@@ -545,13 +545,20 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=followed, force=force,
              protect=(run_dir,))
     gap = check_timeline(records, periods, dropped, starts)
-    problems = sorted(followed.problems + ([gap] if gap else []) + timing_lost_at_the_end(records, periods, dropped))
+    at_end = timing_lost_at_the_end(records, periods, dropped, _run_end_ns(summary, records, periods))
+    problems = sorted(followed.problems + ([gap] if gap else []) + at_end)
     cannot = None
     if problems:
         at_ns, why = problems[0]
         cannot = f"from t = {at_ns / 1e9!r} s: {why}"
     skipped = sum(b.cycle - a.cycle - 1 for run in records.values() for a, b in pairwise(run))
     lost = lost_on_the_way(recording, run_dir)
+    for task, run in records.items() if not from_ns else ():  # from t = 0 a loss must show in timing.csv
+        shown = any(b.cycle != a.cycle + 1 for a, b in pairwise(run)) or any(
+            f" of {task}'s timing records" in why for _at, why in at_end)
+        if dropped.get(task) and not shown:
+            lost.append(f"the run says it lost {dropped[task]} of {task}'s timing records (recording.lost), yet "
+                        "timing.csv shows no place they could have been: the replay cannot tell what they were")
     common: dict[str, Any] = {"cannot": cannot, "skipped_releases": skipped, "stale_reads": len(reads),
                               "port_inputs": sum(len(v) for v in writes.values()), "notes": tuple(notes),
                               "from_s": from_ns / 1e9, "lost": tuple(lost)}
@@ -582,15 +589,29 @@ def recording_losses(recording: dict[str, Any], run_dir: Path) -> dict[str, dict
         raise AppError(f"{run_dir / 'summary.json'}: recording.lost is not counts per kind and task") from None
 
 
+def _run_end_ns(summary: dict[str, Any], records: dict[str, list[CycleRecord]], periods_ns: dict[str, int]) -> int:
+    """When the run's releases ended (since T0): its duration if it ran to it, else its tasks' last records."""
+    last = max((run[-1].release_ns + periods_ns[name] for name, run in records.items() if run), default=0)
+    duration_s = summary.get("duration_s")
+    if summary.get("stopped_by") == "duration" and isinstance(duration_s, int | float) and duration_s > 0:
+        return max(last, round(duration_s * 1e9))
+    return last
+
+
 def timing_lost_at_the_end(records: dict[str, list[CycleRecord]], periods_ns: dict[str, int],
-                           dropped: dict[str, int]) -> list[tuple[int, str]]:
-    """Tasks that lost timing records although timing.csv shows no gap in their cycles: the records
-    were lost after the last one it holds, and the replay can follow them only up to there."""
+                           dropped: dict[str, int], end_ns: int) -> list[tuple[int, str]]:
+    """Tasks that lost timing records although timing.csv shows no gap in their cycles, and whose last
+    record, which ended in time, came a period or more before the run's end (``end_ns``): the records
+    were lost after it, and the replay can follow the task only up to there. (Records lost before a
+    ``--keep`` window leave neither mark.)"""
     problems = []
     for task, run in records.items():
         if not dropped.get(task) or not run or any(b.cycle != a.cycle + 1 for a, b in pairwise(run)):
             continue  # nothing lost, nothing to follow, or a gap (check_timeline names it)
-        last = run[-1].cycle
+        period, last_record = periods_ns[task], run[-1]
+        if last_record.end_ns > last_record.release_ns + period or last_record.release_ns + 2 * period > end_ns:
+            continue  # an overrun at the end skips what follows; or it ran to the end
+        last = last_record.cycle
         problems.append(((last + 1) * periods_ns[task], (
             f"the run lost {dropped[task]} of {task}'s timing records (recording.lost) and timing.csv shows no "
             f"gap in its cycles: they were lost after its last record (cycle {last}), so the replay follows "
