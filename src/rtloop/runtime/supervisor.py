@@ -342,7 +342,7 @@ class Supervisor:
             config = self.app.tasks[task_run.name].config
             if not config.watchdog_periods:
                 continue
-            limit_ns = max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9))
+            limit_ns = self._watchdog_limit_ns(config)
             quiet_ns = now_ns - max(task_run.progress_ns, self.t0_ns)
             if quiet_ns <= limit_ns or self.failure is not None:
                 continue
@@ -359,11 +359,15 @@ class Supervisor:
             except ProcessLookupError:
                 pass
 
+    def _watchdog_limit_ns(self, config: Any) -> int:
+        """How long a task may go without finishing a cycle: its periods, never under the minimum."""
+        return max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9))
+
     def _spin_limit_s(self, config: Any) -> tuple[float, float] | None:
         """The kernel's side of the watchdog (RLIMIT_RTTIME in the task): the same limit, then the grace."""
         if not config.watchdog_periods:
             return None
-        limit_s = max(config.watchdog_periods * config.period_ns / 1e9, self.limits.watchdog_min_s)
+        limit_s = self._watchdog_limit_ns(config) / 1e9
         return limit_s, limit_s + self.limits.watchdog_grace_s
 
     def _cycle_after(self, name: str, recorder: Any) -> int:
