@@ -188,8 +188,10 @@ class Fault(Runnable):
         if self.kind == "fork":
             if os.fork() == 0:  # detach: a new session, then the grandchild lives on alone
                 os.setsid()
-                if os.fork() == 0:
-                    Path(self.pid_file).write_text(str(os.getpid()))
+                if os.fork() == 0:  # written whole, then renamed: a reader never sees it empty
+                    partial = Path(f"{self.pid_file}.partial")
+                    partial.write_text(str(os.getpid()))
+                    partial.rename(self.pid_file)
                     while True:
                         time.sleep(1)
                 os._exit(0)
