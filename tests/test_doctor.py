@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli.doctor import main
+from rtloop.cli.main import main as cli_main
 from rtloop.linux import readiness
 from rtloop.linux.readiness import Check, format_human, run_checks, to_json, verdict
 from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE
@@ -260,10 +260,10 @@ def test_format_human_shows_symbols_and_fixes(tmp_path: Path) -> None:
 
 def test_main_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     warn_tree = make_tree(tmp_path / "warn", {"proc/swaps": READY_PI["proc/swaps"] + "/s f 1 0 -2"})
-    assert main(["--root", str(warn_tree)]) == 0
+    assert cli_main(["doctor", "--root", str(warn_tree)]) == 0
     assert "verdict: warn" in capsys.readouterr().out
     fail_tree = make_tree(tmp_path / "fail", {"proc/self/limits": _limits("0", "0")})
-    assert main(["--root", str(fail_tree), "--json"]) == 1
+    assert cli_main(["doctor", "--root", str(fail_tree), "--json"]) == 1
     assert json.loads(capsys.readouterr().out)["verdict"] == "fail"
 
 
@@ -283,8 +283,8 @@ def test_real_machine_tells_the_truth() -> None:
         assert verdict(checks) != "ok"
 
 
-def test_module_runs_as_a_script() -> None:
-    result = subprocess.run([sys.executable, "-m", "rtloop.cli.doctor", "--json"],
+def test_the_command_runs_in_a_process_of_its_own() -> None:
+    result = subprocess.run([sys.executable, "-m", "rtloop.cli", "doctor", "--json"],
                             capture_output=True, text=True, timeout=60, check=False)
     document = json.loads(result.stdout)
     assert result.returncode == (1 if document["verdict"] == "fail" else 0), result.stderr

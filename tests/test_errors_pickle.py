@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import pickle
+import sys
 
 import pytest
 
@@ -52,18 +53,13 @@ def test_exit_codes_follow_one_rule(error: BaseException, code: int) -> None:
 
 
 def test_a_missing_optional_package_exits_2_from_the_command(capsys, monkeypatch) -> None:
-    import importlib
-
     from rtloop.cli import main as cli
 
-    real_import = importlib.import_module
-
-    def without_matplotlib(name: str, *args):
-        if name == "rtloop.report.build":
-            raise ModuleNotFoundError("No module named 'matplotlib'", name="matplotlib")
-        return real_import(name, *args)
-
-    monkeypatch.setattr(importlib, "import_module", without_matplotlib)
+    for name in list(sys.modules):
+        if name.split(".")[0] == "matplotlib" or name.startswith("rtloop.report"):
+            monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ModuleNotFoundError
     assert cli.main(["report", "somewhere"]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
-    assert "pip install 'rtloop[report]'" in err and len(err.strip().splitlines()) == 1
+    assert err.startswith("rtloop report: ") and "pip install 'rtloop[report]'" in err
+    assert len(err.strip().splitlines()) == 1

@@ -181,7 +181,7 @@ def test_missing_foxglove_sdk_is_one_line(tmp_path: Path, rtloop_env) -> None:
                              str(tmp_path / "out"), "--quiet"], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode != 0
     assert result.stderr.strip().splitlines() == [
-        "rtloop: the Foxglove live view needs foxglove-sdk: pip install 'rtloop[live]'"]
+        "rtloop run: the Foxglove live view needs foxglove-sdk: pip install 'rtloop[live]'"]
 
 
 def test_the_front_accepts_both_names_and_refuses_others() -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli.doctor import _check_devices
+from rtloop.cli.doctor import check_devices
 from rtloop.io.inventory import format_table, list_interfaces
 
 
@@ -56,9 +56,9 @@ def test_every_kind_is_listed_with_what_it_is(tmp_path: Path) -> None:
 
 
 def test_the_doctor_says_which_cannot_be_used_and_the_fix(tmp_path: Path) -> None:
-    check = _check_devices(_tree(tmp_path))
+    check = check_devices(_tree(tmp_path))
     assert check.status == "warn" and "vcan0" in check.detail and "sudo ip link set vcan0 up" in check.fix
-    empty = _check_devices(tmp_path / "nothing")
+    empty = check_devices(tmp_path / "nothing")
     assert empty.status == "ok" and "no GPIO chip" in empty.detail
 
 

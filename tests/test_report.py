@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rtloop import report
+from rtloop.cli.main import main as cli_main
 from rtloop.report import figures
 from rtloop.stats import timing
 
@@ -118,12 +119,10 @@ def test_figure_bars_are_the_histogram_counts(synthetic_run: Path) -> None:
 
 
 def test_simulated_primes_report(tmp_path: Path) -> None:
-    from rtloop.cli.main import main as cli_main
-
     out = tmp_path / "sim"
     assert cli_main(["simulate", str(EXAMPLES / "primes" / "primes.toml"), "--duration", "0.5",
                      "--out", str(out), "--quiet"]) == 0
-    assert report.main([str(out)]) == 0
+    assert cli_main(["report", str(out)]) == 0
     built = report.build_report([out], write_html=False)
     run = built.runs[0]
     assert set(run.tasks) == {"primes1", "primes2"}
@@ -148,7 +147,7 @@ def test_several_runs_side_by_side(tmp_path: Path) -> None:
     shared = write_run(tmp_path / "shared", {"a": synthetic_records(seed=3)})
     isolated = write_run(tmp_path / "isolated", {"a": synthetic_records(seed=4), "c": synthetic_records(seed=5)})
     out = tmp_path / "cmp"
-    assert report.main([str(shared), str(isolated), "--out", str(out)]) == 0
+    assert cli_main(["report", str(shared), str(isolated), "--out", str(out)]) == 0
     html = (out / "report.html").read_text()
     assert "Runs side by side" in html
     assert "<th>shared</th><th>isolated</th>" in html
@@ -158,19 +157,19 @@ def test_several_runs_side_by_side(tmp_path: Path) -> None:
 
 
 def test_no_html(synthetic_run: Path) -> None:
-    assert report.main([str(synthetic_run), "--no-html"]) == 0
+    assert cli_main(["report", str(synthetic_run), "--no-html"]) == 0
     assert not (synthetic_run / "report.html").exists()
     assert len(list((synthetic_run / "report-figures").glob("*.png"))) == 4
 
 
 def test_missing_directory(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert report.main([str(tmp_path / "nope")]) == 2
+    assert cli_main(["report", str(tmp_path / "nope")]) == 2
     assert "no such run directory" in capsys.readouterr().err
 
 
 def test_missing_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "timing.csv").write_text("task,cycle,release_ns,start_ns,end_ns\n")
-    assert report.main([str(tmp_path)]) == 2
+    assert cli_main(["report", str(tmp_path)]) == 2
     assert "no summary.json" in capsys.readouterr().err
     with pytest.raises(ValueError, match=r"no summary\.json"):
         report.load_run(tmp_path)
@@ -178,14 +177,14 @@ def test_missing_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 
 def test_unreadable_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "summary.json").write_text("{not json")
-    assert report.main([str(tmp_path)]) == 2
+    assert cli_main(["report", str(tmp_path)]) == 2
     assert "unreadable" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("content", ["", "task,cycle,release_ns,start_ns,end_ns\n"])
 def test_empty_timing_csv(synthetic_run: Path, content: str, capsys: pytest.CaptureFixture[str]) -> None:
     (synthetic_run / "timing.csv").write_text(content)
-    assert report.main([str(synthetic_run)]) == 0
+    assert cli_main(["report", str(synthetic_run)]) == 0
     err = capsys.readouterr().err
     assert "recorded no cycle" in err
     html = (synthetic_run / "report.html").read_text()
@@ -199,7 +198,7 @@ def test_failed_run_is_shown_prominently(tmp_path: Path, capsys: pytest.CaptureF
                "traceback": "Traceback (most recent call last):\n  ...\nZeroDivisionError: division by zero"}
     records = synthetic_records()[:121]
     run = write_run(tmp_path / "failed", {"a": records}, failure=failure)
-    assert report.main([str(run)]) == 0
+    assert cli_main(["report", str(run)]) == 0
     assert "FAILED in task a" in capsys.readouterr().err
     html = (run / "report.html").read_text()
     assert '<div class="banner failure"><b>This run FAILED</b>' in html

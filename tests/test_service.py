@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli import service
+from rtloop.cli.main import main as cli_main
 
 REPO = Path(__file__).resolve().parent.parent
 JIWY = REPO / "examples" / "jiwy" / "jiwy.toml"
@@ -45,7 +45,7 @@ def test_app(tmp_path: Path) -> Path:
 
 
 def unit_text(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
-    assert service.main(argv) == 0
+    assert cli_main(["service", *argv]) == 0
     return capsys.readouterr().out
 
 
@@ -136,34 +136,34 @@ def test_install_writes_then_refuses_a_different_unit(test_app: Path, tmp_path: 
     path = unit_dir / f"rtloop-svc_test_{os.getpid()}.service"
     printed = unit_text([str(test_app)], capsys)
 
-    assert service.main([str(test_app), "--install", "--unit-dir", str(unit_dir)]) == 0
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(unit_dir)]) == 0
     said = capsys.readouterr().out
     assert path.read_text() == printed
     assert oct(path.stat().st_mode & 0o777) == "0o644"
     assert f"systemctl link {path}" in said and f"systemctl enable --now {path.name}" in said  # not in /etc: linked
 
-    assert service.main([str(test_app), "--install", "--unit-dir", str(unit_dir)]) == 0  # same text: fine
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(unit_dir)]) == 0  # same text: fine
     assert "nothing written" in capsys.readouterr().out
 
-    assert service.main([str(test_app), "--install", "--unit-dir", str(unit_dir), "--keep", "5"]) == 2
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(unit_dir), "--keep", "5"]) == 2
     assert "--force" in capsys.readouterr().err
     assert path.read_text() == printed
 
-    assert service.main([str(test_app), "--install", "--unit-dir", str(unit_dir), "--keep", "5", "--force"]) == 0
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(unit_dir), "--keep", "5", "--force"]) == 0
     assert "--keep 5" in path.read_text()
     assert sorted(p.name for p in unit_dir.iterdir()) == [path.name]  # no temporary file left
 
 
 def test_install_into_a_missing_folder_says_so(test_app: Path, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
-    assert service.main([str(test_app), "--install", "--unit-dir", str(tmp_path / "nope")]) == 2
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--unit-dir" in err and "nope: no such folder" in err
 
 
 def test_a_unit_outside_systemds_folders_is_linked_not_reloaded(test_app: Path, tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    assert service.main([str(test_app), "--install", "--unit-dir", str(tmp_path)]) == 0
+    assert cli_main(["service", str(test_app), "--install", "--unit-dir", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "daemon-reload" not in out and f"systemctl link {tmp_path}/rtloop-" in out
     assert "systemd does not look in" in out
@@ -191,6 +191,6 @@ def test_bad_app_file_is_one_line_and_exit_2(tmp_path: Path, rtloop_env: dict[st
     ["--keep", "0"], ["--user", "bad name"], ["--supervisor-cpus", "0;1"], ["--supervisor-cpus", "3-1"],
 ])
 def test_bad_option_is_exit_2(option: list[str], capsys: pytest.CaptureFixture[str]) -> None:
-    assert service.main([str(JIWY), *option]) == 2
+    assert cli_main(["service", str(JIWY), *option]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option[0] in err

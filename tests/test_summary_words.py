@@ -13,7 +13,7 @@ import pytest
 import rtloop
 from rtloop import App, Runnable
 from rtloop.app.appfile import load_app
-from rtloop.cli.main import format_summary
+from rtloop.cli.run import format_summary
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "dcmotor" / "dcmotor.toml"
 

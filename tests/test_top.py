@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli import top
+from rtloop.cli import top_view as top
+from rtloop.cli.main import main as cli_main
 
 NOOP = '''
 from rtloop import Runnable
@@ -44,7 +45,7 @@ def cycles_in_frame(text: str, task: str) -> int:
 
 
 def frame(app: str, capsys: pytest.CaptureFixture[str]) -> str:
-    assert top.main([app, "--once", "--interval", "0.2"]) == 0
+    assert cli_main(["top", app, "--once", "--interval", "0.2"]) == 0
     return capsys.readouterr().out
 
 
@@ -107,7 +108,7 @@ def test_top_forgets_an_app_that_ended(running_app, capsys: pytest.CaptureFixtur
     name, process = running_app
     process.terminate()
     process.wait(timeout=20)
-    assert top.main([name, "--once", "--interval", "0.1"]) == 1
+    assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 1
     assert "no running rtloop app" in capsys.readouterr().out
 
 

@@ -15,7 +15,7 @@ from jiwy_models import JiwyController, JiwyPlant
 
 import rtloop
 from rtloop import App
-from rtloop.cli.main import format_summary
+from rtloop.cli.run import format_summary
 
 HERE = Path(__file__).parent
 PERIOD_NS = 1_000_000  # 1 kHz, as in the thesis

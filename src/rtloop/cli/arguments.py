@@ -1,8 +1,33 @@
-"""Argument types the commands share."""
+"""What the commands share: argument types, the exit codes and the bad-input error."""
 
 from __future__ import annotations
 
 import argparse
+
+from rtloop.errors import RtloopError
+
+EXIT_FAILED = 1
+"""A run that failed: a task's fault, a check that failed, a bug."""
+EXIT_BAD_INPUT = 2
+"""What the user gave is wrong or incomplete (argparse's usage errors too, and a missing optional package)."""
+EXIT_INTERRUPTED = 130
+"""Ctrl-C, as a shell reports death by SIGINT."""
+
+
+class CommandParser(argparse.ArgumentParser):
+    """A command's parser: an argument it does not know is its own usage error, so the line names the
+    command (``rtloop top: error: unrecognized arguments: --nope``), not the root ``rtloop``."""
+
+    def parse_known_args(self, args: list[str] | None = None,
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed, extras
+
+
+class BadInput(RtloopError, ValueError):
+    """A value the parser could not judge alone (against another option, a file, the machine): exit 2."""
 
 
 def positive_seconds(text: str) -> float:
@@ -13,4 +38,15 @@ def positive_seconds(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text}")
+    return value
+
+
+def count(text: str) -> int:
+    """A whole number ≥ 0 (``--trim`` of the statistics)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
     return value

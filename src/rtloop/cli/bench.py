@@ -14,36 +14,25 @@
 
 Each run is an ordinary run directory (``summary.json``, ``timing.csv``, ...); each
 experiment also writes a comparison ``report.html`` and ``table.md`` into its directory
-and prints the table. The runnables live here, at module level, so the spawned task
-processes can import them.
+and prints the table. A machine that cannot run an experiment as asked (no real-time
+privilege, stress-ng or cyclictest missing, one CPU) is refused with the reason, exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rtloop.cli.arguments import positive_seconds
-from rtloop.runtime.bench import (
-    DEFAULT_STRESS,
-    EXPERIMENTS,
-    RUNNERS,
-    RUNS_PER_EXPERIMENT,
-    STRESSORS,
-    BenchError,
-    Outcome,
-    Settings,
-    check_tools,
-    choose_cpus,
-    choose_policy,
-    progress,
-)
-from rtloop.stats import timing
+from rtloop.cli.arguments import count, positive_seconds
+from rtloop.runtime.bench import DEFAULT_STRESS, EXPERIMENTS, STRESSORS  # names only: the runs import lazily
+from rtloop.stats.timing import DEFAULT_TRIM
 
-EXIT_BAD_INPUT = 2
-EXIT_NOT_READY = 3
+if TYPE_CHECKING:
+    from rtloop.runtime.bench import Outcome, Settings
+
+HELP = "the thesis's chapter-6 experiments on this machine, with a report"
 
 
 def _write_report(run_dirs: list[Path], out: Path) -> Path | None:
@@ -62,9 +51,9 @@ def _stressors(text: str) -> tuple[str, ...]:
     return names
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtloop bench", description=(__doc__ or "").replace("``", ""),
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (__doc__ or "").replace("``", "")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("experiment", choices=(*EXPERIMENTS, "all"), help="which experiment (all: the three)")
     parser.add_argument("--duration", type=positive_seconds, default=10.0, metavar="S",
                         help="seconds per run (default 10)")
@@ -76,14 +65,15 @@ def build_parser() -> argparse.ArgumentParser:
                              f"(default {','.join(DEFAULT_STRESS)})")
     parser.add_argument("--stress-task", choices=("primes", "noop"), default="primes",
                         help="the task measured under stress (default primes)")
-    parser.add_argument("--trim", type=int, default=timing.DEFAULT_TRIM, metavar="N",
+    parser.add_argument("--trim", type=count, default=DEFAULT_TRIM, metavar="N",
                         help="cycles left out at each end of the statistics (default 20)")
     parser.add_argument("--allow-non-rt", action="store_true",
                         help="run under SCHED_OTHER where real-time scheduling is not allowed (numbers mean little)")
-    return parser
 
 
 def settings_for(args: argparse.Namespace, experiment: str, policy: str, cpus: tuple[int, int]) -> Settings:
+    from rtloop.runtime.bench import Settings
+
     if args.experiment == "all":
         out = (args.out or Path("runs/bench")) / experiment
     else:
@@ -94,6 +84,8 @@ def settings_for(args: argparse.Namespace, experiment: str, policy: str, cpus: t
 
 def run_experiments(args: argparse.Namespace) -> list[Outcome]:
     """Check the machine, then run each asked experiment in turn, with progress on stderr."""
+    from rtloop.runtime.bench import RUNNERS, RUNS_PER_EXPERIMENT, check_tools, choose_cpus, choose_policy, progress
+
     experiments = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     check_tools(experiments)
     cpus = choose_cpus(args.cpu)
@@ -114,18 +106,7 @@ def run_experiments(args: argparse.Namespace) -> list[Outcome]:
     return outcomes
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``rtloop bench``; 0 on success, 2 on bad arguments, 3 if the machine is not ready."""
-    args = build_parser().parse_args(argv)
-    if args.trim < 0:
-        build_parser().error(f"--trim must be ≥ 0, got {args.trim}")
-    try:
-        run_experiments(args)
-    except BenchError as error:
-        print(f"rtloop bench: {error}", file=sys.stderr)
-        return EXIT_NOT_READY
+def run(args: argparse.Namespace) -> int:
+    """0 when every experiment ran; a machine that cannot run them as asked is bad input (exit 2, saying why)."""
+    run_experiments(args)
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

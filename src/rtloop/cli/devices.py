@@ -6,15 +6,18 @@ import argparse
 import json
 import sys
 
-from rtloop.io.inventory import format_table, list_interfaces
+HELP = "GPIO chips, CAN interfaces, spidev, serial lines, I2C buses: may you open them?"
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rtloop io", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    commands = parser.add_subparsers(dest="io_command", required=True)
     listing = commands.add_parser("list", help="GPIO chips, CAN interfaces, spidev, serial lines, I2C buses")
     listing.add_argument("--json", action="store_true", help="one JSON object per interface, as a list")
-    args = parser.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rtloop.io.inventory import format_table, list_interfaces
+
     interfaces = list_interfaces()
     if args.json:
         json.dump([item.to_json() for item in interfaces], sys.stdout, indent=1)
@@ -22,7 +25,3 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(format_table(interfaces))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,15 +8,40 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rtloop.linux.readiness import LIVE_ROOT, Check, format_human, run_checks, to_json, verdict
+if TYPE_CHECKING:
+    from rtloop.linux.readiness import Check
+
+HELP = "is this machine ready for real time? how to fix what is not"
 
 
-def _check_devices(root: Path) -> Check:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = "Check whether this machine is ready for real-time loops, and how to fix it (exit 1 when " \
+                         "a check fails)."
+    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    parser.add_argument("--root", type=Path, default=None,
+                        help="read /proc, /sys and /etc under this directory (for testing; default /)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the checks; 1 if any check fails, else 0."""
+    from rtloop.linux.readiness import LIVE_ROOT, format_human, run_checks, to_json, verdict
+
+    root = LIVE_ROOT if args.root is None else args.root
+    checks = run_checks(root, more=[("devices", lambda: check_devices(root))])
+    if args.json:
+        print(json.dumps(to_json(checks), indent=2, ensure_ascii=False))
+    else:
+        print(format_human(checks))
+    return 1 if verdict(checks) == "fail" else 0
+
+
+def check_devices(root: Path) -> Check:
     """Interfaces devices can use (``rtloop io list`` has the details): may this user open them?"""
     from rtloop.io.inventory import list_interfaces
+    from rtloop.linux.readiness import Check
 
     interfaces = list_interfaces(root)
     if not interfaces:
@@ -29,25 +54,3 @@ def _check_devices(root: Path) -> Check:
     return Check("devices", "warn", f"{len(blocked)} of {len(interfaces)} interfaces cannot be used now: "
                  + ", ".join(item.path for item in blocked),
                  "; ".join(f"{item.path}: {item.fix}" for item in blocked))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``rtloop doctor``: print the checks; 1 if any check fails, else 0."""
-    parser = argparse.ArgumentParser(
-        prog="rtloop doctor",
-        description="Check whether this machine is ready for real-time loops, and how to fix it.",
-    )
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
-    parser.add_argument("--root", type=Path, default=LIVE_ROOT,
-                        help="read /proc, /sys and /etc under this directory (for testing)")
-    args = parser.parse_args(argv)
-    checks = run_checks(args.root, more=[("devices", lambda: _check_devices(args.root))])
-    if args.json:
-        print(json.dumps(to_json(checks), indent=2, ensure_ascii=False))
-    else:
-        print(format_human(checks))
-    return 1 if verdict(checks) == "fail" else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -6,10 +6,30 @@ import argparse
 import re
 import time
 
-from rtloop.ipc.ports import connect_app, scan_registries
+HELP = "write to or read from a running app's port"
 
 
-def cli_port(args: argparse.Namespace) -> int:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    port_commands = parser.add_subparsers(dest="port_command", required=True)
+    write = port_commands.add_parser("write", help="post values to an input port")
+    write.add_argument("app", help="app name (or app file)")
+    write.add_argument("port")
+    write.add_argument("values", nargs="+", type=float)
+    read = port_commands.add_parser("read", help="print what an output port sends, from now on")
+    read.add_argument("app", help="app name (or app file)")
+    read.add_argument("port")
+    read.add_argument("--count", type=int, default=10, help="rows to print, then exit (default 10)")
+    read.add_argument("--queued", action="store_true",
+                      help="start with the oldest samples still queued instead of the newest")
+    port_commands.add_parser("list", help="list running apps and their ports")
+    for sub in (write, read):
+        sub.add_argument("--user", type=int, default=None, metavar="UID",
+                         help="act on the app of this uid (root only; default: your own apps)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rtloop.ipc.ports import connect_app, scan_registries
+
     if args.port_command == "list":
         apps, refused = scan_registries()
         if not apps:

@@ -6,14 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from rtloop.errors import AppError
-from rtloop.runtime.sweep import format_table, parse_parameter, sweep
+from rtloop.cli.arguments import BadInput
+
+HELP = "simulate an app over a grid of parameters in parallel; one table of step metrics"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtloop sweep",
-                                     description="Simulate an app over a grid of parameter values, in parallel, "
-                                                 "and tabulate the step response of a signal.")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = ("Simulate an app over a grid of parameter values, in parallel, and tabulate the step "
+                          "response of a signal (exit 1 when every point failed).")
     parser.add_argument("app", help="app file (TOML)")
     parser.add_argument("--param", action="append", default=[], metavar="TASK.NAME=START:STOP:COUNT",
                         help="a declared parameter and its values (START:STOP:COUNT or a,b,c); repeat for a grid")
@@ -27,20 +27,21 @@ def build_parser() -> argparse.ArgumentParser:
                         help="feed an input port from a CSV profile")
     parser.add_argument("--force", action="store_true", help="replace a sweep already in --out")
     parser.add_argument("--processes", type=int, default=None, metavar="N", help="worker processes (default: CPUs)")
-    return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def run(args: argparse.Namespace) -> int:
+    """The table on stdout, the time it took on stderr; 1 when every point failed."""
+    from rtloop.runtime.sweep import format_table, parse_parameter, sweep
+
     parameters = dict(parse_parameter(text) for text in args.param)
     feeds = {}
     for text in args.feed:
         port, sep, path = text.partition("=")
         if not sep or not port or not path:
-            raise AppError(f"--feed {text!r}: expected PORT=FILE.csv")
+            raise BadInput(f"--feed {text!r}: expected PORT=FILE.csv")
         feeds[port] = path
     if args.processes is not None and args.processes < 1:
-        raise AppError("--processes must be at least 1")
+        raise BadInput("--processes must be at least 1")
     result = sweep(args.app, parameters, duration_s=args.duration, out=args.out, signal=args.signal,
                    setpoint=args.setpoint, processes=args.processes, feeds=feeds, force=args.force)
     print(f"step of {result.signal}" + (f" (setpoint {result.setpoint})" if result.setpoint else ""))

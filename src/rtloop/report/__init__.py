@@ -2,7 +2,6 @@
 
 from rtloop.report.build import Report as Report
 from rtloop.report.build import build_report as build_report
-from rtloop.report.build import main as main
 from rtloop.report.data import Histogram as Histogram
 from rtloop.report.data import ReportError as ReportError
 from rtloop.report.data import Run as Run
@@ -12,4 +11,4 @@ from rtloop.report.data import load_run as load_run
 from rtloop.report.data import task_series as task_series
 
 __all__ = ["Histogram", "Report", "ReportError", "Run", "TaskSeries", "build_report", "histogram", "load_run",
-           "main", "task_series"]
+           "task_series"]

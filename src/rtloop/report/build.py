@@ -1,10 +1,8 @@
-"""``rtloop report DIR [DIR ...]``: figures and one self-contained HTML page."""
+"""Figures and one self-contained HTML page of runs: the engine of ``rtloop report`` (``cli/report.py``)."""
 
 from __future__ import annotations
 
-import argparse
 import re
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,34 +78,3 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
         report.html = out / "report.html"
         report.html.write_text(html.page(runs, run_figures, comparison))
     return report
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtloop report", description="Figures and an HTML report of runs.")
-    parser.add_argument("runs", nargs="+", type=Path, metavar="DIR", help="run directories (the --out of rtloop run)")
-    parser.add_argument("--out", type=Path, metavar="DIR", help="where to write (default: the first run directory)")
-    parser.add_argument("--no-html", action="store_true", help="write the PNG figures only")
-    return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``rtloop report``; returns the exit status (2: bad input)."""
-    args = build_parser().parse_args(argv)
-    try:
-        report = build_report(args.runs, args.out, write_html=not args.no_html)
-    except ReportError as error:
-        print(f"rtloop report: {error}", file=sys.stderr)
-        return 2
-    for run in report.runs:
-        if run.failure:
-            failure = run.failure
-            print(f"rtloop report: {run.label}: run FAILED in task {failure.get('task')} "
-                  f"({failure.get('phase')}, cycle {failure.get('cycle')}): {failure.get('reason')}", file=sys.stderr)
-        if run.non_rt_tasks:
-            print(f"rtloop report: {run.label}: not real-time: {', '.join(run.non_rt_tasks)}", file=sys.stderr)
-        for problem in run.problems:
-            print(f"rtloop report: {run.label}: {problem}", file=sys.stderr)
-    print(f"{len(report.pngs)} figures in {report.pngs[0].parent}/" if report.pngs else "no figures")
-    if report.html is not None:
-        print(f"report: {report.html}")
-    return 0

@@ -17,7 +17,6 @@ stalls the real-time side: ports drop and count when nobody reads them.
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import sys
@@ -27,12 +26,11 @@ from typing import Any
 
 from rtloop.app.builder import RosTopic
 from rtloop.errors import PortValueError
-from rtloop.ipc.ports import RunningApp, app_from_registry, connect_app, port_range
+from rtloop.ipc.ports import RunningApp, app_from_registry, port_range
 from rtloop.ipc.status import CONTROL_WORDS, ControlWord, WordBlock
 from rtloop.ros.cdr import encoder_for
 from rtloop.ros.dds import RosPublisher, RosSubscriber
 from rtloop.ros.messages import Float64, float64_multi_array, joint_state
-from rtloop.ros.types import ROS_TYPES
 from rtloop.ros.validate import MessageValidator, RateLimitedWarner
 
 STATS_INTERVAL_S = 1.0
@@ -81,7 +79,7 @@ class _Stop:
         return not self.app_alive
 
 
-class _Stats:
+class BridgeStats:
     def __init__(self, topic: RosTopic, pipe: Any) -> None:
         self.topic, self.pipe = topic, pipe
         self.messages = 0
@@ -161,7 +159,7 @@ def _sender(publisher: RosPublisher, topic: RosTopic, size: int) -> Any:
     return fast
 
 
-def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> None:
+def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats) -> None:
     """Publish what an output port sends, until stopped, waking on the task's timeline."""
     from rtloop.linux import rt
 
@@ -206,7 +204,7 @@ def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> 
             stats.send()
 
 
-def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: _Stats) -> None:
+def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats) -> None:
     """Write what arrives on a topic to an input port, checking every message first."""
     info = app.ports[topic.port]
     warner = RateLimitedWarner(1.0, emit=lambda text: print(f"rtloop bridge {topic.topic}: {text}",
@@ -248,7 +246,7 @@ def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -
     app = app_from_registry(Path(registry_path), owner_uid=os.geteuid())
     if os.getppid() != app.pid:  # the supervisor died before we could ask to follow it
         return
-    stats = _Stats(topic, pipe)
+    stats = BridgeStats(topic, pipe)
     try:
         run_bridge(app, topic, stats)
     except Exception as error:
@@ -259,41 +257,9 @@ def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -
         stats.send(force=True)
 
 
-def run_bridge(app: RunningApp, topic: RosTopic, stats: _Stats) -> None:
+def run_bridge(app: RunningApp, topic: RosTopic, stats: BridgeStats) -> None:
     stop = _Stop(app)
     if topic.direction == "publish":
         run_listener(app, topic, stop, stats)
     else:
         run_talker(app, topic, stop, stats)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtloop bridge", description=__doc__.splitlines()[0])
-    kinds = parser.add_subparsers(dest="kind", required=True)
-    listener = kinds.add_parser("listener", help="publish an output port on a ROS 2 topic")
-    talker = kinds.add_parser("talker", help="feed an input port from a ROS 2 topic")
-    for sub in (listener, talker):
-        sub.add_argument("--app", required=True, help="name of the running app")
-        sub.add_argument("--port", required=True)
-        sub.add_argument("--topic", required=True, help="ROS 2 topic, e.g. /jiwy/angles")
-        sub.add_argument("--type", default="std_msgs/msg/Float64MultiArray", choices=ROS_TYPES)
-        sub.add_argument("--qos", default="reliable", choices=("reliable", "sensor"),
-                         help="reliable (ROS 2's default, matches every reader) or sensor (best effort)")
-        sub.add_argument("--domain-id", type=int, default=None, help="default: ROS_DOMAIN_ID or 0")
-    listener.add_argument("--joint-names", nargs="+", default=[], help="for JointState: one name per value")
-    listener.add_argument("--every", type=int, default=1, help="publish every N-th tick")
-    return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    app = connect_app(args.app, timeout_s=10)
-    direction = "publish" if args.kind == "listener" else "subscribe"
-    topic = RosTopic(direction, args.topic, args.port, args.type, args.qos,
-                     tuple(getattr(args, "joint_names", ())), getattr(args, "every", 1), args.domain_id)
-    stats = _Stats(topic, None)
-    print(f"rtloop bridge {args.kind}: {args.topic} {'←' if direction == 'publish' else '→'} "
-          f"{app.name}.{args.port}; Ctrl-C to stop", file=sys.stderr)
-    run_bridge(app, topic, stats)
-    print(f"rtloop bridge {args.kind}: {stats.messages} messages", file=sys.stderr)
-    return 0

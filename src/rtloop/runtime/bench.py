@@ -29,7 +29,6 @@ from rtloop.app.builder import App
 from rtloop.errors import RtloopError
 from rtloop.linux import rt
 from rtloop.runnable import Runnable
-from rtloop.runtime.supervisor import run
 from rtloop.stats import timing
 
 EXPERIMENTS = ("affinity", "stress", "cyclictest")
@@ -49,7 +48,11 @@ DEFAULT_STRESS = ("cpu", "vm", "io")
 
 
 class BenchError(RtloopError, RuntimeError):
-    """The benchmark cannot run here as asked (no RT privilege, a tool missing, one CPU, ...)."""
+    """An experiment failed while it ran (a tool it started exited with an error): exit 1."""
+
+
+class BenchRefused(BenchError, ValueError):
+    """The benchmark cannot run here as asked (no RT privilege, a tool missing, one CPU, ...): bad input, exit 2."""
 
 
 # --- the runnables (module level: the task processes import them) --------------------------------
@@ -246,6 +249,8 @@ def warn_neighbours(settings: Settings, when: str) -> list[str]:
 def run_app(app: App, settings: Settings, out: Path, notes: list[str]) -> list[Row]:
     """Run ``app`` for the set duration into ``out``; its rows; warn if a task was not real-time or had company."""
     notes += warn_neighbours(settings, f"before {out.name}")
+    from rtloop.runtime.supervisor import run  # here: the experiments' names are read by every `rtloop` command
+
     started = time.monotonic()
     run(app, settings.duration_s, out, trim=settings.trim)
     rows = rows_from_run(out)
@@ -449,10 +454,10 @@ def choose_cpus(requested: int | None) -> tuple[int, int]:
     """(measured core, another core): by default the highest allowed CPU and the lowest other one."""
     available = sorted(os.sched_getaffinity(0))
     if len(available) < 2:
-        raise BenchError(f"the experiments need two CPUs; this process may use only {available}")
+        raise BenchRefused(f"the experiments need two CPUs; this process may use only {available}")
     cpu = available[-1] if requested is None else requested
     if cpu not in available:
-        raise BenchError(f"--cpu {cpu}: not one of this process's CPUs {available}")
+        raise BenchRefused(f"--cpu {cpu}: not one of this process's CPUs {available}")
     return cpu, min(c for c in available if c != cpu)
 
 
@@ -462,7 +467,7 @@ def choose_policy(allow_non_rt: bool) -> str:
     if capabilities.may_use_rt:
         return "fifo"
     if not allow_non_rt:
-        raise BenchError(f"real-time scheduling is not allowed here ({capabilities.rt_reason}); run as root "
+        raise BenchRefused(f"real-time scheduling is not allowed here ({capabilities.rt_reason}); run as root "
                          "(sudo), grant CAP_SYS_NICE or an RLIMIT_RTPRIO, or pass --allow-non-rt to run "
                          "under SCHED_OTHER anyway")
     progress(f"NOT REAL-TIME: {capabilities.rt_reason}; --allow-non-rt: every task and cyclictest run under "
@@ -476,5 +481,5 @@ def check_tools(experiments: Sequence[str]) -> None:
     for experiment in experiments:
         if experiment in needs and shutil.which(needs[experiment][0]) is None:
             program, package = needs[experiment]
-            raise BenchError(f"{experiment}: {program} not found; install the {package} package "
+            raise BenchRefused(f"{experiment}: {program} not found; install the {package} package "
                              f"(Debian/Ubuntu: sudo apt-get install {package})")
