@@ -11,7 +11,9 @@ import pytest
 import rtloop
 from rt_test_runnables import Counter
 from rtloop.app.modules import ModuleRefused, check_owner
+from rtloop.record.recorder import give_to_invoking_user
 from rtloop.runtime.session import prepare_out_dir
+from rtloop.sudo import invoking_user
 
 SUDO_USER_ID = 4242  # no such user needed: ownership is a number
 OTHER_USER_ID = 4343
@@ -55,3 +57,21 @@ def test_new_folders_and_the_last_summary_belong_to_the_sudo_user(tmp_path: Path
     rtloop.simulate(app, 0.05, run)
     not_theirs = [p.name for p in (run, *run.iterdir()) if p.stat().st_uid != SUDO_USER_ID]
     assert not_theirs == []
+
+
+@pytest.mark.parametrize(("uid", "gid"), [("abc", "4242"), ("4242", ""), ("²", "4242"), ("-1", "4242"), (" 42", "42")])
+def test_a_garbled_sudo_environment_is_believed_in_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                           uid: str, gid: str) -> None:
+    monkeypatch.setenv("SUDO_UID", uid)
+    monkeypatch.setenv("SUDO_GID", gid)
+    assert invoking_user() is None
+    with pytest.raises(ModuleRefused):  # only root's own modules run
+        check_owner(owned_by(tmp_path / "mine.py", SUDO_USER_ID))
+    out = tmp_path / "run"
+    out.mkdir()
+    give_to_invoking_user(out)  # handed to nobody, and no error
+    assert out.stat().st_uid == 0
+
+
+def test_the_sudo_user_is_read_from_both_variables(under_sudo: None) -> None:
+    assert invoking_user() == (SUDO_USER_ID, SUDO_USER_ID)

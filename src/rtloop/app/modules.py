@@ -31,6 +31,7 @@ from types import ModuleType
 from typing import Any, ClassVar
 
 from rtloop.errors import AppError
+from rtloop.sudo import invoking_user
 
 
 class ModuleRefused(AppError):
@@ -67,9 +68,9 @@ def check_owner(path: Path) -> None:
 
 def _trusted_uids() -> set[int]:
     uids = {0, os.geteuid()}
-    sudo_uid = os.environ.get("SUDO_UID", "")
-    if os.geteuid() == 0 and sudo_uid.isdigit():
-        uids.add(int(sudo_uid))
+    invoker = invoking_user()
+    if invoker is not None:
+        uids.add(invoker[0])
     return uids
 
 

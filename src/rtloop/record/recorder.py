@@ -31,6 +31,7 @@ from rtloop.record.rosbag2 import bag_contents_of, write_metadata
 from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
 from rtloop.stats.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.stats.timing_stream import StreamingTaskTiming
+from rtloop.sudo import invoking_user
 
 FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap", "snapshots.pkl"]
 
@@ -290,9 +291,10 @@ class Recorder:
 
 def give_to_invoking_user(out: Path) -> None:
     """Under sudo, hand the artifacts to the user who ran sudo, so they can open and report them."""
-    uid, gid = os.environ.get("SUDO_UID"), os.environ.get("SUDO_GID")
-    if os.geteuid() != 0 or not uid or not gid:
+    invoker = invoking_user()
+    if invoker is None:
         return
+    uid, gid = invoker
     try:
         paths = [out, *out.iterdir()]
     except OSError:
@@ -300,6 +302,6 @@ def give_to_invoking_user(out: Path) -> None:
     for path in paths:
         try:
             # a link planted in the folder is handed over itself; what it points to is never touched
-            os.chown(path, int(uid), int(gid), follow_symlinks=False)
+            os.chown(path, uid, gid, follow_symlinks=False)
         except OSError:
             pass

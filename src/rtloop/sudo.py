@@ -1,0 +1,19 @@
+"""Who ran rtloop through sudo: the one place that reads ``SUDO_UID`` and ``SUDO_GID``."""
+
+from __future__ import annotations
+
+import os
+import re
+
+_NUMBER = re.compile(r"[0-9]{1,10}")
+
+
+def invoking_user() -> tuple[int, int] | None:
+    """Running as root under sudo: the (uid, gid) of the user who ran sudo. None when not root, not under
+    sudo, or when either variable is not a plain number (a garbled environment is believed in nothing)."""
+    if os.geteuid() != 0:
+        return None
+    uid, gid = os.environ.get("SUDO_UID", ""), os.environ.get("SUDO_GID", "")
+    if not (_NUMBER.fullmatch(uid) and _NUMBER.fullmatch(gid)):
+        return None
+    return int(uid), int(gid)
