@@ -316,3 +316,18 @@ class SlowIntegrator(Integrator):
         super().step(u, y)
         if self.tick.cycle % self.every == self.every // 2:
             time.sleep(self.slow_s)
+
+
+class StopAt(Counter):
+    """Ends the run in order (StopRequested) at the first cycle at or after a given one."""
+
+    def __init__(self, cycle: int) -> None:
+        super().__init__()
+        self.stop_cycle = cycle
+
+    def step(self, u, y) -> None:
+        super().step(u, y)
+        if self.tick.cycle >= self.stop_cycle:
+            from rtloop import StopRequested
+
+            raise StopRequested(f"cycle {self.tick.cycle} reached")

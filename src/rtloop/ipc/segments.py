@@ -21,6 +21,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import gc
 import mmap
 import os
 import platform
@@ -164,7 +165,9 @@ class Segment:
     def array(self, dtype: npt.DTypeLike, count: int, offset_bytes: int = 0) -> np.ndarray:
         return np.frombuffer(self._map, dtype=dtype, count=count, offset=offset_bytes)
 
-    def close(self) -> None:
+    def close(self) -> bool:
+        """Close the descriptor and unmap; returns whether the mapping is gone (views of it may
+        still be alive: then it goes when they do, with the mapping's own descriptor)."""
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1
@@ -172,10 +175,25 @@ class Segment:
             self.buffer.release()
             self._map.close()
         except BufferError:
-            pass  # views of it are still alive; the mapping goes when they do
+            return False
+        return True
 
     def unlink(self) -> None:
         unlink_in_shm(self.name)
+
+
+def close_segments(segments: list[Segment]) -> list[Segment]:
+    """Close every segment of a process that goes on (a library's caller, the simulator); returns
+    those whose mapping is still held by a view somewhere (their descriptors are closed).
+
+    Views that sit in reference cycles (a closure, an exception's frames) go only with a garbage
+    collection: one is run when a mapping is still held, so no run leaves mappings behind.
+    """
+    busy = [segment for segment in segments if not segment.close()]
+    if busy:
+        gc.collect()
+        busy = [segment for segment in busy if not segment.close()]
+    return busy
 
 
 def unlink_in_shm(name: str, shm_dir: Path = SHM_DIR) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
 from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode, PortWord, SlotWord
-from rtloop.ipc.segments import Int64Ring, Segment
+from rtloop.ipc.segments import Int64Ring, Segment, close_segments
 from rtloop.ipc.status import StatusWord, WordBlock
 
 
@@ -330,6 +330,14 @@ class TaskWiring:
             np.copyto(self.record_y, self.initial_y)
             np.copyto(self.record_u, self.u)
             self.record.push(last_cycle, self.record_row)
+
+    def close(self) -> None:
+        """Let go of the shared memory in a process that goes on (the simulator's): the views are
+        dropped, then the segments closed (a task process just ends)."""
+        self.output = self.read_log = self.input_log = self.record = None
+        self.links, self.live_ports, self.output_ports = [], [], []
+        segments, self._segments = list(self._segments.values()), {}
+        close_segments(segments)
 
 
 

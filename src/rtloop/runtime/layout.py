@@ -29,6 +29,7 @@ from rtloop.ipc.segments import (
     SHM_DIR,
     Int64Ring,
     Segment,
+    close_segments,
     new_run_token,
     open_in_shm,
     remove_stale_segments,
@@ -152,6 +153,7 @@ class AppLayout:
         except BaseException:
             for created in segments:
                 created.unlink()
+            close_segments(segments)
             raise
 
     @classmethod
@@ -292,8 +294,12 @@ class AppLayout:
         return next(s.name for s in self.segments if s.name.endswith(suffix))
 
     def close(self) -> None:
-        """Remove every segment of this run (the mappings live on until the process ends)."""
+        """Remove every segment of this run and let go of it here: the layout's views are dropped,
+        then each segment's descriptors and mapping are closed (the caller's process goes on)."""
         for created in self.segments:
             created.unlink()
         if self.registry_path is not None:
             unlink_in_shm(self.registry_path.name)
+        self.tasks, self.input_ports, self.output_ports = {}, {}, {}
+        del self.control
+        close_segments(self.segments)

@@ -294,6 +294,7 @@ class RunSession:
         if "summary" in self._opened:
             self.summary_file.close()
         if "layout" in self._opened:
+            self._opened.remove("layout")  # stop_tasks no longer touches the control block
             self.layout.close()
         self._opened.clear()
 

@@ -163,9 +163,15 @@ class _Outcome:
 
 
 def _let_go(tasks: dict[str, _SimTask]) -> None:
+    """Let go of the shared memory before it is removed: the cycle work's hold first, then the
+    tasks (their views of the layout), then each task's own mappings."""
+    wirings = [task.wiring for task in tasks.values()]
     for task in tasks.values():
         if task.io is not None:
-            task.io.close()  # let go of the shared memory before it is unmapped
+            task.io.close()
+    tasks.clear()
+    for wiring in wirings:
+        wiring.close()
 
 
 def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, timeline: LetTimeline,

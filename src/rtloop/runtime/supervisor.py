@@ -166,7 +166,7 @@ class Supervisor:
         previous_scheduling = None
         try:
             self._open_live_view(session)
-            self.runs = self._spawn(layout)
+            self._spawn(layout)
             previous_scheduling = _serve_below_the_tasks(self.app, capabilities)
             assert layout.registry_path is not None
             self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
@@ -193,6 +193,7 @@ class Supervisor:
                     task_run.process.join()
                     self._devices_safe_after_death(task_run)
                 task_run.process.join()
+                _let_go_of_process(task_run)
             release_after_dead_task(self.held_for_dead_tasks)
             if previous_scheduling is not None:
                 os.sched_setscheduler(0, *previous_scheduling)
@@ -215,10 +216,11 @@ class Supervisor:
         recorder.live = self.live
         self.on_notice(f"Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)")
 
-    def _spawn(self, layout: AppLayout) -> dict[str, _TaskRun]:
+    def _spawn(self, layout: AppLayout) -> None:
+        """Start a process per task into ``self.runs`` (each one there as soon as it started,
+        so the cleanup joins and closes it even when a later one fails to start)."""
         # spawn, not fork: a forked child of a threaded parent can inherit held locks.
         context = multiprocessing.get_context("spawn")
-        runs: dict[str, _TaskRun] = {}
         # Pickled here, unpickled by the task (a failure there is reported as "loading");
         # classes from a script, notebook or stdin travel by value (app/byvalue.py).
         runnables = {name: dumps_runnable(spec.runnable, name) for name, spec in self.app.tasks.items()}
@@ -233,11 +235,15 @@ class Supervisor:
                 name=f"rtloop-{self.app.name}-{name}",
             )
             # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
-            with single_threaded_children(), children_without_main(), _marked_environment(layout.token):
-                process.start()
-            writer.close()
-            runs[name] = _TaskRun(name, process, reader)
-        return runs
+            try:
+                with single_threaded_children(), children_without_main(), _marked_environment(layout.token):
+                    process.start()
+            except BaseException:
+                reader.close()
+                raise
+            finally:
+                writer.close()
+            self.runs[name] = _TaskRun(name, process, reader)
 
     def _wait_until_ready(self, layout: AppLayout) -> None:
         """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
@@ -609,6 +615,14 @@ def _serve_below_the_tasks(app: App, capabilities: rt.Capabilities) -> tuple[int
     except OSError:
         return None
     return previous
+
+
+def _let_go_of_process(task_run: _TaskRun) -> None:
+    """Close what a joined task process holds open here (its pipe, its exit sentinel): a library's
+    caller runs many apps in one process and must not run out of file descriptors."""
+    task_run.pipe.close()
+    with contextlib.suppress(ValueError):  # not started (a spawn that failed)
+        task_run.process.close()
 
 
 def _print_notice(text: str) -> None:
