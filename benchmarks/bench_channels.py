@@ -179,9 +179,11 @@ def hop_reader(names: dict[str, str], plan: list[str], block_cycles: int, period
                 while queue.sent == seen_queue and (received := now()) < give_up:
                     pass
                 if received < give_up:
-                    seen_queue = queue.sent
                     _, rows = queue.drain()
                     received = now()
+                    seen_queue = queue.received  # what the drain took: a push between `sent` and it too
+                    if not len(rows):
+                        continue  # the last drain took this sample already (a slow or preempted reader)
                     out[:] = rows[-1]
             else:
                 while raw[0] == seen_raw and (received := now()) < give_up:

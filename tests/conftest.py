@@ -74,6 +74,11 @@ def guest_device(name: str) -> dict:
     return device
 
 
+def skip_in_rtkernel_guest(why: str) -> pytest.MarkDecorator:
+    """A mark that skips a test in the guest only, saying why it cannot work there (it runs on the host)."""
+    return pytest.mark.skipif(in_rtkernel_guest(), reason=f"not in the emulated PREEMPT_RT guest: {why}")
+
+
 @pytest.fixture
 def rtkernel_guest() -> dict:
     """The guest's device map (see docs/rtkernel-guest.md); the test is skipped outside the guest."""

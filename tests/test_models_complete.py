@@ -241,11 +241,11 @@ def test_20sim_parameters_by_name_change_the_model_like_the_python_twin(tmp_path
 REPLAY_APP = """name = "{name}"
 [tasks.controller]
 runnable = "jiwy_models:JiwyController"
-period_ns = 1_000_000
+period_ns = {period_ns}
 cpu = {cpu}
 [tasks.plant]
 runnable = "jiwy_models:JiwyPlant"
-period_ns = 1_000_000
+period_ns = {period_ns}
 priority = 81
 cpu = {cpu}
 [[connect]]
@@ -266,24 +266,27 @@ signals = ["plant.y", "controller.y", "controller.u[2:4]"]
 
 @pytest.mark.rt
 def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path, rtloop_env) -> None:
-    from conftest import other_cpu
+    from conftest import other_cpu, scaled_ns, scaled_s, wait_for_app, wait_for_cycles
 
     cli = [sys.executable, "-m", "rtloop.cli"]
     name = f"replay_t_{int(time.time() * 1000) % 100000}"
     app_file = tmp_path / f"{name}.toml"
-    app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu()))
+    app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu(), period_ns=scaled_ns(1_000_000)))
     run_dir = tmp_path / "run"
-    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", "3", "--out", str(run_dir), "-q"],
-                               env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", str(scaled_s(3)), "--out", str(run_dir),
+                                "-q"], env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(1.5)
+        # each write once the task runs, and taken at a cycle of its own (however slow the start-up)
+        app = wait_for_app(name, process, timeout_s=scaled_s(60))
+        done = 0
         for values in (["0.5", "0.3"], ["-0.2", "0.1"]):
+            done = wait_for_cycles(app, "controller", done + 100, process, timeout_s=scaled_s(30))
             write = subprocess.run([*cli, "port", "write", name, "setpoint", *values], env=rtloop_env,
                                    capture_output=True, text=True)
             assert write.returncode == 0, write.stderr
-            time.sleep(0.4)
+            done = wait_for_cycles(app, "controller", done + 100, process, timeout_s=scaled_s(30))
     finally:
-        process.communicate(timeout=60)
+        process.communicate(timeout=scaled_s(60))
     assert process.returncode == 0
     logged = read_rows(run_dir / "inputs.csv")
     assert logged[0] == ["task", "cycle", "port", "values"] and len(logged) == 3
