@@ -240,3 +240,45 @@ def test_the_serial_exchange_allocates_nothing_that_stays(tmp_path: Path) -> Non
     import json
 
     assert json.loads((tmp_path / "r.json").read_text())["allocated_bytes_io"] <= 0
+
+
+def _answer(master: int, request: Frame, response: Frame, reading: float, late_first: bool = False) -> None:
+    os.readv(master, [request.buffer])
+    if late_first:  # the answer to the request before, arriving just now
+        os.write(master, bytes(response.buffer))
+    response.values[:] = reading
+    response.seal(request.sequence, request.buffer[3] & ENABLED)
+    os.write(master, response.buffer)
+
+
+def test_the_safe_values_pass_over_a_late_answer_to_the_request_that_timed_out() -> None:
+    """A device that answers one request too late: that exchange is a fault; the safe exchange that
+    follows must not take the late answer for its own (it counted as failed before)."""
+    from rtloop.errors import DeviceFault
+    from rtloop.io.device import build_device
+
+    master, slave = os.openpty()
+    try:
+        device = build_device("serial", "late", {"port": os.ttyname(slave), "commands": ["voltage_V"],
+                                                 "readings": ["speed_rad_s"], "timeout_ms": 50.0}, "late")
+        device.check()
+        device.configure()
+        device.activate()
+        request, response = Frame(REQUEST_SYNC, 1), Frame(RESPONSE_SYNC, 1)
+        with pytest.raises(DeviceFault, match="no response within 50 ms"):
+            device.write(np.array([12.0]))  # nobody answers within the timeout...
+        _answer(master, request, response, 1.0)  # ...then the answer comes, late (it waits in the buffer)
+        import threading
+
+        answering = threading.Thread(target=_answer, args=(master, request, response, 2.0, True))
+        answering.start()
+        device.write_safe(np.array([0.0]))
+        answering.join()
+        assert request.buffer[3] & ENABLED == 0 and request.values[0] == 0.0  # the safe request, not enabled
+        readings = np.zeros(1)
+        device.read(readings)
+        assert readings[0] == 2.0  # its own answer, not the late one (1.0)
+        device.close()
+    finally:
+        os.close(master)
+        os.close(slave)

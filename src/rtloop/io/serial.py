@@ -28,6 +28,7 @@ import grp
 import os
 import select
 import stat
+import termios
 import time
 from typing import Any, ClassVar
 
@@ -203,14 +204,44 @@ class SerialDevice(Device):
 
     def write(self, u: FloatVector) -> None:
         """One exchange: send the commands, wait for the readings (at most ``timeout_ms``)."""
-        request, response = self.request, self.response
+        sequence = self._send(u)
+        if not read_frame(self.fd, self.response, self.poller, self.timeout_ns):
+            raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
+                              f"on {self.config['port']} (request {sequence})")
+        self._take_response(sequence)
+
+    def write_safe(self, u: FloatVector) -> None:
+        """The safe values, with outputs no longer enabled: the device may stop watching its heartbeat.
+
+        Often called after an exchange failed: the late answer to that request may be in the
+        input buffer or still on the way. It is not this exchange's answer: the input is
+        flushed first, and whole answers to earlier requests are passed over until this
+        request's own answer (or the timeout), so the safe state is reported as it went.
+        """
+        self.flags = 0
+        termios.tcflush(self.fd, termios.TCIFLUSH)
+        sequence = self._send(u)
+        deadline_ns = time.monotonic_ns() + self.timeout_ns
+        while True:
+            left_ns = deadline_ns - time.monotonic_ns()
+            if left_ns <= 0 or not read_frame(self.fd, self.response, self.poller, left_ns):
+                raise DeviceFault(f"device {self.name!r}: no answer to the safe values within "
+                                  f"{self.timeout_ns / 1e6:g} ms on {self.config['port']} (request {sequence})")
+            if self.response.problem() is None and self.response.sequence != sequence:
+                continue  # a whole, late answer to an earlier request
+            self._take_response(sequence)
+            return
+
+    def _send(self, u: FloatVector) -> int:
+        request = self.request
         self.sequence = sequence = (self.sequence + 1) & 0xFF
         request.values[:] = u
         request.seal(sequence, self.flags)
         os.write(self.fd, request.buffer)
-        if not read_frame(self.fd, response, self.poller, self.timeout_ns):
-            raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
-                              f"on {self.config['port']} (request {sequence})")
+        return sequence
+
+    def _take_response(self, sequence: int) -> None:
+        response = self.response
         problem = response.problem(sequence)
         if problem is not None:
             raise DeviceFault(f"device {self.name!r}: bad response on {self.config['port']}: {problem}")
@@ -219,11 +250,6 @@ class SerialDevice(Device):
         if self.flags and not response.buffer[3] & ENABLED:
             raise DeviceFault(f"device {self.name!r} turned its output off by itself (its heartbeat timed out, "
                               "or it faulted): the app stops")
-
-    def write_safe(self, u: FloatVector) -> None:
-        """The safe values, with outputs no longer enabled: the device may stop watching its heartbeat."""
-        self.flags = 0
-        self.write(u)
 
     def read(self, y: FloatVector) -> None:
         y[:] = self.readings
