@@ -18,8 +18,20 @@ def payload(k: int) -> np.ndarray:
     return values
 
 
+def payloads(ticks: np.ndarray) -> np.ndarray:
+    """``payload(k)`` for every k of ``ticks``, one row each (a whole drained batch checked at once)."""
+    values = np.arange(N_VALUES, dtype=np.float64)[None, :] + np.asarray(ticks, dtype=np.float64)[:, None] * 1000.0
+    values[:, -1] = values[:, :-1].sum(axis=1)
+    return values
+
+
 def is_consistent(values: np.ndarray) -> bool:
     return values[-1] == values[:-1].sum() and np.all(np.diff(values[:-1]) == 1.0)
+
+
+def consistent_rows(rows: np.ndarray) -> np.ndarray:
+    """``is_consistent`` of every row of ``rows`` (reads copied into a block, checked in one go)."""
+    return (rows[:, -1] == rows[:, :-1].sum(axis=1)) & np.all(np.diff(rows[:, :-1], axis=1) == 1.0, axis=1)
 
 
 def let_writer(segment_name: str, cpu: int, stop_name: str) -> None:
