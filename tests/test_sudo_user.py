@@ -10,7 +10,7 @@ import pytest
 
 import rtloop
 from rt_test_runnables import Counter
-from rtloop.app.modules import ModuleRefused, check_owner
+from rtloop.app.modules import ModuleRefused, check_folders, check_owner
 from rtloop.record.recorder import give_to_invoking_user
 from rtloop.runtime.session import prepare_out_dir
 from rtloop.sudo import invoking_user
@@ -37,6 +37,19 @@ def test_the_sudo_users_own_module_runs_another_users_does_not(tmp_path: Path, u
     check_owner(owned_by(tmp_path / "mine.py", SUDO_USER_ID))
     with pytest.raises(ModuleRefused, match=f"owned by uid {OTHER_USER_ID}"):
         check_owner(owned_by(tmp_path / "planted.py", OTHER_USER_ID))
+
+
+def test_code_from_the_sudo_users_folder_runs_only_under_their_sudo(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    folder = tmp_path / "clone"
+    folder.mkdir()
+    os.chown(folder, SUDO_USER_ID, SUDO_USER_ID)
+    monkeypatch.setenv("SUDO_UID", str(SUDO_USER_ID))
+    monkeypatch.setenv("SUDO_GID", str(SUDO_USER_ID))
+    check_folders(folder)
+    monkeypatch.delenv("SUDO_UID")
+    with pytest.raises(ModuleRefused, match=f"{folder} is owned by uid {SUDO_USER_ID}"):
+        check_folders(folder)
 
 
 def test_without_sudo_root_runs_only_roots_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

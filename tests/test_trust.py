@@ -363,3 +363,94 @@ def test_second_user_plants_modules_in_the_app_folder_and_none_runs(second_user,
     assert f"is owned by uid {second_user.pw_uid}, not by you (uid 0) or root" in refused.stderr
     assert "Traceback" not in refused.stderr
     assert not marker.exists(), "a module planted by another user ran as root"
+
+
+# --- bytecode and the folders code is loaded from (B5) ----------------------------------------
+PLANTED_PYC_MODULE = textwrap.dedent("""
+    from rtloop import Runnable
+
+    class Here(Runnable):
+        n_inputs, n_outputs = 0, 1
+
+        def step(self, u, y):
+            y[0] = 1.0
+""")
+
+
+def _plant_bytecode(source: Path, code: str, owner_uid: int) -> None:
+    """A valid ``__pycache__`` entry for ``source`` (its mtime and size in the header) holding ``code``."""
+    import importlib.util
+    import marshal
+
+    facts = source.stat()
+    cached = Path(importlib.util.cache_from_source(str(source)))
+    cached.parent.mkdir(exist_ok=True)
+    header = importlib.util.MAGIC_NUMBER + (0).to_bytes(4, "little") + \
+        (int(facts.st_mtime) & 0xFFFFFFFF).to_bytes(4, "little") + (facts.st_size & 0xFFFFFFFF).to_bytes(4, "little")
+    cached.write_bytes(header + marshal.dumps(compile(code, str(source), "exec")))
+    for path in (cached.parent, cached):
+        os.chown(path, owner_uid, owner_uid)
+
+
+@needs_root
+def test_bytecode_planted_beside_a_roots_module_never_runs(tmp_path: Path) -> None:
+    folder = tmp_path / "app"
+    folder.mkdir()
+    module = f"bytecode_{secrets.token_hex(3)}"
+    source = folder / f"{module}.py"
+    source.write_text(PLANTED_PYC_MODULE)
+    marker = tmp_path / "planted-ran"
+    _plant_bytecode(source, f"open({str(marker)!r}, 'w').close()\n" + PLANTED_PYC_MODULE, NOBODY_UID)
+    app = load_app(_app_toml(folder, f"pyc{os.getpid()}", f"{module}:Here"))
+    assert not marker.exists(), "bytecode planted by another user ran as root"
+    assert type(app.tasks["t"].runnable).__name__ == "Here"
+    # a fresh interpreter, as a task process is, loads the module again: from its source too
+    payload = pickle.dumps(app.tasks["t"].runnable)
+    done = subprocess.run([sys.executable, "-c", "import pickle, sys; pickle.loads(sys.stdin.buffer.read())"],
+                          input=payload, capture_output=True, cwd="/")
+    assert done.returncode == 0, done.stderr.decode()
+    assert not marker.exists(), "bytecode planted by another user ran as root in a task process"
+
+
+def test_loading_a_module_beside_the_app_file_writes_no_bytecode(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sys, "dont_write_bytecode", False)  # as a plain python (tools/as-root sets it)
+    module = f"nocache_{secrets.token_hex(3)}"
+    (tmp_path / f"{module}.py").write_text(PLANTED_PYC_MODULE)
+    load_app(_app_toml(tmp_path, f"nocache{os.getpid()}", f"{module}:Here"))
+    assert not (tmp_path / "__pycache__").exists()  # root's bytecode would litter a sudo user's folder
+
+
+@needs_root
+@pytest.mark.parametrize(("owner", "mode", "says"), [
+    (NOBODY_UID, 0o755, f"owned by uid {NOBODY_UID}"),
+    (0, 0o777, "writable by every user"),
+    (0, 0o775, f"writable by group {NOBODY_UID}"),
+])
+def test_an_app_folder_another_user_may_write_is_refused(tmp_path: Path, rtloop_env, owner: int, mode: int,
+                                                         says: str) -> None:
+    folder = tmp_path / "app"
+    folder.mkdir()
+    module = f"swapme_{secrets.token_hex(3)}"
+    (folder / f"{module}.py").write_text(PLANTED_PYC_MODULE)
+    app_file = _app_toml(folder, f"fold{os.getpid()}", f"{module}:Here")
+    os.chown(folder, owner, NOBODY_UID)  # group nogroup: its members are not you
+    folder.chmod(mode)
+    with pytest.raises(AppFileError, match=f"{folder}.*{says}"):
+        load_app(app_file)
+    done = _rtloop(["simulate", str(app_file), "--duration", "0.01", "--out", str(tmp_path / "o"), "-q"],
+                   rtloop_env)
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and says in done.stderr, done.stderr
+
+
+@needs_root
+def test_a_parent_folder_another_user_owns_is_refused(tmp_path: Path) -> None:
+    parent = tmp_path / "theirs"
+    folder = parent / "app"
+    folder.mkdir(parents=True)
+    module = f"parent_{secrets.token_hex(3)}"
+    (folder / f"{module}.py").write_text(PLANTED_PYC_MODULE)
+    os.chown(parent, NOBODY_UID, NOBODY_UID)  # they may rename app/ away and put their own in its place
+    with pytest.raises(AppFileError, match=f"{parent} is owned by uid {NOBODY_UID}"):
+        load_app(_app_toml(folder, f"par{os.getpid()}", f"{module}:Here"))

@@ -7,7 +7,11 @@ inherit it) would let any file in it shadow an installed or standard module: a
 
 - only ``<folder>/<module>.py`` is loaded, by path, under the module's own name;
 - a name that is also an installed or standard module is refused (no silent choice);
-- the file must be owned by the caller or by root;
+- the file must be owned by the caller or by root (under sudo, the user who ran sudo too) and
+  writable by no one else; so must its folder and every folder above it, or another user could
+  swap the file between the check and the import;
+- it is compiled from that checked source every time: bytecode in ``__pycache__`` is never read
+  (another user may have written it) nor written (root's would litter a sudo user's folder);
 - task processes receive instances of its classes with a note to load that same file
   first (:func:`_reduce_by_file`), so unpickling works without touching ``sys.path``.
 
@@ -21,10 +25,13 @@ same name always wins, and the owner check applies to each file.
 from __future__ import annotations
 
 import copyreg
+import grp
 import importlib.abc
 import importlib.machinery
 import importlib.util
 import os
+import pwd
+import stat
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -66,6 +73,68 @@ def check_owner(path: Path) -> None:
                             "rtloop will not run it")
 
 
+def check_folders(folder: Path) -> None:
+    """Refuse code from a folder that another user could change: one they own, or one they may
+    write to (mode, or a group with them in it), or below such a folder (they could rename it
+    away and put their own in its place). A sticky folder such as /tmp is fine: there nobody
+    renames or removes what they do not own."""
+    trusted = _trusted_uids()
+    for path in (folder, *folder.parents):
+        facts = os.stat(path)
+        if facts.st_uid not in trusted:
+            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or "
+                                "root; rtloop will not run code from below it")
+        writer = _untrusted_writer(facts, trusted)
+        if writer and not facts.st_mode & stat.S_ISVTX:
+            raise ModuleRefused(f"{path} is {writer}; rtloop will not run code from below it "
+                                f"(chmod go-w {path})")
+
+
+def _untrusted_writer(facts: os.stat_result, trusted: set[int]) -> str | None:
+    """Who other than a trusted user may write a file with these facts (None: nobody)."""
+    if facts.st_mode & stat.S_IWOTH:
+        return "writable by every user"
+    if facts.st_mode & stat.S_IWGRP and not _group_members(facts.st_gid) <= trusted:
+        return f"writable by group {facts.st_gid}, whose members are not all you or root"
+    return None
+
+
+def _group_members(gid: int) -> set[int]:
+    """Every uid in group ``gid``: listed members and users whose primary group it is. A group
+    unknown here may hold anyone: it answers with a uid no trusted set contains."""
+    try:
+        names = grp.getgrgid(gid).gr_mem
+    except KeyError:
+        return {-1}
+    members = {user.pw_uid for user in pwd.getpwall() if user.pw_gid == gid}
+    for name in names:
+        try:
+            members.add(pwd.getpwnam(name).pw_uid)
+        except KeyError:
+            members.add(-1)
+    return members
+
+
+def read_checked_source(path: Path) -> bytes:
+    """The bytes of module file ``path``, checked on the very file that is read (no swap between)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+    try:
+        facts = os.fstat(fd)
+        if not stat.S_ISREG(facts.st_mode):
+            raise ModuleRefused(f"{path}: not a regular file; rtloop will not run it")
+        trusted = _trusted_uids()
+        if facts.st_uid not in trusted:
+            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or root; "
+                                "rtloop will not run it")
+        writer = _untrusted_writer(facts, trusted)
+        if writer:
+            raise ModuleRefused(f"{path} is {writer}; rtloop will not run it (chmod go-w {path})")
+        with os.fdopen(os.dup(fd), "rb") as stream:
+            return stream.read()
+    finally:
+        os.close(fd)
+
+
 def _trusted_uids() -> set[int]:
     uids = {0, os.geteuid()}
     invoker = invoking_user()
@@ -81,8 +150,9 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
     if loaded is not None and getattr(loaded, "__file__", None) == str(path):
         return loaded
     check_owner(path)
+    check_folders(path.parent)
     SiblingFinder.serve(path.parent)  # before it runs: its own imports may name its neighbours
-    spec = importlib.util.spec_from_file_location(module_name, path)
+    spec = importlib.util.spec_from_file_location(module_name, path, loader=_SourceOnlyLoader(module_name, str(path)))
     if spec is None or spec.loader is None:
         raise ModuleRefused(f"{path}: not a Python module")
     module = importlib.util.module_from_spec(spec)
@@ -92,7 +162,6 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
     except BaseException:
         del sys.modules[module_name]
         raise
-    _send_classes_by_file(module)
     return module
 
 
@@ -127,15 +196,21 @@ class SiblingFinder(importlib.abc.MetaPathFinder):
             candidate = module_beside(folder, fullname)
             if candidate is not None:
                 check_owner(candidate)
-                loader = _SiblingLoader(fullname, str(candidate))
+                loader = _SourceOnlyLoader(fullname, str(candidate))
                 return importlib.util.spec_from_file_location(fullname, candidate, loader=loader)
         return None
 
 
-class _SiblingLoader(importlib.machinery.SourceFileLoader):
+class _SourceOnlyLoader(importlib.machinery.SourceFileLoader):
+    """Compiles the checked source every time, never touching ``__pycache__``: a user module is a
+    few kB, compiled in a millisecond, and bytecode there could come from another user."""
+
+    def get_code(self, fullname: str) -> Any:
+        return self.source_to_code(read_checked_source(Path(self.path)), self.path)
+
     def exec_module(self, module: ModuleType) -> None:
         super().exec_module(module)
-        _send_classes_by_file(module)  # its classes travel to task processes like the named module's
+        _send_classes_by_file(module)  # its classes travel to task processes, to be loaded by file there
 
 
 def _reduce_by_file(obj: Any) -> tuple[Any, ...]:
