@@ -1,6 +1,7 @@
 """The ``rtloop`` command is one argparse tree: every command answers ``--help`` (exit 0) and
-refuses an unknown option with one usage error naming it (exit 2, no traceback); building the
-tree, and ``rtloop port write``, import no heavy engine (behaviour: ``sys.modules``, not time)."""
+refuses an unknown option or a bad value with one line naming the command and the argument
+(exit 2, no traceback); building the tree, and ``rtloop port write``, import no heavy engine
+(behaviour: ``sys.modules`` in a fresh interpreter, not time)."""
 
 from __future__ import annotations
 
@@ -57,10 +58,10 @@ def test_an_unknown_option_is_a_usage_error(path: tuple[str, ...], capsys: pytes
         main([*path, "--no-such-option"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err
-    last = err.strip().splitlines()[-1]
-    assert last.startswith(f"rtloop {path[0]}")  # the command that refused (or its nested one)
-    assert "--no-such-option" in last or "required" in last or "invalid choice" in last, last
+    assert err.count("\n") == 1 and "Traceback" not in err, err  # one line
+    assert err.startswith(f"rtloop {path[0]}")  # the command that refused (or its nested one)
+    assert "--no-such-option" in err or "required" in err or "invalid choice" in err, err
+    assert err.rstrip().endswith("--help)")  # where to look
 
 
 @pytest.mark.parametrize(("argv", "named"), [
@@ -70,13 +71,19 @@ def test_an_unknown_option_is_a_usage_error(path: tuple[str, ...], capsys: pytes
     (["run", "app.toml", "--out", "x", "--feed", "nonsense"], "--feed"),
     (["bridge", "listener", "--app", "a", "--port", "p", "--topic", "/t", "--type", "std_msgs/msg/String"], "--type"),
     (["report"], "DIR"),
+    (["simulate", "app.toml", "--out", "x", "--trim", "-1"], "--trim"),
+    (["sweep", "app.toml", "--duration", "1", "--processes", "0"], "--processes"),
+    (["sweep", "app.toml", "--duration", "1", "--feed", "setpoint"], "--feed"),
+    (["port", "read", "app", "port", "--count", "0"], "--count"),
+    ([], "COMMAND"),
+    (["nonsense"], "invalid choice: 'nonsense'"),
 ])
 def test_a_bad_value_names_its_argument(argv: list[str], named: str, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "Traceback" not in err and named in err.strip().splitlines()[-1]
+    assert err.count("\n") == 1 and "Traceback" not in err and named in err, err
 
 
 def test_bad_input_found_by_a_command_is_one_line_and_exit_2(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+from typing import NoReturn
 
 from rtloop.errors import RtloopError
 
@@ -15,8 +17,12 @@ EXIT_INTERRUPTED = 130
 
 
 class CommandParser(argparse.ArgumentParser):
-    """A command's parser: an argument it does not know is its own usage error, so the line names the
-    command (``rtloop top: error: unrecognized arguments: --nope``), not the root ``rtloop``."""
+    """The parser of ``rtloop`` and of each command. A usage error is one line naming the command and
+    the argument (``rtloop top: argument --interval: must be ...; see rtloop top --help``), exit 2, as
+    all bad input is; an argument a command does not know is its own error, not the root's."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
     def parse_known_args(self, args: list[str] | None = None,
                          namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
@@ -50,3 +56,19 @@ def count(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be ≥ 0, got {text}")
     return value
+
+
+def at_least_one(text: str) -> int:
+    """A whole number ≥ 1 (``--processes``)."""
+    value = count(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
+    return value
+
+
+def port_feed(text: str) -> tuple[str, Path]:
+    """``PORT=FILE.csv`` (``--feed``: a profile that feeds an input port)."""
+    port, sep, path = text.partition("=")
+    if not sep or not port or not path:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected PORT=FILE.csv")
+    return port, Path(path)

@@ -43,7 +43,7 @@ def missing_extra(error: ModuleNotFoundError) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """The whole tree: every command's arguments, each with the function that runs it (``args.handler``)."""
-    parser = argparse.ArgumentParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
+    parser = CommandParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
     parser.add_argument("--debug", action="store_true", help="show the Python traceback behind an error")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=CommandParser)
     for name, module in COMMANDS.items():

@@ -6,6 +6,8 @@ import argparse
 import re
 import time
 
+from rtloop.cli.arguments import at_least_one
+
 HELP = "write to or read from a running app's port"
 
 
@@ -18,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     read = port_commands.add_parser("read", help="print what an output port sends, from now on")
     read.add_argument("app", help="app name (or app file)")
     read.add_argument("port")
-    read.add_argument("--count", type=int, default=10, help="rows to print, then exit (default 10)")
+    read.add_argument("--count", type=at_least_one, default=10, help="rows to print, then exit (default 10)")
     read.add_argument("--queued", action="store_true",
                       help="start with the oldest samples still queued instead of the newest")
     port_commands.add_parser("list", help="list running apps and their ports")

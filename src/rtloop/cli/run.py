@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rtloop.cli.arguments import positive_seconds
+from rtloop.cli.arguments import count, port_feed, positive_seconds
 from rtloop.errors import AppError
 
 if TYPE_CHECKING:
@@ -16,13 +16,6 @@ if TYPE_CHECKING:
 
 DEFAULT_KEEP_S = 60.0  # --keep of a run without --duration
 ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")
-
-
-def _parse_feed(text: str) -> tuple[str, Path]:
-    port, sep, path = text.partition("=")
-    if not sep or not port or not path:
-        raise argparse.ArgumentTypeError(f"--feed {text!r}: expected PORT=FILE.csv")
-    return port, Path(path)
 
 
 def _parse_host_port(text: str) -> tuple[str, int]:
@@ -44,11 +37,11 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="directory for the artifacts (one that holds a run is refused without --force)")
     parser.add_argument("--force", action="store_true",
                         help="replace the run already in --out (its files, report.html and report-figures/)")
-    parser.add_argument("--feed", type=_parse_feed, action="append", default=[], metavar="PORT=FILE.csv",
+    parser.add_argument("--feed", type=port_feed, action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile (t_s, values...)")
     parser.add_argument("--cpu", type=int, default=None, metavar="N",
                         help="pin every task to CPU N, whatever the app file says")
-    parser.add_argument("--trim", type=int, default=20, metavar="N",
+    parser.add_argument("--trim", type=count, default=20, metavar="N",
                         help="cycles left out at each end of the statistics (default 20)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary table")
     parser.add_argument("--foxglove", type=_parse_host_port, default=None, metavar="[HOST:]PORT",

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from rtloop.cli.arguments import BadInput
+from rtloop.cli.arguments import at_least_one, port_feed
 
 HELP = "simulate an app over a grid of parameters in parallel; one table of step metrics"
 
@@ -23,10 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--signal", default=None, metavar="NAME",
                         help="signal whose step is measured (default: the first setpoint pair's measured signal)")
     parser.add_argument("--setpoint", default=None, metavar="NAME", help="its setpoint (default: its pair's)")
-    parser.add_argument("--feed", action="append", default=[], metavar="PORT=FILE.csv",
+    parser.add_argument("--feed", type=port_feed, action="append", default=[], metavar="PORT=FILE.csv",
                         help="feed an input port from a CSV profile")
     parser.add_argument("--force", action="store_true", help="replace a sweep already in --out")
-    parser.add_argument("--processes", type=int, default=None, metavar="N", help="worker processes (default: CPUs)")
+    parser.add_argument("--processes", type=at_least_one, default=None, metavar="N",
+                        help="worker processes (default: CPUs)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,16 +35,8 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.runtime.sweep import format_table, parse_parameter, sweep
 
     parameters = dict(parse_parameter(text) for text in args.param)
-    feeds = {}
-    for text in args.feed:
-        port, sep, path = text.partition("=")
-        if not sep or not port or not path:
-            raise BadInput(f"--feed {text!r}: expected PORT=FILE.csv")
-        feeds[port] = path
-    if args.processes is not None and args.processes < 1:
-        raise BadInput("--processes must be at least 1")
     result = sweep(args.app, parameters, duration_s=args.duration, out=args.out, signal=args.signal,
-                   setpoint=args.setpoint, processes=args.processes, feeds=feeds, force=args.force)
+                   setpoint=args.setpoint, processes=args.processes, feeds=dict(args.feed), force=args.force)
     print(f"step of {result.signal}" + (f" (setpoint {result.setpoint})" if result.setpoint else ""))
     print(format_table(result))
     simulated_s = args.duration * len(result.rows)
