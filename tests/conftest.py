@@ -115,6 +115,11 @@ def scaled_s(duration_s: float) -> float:
 @pytest.fixture
 def rtloop_env() -> dict[str, str]:
     """Environment for running the rtloop CLI in a subprocess that finds the test runnables."""
+    return cli_env()
+
+
+def cli_env() -> dict[str, str]:
+    """What the ``rtloop_env`` fixture gives, for fixtures of a wider scope."""
     env = dict(os.environ)
     paths = [str(TESTS_DIR), str(TESTS_DIR.parent / "examples" / "jiwy"), env.get("PYTHONPATH", "")]
     env["PYTHONPATH"] = os.pathsep.join(paths).rstrip(os.pathsep)

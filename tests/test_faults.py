@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import cli_env
 from rtloop.ipc.ports import connect_app
 
 SHM = Path("/dev/shm")
@@ -49,6 +50,11 @@ def _run(app_file: Path, out: Path, env: dict[str, str], duration_s: float,
                           timeout=timeout_s)
 
 
+def _start(app_file: Path, out: Path, env: dict[str, str], duration_s: float) -> subprocess.Popen:
+    return subprocess.Popen(_command(app_file, out, duration_s), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
 def _gone(pid: int, within_s: float = 10.0) -> bool:
     deadline = time.monotonic() + within_s
     while time.monotonic() < deadline:
@@ -65,22 +71,59 @@ def _gone(pid: int, within_s: float = 10.0) -> bool:
     return False
 
 
-CASES = [
-    (phase, kind)
-    for phase in ("prerun", "step", "postrun")
-    for kind in ("raise", "exit", "segfault", "fork", "hang")
-]
+# The hangs last: each waits seconds for a limit doing nothing, in the background meanwhile (hung_runs)
+CASES = [(phase, kind) for kind in ("raise", "exit", "segfault", "fork") for phase in ("prerun", "step", "postrun")]
+HANGS = [(phase, "hang") for phase in ("prerun", "step", "postrun")]
 
 
-@pytest.mark.parametrize(("phase", "kind"), [pytest.param(*case, marks=pytest.mark.slow) if case[1] == "hang"
-                                             else case for case in CASES])
-def test_fault_in_each_phase_is_reported_there_and_leaves_nothing(tmp_path: Path, rtloop_env, phase, kind) -> None:
-    name = f"fault_{phase}_{kind}_{os.getpid()}"
+def _hang_env(phase: str, env: dict[str, str]) -> dict[str, str]:
+    if phase == "prerun":  # the start-up allowance ends a hung prerun: 5 s, not 30, here
+        return {**env, "RTLOOP_STARTUP_ALLOWANCE_S": "5"}
+    return env
+
+
+@pytest.fixture(scope="module")
+def hung_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
+    """The selected hang cases, started together when this module's first fault test starts.
+
+    A hung run spends seconds waiting for a limit (the start-up allowance, or the stop grace
+    after its duration) with its processes asleep, so the hangs wait beside the other cases,
+    not after them. Each hang test then checks its own run as the other cases do."""
+    selected = {(item.callspec.params["phase"], item.callspec.params["kind"]) for item in request.session.items
+                if item.module is request.module and hasattr(item, "callspec")}
+    runs: dict[tuple[str, str], tuple[Path, str, subprocess.Popen]] = {}
+    try:
+        for phase, kind in HANGS:
+            if (phase, kind) in selected:
+                tmp_path = tmp_path_factory.mktemp(f"{phase}-{kind}")
+                name = f"fault_{phase}_{kind}_{os.getpid()}"
+                process = _start(_app_file(tmp_path, name, phase, kind), tmp_path / "out",
+                                 _hang_env(phase, cli_env()), 0.5)
+                runs[(phase, kind)] = (tmp_path, name, process)
+        yield runs
+    finally:
+        for _tmp_path, _name, process in runs.values():  # only when a test failed before its own ended
+            if process.poll() is None:
+                process.kill()
+            process.communicate()
+
+
+@pytest.mark.parametrize(("phase", "kind"), [*CASES, *(pytest.param(*case, marks=pytest.mark.slow) for case in HANGS)])
+def test_fault_in_each_phase_is_reported_there_and_leaves_nothing(tmp_path: Path, rtloop_env, hung_runs,
+                                                                   phase, kind) -> None:
+    if kind == "hang":
+        tmp_path, name, process = hung_runs[(phase, kind)]
+        try:
+            stdout, stderr = process.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            stdout, stderr = process.communicate()
+        done = subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+    else:
+        name = f"fault_{phase}_{kind}_{os.getpid()}"
+        done = _run(_app_file(tmp_path, name, phase, kind), tmp_path / "out", rtloop_env, duration_s=0.5,
+                    timeout_s=120)
     out = tmp_path / "out"
-    env = rtloop_env
-    if (phase, kind) == ("prerun", "hang"):  # the start-up allowance ends a hung prerun: 5 s, not 30, here
-        env = {**rtloop_env, "RTLOOP_STARTUP_ALLOWANCE_S": "5"}
-    done = _run(_app_file(tmp_path, name, phase, kind), out, env, duration_s=0.5, timeout_s=120)
     assert "Traceback" not in done.stderr or kind == "raise", done.stderr  # only the runnable's own, when it raised
     summary = json.loads((out / "summary.json").read_text())
     failure = summary["failure"]
@@ -98,11 +141,6 @@ def test_fault_in_each_phase_is_reported_there_and_leaves_nothing(tmp_path: Path
         assert f"failed in {phase}" in done.stderr
     assert summary["tasks"]["steady"]["cycles"] > 0 or phase == "prerun"
     assert not list(SHM.glob(f"rtloop-{name}-*")), "shared memory left behind"
-
-
-def _start(app_file: Path, out: Path, env: dict[str, str], duration_s: float) -> subprocess.Popen:
-    return subprocess.Popen(_command(app_file, out, duration_s), env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
 
 
 def _task_pids(name: str) -> dict[str, int]:
