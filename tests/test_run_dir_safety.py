@@ -149,3 +149,118 @@ def test_replay_through_a_link_to_the_run_is_refused(tmp_path: Path) -> None:
     with pytest.raises(RunDirectoryError):
         replay(run_dir, tmp_path / "alias", app=counter_app("safety_link"), force=True)
     assert snapshot(run_dir) == before
+
+
+# --- a disk already full --------------------------------------------------------------------------
+@pytest.fixture
+def tiny_disk(tmp_path: Path):
+    """A 128 KiB tmpfs of this test alone (root only), unmounted at the end."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tiny tmpfs needs root")
+    disk = tmp_path / "tiny"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=128k", "tmpfs", str(disk)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)
+
+
+def fill(disk: Path, leave_bytes: int = 0) -> None:
+    """Fill ``disk`` up to ``leave_bytes`` free (in whole pages)."""
+    stats = os.statvfs(disk)
+    free = stats.f_bavail * stats.f_frsize
+    with open(disk / f"fill{len(list(disk.iterdir()))}", "wb") as file:
+        file.write(b"x" * max(0, free - leave_bytes))
+
+
+@pytest.mark.parametrize("command", ["simulate", "run"])
+def test_a_disk_already_full_is_refused_before_the_run(tiny_disk: Path, tmp_path: Path, rtloop_env,
+                                                        command: str) -> None:
+    fill(tiny_disk, leave_bytes=16 * 1024)  # room for a few files, not for the summary's reserve
+    out = tiny_disk / "run"
+    result = subprocess.run([*CLI, command, str(app_file(tmp_path, "safety_full")), "--duration", "0.2",
+                             "--out", str(out), "-q"], env=rtloop_env, capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert f"no space at {out}: 16384 bytes free" in result.stderr
+    assert not out.exists()  # no empty summary.json, no temporary left behind
+
+
+def test_the_summary_is_never_left_empty_on_a_full_disk(tiny_disk: Path) -> None:
+    from rtloop.record.summary import SummaryFile
+
+    class Text:  # what SummaryFile.write asks of a summary
+        def __init__(self, size: int) -> None:
+            self.size = size
+
+        def to_json(self) -> dict[str, str]:
+            return {"pad": "x" * self.size}
+
+    out = tiny_disk / "run"
+    out.mkdir()
+    summary = SummaryFile(out)
+    fill(tiny_disk)
+    assert summary.write(Text(3000))  # the reserve is given up for it
+    assert not (out / ".summary-reserve").exists()
+    fill(tiny_disk)
+    assert not summary.write(Text(30_000)) and "summary.json not written" in summary.problem
+    assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * 3000}  # the previous one, whole
+    assert summary.write(Text(2000))  # smaller: over the previous one's own blocks
+    assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * 2000}
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
+
+
+def test_a_disk_with_room_for_the_reserve_only_runs_and_says_so(tiny_disk: Path, tmp_path: Path,
+                                                                 rtloop_env) -> None:
+    fill(tiny_disk, leave_bytes=64 * 1024)
+    out = tiny_disk / "run"
+    result = subprocess.run([*CLI, "simulate", str(app_file(tmp_path, "safety_reserve")), "--duration", "0.2",
+                             "--out", str(out), "-q"], env=rtloop_env, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "ENOSPC" in json.loads((out / "summary.json").read_text())["recording"]["stopped"]
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no reserve, no temporary
+    assert any("ENOSPC" in note for note in rtloop.load(out).notes)
+
+
+# --- an --out that cannot be a folder ------------------------------------------------------------
+@pytest.mark.parametrize("where", ["/proc/rtloop_no_such", "a_file/x"])
+def test_an_out_that_cannot_be_made_is_one_line_exit_2(tmp_path: Path, rtloop_env, where: str) -> None:
+    (tmp_path / "a_file").write_text("not a folder")
+    out = where if where.startswith("/") else str(tmp_path / where)
+    result = subprocess.run([*CLI, "simulate", str(app_file(tmp_path, "safety_out")), "--duration", "0.05",
+                             "--out", out, "-q"], env=rtloop_env, capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "internal error" not in result.stderr, result.stderr
+    assert f"--out {out} cannot be used: " in result.stderr
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="becomes another user in a child process: needs root")
+def test_an_out_another_user_may_not_write_names_the_path_and_the_reason(tmp_path: Path) -> None:
+    from rtloop.runtime.session import prepare_out_dir
+
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o755)  # root's: nobody may write in it
+    tmp_path.chmod(0o755)
+    read_end, write_end = os.pipe()
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the child reports through the pipe
+        message = "no refusal"
+        try:
+            os.setgid(65534)
+            os.setuid(65534)
+            prepare_out_dir(locked / "run")
+        except RunDirectoryError as error:
+            message = str(error)
+        except BaseException as error:
+            message = f"{type(error).__name__}: {error}"
+        os.write(write_end, message.encode())
+        os._exit(0)
+    os.close(write_end)
+    os.waitpid(child, 0)
+    with os.fdopen(read_end) as pipe:
+        message = pipe.read()
+    assert message.startswith(f"--out {locked / 'run'} cannot be used: Permission denied"), message

@@ -14,6 +14,7 @@ The same units go into run.mcap's ``rtloop`` metadata record (key ``units``, JSO
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -79,5 +80,10 @@ def units_by_column(content: dict[str, Any]) -> dict[str, str]:
 def write_sidecar(out: Path, content: dict[str, Any]) -> None:
     """Write ``signals.json`` whole or not at all (a temporary name, then a rename)."""
     temporary = out / f".{SIDECAR}.tmp"
-    temporary.write_text(json.dumps(content, indent=1) + "\n")
-    os.replace(temporary, out / SIDECAR)
+    try:
+        temporary.write_text(json.dumps(content, indent=1) + "\n")
+        os.replace(temporary, out / SIDECAR)
+    except OSError:
+        with contextlib.suppress(OSError):
+            temporary.unlink()  # a full disk leaves no half-written temporary behind
+        raise

@@ -221,6 +221,9 @@ class SummaryFile:
     so a reader, a crash or a kill -9 sees the previous summary or the new one, never half
     of one. A reserve file holds disk space from the start; when the disk is full it is given
     up so the summary can still be written. A removed folder is made again.
+
+    A reserve that cannot be made raises the OSError (the run must not start: its summary
+    could not be promised), leaving no file behind.
     """
 
     def __init__(self, out: Path) -> None:
@@ -235,7 +238,9 @@ class SummaryFile:
             finally:
                 os.close(fd)
         except OSError:
-            self.reserve.unlink(missing_ok=True)  # no room even now: writes will try their luck
+            with contextlib.suppress(OSError):
+                self.reserve.unlink(missing_ok=True)
+            raise
 
     def write(self, summary: RunSummary) -> bool:
         """Replace summary.json; returns whether it worked (failures are kept in ``problem``)."""
@@ -252,12 +257,34 @@ class SummaryFile:
                 elif attempt == 0 and error.errno == errno.ENOENT:
                     with contextlib.suppress(OSError):
                         self.path.parent.mkdir(parents=True, exist_ok=True)
-                elif error.errno in (errno.ENOSPC, errno.EDQUOT):
-                    with contextlib.suppress(OSError):  # last resort: overwrite in place
-                        self.path.write_text(text)
-                        self.problem = ""
-                        return True
+                elif error.errno in (errno.ENOSPC, errno.EDQUOT) and self._overwrite_in_place(text):
+                    self.problem = ""
+                    return True
         return False
+
+    def _overwrite_in_place(self, text: str) -> bool:
+        """Last resort on a full disk: write over the previous summary's own blocks.
+
+        Only when the new text fits in them (padded with blanks, which JSON allows after the
+        value), and never truncating first, so the disk needs no new block and a failure cannot
+        leave an empty file where the previous summary was.
+        """
+        data = text.encode()
+        try:
+            fd = os.open(self.path, os.O_WRONLY)
+        except OSError:
+            return False
+        try:
+            size = os.fstat(fd).st_size
+            if len(data) > size:
+                return False
+            os.pwrite(fd, data + b" " * (size - len(data)), 0)
+            os.fsync(fd)
+            return True
+        except OSError:
+            return False
+        finally:
+            os.close(fd)
 
     def _replace(self, text: str) -> None:
         temporary = self.path.with_name(".summary.json.tmp")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import errno
 import os
 import shutil
 import signal
@@ -39,7 +40,7 @@ from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
 from rtloop.record.recorder import Recorder, give_to_invoking_user
-from rtloop.record.summary import RunSummary, SummaryFile
+from rtloop.record.summary import SUMMARY_RESERVE_BYTES, RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout, TaskHandles
 
 RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
@@ -61,9 +62,34 @@ def prepare_out_dir(out: Path, *, force: bool = False, protect: Iterable[Path] =
     """Make ``out`` ready for a new run's artifacts, or refuse before anything is written.
 
     ``protect``: folders whose contents must survive (the run a replay reads): ``out`` may be
-    neither one of them nor inside one. Returns ``out``.
+    neither one of them nor inside one. Returns ``out``. A folder that cannot be made or
+    cleared (``/proc/x``, a file's path, a folder of another user) is a :class:`RunDirectoryError`
+    naming the path and the reason.
     """
-    check_out_dir(out, protect=protect)
+    with _out_dir_errors(out):
+        return _prepare_out_dir(out, force=force, protect=protect)
+
+
+@contextlib.contextmanager
+def _out_dir_errors(out: Path) -> Iterator[None]:
+    try:
+        yield
+    except OSError as error:
+        raise RunDirectoryError(f"--out {out} cannot be used: {_os_reason(error, out)}; nothing was run: "
+                                "choose another --out") from None
+
+
+def _os_reason(error: OSError, out: Path) -> str:
+    """Why an OSError happened, with the path it happened at when that is not ``out`` itself."""
+    reason = error.strerror or str(error)
+    where = error.filename
+    if where is not None and Path(os.fsdecode(where)) != out:
+        reason = f"{reason} ({os.fsdecode(where)})"
+    return reason
+
+
+def _prepare_out_dir(out: Path, *, force: bool, protect: Iterable[Path]) -> Path:
+    _check_out_dir(out, protect)
     if not out.exists():
         missing = [folder for folder in (out, *out.parents) if not folder.exists()]
         out.mkdir(parents=True)
@@ -86,6 +112,11 @@ def prepare_out_dir(out: Path, *, force: bool = False, protect: Iterable[Path] =
 
 def check_out_dir(out: Path, *, protect: Iterable[Path] = ()) -> None:
     """The refusals that hold even with ``force`` (see :func:`prepare_out_dir`); writes nothing."""
+    with _out_dir_errors(out):
+        _check_out_dir(out, protect)
+
+
+def _check_out_dir(out: Path, protect: Iterable[Path]) -> None:
     resolved = out.resolve()
     for kept in protect:
         kept_resolved = Path(kept).resolve()
@@ -98,6 +129,36 @@ def check_out_dir(out: Path, *, protect: Iterable[Path] = ()) -> None:
         raise RunDirectoryError(f"{out}/{UNFINISHED_FOLDER}/ holds the recording of a run that did not finish; "
                                 "nothing was written: move it away (or choose another --out); --force "
                                 "never deletes it")
+
+
+def reserve_summary(out: Path, *, made_here: bool) -> SummaryFile:
+    """The summary file with its disk space reserved, or a refusal before the run starts.
+
+    Without the reserve the summary of a run that fills the disk could not be written (an
+    empty summary.json, a run that says nothing of itself): such a run is refused, and the
+    folder is removed again if it was made for it and is still empty.
+    """
+    try:
+        return SummaryFile(out)  # reserves its disk space first
+    except OSError as error:
+        if made_here:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise RunDirectoryError(f"no space at {out}: {free_bytes(out)} bytes free, a run needs "
+                                    f"{SUMMARY_RESERVE_BYTES} for its summary; nothing was run: free some "
+                                    "space or choose another --out") from None
+        raise RunDirectoryError(f"--out {out}: cannot write there: {_os_reason(error, out)}; nothing was run: "
+                                "choose another --out") from None
+
+
+def free_bytes(folder: Path) -> int:
+    """Bytes an unprivileged writer may still use on ``folder``'s file system (0 if unknown)."""
+    for path in (folder, *folder.parents):
+        with contextlib.suppress(OSError):
+            stats = os.statvfs(path)
+            return stats.f_bavail * stats.f_frsize
+    return 0
 
 
 def _remove(path: Path) -> None:
@@ -246,9 +307,10 @@ class RunSession:
         # The layout checks memory and loads profiles: bad input is refused before the folder is touched.
         self.layout = AppLayout.create(self.app, summary_path if self.registry else None)
         self._opened.append("layout")
+        existed = self.out.exists()
         try:
             prepare_out_dir(self.out, force=self.force, protect=self.protect)
-            self.summary_file = SummaryFile(self.out)  # reserves its disk space first
+            self.summary_file = reserve_summary(self.out, made_here=not existed)
             self._opened.append("summary")
             self.recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
             self._opened.append("recorder")
