@@ -13,14 +13,19 @@ from __future__ import annotations
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import skip_in_rtkernel_guest
+from rtloop.ipc.channels import LatestValue
+from rtloop.ipc.ports import running_apps
+from rtloop.ipc.schema import PortWord
 from test_ros_app import TWO_APPS, random_domain, signals_of, summary_of
 
 pytest.importorskip("cyclonedds")
@@ -52,27 +57,33 @@ def ip(*args: str) -> None:
 
 
 @pytest.fixture
-def two_hosts():
+def host_pairs():
+    """Makes pairs of network namespaces, each pair joined by its own veth cable; removes them all after."""
     reason = namespaces_unavailable()
     if reason:
         pytest.skip(reason)
-    tag = f"{os.getpid() % 10000}{random.randint(0, 99)}"
-    hosts = [f"rtl{tag}a", f"rtl{tag}b"]
-    subnet = f"10.{random.randint(64, 250)}.{random.randint(0, 250)}"
-    for host in hosts:
-        ip("netns", "add", host)
-    try:
-        ip("link", "add", f"v{tag}a", "netns", hosts[0], "type", "veth", "peer", "name", f"v{tag}b",
-           "netns", hosts[1])
+    made: list[str] = []
+
+    def pair() -> list[str]:
+        tag = f"{os.getpid() % 10000}{random.randint(0, 99)}{len(made) // 2}"
+        hosts = [f"rtl{tag}a", f"rtl{tag}b"]
+        subnet = f"10.{random.randint(64, 250)}.{random.randint(0, 250)}"
+        for host in hosts:
+            ip("netns", "add", host)
+            made.append(host)
+        ip("link", "add", f"v{tag}a", "netns", hosts[0], "type", "veth", "peer", "name", f"v{tag}b", "netns", hosts[1])
         for index, host in enumerate(hosts):
             device = f"v{tag}{'ab'[index]}"
             ip("-n", host, "addr", "add", f"{subnet}.{index + 1}/24", "dev", device)
             ip("-n", host, "link", "set", "lo", "up")
             ip("-n", host, "link", "set", device, "up")
             ip("-n", host, "route", "add", "224.0.0.0/4", "dev", device)  # DDS discovery is multicast
-        yield hosts
+        return hosts
+
+    try:
+        yield pair
     finally:
-        for host in hosts:
+        for host in made:
             subprocess.run(["ip", "netns", "del", host], capture_output=True)
 
 
@@ -84,42 +95,99 @@ def app_copy(source: Path, folder: Path, name: str) -> Path:
     return target
 
 
-def run_in(host: str, app_file: Path, out: Path, duration_s: float, env: dict[str, str]) -> subprocess.Popen:
+def run_in(host: str, app_file: Path, out: Path, env: dict[str, str]) -> subprocess.Popen:
+    """``rtloop run`` in namespace ``host``, until stopped (at most a minute)."""
     return subprocess.Popen(["ip", "netns", "exec", host, sys.executable, "-m", "rtloop.cli", "run", str(app_file),
-                             "--duration", str(duration_s), "--out", str(out), "--quiet"],
+                             "--duration", "60", "--out", str(out), "--quiet"],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def port_writes(name: str, port: str) -> int:
+    """How many values the app's input ``port`` has taken so far (its bridge writes each sample it receives)."""
+    app = next((app for app in running_apps() if app.name == name), None)
+    if app is None:
+        return -1
+    segment = app.segment(app.ports[port]["segment"])
+    try:
+        return int(LatestValue(segment).words[PortWord.WRITES])
+    finally:
+        segment.close()
+
+
+def apps_running(names: list[str]) -> bool:
+    found = {app.name: app for app in running_apps()}
+    return all(name in found and all(found[name].task_pids().values()) for name in names)
 
 
 @pytest.mark.rt
 @pytest.mark.slow
-@pytest.mark.parametrize("discovery_range", ["SUBNET", "LOCALHOST"])
-def test_two_apps_in_two_network_namespaces(tmp_path: Path, two_hosts: list[str], discovery_range: str) -> None:
-    suffix = f"{os.getpid()}_{random.randint(0, 9999)}"
-    sensor = app_copy(TWO_APPS / "sensor.toml", tmp_path, f"sensor_{suffix}")
-    controller = app_copy(TWO_APPS / "controller.toml", tmp_path, f"controller_{suffix}")
-    env = {**os.environ, "ROS_DOMAIN_ID": str(random_domain()), "ROS_AUTOMATIC_DISCOVERY_RANGE": discovery_range,
-           "PYTHONPATH": os.pathsep.join([str(TWO_APPS), str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    runs = [run_in(two_hosts[1], controller, tmp_path / "controller", 20, env),
-            run_in(two_hosts[0], sensor, tmp_path / "sensor", 16, env)]  # bridges start in seconds on a busy machine
-    for run in runs:
-        try:
-            _, stderr = run.communicate(timeout=120)
-        except subprocess.TimeoutExpired:
-            run.kill()
-            _, stderr = run.communicate()
-        assert run.returncode == 0, stderr
-    header, rows = signals_of(tmp_path / "controller")
-    stamps = rows[:, header.index("monitor.t_s")]
-    received = stamps[stamps > 0]
-    if discovery_range == "LOCALHOST":
-        assert len(received) == 0, "LOCALHOST discovery must not reach the other namespace"
-        return
-    assert len(np.unique(received)) > 100, f"only {len(np.unique(received))} samples crossed"
-    sensor_header, sensor_rows = signals_of(tmp_path / "sensor")
-    sent = set(zip(sensor_rows[:, sensor_header.index("sine.t_s")].round(9).tolist(),
-                   sensor_rows[:, sensor_header.index("sine.value")].tolist(), strict=True))
-    values = rows[:, header.index("monitor.value")][stamps > 0]
-    pairs = set(zip(received.round(9).tolist(), values.tolist(), strict=True))
-    assert pairs <= sent, "the controller recorded samples the sensor never sent"
-    bridge = summary_of(tmp_path / "controller")["bridges"]["subscribe /two_apps/sensor"]
-    assert bridge["state"] == "ok" and bridge["accepted"] > 100
+@pytest.mark.timeout(300)
+def test_two_apps_in_two_network_namespaces(tmp_path: Path, host_pairs) -> None:
+    """Two pairs at once, one with ``SUBNET`` discovery, one with ``LOCALHOST``: samples cross the
+    first pair's cable; none cross the second's while it runs at least as long as the first pair
+    needed to find each other, plus 3 s (when 300 samples have crossed there)."""
+    ranges = ("SUBNET", "LOCALHOST")
+    suffix = f"{os.getpid()}_{random.randint(0, 999)}"
+    names = {r: (f"sensor_{suffix}{r[0]}", f"controller_{suffix}{r[0]}") for r in ranges}
+    runs: dict[str, list[subprocess.Popen]] = {}
+    for index, discovery_range in enumerate(ranges):
+        hosts, folder = host_pairs(), tmp_path / discovery_range
+        folder.mkdir()
+        sensor = app_copy(TWO_APPS / "sensor.toml", folder, names[discovery_range][0])
+        controller = app_copy(TWO_APPS / "controller.toml", folder, names[discovery_range][1])
+        env = {**os.environ, "ROS_DOMAIN_ID": str((random_domain() + 50 * index) % 101 + 1),
+               "ROS_AUTOMATIC_DISCOVERY_RANGE": discovery_range,
+               "PYTHONPATH": os.pathsep.join([str(TWO_APPS), str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+        runs[discovery_range] = [run_in(hosts[1], controller, folder / "controller", env),
+                                 run_in(hosts[0], sensor, folder / "sensor", env)]
+    try:
+        running_since: dict[str, float] = {}
+        crossed_after_s = None
+        deadline = time.monotonic() + 120  # bridges start in seconds on a busy machine
+        while time.monotonic() < deadline:
+            for discovery_range in ranges:
+                if discovery_range not in running_since and apps_running(list(names[discovery_range])):
+                    running_since[discovery_range] = time.monotonic()
+            for run in (*runs["SUBNET"], *runs["LOCALHOST"]):
+                assert run.poll() is None, run.communicate()[1]
+            crossed = port_writes(names["SUBNET"][1], "sensor") if "SUBNET" in running_since else 0
+            if crossed > 0 and crossed_after_s is None:
+                crossed_after_s = time.monotonic() - running_since["SUBNET"]
+            if (crossed >= 300 and "LOCALHOST" in running_since
+                    and time.monotonic() - running_since["LOCALHOST"] >= crossed_after_s + 3):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"in 120 s {crossed} samples crossed (300 wanted); apps running: {sorted(running_since)}")
+    finally:
+        for order in (0, 1):  # the controllers first: what they recorded, the sensors recorded sending
+            for discovery_range in ranges:
+                run = runs[discovery_range][order]
+                if run.poll() is None:
+                    run.send_signal(signal.SIGINT)
+        for run in (*runs["SUBNET"], *runs["LOCALHOST"]):
+            try:
+                run.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                run.kill()
+                run.communicate()
+    for discovery_range in ranges:
+        for run in runs[discovery_range]:
+            assert run.returncode == 0, run.stderr
+    for discovery_range in ranges:
+        folder = tmp_path / discovery_range
+        header, rows = signals_of(folder / "controller")
+        stamps = rows[:, header.index("monitor.t_s")]
+        received = stamps[stamps > 0]
+        if discovery_range == "LOCALHOST":
+            assert len(received) == 0, "LOCALHOST discovery must not reach the other namespace"
+            continue
+        assert len(np.unique(received)) > 100, f"only {len(np.unique(received))} samples crossed"
+        sensor_header, sensor_rows = signals_of(folder / "sensor")
+        sent = set(zip(sensor_rows[:, sensor_header.index("sine.t_s")].round(9).tolist(),
+                       sensor_rows[:, sensor_header.index("sine.value")].tolist(), strict=True))
+        values = rows[:, header.index("monitor.value")][stamps > 0]
+        pairs = set(zip(received.round(9).tolist(), values.tolist(), strict=True))
+        assert pairs <= sent, "the controller recorded samples the sensor never sent"
+        bridge = summary_of(folder / "controller")["bridges"]["subscribe /two_apps/sensor"]
+        assert bridge["state"] == "ok" and bridge["accepted"] > 100
