@@ -38,6 +38,7 @@ from rtloop.ipc.segments import (
     SegmentRefused,
     open_in_shm,
     pid_alive,
+    process_start_ticks,
     process_uid,
 )
 from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
@@ -111,6 +112,11 @@ class RunningApp:
     def reader(self, port: str) -> PortReader:
         """The single reader of an output port (held until closed)."""
         return PortReader(self, port, self._port(port, "out"))
+
+    @property
+    def runs_live(self) -> bool:
+        """A real-time run (``rtloop run``), not a simulation: only these hold their name."""
+        return self.registry.get("mode", "run") != "simulate"
 
     def alive(self) -> bool:
         """Whether the app's supervisor is still running."""
@@ -192,8 +198,9 @@ def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp
         raise SegmentRefused(f"{path.name}: its content names app {shorten(name)} pid {shorten(pid)}, "
                              "its file name another; not used")
     supervisor_uid = process_uid(pid)
-    if supervisor_uid is None or not pid_alive(pid):
-        raise AppNotRunning(f"{path.name}: supervisor pid {pid} is not running")
+    started = registry.get("pid_start_ticks")
+    if supervisor_uid is None or not pid_alive(pid) or (started is not None and started != process_start_ticks(pid)):
+        raise AppNotRunning(f"{path.name}: supervisor pid {pid} is not running")  # or its pid went to another
     if supervisor_uid != file_uid:
         raise SegmentRefused(f"{path.name} is owned by uid {file_uid}, but its supervisor pid {pid} runs as "
                              f"uid {supervisor_uid}; not used")
@@ -241,6 +248,19 @@ def _mtime(app: RunningApp) -> float:
         return 0.0
 
 
+def live_runs_named(name: str, uid: int, shm_dir: Path = SHM_DIR) -> list[RunningApp]:
+    """The live real-time runs of app ``name`` by ``uid``, the first registered first (ties: lower pid)."""
+    runs = [app for app in scan_registries(shm_dir)[0] if app.name == name and app.uid == uid and app.runs_live]
+    return sorted(runs, key=_registered_at)
+
+
+def _registered_at(app: RunningApp) -> tuple[int, int]:
+    try:
+        return app.path.stat().st_mtime_ns, app.pid  # written once, when the run registers
+    except OSError:
+        return 0, app.pid
+
+
 def running_apps(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> list[RunningApp]:
     """Every app whose supervisor is alive and whose registry is believed, newest first."""
     return scan_registries(shm_dir, owner_uid)[0]
@@ -268,8 +288,13 @@ def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = No
     while True:
         apps, refused = scan_registries(SHM_DIR)
         matches = [app for app in apps if app.name == name and app.uid == wanted_uid]
+        runs = [app for app in matches if app.runs_live]
+        if len(runs or matches) > 1:
+            pids = ", ".join(str(app.pid) for app in sorted(runs or matches, key=lambda app: app.pid))
+            raise AppNotReachable(f"app {name!r} runs more than once as uid {wanted_uid} (pids {pids}); "
+                                  "stop all but one, rtloop will not guess which one you mean")
         if matches:
-            return matches[0]
+            return (runs or matches)[0]
         if time.monotonic() >= deadline:
             break
         time.sleep(0.05)

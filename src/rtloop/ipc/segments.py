@@ -220,6 +220,16 @@ def process_uid(pid: int) -> int | None:
     return None
 
 
+def process_start_ticks(pid: int) -> int | None:
+    """When a live process started, in clock ticks since boot (None if it is gone): with its pid,
+    it names the process for good, where a pid alone may be reused after the process ends."""
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            return int(file.read().rsplit(") ", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def pid_alive(pid: int) -> bool:
     """Whether a process with this id is running (it may belong to another user; a zombie is not)."""
     if pid <= 0:  # kill(0, ...) would ask about our own process group

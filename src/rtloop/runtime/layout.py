@@ -17,7 +17,9 @@ import numpy as np
 
 from rtloop.app.builder import App, PortSpec
 from rtloop.app.profiles import load_profile
+from rtloop.errors import AppError
 from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.ports import live_runs_named
 from rtloop.ipc.schema import (
     CONTROL_WORDS,
     STATUS_WORDS,
@@ -32,6 +34,7 @@ from rtloop.ipc.segments import (
     close_segments,
     new_run_token,
     open_in_shm,
+    process_start_ticks,
     remove_stale_segments,
     unlink_in_shm,
 )
@@ -76,6 +79,16 @@ def shared_memory_bytes(app: App) -> int:
         runnable = app.tasks[name].runnable
         total += SampleQueue.size_bytes(runnable.n_outputs + runnable.n_inputs, RECORD_QUEUE_CAPACITY)
     return total
+
+
+def refuse_if_running(name: str, this_pid: int | None = None) -> None:
+    """Refuse to start app ``name`` while a live run of the same user holds that name (with
+    ``this_pid``: unless this run registered first). Two apps of one name would leave
+    ``rtloop port write NAME`` to pick one in silence."""
+    runs = live_runs_named(name, os.geteuid())
+    if runs and runs[0].pid != this_pid:
+        raise AppError(f"app {name!r} is already running (pid {runs[0].pid}); stop it first, or give this "
+                       "run another name (rtloop port and top find an app by its name)")
 
 
 def check_memory(app: App, shm_dir: Path = SHM_DIR, memlock_limit_bytes: int | None = None) -> int:
@@ -134,11 +147,16 @@ class AppLayout:
     segments: list[Segment] = field(default_factory=list)
     registry_path: Path | None = None
 
+    mode: str = "run"
+    """``run`` (real time: the run holds its app's name while it lives) or ``simulate``."""
+
     @classmethod
-    def create(cls, app: App, summary_path: Path | None = None) -> AppLayout:
+    def create(cls, app: App, summary_path: Path | None = None, mode: str = "run") -> AppLayout:
         """Every segment of a run; ``summary_path`` (the live summary.json) goes into the registry."""
         check_memory(app)
         remove_stale_segments()
+        if mode == "run":
+            refuse_if_running(app.name)  # early, before anything is created; _write_registry decides
         token = new_run_token()
         owner = os.getpid()
         segments: list[Segment] = []
@@ -149,7 +167,7 @@ class AppLayout:
             return created
 
         try:
-            return cls._build(app, token, segment, segments, summary_path)
+            return cls._build(app, token, segment, segments, summary_path, mode)
         except BaseException:
             for created in segments:
                 created.unlink()
@@ -158,7 +176,7 @@ class AppLayout:
 
     @classmethod
     def _build(cls, app: App, token: str, segment, segments: list[Segment],
-               summary_path: Path | None) -> AppLayout:
+               summary_path: Path | None, mode: str) -> AppLayout:
         control_segment = segment("control", CONTROL_WORDS * 8)
         control = WordBlock(control_segment, 0, CONTROL_WORDS)
 
@@ -236,7 +254,7 @@ class AppLayout:
             )
             segments_of_task = TaskSegments(control_segment.name, task_segment.name)
             tasks[name] = TaskHandles(segments_of_task, status, timing, plan, record, input_log, read_log)
-        layout = cls(app, token, control, tasks, input_ports, output_ports, segments)
+        layout = cls(app, token, control, tasks, input_ports, output_ports, segments, mode=mode)
         layout._write_registry(summary_path)
         return layout
 
@@ -278,6 +296,8 @@ class AppLayout:
         registry = {
             "app": self.app.name,
             "pid": os.getpid(),
+            "pid_start_ticks": process_start_ticks(os.getpid()),
+            "mode": self.mode,
             "ports": ports,
             "tasks": {name: handles.segments.task for name, handles in self.tasks.items()},
             "control": next(iter(self.tasks.values())).segments.control if self.tasks else None,
@@ -287,6 +307,12 @@ class AppLayout:
         fd = open_in_shm(path.name, os.O_CREAT | os.O_WRONLY | os.O_EXCL)
         with os.fdopen(fd, "w") as file:
             json.dump(registry, file, indent=1)
+        if self.mode == "run":
+            try:  # two runs started at once both see each other now: the first registered keeps the name
+                refuse_if_running(self.app.name, this_pid=os.getpid())
+            except AppError:
+                unlink_in_shm(path.name)
+                raise
         self.registry_path = path
 
     def _port_segment(self, port: str) -> str:

@@ -305,7 +305,7 @@ class RunSession:
         check_out_dir(self.out, protect=self.protect)  # refusals first: nothing is written yet
         summary_path = self.out / "summary.json"
         # The layout checks memory and loads profiles: bad input is refused before the folder is touched.
-        self.layout = AppLayout.create(self.app, summary_path if self.registry else None)
+        self.layout = AppLayout.create(self.app, summary_path if self.registry else None, self.mode)
         self._opened.append("layout")
         existed = self.out.exists()
         try:
