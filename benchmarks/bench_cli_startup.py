@@ -15,7 +15,9 @@ source tree in the same run (e.g. the commit before a change, from ``git archive
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import platform
 import statistics
 import subprocess
 import sys
@@ -60,7 +62,9 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=9, help="runs per command line (default 9)")
     parser.add_argument("--compare", type=Path, default=None, metavar="SRC",
                         help="another source tree, measured side by side (its 'before' column)")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH", help="also write every figure here")
     args = parser.parse_args()
+    results: list[dict[str, object]] = []
     trees = {"this tree": SRC} if args.compare is None else {"compare": args.compare, "this tree": SRC}
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, median of {args.repeat} runs; "
           "modules: how many -X importtime lists")
@@ -73,7 +77,13 @@ def main() -> None:
         for src in trees.values():
             wall_s, modules, heavy = measure(arguments, src, args.repeat)
             cells.append(f"{wall_s * 1e3:.0f} ms, {modules}, {', '.join(heavy) or '-'}")
+            results.append({"command": label, "tree": str(src), "median_wall_s": wall_s, "modules": modules,
+                            "heavy": heavy})
         print(f"| `{label}` | " + " | ".join(cells) + " |", flush=True)
+    if args.json is not None:
+        machine = {"python": sys.version.split()[0], "cpus": os.cpu_count(), "platform": platform.platform(),
+                   "load_average": os.getloadavg(), "repeat": args.repeat}
+        args.json.write_text(json.dumps({"machine": machine, "results": results}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

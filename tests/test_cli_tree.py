@@ -124,3 +124,11 @@ def test_port_write_imports_no_engine(rtloop_env: dict[str, str]) -> None:
     loaded, err = _modules_after(code, rtloop_env)
     assert loaded == []
     assert "no_such_app_cli_tree" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv", [["--debug", "report"], ["report", "--debug"]])
+def test_debug_shows_the_traceback_before_or_after_the_command(argv: list[str], tmp_path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([*argv, str(tmp_path / "no-such-run")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.rstrip().splitlines()[-1].startswith("rtloop report: ")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from rtloop.errors import RtloopError
 
@@ -19,7 +19,14 @@ EXIT_INTERRUPTED = 130
 class CommandParser(argparse.ArgumentParser):
     """The parser of ``rtloop`` and of each command. A usage error is one line naming the command and
     the argument (``rtloop top: argument --interval: must be ...; see rtloop top --help``), exit 2, as
-    all bad input is; an argument a command does not know is its own error, not the root's."""
+    all bad input is; an argument a command does not know is its own error, not the root's. Each
+    takes ``--debug``, so it may stand before or after the command's name."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # SUPPRESS: a command's parser must not reset what `rtloop --debug COMMAND` set
+        self.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                          help="show the Python traceback behind an error")
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")

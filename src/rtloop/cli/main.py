@@ -44,7 +44,6 @@ def missing_extra(error: ModuleNotFoundError) -> str:
 def build_parser() -> argparse.ArgumentParser:
     """The whole tree: every command's arguments, each with the function that runs it (``args.handler``)."""
     parser = CommandParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
-    parser.add_argument("--debug", action="store_true", help="show the Python traceback behind an error")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=CommandParser)
     for name, module in COMMANDS.items():
         help_text, add_arguments, handler = command_parts(module, name)
@@ -69,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.handler(args) or 0)
     except BaseException as error:
-        if args.debug and not isinstance(error, SystemExit | KeyboardInterrupt):
+        if getattr(args, "debug", False) and not isinstance(error, SystemExit | KeyboardInterrupt):
             _print_traceback(error)
         return _exit_code(error, args)
 
