@@ -103,3 +103,4 @@ def test_simulations_of_one_name_may_run_side_by_side(tmp_path: Path) -> None:
         sleeper.kill()
         sleeper.wait()
         path.unlink(missing_ok=True)
+

@@ -454,3 +454,29 @@ def test_a_parent_folder_another_user_owns_is_refused(tmp_path: Path) -> None:
     os.chown(parent, NOBODY_UID, NOBODY_UID)  # they may rename app/ away and put their own in its place
     with pytest.raises(AppFileError, match=f"{parent} is owned by uid {NOBODY_UID}"):
         load_app(_app_toml(folder, f"par{os.getpid()}", f"{module}:Here"))
+
+
+def test_a_user_writing_to_roots_app_is_told_to_run_as_root(second_user, rtloop_env) -> None:
+    name = f"asroot{os.getpid()}"
+    sleeper = subprocess.Popen(["sleep", "60"])  # a live root process: the supervisor the registry names
+    registry = _live_registry(name, sleeper.pid)
+    code = ("import sys; from rtloop.cli.main import main; "
+            f"sys.exit(main(['port', 'write', {name!r}, 'gains', '0.08', '4.0']))")
+    try:
+        done = _as(second_user, code, rtloop_env)
+        assert done.returncode == 2, done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert f"app {name!r} runs as root" in done.stderr, done.stderr
+        assert "tools/as-root .venv/bin/rtloop port" in done.stderr, done.stderr
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+        registry.unlink(missing_ok=True)
+
+
+def _live_registry(name: str, pid: int) -> Path:
+    path = SHM / f"rtloop-{name}-{pid}-{new_run_token()}-registry.json"
+    fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+    with os.fdopen(fd, "w") as file:
+        json.dump({"app": name, "pid": pid, "mode": "run", "ports": {}, "tasks": {}}, file)
+    return path

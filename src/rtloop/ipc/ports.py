@@ -35,6 +35,7 @@ from rtloop.ipc.segments import (
     SEGMENT_NAME,
     SHM_DIR,
     Segment,
+    SegmentDenied,
     SegmentRefused,
     open_in_shm,
     pid_alive,
@@ -214,6 +215,8 @@ class Refusal:
     path: Path
     app: str
     reason: str
+    denied_by_owner: int | None = None
+    """The registry's owner when the kernel refused to open it (the caller may not read it)."""
 
 
 def scan_registries(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> tuple[list[RunningApp], list[Refusal]]:
@@ -231,7 +234,8 @@ def scan_registries(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> tu
         except (FileNotFoundError, AppNotRunning):
             continue  # removed right now, or its supervisor has ended: stale, not refused
         except (OSError, ValueError, KeyError, TypeError, RtloopError) as error:
-            refused.append(Refusal(path, claimed, str(error)))
+            refused.append(Refusal(path, claimed, str(error),
+                                   error.owner_uid if isinstance(error, SegmentDenied) else None))
             continue
         if owner_uid is not None and app.uid != owner_uid:
             refused.append(Refusal(path, app.name, f"app {app.name!r} runs as uid {app.uid}, not uid {owner_uid}"))
@@ -302,8 +306,15 @@ def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = No
     if others:
         hint = " (as root: rtloop port --user UID)" if me == 0 else " (run as that user, or as root with --user)"
         raise AppNotReachable(f"app {name!r} runs as uid {others[0].uid}, not as uid {wanted_uid}{hint}")
-    why = [r.reason for r in refused if r.app == name]
+    why = [r for r in refused if r.app == name]
     if why:
-        raise AppNotReachable(f"app {name!r}: registry refused: {why[0]}")
+        owner = why[0].denied_by_owner
+        if owner == 0:
+            raise AppNotReachable(f"app {name!r} runs as root: run rtloop port as root too (tools/as-root "
+                                  f".venv/bin/rtloop port ...); its registry: {why[0].reason}")
+        if owner is not None:
+            raise AppNotReachable(f"app {name!r} runs as uid {owner}: run rtloop port as that user; "
+                                  f"its registry: {why[0].reason}")
+        raise AppNotReachable(f"app {name!r}: registry refused: {why[0].reason}")
     running = sorted({app.name for app in apps if app.uid == wanted_uid})
     raise AppNotRunning(f"no running app named {shorten(name)}; running: {running or 'none'}")

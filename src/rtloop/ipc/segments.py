@@ -80,6 +80,17 @@ class SegmentRefused(RtloopError, PermissionError):
     """A segment or registry was not believed: bad name, a link, not a file, or another user's."""
 
 
+class SegmentDenied(SegmentRefused):
+    """The kernel refused to open a segment or registry: it belongs to ``owner_uid`` (None: unknown)."""
+
+    def __init__(self, message: str, owner_uid: int | None) -> None:
+        super().__init__(message)
+        self.owner_uid = owner_uid
+
+    def __reduce__(self) -> tuple[type, tuple[str, int | None]]:
+        return type(self), (str(self), self.owner_uid)
+
+
 def check_segment_name(name: str) -> re.Match[str]:
     """The parts of a valid segment name; refuses anything else (e.g. ``../etc/passwd``)."""
     match = SEGMENT_NAME.fullmatch(name) if isinstance(name, str) else None
@@ -104,8 +115,10 @@ def open_in_shm(name: str, flags: int, *, mode: int = 0o600, owner_uid: int | No
             if error.errno == errno.ELOOP:  # the name is a symbolic link
                 raise SegmentRefused(f"{shm_dir}/{name} is a symbolic link; rtloop never follows one") from None
             if isinstance(error, PermissionError):
-                raise SegmentRefused(f"{shm_dir}/{name}: permission denied ({_owner_text(name, directory)}; "
-                                     f"you are uid {os.geteuid()})") from None
+                owner = _owner(name, directory)
+                owned = f"owned by uid {owner}" if owner is not None else "owner unknown"
+                raise SegmentDenied(f"{shm_dir}/{name}: permission denied ({owned}; you are uid {os.geteuid()})",
+                                    owner) from None
             raise
     finally:
         os.close(directory)
@@ -121,11 +134,11 @@ def open_in_shm(name: str, flags: int, *, mode: int = 0o600, owner_uid: int | No
     return fd
 
 
-def _owner_text(name: str, directory: int) -> str:
+def _owner(name: str, directory: int) -> int | None:
     try:
-        return f"owned by uid {os.stat(name, dir_fd=directory, follow_symlinks=False).st_uid}"
+        return os.stat(name, dir_fd=directory, follow_symlinks=False).st_uid
     except OSError:
-        return "owner unknown"
+        return None
 
 
 class Segment:
