@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import pickle
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -45,6 +46,10 @@ def test_libc_error_keeps_its_errno_and_call() -> None:
     (ModuleNotFoundError("No module named 'fmpy'", name="fmpy"), EXIT_BAD_INPUT),  # a missing extra is bad input
     (TaskFailed("t", 1, "step", "boom"), EXIT_TASK_FAILED),
     (LibcError("mlockall", errno.ENOMEM), EXIT_TASK_FAILED),
+    (LibcError("sched_setscheduler", errno.EPERM), EXIT_TASK_FAILED),
+    (OSError(errno.ENOTDIR, "Not a directory", "/dev/null/x"), EXIT_BAD_INPUT),  # a path the user gave
+    (OSError(errno.EROFS, "Read-only file system", "/usr/x"), EXIT_BAD_INPUT),
+    (OSError(errno.ENOSPC, "No space left on device", "runs/x"), EXIT_TASK_FAILED),  # a full disk: the run failed
     (RuntimeError("a bug"), EXIT_TASK_FAILED),
     (KeyboardInterrupt(), EXIT_INTERRUPTED),
 ])
@@ -63,3 +68,17 @@ def test_a_missing_optional_package_exits_2_from_the_command(capsys, monkeypatch
     err = capsys.readouterr().err
     assert err.startswith("rtloop report: ") and "pip install 'rtloop[report]'" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_path_that_cannot_be_written_is_one_line_and_exit_2(tmp_path, capsys) -> None:
+    pytest.importorskip("matplotlib", reason="the report needs matplotlib (pip install 'rtloop[report]')")
+    from rtloop.cli.main import main
+
+    primes = Path(__file__).resolve().parents[1] / "examples" / "primes" / "primes.toml"
+    assert main(["simulate", str(primes), "--duration", "0.1", "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    code = main(["report", str(tmp_path / "run"), "--out", str(blocker / "report")])
+    err = capsys.readouterr().err
+    assert code == EXIT_BAD_INPUT and len(err.strip().splitlines()) == 1, err
+    assert str(blocker) in err and "Not a directory" in err and "internal error" not in err, err

@@ -10,6 +10,7 @@ a usage error, shell completion) loads no engine, and a command imports its engi
 from __future__ import annotations
 
 import argparse
+import errno
 import sys
 from collections.abc import Callable
 from types import ModuleType
@@ -26,6 +27,10 @@ COMMANDS: dict[str, ModuleType] = {
     "run": run, "simulate": run, "replay": replay, "port": port, "model": model, "report": report, "top": top,
     "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
 }
+
+# What the OS says of a path that cannot be used as given (not of a device or a disk that failed).
+PATH_ERRNOS = frozenset({errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, errno.EROFS,
+                         errno.EEXIST, errno.ENAMETOOLONG, errno.ELOOP})
 
 # Optional packages and the extra that installs them (the core needs numpy only).
 EXTRAS = {"mcap": "ros", "mcap_ros2": "ros", "cyclonedds": "ros", "rich": "report", "matplotlib": "report",
@@ -103,6 +108,10 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
     if isinstance(error, ModuleNotFoundError):
         print(f"{prefix}: {missing_extra(error)}", file=sys.stderr)
         return exit_code_for(error)
+    if isinstance(error, OSError) and error.strerror:  # a file: where and why, as the OS says it
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"{prefix}: {where}{error.strerror}", file=sys.stderr)
+        return exit_code_for(error)
     # a bug: still one line; the traceback with --debug
     print(f"{prefix}: internal error: {type(error).__name__}: {clip(str(error), 200)} "
           "(run with --debug for the traceback, and please report it)", file=sys.stderr)
@@ -111,13 +120,16 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
 
 def exit_code_for(error: BaseException) -> int:
     """The one rule: 2 for bad input (what the user gave is wrong or incomplete, a missing
-    optional package included), 1 for a run that failed (a task's fault, a bug), 130 for Ctrl-C."""
+    optional package or a path that cannot be used included), 1 for a run that failed (a task's
+    fault, a full disk, a bug), 130 for Ctrl-C."""
     if isinstance(error, KeyboardInterrupt):
         return EXIT_INTERRUPTED
     if isinstance(error, TaskFailed):
         return EXIT_TASK_FAILED
     if isinstance(error, ModuleNotFoundError | ValueError | LookupError | PermissionError):
         return EXIT_BAD_INPUT
+    if isinstance(error, OSError) and not isinstance(error, RtloopError) and error.errno in PATH_ERRNOS:
+        return EXIT_BAD_INPUT  # a path the user gave that cannot be opened or written (a full disk is not)
     return EXIT_TASK_FAILED
 
 
