@@ -36,23 +36,19 @@ def chromium(tmp_path: Path, *args: str, height_px: int = 2400) -> subprocess.Co
     return subprocess.run(command, capture_output=True, text=True, timeout=120)
 
 
-def page_width_px(tmp_path: Path, html: Path) -> int:
-    """document.documentElement.scrollWidth of the page at 1366 px, read from the DOM chromium dumps."""
-    probe = html.with_name("probe.html")
+def page_width_px_and_screenshot(tmp_path: Path, html: Path, name: str) -> tuple[int, Path]:
+    """document.documentElement.scrollWidth of the page at 1366 px, read from the DOM chromium dumps,
+    and a screenshot of the whole page, from one browser start."""
+    probe = html.with_name(f"{name}.html")
     probe.write_text(html.read_text().replace(
         "</body>", "<script>document.title = 'width=' + document.documentElement.scrollWidth + ' images=' + "
                    "Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0).length;"
                    "</script></body>"))
-    dom = chromium(tmp_path, "--dump-dom", probe.as_uri()).stdout
-    match = re.search(r"<title>width=(\d+) images=(\d+)</title>", dom)
-    assert match, dom[:500]
-    assert int(match.group(2)) == html.read_text().count("<img"), "every figure loads"
-    return int(match.group(1))
-
-
-def screenshot(tmp_path: Path, html: Path, name: str) -> Path:
     png = tmp_path / f"{name}.png"
-    result = chromium(tmp_path, f"--screenshot={png}", html.as_uri(), height_px=6000)  # the whole page
+    result = chromium(tmp_path, "--dump-dom", f"--screenshot={png}", probe.as_uri(), height_px=6000)  # the whole page
+    match = re.search(r"<title>width=(\d+) images=(\d+)</title>", result.stdout)
+    assert match, result.stdout[:500]
+    assert int(match.group(2)) == html.read_text().count("<img"), "every figure loads"
     assert png.is_file(), result.stderr[-2000:]
     from matplotlib.image import imread
 
@@ -62,7 +58,7 @@ def screenshot(tmp_path: Path, html: Path, name: str) -> Path:
     if keep:
         Path(keep).mkdir(parents=True, exist_ok=True)
         shutil.copy(png, Path(keep) / png.name)
-    return png
+    return int(match.group(1)), png
 
 
 def jiwy_app_file(tmp_path: Path, name: str) -> Path:
@@ -75,17 +71,25 @@ def jiwy_app_file(tmp_path: Path, name: str) -> Path:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)  # two runs, two reports, four browser starts: minutes on a loaded machine
+@pytest.mark.timeout(900)  # two runs, two reports, two browser starts: minutes on a loaded machine
 def test_jiwy_run_and_its_simulation_read_at_1366_px(tmp_path: Path, rtloop_env) -> None:
     name = f"jiwy_browser_{os.getpid() % 100000}"
     app_file = jiwy_app_file(tmp_path, name)
     feed = ["--feed", f"setpoint={EXAMPLES / 'jiwy' / 'setpoints' / 'step.csv'}"]
     run_dir, sim_dir = tmp_path / "jiwy-run", tmp_path / "jiwy-sim"
-    for command, out in (("run", run_dir), ("simulate", sim_dir)):
-        result = subprocess.run([sys.executable, "-m", "rtloop.cli", command, str(app_file), "--duration", "3",
-                                 "--out", str(out), "-q", *feed], env=rtloop_env, capture_output=True, text=True,
-                                timeout=300)
-        assert result.returncode == 0, result.stderr
+    # the run and its simulation at once (nothing here looks at the run's timing)
+    started = [subprocess.Popen([sys.executable, "-m", "rtloop.cli", command, str(app_file), "--duration", "3",
+                                 "--out", str(out), "-q", *feed], env=rtloop_env, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+               for command, out in (("run", run_dir), ("simulate", sim_dir))]
+    for process in started:
+        try:
+            _, stderr = process.communicate(timeout=300)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        assert process.returncode == 0, stderr
     run = rtloop.load(run_dir)
     assert run.signals.units["plant.AnglePan"] == "rad"
 
@@ -93,13 +97,11 @@ def test_jiwy_run_and_its_simulation_read_at_1366_px(tmp_path: Path, rtloop_env)
     assert single.html is not None
     html = single.html.read_text()
     assert "thesis criterion" in html and ("met:" in html or "not met:" in html)
-    assert page_width_px(tmp_path, single.html) <= PAGE_WIDTH_PX
-    screenshot(tmp_path, single.html, "jiwy-run-report")
+    assert page_width_px_and_screenshot(tmp_path, single.html, "jiwy-run-report")[0] <= PAGE_WIDTH_PX
 
     compared = build_report([run_dir, sim_dir], tmp_path / "compare")
     assert compared.html is not None and (tmp_path / "compare" / "report-figures" / "compare-signals.png").is_file()
-    assert page_width_px(tmp_path, compared.html) <= PAGE_WIDTH_PX
-    screenshot(tmp_path, compared.html, "jiwy-run-vs-simulation-report")
+    assert page_width_px_and_screenshot(tmp_path, compared.html, "jiwy-run-vs-simulation-report")[0] <= PAGE_WIDTH_PX
 
 
 def test_the_signal_axes_carry_units(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
