@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -219,3 +221,45 @@ def test_too_few_cycles_to_keep_any(tmp_path: Path) -> None:
     hists = built.histograms[(built.runs[0].label, "a")]
     assert hists["latency"].n == 0 and hists["jitter"].n == 0
     assert "no samples" not in built.html.read_text()  # type: ignore[union-attr]  # drawn into the PNG, not HTML
+
+
+def test_a_report_of_several_runs_leaves_no_figure_of_an_earlier_report(tmp_path: Path) -> None:
+    shared = write_run(tmp_path / "shared", {"a": synthetic_records(seed=3)})
+    isolated = write_run(tmp_path / "isolated", {"a": synthetic_records(seed=4)})
+    assert cli_main(["report", str(shared)]) == 0
+    assert (shared / "report-figures" / "run-a-timing.png").is_file()
+    assert cli_main(["report", str(shared), str(isolated)]) == 0
+    built = report.build_report([shared, isolated], write_html=False)
+    assert sorted(p.name for p in (shared / "report-figures").iterdir()) == sorted(p.name for p in built.pngs)
+
+
+def test_a_folder_the_report_cannot_be_written_in_is_one_line_naming_it(
+        synthetic_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (synthetic_run / "report-figures").write_text("a file where the figures would go")
+    assert cli_main(["report", str(synthetic_run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "internal error" not in err, err
+    assert f"cannot write the report into {synthetic_run}/" in err and "--out DIR" in err
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tiny tmpfs needs root")
+def test_a_full_disk_is_one_line_and_leaves_no_half_report(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    disk = tmp_path / "tiny"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        run = write_run(disk / "run", {"a": synthetic_records(seed=6)})
+        stats = os.statvfs(disk)
+        (disk / "fill").write_bytes(b"x" * (stats.f_bavail * stats.f_frsize - 40_000))  # one figure fits
+        assert cli_main(["report", str(run)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "No space left on device" in err and "--out DIR" in err, err
+        assert not (run / "report.html").exists()
+        left = [p for p in run.rglob("*") if p.is_file() and (p.name.startswith(".") or p.stat().st_size == 0)]
+        assert left == []  # no empty figure, no temporary page
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,12 +34,34 @@ def _slug(text: str) -> str:
 
 
 def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool = True) -> Report:
-    """Load every run, draw its figures into ``out``/report-figures and write ``out``/report.html."""
+    """Load every run, draw its figures into ``out``/report-figures and write ``out``/report.html.
+
+    A folder that cannot be written (a full disk, another user's run) is a :class:`ReportError`
+    naming the file and the reason, with the way out (``--out``); no half-written figure or page
+    is left. The figures of an earlier report in ``out`` are removed first: none of them can sit
+    beside the new ones as if it were one of them.
+    """
     if not paths:
         raise ReportError("no run directory given")
     runs = [load_run(p, label) for p, label in zip(paths, run_labels(paths), strict=True)]
     out = Path(out) if out is not None else Path(paths[0])
+    try:
+        return _draw(runs, out, write_html)
+    except OSError as error:
+        where = f" ({error.filename})" if error.filename else ""
+        raise ReportError(f"cannot write the report into {out}/: {error.strerror or error}{where}; "
+                          "write it elsewhere with --out DIR") from None
+
+
+def _remove_earlier_figures(fig_dir: Path) -> None:
+    if fig_dir.is_dir() and not fig_dir.is_symlink():
+        for old in fig_dir.glob("*.png"):
+            old.unlink()
+
+
+def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
     fig_dir = out / FIGURES_DIR
+    _remove_earlier_figures(fig_dir)
     report = Report(runs)
     run_figures: dict[str, list[html.FigureRef]] = {}
     for run in runs:
@@ -76,5 +100,17 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
             report.pngs.append(path)
     if write_html:
         report.html = out / "report.html"
-        report.html.write_text(html.page(runs, run_figures, comparison))
+        _write_whole(report.html, html.page(runs, run_figures, comparison))
     return report
+
+
+def _write_whole(path: Path, text: str) -> None:
+    """Write ``path`` whole or not at all (a temporary name, then a rename)."""
+    temporary = path.with_name(f".{path.name}.tmp")
+    try:
+        temporary.write_text(text)
+        os.replace(temporary, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            temporary.unlink()
+        raise

@@ -9,6 +9,7 @@ functions can run in any thread and never open a window.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -231,5 +232,10 @@ def _on_edges(values: np.ndarray, edges_ns: np.ndarray) -> Histogram:
 def save(fig: Figure, path: Path) -> Path:
     """Write ``fig`` as a PNG and return the path."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, format="png")
+    try:
+        fig.savefig(path, dpi=100, format="png")
+    except BaseException:
+        with contextlib.suppress(OSError):
+            path.unlink()  # a full disk leaves no empty or half figure behind
+        raise
     return path
