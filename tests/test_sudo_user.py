@@ -72,6 +72,18 @@ def test_new_folders_and_the_last_summary_belong_to_the_sudo_user(tmp_path: Path
     assert not_theirs == []
 
 
+def test_a_sweeps_folders_and_table_belong_to_the_sudo_user(tmp_path: Path, under_sudo: None) -> None:
+    from rtloop.runtime.sweep import sweep
+
+    app_file = Path(__file__).parents[1] / "examples" / "dcmotor" / "dcmotor.toml"
+    result = sweep(app_file, {"pi.kp": [0.05, 0.1]}, duration_s=0.1, out=tmp_path / "runs" / "sweep", processes=1)
+    assert not [row["error"] for row in result.rows if row["error"]]
+    out = tmp_path / "runs" / "sweep"
+    made = [tmp_path / "runs", out, *out.iterdir(), *(out / "0").iterdir()]
+    assert [p.relative_to(tmp_path) for p in made if p.stat().st_uid != SUDO_USER_ID] == []
+    assert tmp_path.stat().st_uid == 0  # what existed before is not touched
+
+
 @pytest.mark.parametrize(("uid", "gid"), [("abc", "4242"), ("4242", ""), ("²", "4242"), ("-1", "4242"), (" 42", "42")])
 def test_a_garbled_sudo_environment_is_believed_in_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                            uid: str, gid: str) -> None:

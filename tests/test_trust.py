@@ -480,3 +480,18 @@ def _live_registry(name: str, pid: int) -> Path:
     with os.fdopen(fd, "w") as file:
         json.dump({"app": name, "pid": pid, "mode": "run", "ports": {}, "tasks": {}}, file)
     return path
+
+
+def test_a_sweep_into_roots_folder_says_so_in_one_line(second_user, open_dir: Path, rtloop_env) -> None:
+    out = open_dir / "sweep-sudo"  # what a sweep under sudo left: root's
+    (out / "0").mkdir(parents=True)
+    (out / "sweep.csv").write_text("pi.kp\n")
+    app_file = Path(__file__).parents[1] / "examples" / "dcmotor" / "dcmotor.toml"
+    code = ("import sys; from rtloop.cli.main import main; "
+            f"sys.exit(main(['sweep', {str(app_file)!r}, '--param', 'pi.kp=0.05,0.1', '--duration', '0.1', "
+            f"'--out', {str(out)!r}, '--force', '--processes', '1']))")
+    done = _as(second_user, code, rtloop_env)
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"--out {out}" in done.stderr and "permission denied" in done.stderr.lower(), done.stderr
+    assert (out / "sweep.csv").read_text() == "pi.kp\n"

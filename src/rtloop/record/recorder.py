@@ -290,13 +290,16 @@ class Recorder:
 
 
 def give_to_invoking_user(out: Path) -> None:
-    """Under sudo, hand the artifacts to the user who ran sudo, so they can open and report them."""
+    """Under sudo, hand the artifacts (a folder and what is in it, or one file) to the user who ran
+    sudo, so they can open and report them."""
     invoker = invoking_user()
     if invoker is None:
         return
     uid, gid = invoker
     try:
         paths = [out, *out.iterdir()]
+    except NotADirectoryError:
+        paths = [out]  # a file of its own (a sweep's table)
     except OSError:
         return
     for path in paths:

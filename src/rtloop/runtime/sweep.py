@@ -17,13 +17,16 @@ by name as an app file's ``parameters = { kp = ... }`` sets them.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
 import itertools
 import math
 import multiprocessing
 import os
 import pickle
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +36,7 @@ import numpy as np
 
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import AppError, RtloopError
+from rtloop.record.recorder import give_to_invoking_user
 from rtloop.text import shorten
 
 MAX_POINTS = 10_000
@@ -150,13 +154,11 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
     for name in names:
         _set_parameter(probe, name, parameters[name][0])
     out = Path(out)
-    if (out / "sweep.csv").exists() and not force:
-        raise AppError(f"--out {out} holds a sweep already (sweep.csv): choose another folder, "
-                       "or --force to replace it (force=True in Python)")
-    out.mkdir(parents=True, exist_ok=True)
     width = len(str(len(points) - 1))
-    jobs = [(source, dict(zip(names, point, strict=True)), duration_s, str(out / f"{i:0{width}d}"), signal, setpoint,
-             force) for i, point in enumerate(points)]
+    run_dirs = [out / f"{i:0{width}d}" for i in range(len(points))]
+    _prepare_out(out, run_dirs, force)
+    jobs = [(source, dict(zip(names, point, strict=True)), duration_s, str(run_dir), signal, setpoint, force)
+            for run_dir, point in zip(run_dirs, points, strict=True)]
     workers = max(1, min(processes or os.cpu_count() or 1, len(jobs)))
     started = time.perf_counter()
     if workers == 1:
@@ -173,11 +175,40 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
         row.pop("setpoint", None)
     table = out / "sweep.csv"
     columns = [*names, *METRICS, "run_dir", "error"]
-    with open(table, "w", newline="") as file:
-        writer = csv.DictWriter(file, columns)
-        writer.writeheader()
-        writer.writerows(rows)
+    with _out_errors(out, "the runs are there, the table was not written"):
+        with open(table, "w", newline="") as file:
+            writer = csv.DictWriter(file, columns)
+            writer.writeheader()
+            writer.writerows(rows)
+        give_to_invoking_user(table)
     return SweepResult(rows, table, measured, paired, elapsed, workers, names)
+
+
+def _prepare_out(out: Path, run_dirs: list[Path], force: bool) -> None:
+    """Refuse an ``out`` that cannot take the sweep before anything runs; folders made here
+    belong to the user who ran sudo (as a run's do), so they can sweep again without it."""
+    table = out / "sweep.csv"
+    if table.exists() and not force:
+        raise AppError(f"--out {out} holds a sweep already (sweep.csv): choose another folder, "
+                       "or --force to replace it (force=True in Python)")
+    with _out_errors(out, "nothing was run"):
+        missing = [folder for folder in (out, *out.parents) if not folder.exists()]
+        out.mkdir(parents=True, exist_ok=True)
+        for folder in reversed(missing):
+            give_to_invoking_user(folder)
+        for path in (out, table, *run_dirs):
+            if os.path.lexists(path) and not os.access(path, os.W_OK, follow_symlinks=False):
+                raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+
+
+@contextlib.contextmanager
+def _out_errors(out: Path, consequence: str) -> Iterator[None]:
+    try:
+        yield
+    except OSError as error:
+        where = f" ({os.fsdecode(error.filename)})" if error.filename is not None else ""
+        raise AppError(f"--out {out} cannot be used: {(error.strerror or str(error)).lower()}{where}; "
+                       f"{consequence}: choose another --out") from None
 
 
 @dataclass(frozen=True)
