@@ -132,3 +132,11 @@ def test_debug_shows_the_traceback_before_or_after_the_command(argv: list[str], 
     assert main([*argv, str(tmp_path / "no-such-run")]) == 2
     err = capsys.readouterr().err
     assert "Traceback" in err and err.rstrip().splitlines()[-1].startswith("rtloop report: ")
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from rtloop.version import __version__
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out == f"rtloop {__version__}\n"

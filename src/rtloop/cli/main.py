@@ -19,6 +19,7 @@ from rtloop.cli import bench, bridge, devices, doctor, model, port, replay, repo
 from rtloop.cli.arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, CommandParser
 from rtloop.errors import RtloopError, TaskFailed
 from rtloop.text import clip
+from rtloop.version import __version__
 
 EXIT_TASK_FAILED = EXIT_FAILED
 
@@ -49,6 +50,7 @@ def missing_extra(error: ModuleNotFoundError) -> str:
 def build_parser() -> argparse.ArgumentParser:
     """The whole tree: every command's arguments, each with the function that runs it (``args.handler``)."""
     parser = CommandParser(prog="rtloop", description="Real-time control loops in Python on Linux.")
+    parser.add_argument("--version", action="version", version=f"rtloop {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=CommandParser)
     for name, module in COMMANDS.items():
         help_text, add_arguments, handler = command_parts(module, name)
