@@ -84,7 +84,7 @@ def test_without_duration_it_runs_until_sigint_and_exits_0(tmp_path: Path, rtloo
         from rtloop.report.data import load_run
 
         assert load_run(out).tasks["counter"]["cycles"] > 100  # `rtloop report` reads a live run
-        from rtloop.cli.top_view import Monitor
+        from rtloop.runtime.monitor import Monitor
 
         views = Monitor("days_until_sigint").snapshot()  # and `rtloop top` shows what it says
         assert len(views) == 1 and "counter p99" in views[0].summary_line

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from rtloop.cli import top_view as top
+from rtloop.cli import top_view
 from rtloop.cli.main import main as cli_main
+from rtloop.runtime.monitor import SCHED_NAMES, AppView, Monitor, TaskView, find_apps, read_proc
 
 NOOP = '''
 from rtloop import Runnable
@@ -63,7 +64,7 @@ def running_app(tmp_path: Path):
         )
     try:
         deadline = time.monotonic() + 15
-        monitor = top.Monitor(name)
+        monitor = Monitor(name)
         while True:
             views = [v for v in monitor.snapshot() if v.pid == process.pid]
             if views and len(views[0].tasks) == 2 and all(t.cycles > 0 for t in views[0].tasks):
@@ -89,7 +90,7 @@ def test_top_once_shows_every_task_counting(running_app, capsys: pytest.CaptureF
         assert 0 < before < after, (task, before, after)
     assert "lat max" in second and "n/a" in second  # the note on the running maximum; GC not readable
 
-    monitor = top.Monitor(name)
+    monitor = Monitor(name)
     (view,) = monitor.snapshot()
     monitor.poll_for(0.3)
     (later,) = monitor.snapshot()
@@ -119,33 +120,33 @@ def test_registry_of_a_dead_supervisor_is_ignored(tmp_path: Path) -> None:
         registry = {"app": app, "pid": pid, "ports": {}, "tasks": {"t": f"rtloop-{app}-{pid}-00000000-t.task"}}
         (tmp_path / f"rtloop-{app}-{pid}-00000000-registry.json").write_text(json.dumps(registry))
     (tmp_path / "rtloop-broken-1-00000000-registry.json").write_text("{")
-    assert [r.app for r in top.find_apps(shm_dir=tmp_path)] == ["here"]
-    assert top.find_apps("gone", shm_dir=tmp_path) == []
+    assert [r.app for r in find_apps(shm_dir=tmp_path)] == ["here"]
+    assert find_apps("gone", shm_dir=tmp_path) == []
     # its status segment does not exist: the app is listed with no task rows, not an error
-    (view,) = top.Monitor(shm_dir=tmp_path).snapshot()
+    (view,) = Monitor(shm_dir=tmp_path).snapshot()
     assert view.app == "here" and view.tasks == []
 
 
 def test_read_proc_of_this_process() -> None:
-    stat = top.read_proc(os.getpid())
+    stat = read_proc(os.getpid())
     assert stat is not None
-    assert stat.policy in top.SCHED_NAMES.values()
+    assert stat.policy in SCHED_NAMES.values()
     assert stat.cpu_ticks >= 0 and stat.minflt > 0
     assert stat.last_cpu in os.sched_getaffinity(0) or stat.last_cpu >= 0
-    assert top.read_proc(2**22 + 12345) is None
+    assert read_proc(2**22 + 12345) is None
 
 
 def test_narrow_terminal_keeps_the_timing_columns() -> None:
     from rich.console import Console
 
-    row = top.TaskView(name="controller", state="RUNNING", pid=4242, cpu="1 (on 1)", sched="fifo:80", cycles=123_456,
+    row = TaskView(name="controller", state="RUNNING", pid=4242, cpu="1 (on 1)", sched="fifo:80", cycles=123_456,
                        cycles_per_s=1000.0, overruns=0, deadline_misses=2, stale_reads=0, latency_now_ns=21_000,
                        latency_max_ns=180_000, exec_last_ns=95_000, cpu_percent=11.5, nonvoluntary_ctxt_switches=3,
                        minflt=25_000, majflt=0)
-    views = [top.AppView("jiwy", 1, [row])]
+    views = [AppView("jiwy", 1, [row])]
     for width, expect_gc in ((80, False), (250, True)):
         console = Console(width=width, record=True)
-        console.print(top.render(views, width))
+        console.print(top_view.render(views, width))
         text = console.export_text()
         assert max(len(line) for line in text.splitlines()) <= width
         assert "123,456" in text and "180.0" in text and "lat max µs" in text

@@ -1,4 +1,5 @@
-"""``rtloop top [APP] [--once]``: a live view of running apps (the view is :mod:`rtloop.cli.top_view`)."""
+"""``rtloop top [APP] [--once]``: a live view of running apps (:mod:`rtloop.runtime.monitor` reads them,
+:mod:`rtloop.cli.top_view` draws them)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from rtloop.cli.top_view import Monitor, frames, render
+    from rtloop.cli.top_view import frames, render
+    from rtloop.runtime.monitor import Monitor
 
     console = Console()
     if not console.is_terminal:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rtloop.app.builder import App
-from rtloop.cli.arguments import BadInput
+from rtloop.errors import RtloopError
 from rtloop.version import __version__
 
 UNIT_DIR = Path("/etc/systemd/system")
@@ -246,7 +246,7 @@ def install(text: str, path: Path, *, force: bool) -> str:
         if path.read_text() == text:
             return f"{path} is already this unit; nothing written"
         if not force:
-            raise Refused(f"{path} exists and differs from this unit; --force replaces it")
+            raise UnitFileInTheWay(f"{path} exists and differs from this unit; --force replaces it")
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         temporary.write_text(text)
@@ -257,8 +257,8 @@ def install(text: str, path: Path, *, force: bool) -> str:
     return f"wrote {path}"
 
 
-class Refused(BadInput):
-    """An existing, different unit file is in the way (exit 2)."""
+class UnitFileInTheWay(RtloopError, ValueError):
+    """An existing, different unit file is in the way (bad input: exit 2)."""
 
 
 SYSTEMD_UNIT_DIRS = tuple(Path(p) for p in ("/etc/systemd/system", "/run/systemd/system",
