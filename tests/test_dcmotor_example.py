@@ -12,7 +12,7 @@ import rtloop
 from rtloop.app.appfile import load_app
 from rtloop.app.builder import parse_signal
 from rtloop.app.modules import load_module_file
-from rtloop.errors import AppFileError
+from rtloop.errors import AppFileError, RtloopError
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "dcmotor"
 
@@ -101,11 +101,27 @@ def test_live_parameters_are_one_line_on_a_runnable_and_become_named_inputs() ->
     assert gain.input_start_values == (0.0, 4.0)
 
 
-@pytest.mark.parametrize("bad", ['{"tick": 1.0}', '{"_k": 1.0}', '{"k": "fast"}', '["k"]'])
+@pytest.mark.parametrize("bad", ['{"tick": 1.0}', '{"_k": 1.0}', '{"k": "fast"}', '["k"]', '{"k": float("nan")}'])
 def test_a_parameter_that_cannot_work_is_refused_when_the_class_is_defined(bad: str) -> None:
     with pytest.raises(TypeError, match="parameter"):
         exec(f"class Bad(rtloop.Runnable):\n    parameters = {bad}\n    def step(self, u, y): pass",
              {"rtloop": rtloop})
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_a_parameter_that_is_not_finite_is_refused_when_the_app_file_loads(tmp_path: Path, bad: str) -> None:
+    text = (EXAMPLE / "dcmotor.toml").read_text().replace("parameters = { kp = 0.05, ki = 3.0 }",
+                                                          f"parameters = {{ kp = 0.05, ki = {bad} }}")
+    assert bad in text
+    (tmp_path / "app.toml").write_text(text)
+    (tmp_path / "dcmotor.py").write_text((EXAMPLE / "dcmotor.py").read_text())
+    with pytest.raises(AppFileError, match=rf"app\.toml: tasks\.pi\.parameters\.ki: {bad} is not a finite number"):
+        load_app(tmp_path / "app.toml")
+    pi = load_module_file("dcmotor", EXAMPLE / "dcmotor.py").PiSpeed()
+    from rtloop.models.base import apply_parameters
+
+    with pytest.raises(RtloopError, match="not a finite number"):  # the same check from Python (and sweep)
+        apply_parameters(pi, {"kp": float(bad)}, "pi")
 
 
 def test_parameters_on_a_runnable_that_declares_none_say_how_to_declare_them(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ period with preallocated input and output vectors.
 from __future__ import annotations
 
 import keyword
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -97,8 +98,8 @@ class Runnable(ABC):
                     or name.startswith("_") or name in _RESERVED_NAMES:
                 raise TypeError(f"{cls.__name__}.parameters: {name!r} cannot be a parameter name "
                                 "(a Python identifier, not starting with _ nor one of Runnable's own attributes)")
-            if isinstance(default, bool) or not isinstance(default, int | float):
-                raise TypeError(f"{cls.__name__}.parameters: {name} = {default!r} is not a number")
+            if isinstance(default, bool) or not isinstance(default, int | float) or not math.isfinite(default):
+                raise TypeError(f"{cls.__name__}.parameters: {name} = {default!r} is not a finite number")
             setattr(cls, name, LiveParameter(name, index))
         cls.parameters = {name: float(value) for name, value in merged.items()}
 

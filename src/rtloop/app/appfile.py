@@ -68,6 +68,7 @@
 from __future__ import annotations
 
 import importlib
+import math
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -334,6 +335,7 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
         raise AppFileError(shown, where, 'give exactly one of runnable = "module:Class" or model = "kind:path"')
     args = table.get("args", {})
     parameters = _flat_parameters(table.get("parameters"))
+    _check_finite_parameters(shown, where, parameters)
     if has_model:
         try:
             from rtloop.models import load_model
@@ -392,6 +394,16 @@ def _flat_parameters(parameters: Any) -> Any:
         else:
             flat[name] = value
     return flat
+
+
+def _check_finite_parameters(shown: str, where: str, parameters: Any) -> None:
+    """TOML has ``nan`` and ``inf``: a parameter given one would reach a motor at cycle 0. Refused here,
+    naming the key, as a port refuses them."""
+    if not isinstance(parameters, dict):
+        return
+    for name, value in parameters.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise AppFileError(shown, f"{where}.parameters.{name}", f"{value} is not a finite number")
 
 
 def _is_dotted_name(text: str) -> bool:

@@ -26,6 +26,7 @@ rates); copy the outputs to ``y``.
 
 from __future__ import annotations
 
+import math
 import pickle
 import warnings
 from typing import Protocol, runtime_checkable
@@ -287,6 +288,8 @@ def apply_parameters(runnable: object, parameters: dict[str, object], where: str
             raise ModelError(f"{where}: unknown parameter {name!r}; parameters are {sorted(declared)}")
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a number")
+        if not math.isfinite(value):
+            raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a finite number")
     setter = getattr(runnable, "set_parameters", None)
     if setter is None:
         raise ModelError(f"{where}: {type(runnable).__name__} has no set_parameters method")
