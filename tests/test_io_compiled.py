@@ -160,3 +160,33 @@ def test_the_can_drain_keeps_the_newest_of_each_id_and_counts_strays(monkeypatch
     assert results[0] == results[1]
     fresh, latest, unexpected = results[0]
     assert fresh == [True, True] and struct.unpack_from("<q", latest[0], 8) == (3,) and unexpected == 2
+
+
+def test_a_build_that_fails_halfway_lets_go_of_every_buffer_it_held():
+    """Each C type's init unwinds through one path: whatever failed, the vectors and frame buffers
+    it had taken are released (their reference counts are back; a bytearray can be resized again)."""
+    import sys
+
+    vectors = [np.zeros(3) for _ in range(6)]
+    source, target, short = np.zeros(2), np.zeros(2), np.zeros(1)
+    read_only = np.zeros(2)
+    read_only.flags.writeable = False
+    everything = [*vectors, source, target, short, read_only]
+    counts = [sys.getrefcount(v) for v in everything]
+    failures = [
+        (lambda: devio.Guard(*vectors[:5], np.zeros(2), [], False), "differ in length"),  # after all six held
+        (lambda: devio.Guard(*vectors, [(source, target), (source, short)], False), "differ in length"),
+        (lambda: devio.Guard(*vectors, [(source, target), (source, read_only)], False), "read-only|writable"),
+        (lambda: devio.Copies([(source, target), (source, short)]), "differ in length"),
+        (lambda: devio.Copies([(source, read_only)]), "read-only|writable"),
+    ]
+    for build, message in failures:
+        with pytest.raises((ValueError, TypeError, BufferError), match=message):
+            build()
+        assert [sys.getrefcount(v) for v in everything] == counts, message
+    first, too_big = bytearray(16), bytearray(80)
+    with pytest.raises(ValueError, match="larger than a CAN FD frame"):
+        devio.CanReceiver(-1, [0x100, 0x101], [first, too_big], [False, False])
+    first.extend(b"x")  # resizable: no buffer of it is still exported
+    with pytest.raises(ValueError, match="unknown field code"):
+        devio.Layout([("h", 0, 1.0, 0.0, False), ("z", 2, 1.0, 0.0, False)])

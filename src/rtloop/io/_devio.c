@@ -34,6 +34,68 @@ static int get_vector(PyObject *obj, Py_buffer *view, int writable, const char *
 }
 
 /* ------------------------------------------------------------------------------------------ */
+/* Copy pairs: float64 vectors copied source -> target (held for the owner's life).            */
+
+typedef struct {
+    Py_ssize_t n; /* how many pairs are held (for a partial failure) */
+    Py_buffer *sources, *targets;
+} CopyPairs;
+
+static void CopyPairs_release(CopyPairs *pairs) {
+    for (Py_ssize_t i = 0; i < pairs->n; i++) {
+        PyBuffer_Release(&pairs->sources[i]);
+        PyBuffer_Release(&pairs->targets[i]);
+    }
+    PyMem_Free(pairs->sources);
+    PyMem_Free(pairs->targets);
+    pairs->sources = pairs->targets = NULL;
+    pairs->n = 0;
+}
+
+/* Hold each (source, target) of the sequence ``copies``; on failure what was held is let go. */
+static int CopyPairs_get(CopyPairs *pairs, PyObject *copies) {
+    PyObject *items = PySequence_Fast(copies, "copies: a sequence of (source, target) pairs");
+    if (items == NULL) {
+        return -1;
+    }
+    Py_ssize_t count = PySequence_Fast_GET_SIZE(items);
+    pairs->sources = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
+    pairs->targets = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
+    if (pairs->sources == NULL || pairs->targets == NULL) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    for (Py_ssize_t i = 0; i < count; i++) {
+        PyObject *source, *target;
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(items, i), "OO", &source, &target) ||
+            get_vector(source, &pairs->sources[i], 0, "copy source") < 0) {
+            goto fail;
+        }
+        if (get_vector(target, &pairs->targets[i], 1, "copy target") < 0) {
+            PyBuffer_Release(&pairs->sources[i]); /* not counted in n yet */
+            goto fail;
+        }
+        pairs->n = i + 1;
+        if (pairs->sources[i].len != pairs->targets[i].len) {
+            PyErr_SetString(PyExc_ValueError, "a copy's source and target differ in length");
+            goto fail;
+        }
+    }
+    Py_DECREF(items);
+    return 0;
+fail:
+    Py_DECREF(items);
+    CopyPairs_release(pairs);
+    return -1;
+}
+
+static void CopyPairs_run(const CopyPairs *pairs) {
+    for (Py_ssize_t i = 0; i < pairs->n; i++) {
+        memcpy(pairs->targets[i].buf, pairs->sources[i].buf, (size_t)pairs->targets[i].len);
+    }
+}
+
+/* ------------------------------------------------------------------------------------------ */
 /* Guard: copies from the task's outputs into a device's commands, then finite, clamp, rate.  */
 
 typedef struct {
@@ -41,8 +103,7 @@ typedef struct {
     Py_buffer u, low, high, step_max, last, out;
     Py_ssize_t n;
     int rate_limited;
-    Py_ssize_t n_copies;
-    Py_buffer *sources, *targets;
+    CopyPairs copies;
     int held; /* how many of the six vectors are held (for a partial failure) */
 } Guard;
 
@@ -52,14 +113,7 @@ static void Guard_release(Guard *self) {
         PyBuffer_Release(vectors[i]);
     }
     self->held = 0;
-    for (Py_ssize_t i = 0; i < self->n_copies; i++) {
-        PyBuffer_Release(&self->sources[i]);
-        PyBuffer_Release(&self->targets[i]);
-    }
-    PyMem_Free(self->sources);
-    PyMem_Free(self->targets);
-    self->sources = self->targets = NULL;
-    self->n_copies = 0;
+    CopyPairs_release(&self->copies);
 }
 
 static void Guard_dealloc(Guard *self) {
@@ -81,58 +135,25 @@ static int Guard_init(Guard *self, PyObject *args, PyObject *kwargs) {
     const char *names[6] = {"u", "low", "high", "step_max", "last", "out"};
     for (int i = 0; i < 6; i++) {
         if (get_vector(objects[i], vectors[i], i >= 4, names[i]) < 0) {
-            Guard_release(self);
-            return -1;
+            goto fail;
         }
         self->held = i + 1;
     }
     self->n = self->u.len / 8;
     for (int i = 1; i < 6; i++) {
         if (vectors[i]->len != self->u.len) {
-            Guard_release(self);
             PyErr_SetString(PyExc_ValueError, "the guard's vectors differ in length");
-            return -1;
+            goto fail;
         }
     }
     self->rate_limited = rate_limited;
-    PyObject *pairs = PySequence_Fast(copies, "copies: a sequence of (source, target) pairs");
-    if (pairs == NULL) {
-        Guard_release(self);
-        return -1;
+    if (CopyPairs_get(&self->copies, copies) < 0) {
+        goto fail;
     }
-    Py_ssize_t count = PySequence_Fast_GET_SIZE(pairs);
-    self->sources = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
-    self->targets = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
-    if (self->sources == NULL || self->targets == NULL) {
-        Py_DECREF(pairs);
-        Guard_release(self);
-        PyErr_NoMemory();
-        return -1;
-    }
-    for (Py_ssize_t i = 0; i < count; i++) {
-        PyObject *source, *target;
-        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(pairs, i), "OO", &source, &target) ||
-            get_vector(source, &self->sources[i], 0, "copy source") < 0) {
-            Py_DECREF(pairs);
-            Guard_release(self);
-            return -1;
-        }
-        if (get_vector(target, &self->targets[i], 1, "copy target") < 0) {
-            PyBuffer_Release(&self->sources[i]);
-            Py_DECREF(pairs);
-            Guard_release(self);
-            return -1;
-        }
-        self->n_copies = i + 1;
-        if (self->sources[i].len != self->targets[i].len) {
-            Py_DECREF(pairs);
-            Guard_release(self);
-            PyErr_SetString(PyExc_ValueError, "a copy's source and target differ in length");
-            return -1;
-        }
-    }
-    Py_DECREF(pairs);
     return 0;
+fail:
+    Guard_release(self);
+    return -1;
 }
 
 /* apply() -> -1 when the commands in ``out`` are ready, else the index of the first
@@ -142,9 +163,7 @@ static PyObject *Guard_apply(Guard *self, PyObject *Py_UNUSED(ignored)) {
         PyErr_SetString(PyExc_ValueError, "the guard is released");
         return NULL;
     }
-    for (Py_ssize_t i = 0; i < self->n_copies; i++) {
-        memcpy(self->targets[i].buf, self->sources[i].buf, (size_t)self->targets[i].len);
-    }
+    CopyPairs_run(&self->copies);
     const double *u = self->u.buf, *low = self->low.buf, *high = self->high.buf, *step = self->step_max.buf;
     double *last = self->last.buf, *out = self->out.buf;
     Py_ssize_t n = self->n;
@@ -196,23 +215,11 @@ static PyTypeObject GuardType = {
 
 typedef struct {
     PyObject_HEAD
-    Py_ssize_t n_copies;
-    Py_buffer *sources, *targets;
+    CopyPairs copies;
 } Copies;
 
-static void Copies_release(Copies *self) {
-    for (Py_ssize_t i = 0; i < self->n_copies; i++) {
-        PyBuffer_Release(&self->sources[i]);
-        PyBuffer_Release(&self->targets[i]);
-    }
-    PyMem_Free(self->sources);
-    PyMem_Free(self->targets);
-    self->sources = self->targets = NULL;
-    self->n_copies = 0;
-}
-
 static void Copies_dealloc(Copies *self) {
-    Copies_release(self);
+    CopyPairs_release(&self->copies);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -221,55 +228,17 @@ static int Copies_init(Copies *self, PyObject *args, PyObject *kwargs) {
     if (!PyArg_ParseTuple(args, "O", &copies)) {
         return -1;
     }
-    Copies_release(self);
-    PyObject *pairs = PySequence_Fast(copies, "copies: a sequence of (source, target) pairs");
-    if (pairs == NULL) {
-        return -1;
-    }
-    Py_ssize_t count = PySequence_Fast_GET_SIZE(pairs);
-    self->sources = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
-    self->targets = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
-    if (self->sources == NULL || self->targets == NULL) {
-        Py_DECREF(pairs);
-        Copies_release(self);
-        PyErr_NoMemory();
-        return -1;
-    }
-    for (Py_ssize_t i = 0; i < count; i++) {
-        PyObject *source, *target;
-        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(pairs, i), "OO", &source, &target) ||
-            get_vector(source, &self->sources[i], 0, "copy source") < 0) {
-            Py_DECREF(pairs);
-            Copies_release(self);
-            return -1;
-        }
-        if (get_vector(target, &self->targets[i], 1, "copy target") < 0) {
-            PyBuffer_Release(&self->sources[i]);
-            Py_DECREF(pairs);
-            Copies_release(self);
-            return -1;
-        }
-        self->n_copies = i + 1;
-        if (self->sources[i].len != self->targets[i].len) {
-            Py_DECREF(pairs);
-            Copies_release(self);
-            PyErr_SetString(PyExc_ValueError, "a copy's source and target differ in length");
-            return -1;
-        }
-    }
-    Py_DECREF(pairs);
-    return 0;
+    CopyPairs_release(&self->copies);
+    return CopyPairs_get(&self->copies, copies);
 }
 
 static PyObject *Copies_run(Copies *self, PyObject *Py_UNUSED(ignored)) {
-    for (Py_ssize_t i = 0; i < self->n_copies; i++) {
-        memcpy(self->targets[i].buf, self->sources[i].buf, (size_t)self->targets[i].len);
-    }
+    CopyPairs_run(&self->copies);
     Py_RETURN_NONE;
 }
 
 static PyObject *Copies_release_method(Copies *self, PyObject *Py_UNUSED(ignored)) {
-    Copies_release(self);
+    CopyPairs_release(&self->copies);
     Py_RETURN_NONE;
 }
 
@@ -328,9 +297,8 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
     self->fields = PyMem_Calloc(count ? count : 1, sizeof(FieldPlan));
     self->n = 0;
     if (self->fields == NULL) {
-        Py_DECREF(items);
         PyErr_NoMemory();
-        return -1;
+        goto fail;
     }
     for (Py_ssize_t i = 0; i < count; i++) {
         FieldPlan *f = &self->fields[i];
@@ -338,8 +306,7 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
         int big;
         if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(items, i), "snddp", &code, &f->start, &f->scale, &f->offset,
                               &big)) {
-            Py_DECREF(items);
-            return -1;
+            goto fail;
         }
         f->code = code[0];
         f->big_endian = big;
@@ -350,19 +317,20 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
         case 'I': case 'i': case 'f': f->size = 4; break;
         case 'Q': case 'q': case 'd': f->size = 8; break;
         default:
-            Py_DECREF(items);
             PyErr_Format(PyExc_ValueError, "unknown field code %R", PySequence_Fast_GET_ITEM(items, i));
-            return -1;
+            goto fail;
         }
         if (code[1] != '\0' || f->start < 0) {
-            Py_DECREF(items);
             PyErr_SetString(PyExc_ValueError, "a field is (one struct code, start >= 0, scale, offset, big_endian)");
-            return -1;
+            goto fail;
         }
     }
-    self->n = count;
+    self->n = count; /* only a whole plan is used: n stays 0 on failure */
     Py_DECREF(items);
     return 0;
+fail:
+    Py_DECREF(items);
+    return -1;
 }
 
 static void put_bits(unsigned char *at, uint64_t bits, int size, int big_endian) {
@@ -584,9 +552,8 @@ static int CanReceiver_init(CanReceiver *self, PyObject *args, PyObject *kwargs)
     self->ids = PyMem_Calloc(count ? count : 1, sizeof(uint32_t));
     self->latest = PyMem_Calloc(count ? count : 1, sizeof(Py_buffer));
     if (self->ids == NULL || self->latest == NULL) {
-        CanReceiver_release(self);
         PyErr_NoMemory();
-        return -1;
+        goto fail;
     }
     for (Py_ssize_t i = 0; i < count; i++) {
         PyObject *id = PySequence_GetItem(ids, i), *buffer = PySequence_GetItem(latest, i);
@@ -596,21 +563,22 @@ static int CanReceiver_init(CanReceiver *self, PyObject *args, PyObject *kwargs)
         Py_XDECREF(id);
         Py_XDECREF(buffer);
         if (failed) {
-            CanReceiver_release(self);
-            return -1;
+            goto fail;
         }
         self->n = i + 1;
         self->ids[i] = (uint32_t)value;
         if (self->latest[i].len > (Py_ssize_t)sizeof(self->incoming)) {
-            CanReceiver_release(self);
             PyErr_SetString(PyExc_ValueError, "a frame buffer is larger than a CAN FD frame");
-            return -1;
+            goto fail;
         }
     }
     self->fd = fd;
     Py_INCREF(fresh);
     self->fresh = fresh;
     return 0;
+fail:
+    CanReceiver_release(self);
+    return -1;
 }
 
 /* drain() -> how many declared frames became fresh (a frame is fresh once per cycle). */
