@@ -133,3 +133,13 @@ class Echo(Runnable):
                 pass
         if self.slow_s:
             time.sleep(self.slow_s)
+
+
+class CycleAndReading(Runnable):
+    """y[0] = the cycle + 1 (so the command a let device writes at release k is k); u[0] is a reading."""
+
+    n_inputs = 1
+    n_outputs = 1
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        y[0] = self.tick.cycle + 1.0

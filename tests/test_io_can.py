@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import json
 import socket
 import struct
 import threading
@@ -10,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import scaled_ns, scaled_s
 from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import build_device
@@ -235,3 +238,119 @@ def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command(
         peer.shutdown(socket.SHUT_RDWR)
         peer.close()
         responder.join(timeout=5)
+
+
+def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cycle_and_lag():
+    """Anywhere (a UNIX socket pair in place of the bus): with on_missing = "stale", a cycle whose
+    answer has not come within its timeout keeps the last values; the task's devices count the cycle,
+    keep it among the first stale cycles, and the longest run of stale cycles in a row (the lag)."""
+    from rtloop.io.cansocket import CanSocket
+    from rtloop.io.device import CommandLimit
+    from rtloop.io.host import DeviceWiring, TaskDevices
+
+    device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 1, "on_missing": "stale"}])
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    device.configure = lambda: None  # attached to the pair already (this kernel may have no CAN)
+    limits = (CommandLimit(-100.0, 100.0, 0.0), CommandLimit(0.0, 255.0, 0.0))
+    task_u, task_y = np.zeros(1), np.zeros(2)
+    devices = TaskDevices("ctl", 1_000_000, [DeviceWiring(device, "let", limits, ((slice(0, 2), slice(0, 2)),),
+                                                          ((slice(0, 1), slice(0, 1)),))], task_u, task_y)
+    lost = {3, 4, 7}  # the drive's answers to these cycles never come
+    seen = []
+    try:
+        devices.configure()
+        devices.activate()
+        for cycle in range(10):
+            if cycle not in lost:
+                peer.send(frame(0x180, struct.pack("<i", 1000 * cycle)))  # the position this cycle reads
+            devices.at_release(cycle)
+            seen.append(task_u[0])
+    finally:
+        devices.stop()
+        peer.close()
+    assert seen == [0.0, 1.0, 2.0, 2.0, 2.0, 5.0, 6.0, 6.0, 8.0, 9.0]  # the stale cycles kept the last values
+    assert devices.stale_report() == {"drive": {
+        "kind": "can", "stale_reads": 3, "stale_cycles": 3, "longest_lag_cycles": 2, "first_stale_cycles": [3, 4, 7],
+        "stale_reads_by_source": {"receive[0] (id 0x180)": 3}}}
+
+
+PEER = """
+import os, socket, struct, sys
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(70))  # answers in time, as a drive does
+lost = {float(v) for v in sys.argv[2].split(",")}
+bus = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+bus.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, struct.pack("=II", 0x210, 0x7FF | 0x80000000))
+bus.bind((sys.argv[1],))
+print("ready", flush=True)
+while True:
+    can_id, _, data = struct.unpack("=IB3x8s", bus.recv(16))
+    if struct.unpack("<d", data)[0] not in lost:  # the answers to these commands never come
+        bus.send(struct.pack("=IB3x8s", 0x190, 8, data))
+"""
+
+
+@pytest.mark.rtkernel
+@pytest.mark.timeout(scaled_s(120))
+def test_a_run_counts_its_stale_reads_per_cycle_in_summary_json_and_replay_says_them(tmp_path):
+    """A real-time run on vcan0 against a drive (a separate process) that echoes each command frame
+    but never answers those of cycles 5, 6 and 12: with on_missing = "stale" those cycles keep the
+    last values; summary.json counts them (cycles, lag, frame), the comparison with the simulation
+    ends before the first, and the replay plays them back and says so."""
+    import os
+    import subprocess
+    import sys
+
+    import rtloop
+    from device_test_drivers import CycleAndReading, MirrorTwin
+    from rtloop import App
+    from rtloop.runtime.replay import compare_signals, first_miss_s, replay
+
+    entry = guest_device("vcan")
+    period_ns, lost = scaled_ns(10_000_000), [5, 6, 12]
+
+    def app(name):
+        app = App(f"{name}_{os.getpid()}")
+        ctl = app.add_task("ctl", CycleAndReading(), period_ns=period_ns)
+        dev = app.add_device(
+            "drive", "can", task="ctl", interface=entry["interface"], twin=MirrorTwin(1, 1.0),
+            send=[{"id": 0x210, "signals": [{"name": "command", "start_byte": 0, "type": "f64"}]}],
+            receive=[{"id": 0x190, "timeout_ms": period_ns / 2e6, "on_missing": "stale",
+                      "signals": [{"name": "position", "start_byte": 0, "type": "f64"}]}],
+            limits={"command": {"min": -1e6, "max": 1e6, "safe": 0.0}})
+        app.connect(ctl.y[0], dev.u[0])  # the command written at release k is k (let)
+        app.connect(dev.y[0], ctl.u[0])  # the drive's echo of it: k, read in cycle k
+        app.record(ctl.u, ctl.y)
+        return app
+
+    peer = subprocess.Popen([sys.executable, "-c", PEER, entry["interface"], ",".join(map(str, lost))],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert peer.stdout.readline().strip() == "ready"
+        rtloop.run(app("can_stale"), 20 * period_ns / 1e9, tmp_path / "run")
+    finally:
+        peer.kill()
+        peer.wait()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    report = summary["devices"]["drive"]
+    stale = report["first_stale_cycles"]
+    assert set(lost) <= set(stale), report  # a loaded guest may add one; never miss one
+    assert report["task"] == "ctl" and report["kind"] == "can"
+    assert report["stale_reads"] == report["stale_cycles"] == len(stale)  # one frame, once per cycle
+    assert report["stale_reads_by_source"] == {"receive[0] (id 0x190)": len(stale)}
+    assert report["longest_lag_cycles"] >= 2  # cycles 5 and 6 in a row
+    assert any(note.startswith(f"device 'drive' (task ctl): {len(stale)} stale reads") for note in summary["notes"])
+    with open(tmp_path / "run" / "signals.csv") as rows:
+        readings = {round(float(row["t_s"]) * 1e9 / period_ns): float(row["ctl.u[0]"]) for row in csv.DictReader(rows)}
+    for cycle in lost:
+        assert readings[cycle] == readings[cycle - 1], (cycle, readings)  # kept the last values
+    assert readings[7] == 7.0 and readings[13] == 13.0  # and the next answers were this cycle's again
+
+    until_s = first_miss_s(tmp_path / "run")
+    assert until_s is not None and until_s <= (min(stale) - 1) * period_ns / 1e9
+    rtloop.simulate(app("can_stale_sim"), 20 * period_ns / 1e9, tmp_path / "sim")
+    compared, differ_s = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", until_s)
+    assert differ_s is None and compared >= 1
+    result = replay(tmp_path / "run", tmp_path / "replay", app("can_stale"))
+    assert result.equal, result.divergence.describe() if result.divergence else result.cannot
+    assert any(note.startswith(f"device 'drive' read stale values in {len(stale)} cycles") for note in result.notes)

@@ -7,6 +7,8 @@ stops and the node goes safe by itself."""
 
 from __future__ import annotations
 
+import csv
+import json
 import os
 import subprocess
 import sys
@@ -15,58 +17,98 @@ from pathlib import Path
 
 import pytest
 
-from conftest import scaled_ns
+from conftest import scaled_s, slowdown
 from io_guest_devices import guest_device
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "jiwy_can"
 
 
-@pytest.mark.timeout(1500)
-def test_jiwy_over_can_equals_its_simulation_and_the_drive_goes_safe_when_the_heartbeat_stops(tmp_path):
-    entry = guest_device("vcan")
-    from rtloop.runtime.replay import compare_signals, first_miss_s
+# Under emulation 10 Hz instead of the example's 100 Hz: the controller's step and the plant node's
+# answer take a few ms each there, but a busy host stalls the whole guest for tens of ms at a time
+# (as the JIWY guest test says). run == simulate is a property of the schedule, not of the rate.
+CYCLES = 200
+MIN_COMPARED = 100  # cycles that must have run on schedule and compared equal (the setpoint step at t = 0.5 s)
+NODE_PRIORITY = 70  # the simulated drive answers at a real-time priority, below the controller's 80
 
-    app = tmp_path / "jiwy_can.toml"
+
+def _jiwy_can_app(tmp_path: Path, interface: str, period_ns: int) -> tuple[Path, dict[str, str]]:
+    """The example's app file and models, with a unique name, the guest's interface and ``period_ns``."""
     name = f"jiwy_can_{os.getpid()}"
-    text = (EXAMPLE / "jiwy_can.toml").read_text().replace('name = "jiwy_can"', f'name = "{name}"')
-    text = text.replace('interface = "vcan0"', f'interface = "{entry["interface"]}"')
-    # the example's 10 ms stretched by the emulated guest's slowdown (the plant node is Python in it too)
-    text = text.replace("period_ns = 10_000_000", f"period_ns = {max(scaled_ns(10_000_000), 10_000_000)}")
-    text = text.replace('feed = "../jiwy/setpoints/step.csv"', f'feed = "{EXAMPLE.parent / "jiwy/setpoints/step.csv"}"')
+    text = (EXAMPLE / "jiwy_can.toml").read_text()
+    for old, new in (('name = "jiwy_can"', f'name = "{name}"'), ('interface = "vcan0"', f'interface = "{interface}"'),
+                     ("period_ns = 10_000_000", f"period_ns = {period_ns}"),
+                     ('feed = "../jiwy/setpoints/step.csv"', f'feed = "{EXAMPLE.parent / "jiwy/setpoints/step.csv"}"')):
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    app = tmp_path / "jiwy_can.toml"
     app.write_text(text)
-    for module in ("jiwy_can_models.py",):
-        (tmp_path / module).write_text((EXAMPLE / module).read_text().replace(
-            'Path(__file__).resolve().parent.parent / "jiwy"', repr(str(EXAMPLE.parent / "jiwy"))))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
-    node = subprocess.Popen([sys.executable, str(EXAMPLE / "plant_node.py"), "--interface", entry["interface"],
-                             "--heartbeat-timeout-ms", "300"], env=env, stderr=subprocess.PIPE, text=True)
+    (tmp_path / "jiwy_can_models.py").write_text((EXAMPLE / "jiwy_can_models.py").read_text().replace(
+        'Path(__file__).resolve().parent.parent / "jiwy"', repr(str(EXAMPLE.parent / "jiwy"))))
+    return app, {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+
+
+def _run_against_a_fresh_drive(app: Path, out: Path, interface: str, duration_s: float, env: dict[str, str]) -> None:
+    """One real-time run against a plant node started for it (its plant from rest, as the twin's);
+    the heartbeat stops with the run and the node goes safe by itself."""
+    node = subprocess.Popen([sys.executable, str(EXAMPLE / "plant_node.py"), "--interface", interface,
+                             "--heartbeat-timeout-ms", "300", "--priority", str(NODE_PRIORITY)],
+                            env=env, stderr=subprocess.PIPE, text=True)
     try:
-        assert "waiting for steering frames" in node.stderr.readline()
-        run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "40", "--out",
-                              str(tmp_path / "run"), "-q"], env=env, capture_output=True, text=True, timeout=600)
+        ready = node.stderr.readline()
+        assert "waiting for steering frames" in ready, ready + node.stderr.read()
+        run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", str(duration_s),
+                              "--out", str(out), "-q"], env=env, capture_output=True, text=True,
+                             timeout=scaled_s(60))
         assert run.returncode == 0, run.stderr
-        time.sleep(1.0)  # the heartbeat stopped with the run: the node's watchdog trips after 300 ms
+        time.sleep(scaled_s(0.05) + 0.3)  # the heartbeat stopped with the run: the node's watchdog trips after 300 ms
     finally:
         node.terminate()
         _, said = node.communicate(timeout=60)
     said_lines = said.strip().splitlines()
     assert "heartbeat seen: enabled" in said  # the drive enabled itself on the first heartbeat
     assert said_lines[-1] == "plant_node: heartbeat lost: steering zero (safe)", said  # and went safe at the end
-    sim = subprocess.run([sys.executable, "-m", "rtloop", "simulate", str(app), "--duration", "40", "--out",
-                          str(tmp_path / "sim"), "-q"], env=env, capture_output=True, text=True, timeout=600)
-    assert sim.returncode == 0, sim.stderr
-    until_s = first_miss_s(tmp_path / "run")
-    compared, differ_s = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", until_s)
-    assert differ_s is None, f"the run left its simulation at {differ_s} s (first miss at {until_s} s)"
-    if compared < 20:
-        import json
 
-        task = json.loads((tmp_path / "run" / "summary.json").read_text())["tasks"]["controller"]
-        with open(tmp_path / "run" / "timing.csv") as timing:
-            first_rows = [next(timing, "").strip() for _ in range(3)]
-        pytest.skip(f"the run missed a deadline at {until_s} s, too early to show the equality ({compared} rows; "
-                    f"cycles {task['cycles']}, misses {task['deadline_misses']}, overruns {task['overruns']}; "
-                    f"timing.csv starts {first_rows})")
+
+def _on_schedule(run: Path) -> str:
+    """What the run says of its timing (for a failure message)."""
+    summary = json.loads((run / "summary.json").read_text())
+    task = summary["tasks"]["controller"]
+    return (f"cycles {task['cycles']}, misses {task['deadline_misses']}, overruns {task['overruns']}, "
+            f"timing records dropped {task.get('timing_samples_dropped')}, recording {summary.get('recording')}")
+
+
+@pytest.mark.timeout(scaled_s(150))  # a simulation and up to three runs of 20 s (under emulation), a node each
+def test_jiwy_over_can_equals_its_simulation_up_to_its_first_miss_and_the_drive_goes_safe(tmp_path):
+    entry = guest_device("vcan")
+    from rtloop.runtime.replay import compare_signals, first_miss_s
+
+    period_ns = 100_000_000 if slowdown() > 1 else 10_000_000
+    duration_s = CYCLES * period_ns / 1e9
+    app, env = _jiwy_can_app(tmp_path, entry["interface"], period_ns)
+    sim = subprocess.run([sys.executable, "-m", "rtloop", "simulate", str(app), "--duration", str(duration_s),
+                          "--out", str(tmp_path / "sim"), "-q"], env=env, capture_output=True, text=True,
+                         timeout=scaled_s(30))
+    assert sim.returncode == 0, sim.stderr
+    attempts = []
+    for attempt in range(3):  # a host that stalls the whole guest can spoil a run; the rule stays the same
+        run = tmp_path / f"run{attempt}"
+        _run_against_a_fresh_drive(app, run, entry["interface"], duration_s, env)
+        until_s = first_miss_s(run)  # the release of the first cycle that ended late or followed a skip
+        compared, differ_s = compare_signals(run / "signals.csv", tmp_path / "sim" / "signals.csv", until_s)
+        assert differ_s is None, f"the run left its simulation at {differ_s} s (first miss at {until_s} s)"
+        attempts.append(f"run {attempt}: first miss at {until_s} s, {compared} rows equal ({_on_schedule(run)})")
+        print(attempts[-1])
+        if compared >= MIN_COMPARED:
+            break
+    assert compared >= MIN_COMPARED, f"no run stayed on schedule for {MIN_COMPARED} cycles: {attempts}"
+    # never vacuous: the window holds the controller's answer to the setpoint step, every row of it
+    summary = json.loads((run / "summary.json").read_text())
+    assert not any(summary["recording"]["lost"].values()), summary["recording"]  # no row, record or input lost
+    with open(run / "signals.csv", newline="") as rows:
+        table = list(csv.DictReader(rows))[:compared]
+    steering = {row["controller.SteeringPan"] for row in table}
+    angles = {row["controller.MeasuredPan"] for row in table}
+    assert len(steering) > 20 and len(angles) > 20, (len(steering), len(angles))
 
 
 def test_the_drive_steps_its_plant_with_both_steering_values_as_the_twin_does():

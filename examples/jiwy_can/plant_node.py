@@ -1,6 +1,6 @@
 """The gimbal's drive electronics on a CAN bus, simulated: JIWY's plant behind the declared frames.
 
-    python examples/jiwy_can/plant_node.py --interface vcan0 [--step-size-s 0.01]
+    python examples/jiwy_can/plant_node.py --interface vcan0 [--step-size-s 0.01] [--priority 70]
 
 Each cycle the controller sends the steering frames (0x201 pan, 0x202 tilt, float64) and the
 heartbeat (0x701, a counter). When both steering frames of a cycle are in, this node steps the
@@ -11,11 +11,17 @@ a drive's own watchdog goes safe when the heartbeat stops, and so does this node
 
 It speaks plain SocketCAN (a raw socket), as a microcontroller on the bus would: nothing of
 rtloop's runtime. It stops on SIGTERM or Ctrl-C.
+
+A real drive answers within microseconds whatever the computer does; this one is a Linux
+process, so ``--priority N`` runs it at ``SCHED_FIFO`` priority N (root or CAP_SYS_NICE), below the
+controller's: the controller's CAN read waits for the answer, and an ordinary process answering
+behind the supervisor's recording work would make the controller's cycle end late.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import select
 import signal
 import socket
@@ -92,7 +98,16 @@ def main() -> int:
     parser.add_argument("--interface", default="vcan0")
     parser.add_argument("--step-size-s", type=float, default=0.01, help="the plant's step (the app's period)")
     parser.add_argument("--heartbeat-timeout-ms", type=float, default=200.0)
+    parser.add_argument("--priority", type=int, default=0,
+                        help="SCHED_FIFO priority 1-99 to answer at (0: an ordinary process)")
     args = parser.parse_args()
+    if args.priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))
+        except (OSError, ValueError) as error:
+            print(f"plant_node: --priority {args.priority}: {getattr(error, 'strerror', None) or error}",
+                  file=sys.stderr)
+            return 2
     try:
         bus = open_bus(args.interface)
     except OSError as error:

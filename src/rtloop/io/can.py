@@ -72,6 +72,7 @@ class CanDevice(Device):
         self.socket: Any = None
         self.active = False
         self.stale_reads = 0
+        self.stale_by_frame = [0] * len(self.received)
         self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
@@ -135,8 +136,16 @@ class CanDevice(Device):
                 frame.layout.unpack_from(latest, DATA_AT, y, first)
             elif frame.on_missing == "stale":
                 self.stale_reads += 1  # y keeps the values of the last frame that came
+                self.stale_by_frame[index] += 1
             else:
                 raise DeviceFault(_missing(self.name, frame))
+
+    def may_read_stale(self) -> bool:
+        return any(frame.on_missing == "stale" for frame in self.received)
+
+    def stale_sources(self) -> dict[str, int]:
+        return {f"{frame.where} (id 0x{frame.can_id:X})": count
+                for frame, count in zip(self.received, self.stale_by_frame, strict=True) if count}
 
     def write_safe(self, u: FloatVector) -> None:
         """The safe values, in the declared frames, with the heartbeat — once active only.

@@ -138,6 +138,10 @@ class Device(ABC):
     """Names of the commands (used in limits and messages); default ``u0``, ``u1``, …"""
     output_names: tuple[str, ...] | None = None
     """Names of the readings; default ``y0``, ``y1``, …"""
+    stale_reads: int = 0
+    """Reads that kept the last good values instead of failing (a CAN frame that did not come in
+    time, an SPI answer with a bad CRC): a driver that may read stale counts them here; the task
+    reports them per cycle in summary.json (``devices``)."""
 
     def __init__(self, name: str, **settings: Any) -> None:
         self.name = name
@@ -186,6 +190,15 @@ class Device(ABC):
 
     def close(self) -> None:
         """Let go of the interface (also after a failed configure)."""
+
+    # --- stale reads ----------------------------------------------------------------------------
+    def may_read_stale(self) -> bool:
+        """Whether a read may keep old values and count them (``on_missing = "stale"``) instead of failing."""
+        return False
+
+    def stale_sources(self) -> dict[str, int]:
+        """Stale reads per source (a received frame) where the driver tells them apart."""
+        return {}
 
     # --- names ----------------------------------------------------------------------------------
     def command_names(self) -> tuple[str, ...]:

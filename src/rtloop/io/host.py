@@ -42,11 +42,15 @@ class DeviceWiring:
     """The app file (for errors)."""
 
 
+STALE_CYCLES_KEPT = 100
+"""The first cycles that read stale values, kept per device for summary.json (and so for replay)."""
+
+
 class _Slot:
     """One device with its vectors, its guard and its copies from and to the task's vectors."""
 
-    __slots__ = ("command_copies", "compiled_guard", "compiled_readings", "device", "guard", "reading_copies", "u",
-                 "y")
+    __slots__ = ("command_copies", "compiled_guard", "compiled_readings", "device", "guard", "reading_copies",
+                 "stale_cycles", "stale_first", "stale_last", "stale_longest", "stale_run", "stale_seen", "u", "y")
 
     def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector) -> None:
         device = self.device = wiring.device
@@ -69,6 +73,10 @@ class _Slot:
                 self.compiled_readings = compiled.Copies(self.reading_copies)
             except (TypeError, ValueError, BufferError):  # a strided slice: the numpy way
                 self.compiled_guard = self.compiled_readings = None
+        # cycles whose read kept old values (a frame that came late): counted, the first ones kept
+        self.stale_seen = self.stale_cycles = self.stale_run = self.stale_longest = 0
+        self.stale_last = -2
+        self.stale_first = np.zeros(STALE_CYCLES_KEPT, dtype=np.int64)  # allocated once: nothing in the loop
 
     def send(self, task: str, cycle: int) -> None:
         compiled = self.compiled_guard
@@ -89,6 +97,25 @@ class _Slot:
         for source, target in self.reading_copies:
             np.copyto(target, source)
 
+    def note_stale(self, cycle: int) -> None:
+        """This cycle's read kept old values: count the cycle, keep it among the first, and the run
+        of cycles in a row that did (the lag: how many cycles old the values the task used were)."""
+        self.stale_seen = self.device.stale_reads
+        if self.stale_cycles < STALE_CYCLES_KEPT:
+            self.stale_first[self.stale_cycles] = cycle
+        self.stale_cycles += 1
+        self.stale_run = self.stale_run + 1 if cycle == self.stale_last + 1 else 1
+        self.stale_last = cycle
+        self.stale_longest = max(self.stale_longest, self.stale_run)
+
+    def stale_report(self) -> dict[str, object]:
+        """What summary.json says of the device's stale reads (``devices.NAME``)."""
+        device = self.device
+        return {"kind": device.kind or type(device).__name__, "stale_reads": device.stale_reads,
+                "stale_cycles": self.stale_cycles, "longest_lag_cycles": self.stale_longest,
+                "first_stale_cycles": self.stale_first[:min(self.stale_cycles, STALE_CYCLES_KEPT)].tolist(),
+                "stale_reads_by_source": device.stale_sources()}
+
 
 class TaskDevices:
     """The devices one task owns. ``bool(devices)`` is False when it owns none."""
@@ -100,6 +127,7 @@ class TaskDevices:
         self.slots = [_Slot(w, period_ns, task_u, task_y) for w in wirings]
         self.let = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "let"]
         self.immediate = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "immediate"]
+        self.may_be_stale = [slot for slot in self.slots if slot.device.may_read_stale()]
         self.configured: list[_Slot] = []
         self.active = False
         self.problems: list[str] = []
@@ -151,10 +179,17 @@ class TaskDevices:
             slot.send(self.task, cycle)
         for slot in self.slots:
             slot.receive()
+        for slot in self.may_be_stale:  # devices that keep old values (on_missing = "stale") rather than fail
+            if slot.device.stale_reads != slot.stale_seen:
+                slot.note_stale(cycle)
 
     def after_step(self, cycle: int) -> None:
         for slot in self.immediate:
             slot.send(self.task, cycle)
+
+    def stale_report(self) -> dict[str, dict[str, object]]:
+        """Per device: its stale reads, the cycles that had them (the first ones), the longest lag."""
+        return {slot.device.name: slot.stale_report() for slot in self.slots}
 
     # --- every way out ----------------------------------------------------------------------------
     def stop(self) -> None:

@@ -169,6 +169,9 @@ class SpiDevice(Device):
             raise DeviceFault(f"devices.{self.name}: the answer from {self.path} is not valid: "
                               f"{self._check.last_error} (on_error = \"fault\")")
 
+    def may_read_stale(self) -> bool:
+        return self.on_error == "stale"
+
     @property
     def transfers_rejected(self) -> int:
         check = getattr(self, "_check", None)

@@ -78,6 +78,22 @@ def nonfinite_notes(tasks: dict[str, TaskSummary]) -> list[str]:
             f"connection, the first {task.nonfinite_first}" for name, task in tasks.items() if task.nonfinite_values]
 
 
+def stale_device_notes(devices: dict[str, dict[str, Any]]) -> list[str]:
+    """A sentence for each device that read stale values (summary.json ``devices``)."""
+    notes = []
+    for name, device in devices.items():
+        if device.get("stale_reads"):
+            first = (device.get("first_stale_cycles") or ["?"])[0]
+            by_source = device.get("stale_reads_by_source") or {}
+            sources = "; ".join(f"{source}: {count}" for source, count in by_source.items())
+            notes.append(f"device {name!r} (task {device.get('task')}): {device['stale_reads']} stale reads "
+                         f"({sources or 'the last good values kept'}) in {device.get('stale_cycles')} cycles, "
+                         f"the first at cycle {first}, the longest lag {device.get('longest_lag_cycles')} cycles "
+                         "in a row. Those cycles used the last values that came: a simulation with the twin "
+                         "differs from the first")
+    return notes
+
+
 def signal_names(runnable: object) -> dict[str, tuple[str, ...] | None]:
     """``input_names``/``output_names`` of a runnable, as TaskSummary fields (None if absent)."""
     out: dict[str, tuple[str, ...] | None] = {}
@@ -183,6 +199,9 @@ class RunSummary:
     """Run time from T0 to the newest cycle recorded."""
     running: bool = False
     """True in the summaries rewritten while the run goes on; False in the final one."""
+    devices: dict[str, Any] = field(default_factory=dict)
+    """Per device (``rtloop run``): its task, kind and stale reads — how many, in how many cycles, the
+    first of those cycles, the longest lag in cycles in a row, per source (a CAN frame)."""
     recording: dict[str, Any] = field(default_factory=dict)
     """The recording: ``keep_s`` (None: everything), ``stopped`` (why it stopped early, or None),
     and with ``keep_s`` the flight recorder's segment length, events and events not kept."""
@@ -204,6 +223,7 @@ class RunSummary:
             "ports": {name: port.to_json() for name, port in self.ports.items()},
             "bridges": self.bridges,
             "hot_path": self.hot_path,
+            "devices": self.devices,
             "recording": self.recording,
         }
 

@@ -459,9 +459,11 @@ def _run_log_of(task: str, cycle: int, timeline: RunTimeline, writes: PortWrites
 
 
 def first_miss_s(run_dir: Path) -> float | None:
-    """Release time (since T0) of the run's first cycle that ended after its deadline or followed a skip:
-    up to there a run equals its plain simulation (the logical timeline); its replay goes further."""
-    periods = {name: task["period_ns"] for name, task in read_summary(run_dir)["tasks"].items()}
+    """Release time (since T0) of the run's first cycle that ended after its deadline or followed a skip,
+    or of the cycle before the first one whose device read stale values (a frame that came late): up
+    to there a run equals its plain simulation (the logical timeline); its replay goes further."""
+    summary = read_summary(run_dir)
+    periods = {name: task["period_ns"] for name, task in summary["tasks"].items()}
     records, _t0_ns = read_timing(run_dir, periods)
     first: int | None = None
     for task, run in records.items():
@@ -472,6 +474,11 @@ def first_miss_s(run_dir: Path) -> float | None:
             if record.end_ns > record.release_ns + periods[task] or skipped:
                 at = record.release_ns - (periods[task] if skipped else 0)
                 first = at if first is None else min(first, at)
+    for device in (summary.get("devices") or {}).values():
+        stale = device.get("first_stale_cycles") or []
+        if stale and device.get("task") in periods:  # its readings at that release were old already
+            at = (stale[0] - 1) * periods[device["task"]]
+            first = at if first is None else min(first, at)
     return None if first is None else first / 1e9
 
 
@@ -521,7 +528,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         reads = read_reads_csv(run_dir / "reads.csv") if (run_dir / "reads.csv").exists() else []
     except ValueError as error:
         raise AppError(str(error)) from None
-    notes = []
+    notes = [_stale_device_note(name, device) for name, device in (summary.get("devices") or {}).items()
+             if device.get("stale_reads")]
     if app.connections and not (run_dir / "reads.csv").exists():
         notes.append("the run has no reads.csv (recorded by an older rtloop): stale reads are not followed")
     resume: dict[str, TaskSnapshot] = {}
@@ -577,6 +585,14 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         again = RunTimeline(pristine, cycles, reads, resume)
         divergence = _explain(divergence, again, out, writes, records, periods)
     return ReplayResult(rows, equal_rows, divergence, **common)
+
+
+def _stale_device_note(name: str, device: dict[str, Any]) -> str:
+    """The replay's log line for a device that read stale values in the run (summary.json ``devices``)."""
+    count, cycles = int(device.get("stale_cycles") or 0), list(device.get("first_stale_cycles") or [])
+    shown = ", ".join(str(cycle) for cycle in cycles[:10]) + (", …" if count > 10 else "")
+    return (f"device {name!r} read stale values in {count} cycles ({shown}; the longest lag "
+            f"{device.get('longest_lag_cycles')} cycles in a row): played back as the run read them")
 
 
 def recording_losses(recording: dict[str, Any], run_dir: Path) -> dict[str, dict[str, int]]:

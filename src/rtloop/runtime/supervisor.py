@@ -36,7 +36,15 @@ from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.ipc.wiring import nonfinite_fields
 from rtloop.linux import rt
 from rtloop.linux.lean import single_threaded_children
-from rtloop.record.summary import PortSummary, RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
+from rtloop.record.summary import (
+    PortSummary,
+    RunSummary,
+    TaskSummary,
+    nonfinite_notes,
+    signal_names,
+    slow_step_notes,
+    stale_device_notes,
+)
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession, RunState
@@ -110,6 +118,8 @@ class Supervisor:
             check_device(device.device, app.source)
         self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
         self.device_problems: list[str] = []
+        self.device_reads: dict[str, dict[str, Any]] = {}
+        """Per device, what its task reported of its reads at the end (stale reads: summary.json ``devices``)."""
         self.held_for_dead_tasks: list[Any] = []  # devices the supervisor made safe for a killed task (GPIO lines held)
         self.app, self.duration_s, self.out, self.limits = app, duration_s, out, limits
         self.on_progress = on_progress
@@ -475,6 +485,9 @@ class Supervisor:
                 elif kind == "device_error":
                     self.refused = DeviceError(message["device"], message["source"], message["key"],
                                                message["problem"])
+                elif kind == "device_reads":
+                    self.device_reads.update({name: {"task": task_run.name, **report}
+                                              for name, report in message["devices"].items()})
                 elif kind == "device_problems":
                     self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
                 elif kind == "failed":
@@ -569,7 +582,8 @@ class Supervisor:
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
             notes=[*slow_step_notes(tasks),
                    *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
-                   *nonfinite_notes(tasks)],
+                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads)],
+            devices=self.device_reads,
             bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,

@@ -240,7 +240,7 @@ def task_process_main(
         runnable.postrun()
     except BaseException as error:
         task.devices.stop()  # safe values before anything else
-        _report_device_problems(pipe, task.devices.problems)
+        _report_devices(pipe, task.devices)
         status[StatusWord.STATE] = TaskState.FAILED
         if isinstance(error, DeviceError) and phase == "configure":
             _report(pipe, kind="device_error", device=error.device, source=error.source, key=error.key,
@@ -260,7 +260,7 @@ def task_process_main(
     status[StatusWord.TIMING_DROPPED] = timing.dropped
     status[StatusWord.STATE] = TaskState.STOPPED
     task.devices.stop()  # done already unless the stop came before T0
-    _report_device_problems(pipe, task.devices.problems)
+    _report_devices(pipe, task.devices)
     _report(pipe, kind="stopped", cycles=task.cycle + 1)
 
 
@@ -285,9 +285,12 @@ def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
     rt.limit_realtime_cpu(fail_s, kill_s)
 
 
-def _report_device_problems(pipe: Any, problems: list[str]) -> None:
-    if problems:
-        _report(pipe, kind="device_problems", problems=problems)
+def _report_devices(pipe: Any, devices: TaskDevices) -> None:
+    """What went wrong while stopping the devices, and what they read stale (summary.json)."""
+    if devices.problems:
+        _report(pipe, kind="device_problems", problems=devices.problems)
+    if devices:
+        _report(pipe, kind="device_reads", devices=devices.stale_report())
 
 
 def _postrun_after_failure(runnable: Runnable, pipe: Any) -> None:
