@@ -330,7 +330,7 @@ def test_a_run_counts_its_stale_reads_per_cycle_in_summary_json_and_replay_says_
         rtloop.run(app("can_stale"), 20 * period_ns / 1e9, tmp_path / "run")
     finally:
         peer.kill()
-        peer.wait()
+        peer.communicate()  # reaped, its pipe closed
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     report = summary["devices"]["drive"]
     stale = report["first_stale_cycles"]
