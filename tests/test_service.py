@@ -194,3 +194,44 @@ def test_bad_option_is_exit_2(option: list[str], capsys: pytest.CaptureFixture[s
     assert cli_main(["service", str(JIWY), *option]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and option[0] in err
+
+
+SUDO_USER_APP = """\
+name = "svc_sudo_{pid}"
+
+[tasks.t]
+runnable = "{module}:Here"
+period_ns = 1_000_000
+policy = "other"
+"""
+
+HERE_MODULE = ("from rtloop import Runnable\n\n\nclass Here(Runnable):\n    n_inputs, n_outputs = 0, 1\n\n"
+               "    def step(self, u, y):\n        y[0] = 1.0\n")
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="plays a sudo user: needs root to chown")
+def test_install_refuses_code_the_services_user_would_refuse(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    import pwd
+
+    nobody = pwd.getpwnam("nobody")
+    clone = tmp_path / "clone"  # a sudo user's clone: their folder, their module
+    clone.mkdir()
+    module = f"svc_models_{os.getpid()}"
+    (clone / f"{module}.py").write_text(HERE_MODULE)
+    app_file = clone / "svc.toml"
+    app_file.write_text(SUDO_USER_APP.format(pid=os.getpid(), module=module))
+    for path in (clone, clone / f"{module}.py", app_file):
+        os.chown(path, nobody.pw_uid, nobody.pw_gid)
+    units = tmp_path / "units"
+    units.mkdir()
+    monkeypatch.setenv("SUDO_UID", str(nobody.pw_uid))  # sudo rtloop service ... --install
+    monkeypatch.setenv("SUDO_GID", str(nobody.pw_gid))
+    assert cli_main(["service", str(app_file), "--install", "--unit-dir", str(units)]) == 2
+    error = capsys.readouterr().err
+    assert len(error.strip().splitlines()) == 1, error
+    assert f"is owned by uid {nobody.pw_uid}, not by root" in error
+    assert "--user nobody" in error and "copy the app to a folder only root can write" in error
+    assert list(units.iterdir()) == []  # nothing installed that would fail at every start
+    assert cli_main(["service", str(app_file), "--install", "--unit-dir", str(units), "--user", "nobody"]) == 0
+    assert len(list(units.iterdir())) == 1

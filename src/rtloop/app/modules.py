@@ -64,38 +64,58 @@ def installed_origin(module_name: str) -> str | None:
     return spec.origin or (list(spec.submodule_search_locations or [])[:1] or [top])[0]
 
 
-def check_owner(path: Path) -> None:
+def check_owner(path: Path, trusted: set[int] | None = None, whom: str | None = None) -> None:
     """Refuse a module file owned by someone other than the caller or root (under sudo, the
-    user who ran sudo is the caller too: they could run anything as root already)."""
+    user who ran sudo is the caller too: they could run anything as root already).
+    ``trusted``/``whom``: check for other users than this process's (a service's, say)."""
     owner = os.stat(path).st_uid
-    if owner not in _trusted_uids():
-        raise ModuleRefused(f"{path} is owned by uid {owner}, not by you (uid {os.geteuid()}) or root; "
-                            "rtloop will not run it")
+    if owner not in (trusted or _trusted_uids()):
+        raise ModuleRefused(f"{path} is owned by uid {owner}, not by {whom or _whom()}; rtloop will not run it")
 
 
-def check_folders(folder: Path) -> None:
+def check_folders(folder: Path, trusted: set[int] | None = None, whom: str | None = None) -> None:
     """Refuse code from a folder that another user could change: one they own, or one they may
     write to (mode, or a group with them in it), or below such a folder (they could rename it
     away and put their own in its place). A sticky folder such as /tmp is fine: there nobody
     renames or removes what they do not own."""
-    trusted = _trusted_uids()
+    trusted = trusted or _trusted_uids()
     for path in (folder, *folder.parents):
         facts = os.stat(path)
         if facts.st_uid not in trusted:
-            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or "
-                                "root; rtloop will not run code from below it")
-        writer = _untrusted_writer(facts, trusted)
+            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by {whom or _whom()}; "
+                                "rtloop will not run code from below it")
+        writer = _untrusted_writer(facts, trusted, whom or _whom())
         if writer and not facts.st_mode & stat.S_ISVTX:
             raise ModuleRefused(f"{path} is {writer}; rtloop will not run code from below it "
                                 f"(chmod go-w {path})")
 
 
-def _untrusted_writer(facts: os.stat_result, trusted: set[int]) -> str | None:
+def check_code_for_user(folder: Path, uid: int, whom: str) -> None:
+    """Would a process of ``uid`` (without sudo) accept the modules loaded here from ``folder``
+    (an app file's), and the folders above? For a service that will load the app as that user."""
+    trusted = {0, uid}
+    for path in loaded_module_files(folder):
+        check_owner(path, trusted, whom)
+        writer = _untrusted_writer(os.stat(path), trusted, whom)
+        if writer:
+            raise ModuleRefused(f"{path} is {writer}; rtloop will not run it (chmod go-w {path})")
+        check_folders(path.parent, trusted, whom)
+
+
+def loaded_module_files(folder: Path) -> list[Path]:
+    """The modules this process loaded by path from ``folder`` (beside an app file)."""
+    folder = folder.resolve()
+    return [Path(module.__file__) for module in list(sys.modules.values())
+            if isinstance(getattr(module, "__loader__", None), _SourceOnlyLoader) and module.__file__
+            and Path(module.__file__).parent == folder]
+
+
+def _untrusted_writer(facts: os.stat_result, trusted: set[int], whom: str) -> str | None:
     """Who other than a trusted user may write a file with these facts (None: nobody)."""
     if facts.st_mode & stat.S_IWOTH:
         return "writable by every user"
     if facts.st_mode & stat.S_IWGRP and not _group_members(facts.st_gid) <= trusted:
-        return f"writable by group {facts.st_gid}, whose members are not all you or root"
+        return f"writable by group {facts.st_gid}, whose members are not all {whom}"
     return None
 
 
@@ -124,15 +144,18 @@ def read_checked_source(path: Path) -> bytes:
             raise ModuleRefused(f"{path}: not a regular file; rtloop will not run it")
         trusted = _trusted_uids()
         if facts.st_uid not in trusted:
-            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or root; "
-                                "rtloop will not run it")
-        writer = _untrusted_writer(facts, trusted)
+            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by {_whom()}; rtloop will not run it")
+        writer = _untrusted_writer(facts, trusted, _whom())
         if writer:
             raise ModuleRefused(f"{path} is {writer}; rtloop will not run it (chmod go-w {path})")
         with os.fdopen(os.dup(fd), "rb") as stream:
             return stream.read()
     finally:
         os.close(fd)
+
+
+def _whom() -> str:
+    return f"you (uid {os.geteuid()}) or root"
 
 
 def _trusted_uids() -> set[int]:
