@@ -44,6 +44,23 @@ def assert_report(out: Path) -> None:
 
 
 @pytest.fixture
+def reports_asked(monkeypatch: pytest.MonkeyPatch) -> list[tuple[list[Path], Path]]:
+    """The run directories each experiment hands to the report writer, which writes nothing here:
+    the comparison report itself (seconds of figures) is checked once, in the affinity test."""
+    from rtloop.cli import bench
+
+    asked: list[tuple[list[Path], Path]] = []
+    monkeypatch.setattr(bench, "_write_report", lambda run_dirs, out: asked.append((list(run_dirs), out)))
+    return asked
+
+
+def assert_table_and_record(out: Path, run_dirs: list[Path], reports_asked: list[tuple[list[Path], Path]]) -> None:
+    assert reports_asked == [(run_dirs, out)]
+    assert (out / "table.md").is_file()
+    assert json.loads((out / "bench.json").read_text())["rows"]
+
+
+@pytest.fixture
 def no_rt(monkeypatch: pytest.MonkeyPatch) -> None:
     """Make the capability probe say real time is not allowed."""
     refused = replace(rt.probe(), may_use_rt=False, rt_reason="no CAP_SYS_NICE and RLIMIT_RTPRIO is 0")
@@ -72,11 +89,11 @@ def test_affinity_runs_same_and_different_cores(tmp_path: Path, capsys: pytest.C
 
 @pytest.mark.rt
 @pytest.mark.skipif(shutil.which("stress-ng") is None, reason="stress-ng not installed")
-def test_stress_runs_quiet_and_stressed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_stress_runs_quiet_and_stressed(tmp_path: Path, reports_asked, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["bench", "stress", "--duration", DURATION, "--out", str(tmp_path)]) == 0
     for run in ("quiet", "stressed"):
         assert summary(tmp_path / run)["tasks"]["primes"]["cycles"] > 0
-    assert_report(tmp_path)
+    assert_table_and_record(tmp_path, [tmp_path / "quiet", tmp_path / "stressed"], reports_asked)
     printed = capsys.readouterr()
     assert table_rows(printed.out) == [("quiet", "primes"), ("stressed", "primes")]
     assert "stress-ng --taskset" in printed.out
@@ -84,17 +101,18 @@ def test_stress_runs_quiet_and_stressed(tmp_path: Path, capsys: pytest.CaptureFi
 
 @pytest.mark.rt
 @pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) not installed")
-def test_cyclictest_side_by_side(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cyclictest_side_by_side(tmp_path: Path, reports_asked, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["bench", "cyclictest", "--duration", DURATION, "--out", str(tmp_path)]) == 0
     assert summary(tmp_path / "rtloop")["tasks"]["noop"]["cycles"] > 0
     assert json.loads((tmp_path / "cyclictest" / "cyclictest.json").read_text())["num_threads"] == 1
     assert (tmp_path / "cyclictest" / "cyclictest.txt").is_file()
-    assert_report(tmp_path)
+    assert_table_and_record(tmp_path, [tmp_path / "rtloop"], reports_asked)
     assert table_rows(capsys.readouterr().out) == [("rtloop", "noop"), ("cyclictest", "cyclictest")]
 
 
-def test_allow_non_rt_runs_under_sched_other(tmp_path: Path, no_rt: None, capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli_main(["bench", "affinity", "--duration", DURATION, "--out", str(tmp_path), "--allow-non-rt"]) == 0
+def test_allow_non_rt_runs_under_sched_other(tmp_path: Path, no_rt: None, reports_asked,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["bench", "affinity", "--duration", "0.5", "--out", str(tmp_path), "--allow-non-rt"]) == 0
     tasks = summary(tmp_path / "same-core")["tasks"]
     assert {t["policy"] for t in tasks.values()} == {"other"}
     assert "NOT REAL-TIME" in capsys.readouterr().err
