@@ -81,6 +81,25 @@ def test_gains_written_while_running_take_effect_at_a_release(tmp_path: Path) ->
     assert _at(rows, 0.050)["pi.voltage_V"] != late[0]["pi.voltage_V"]  # the proportional part went at 0.050
 
 
+def test_the_examples_ports_into_actuators_refuse_what_would_make_them_dangerous() -> None:
+    from rtloop.ipc.ports import port_range
+    from rtloop.ipc.values import validate_values
+
+    def check(app: rtloop.App, port: str, values: list[float]) -> None:
+        registered = {"range": [list(b) if isinstance(b, tuple) else b for b in app.ports[port].value_range]}
+        validate_values(values, len(values), where=port, value_range=port_range(registered))
+
+    dcmotor = load_app(EXAMPLE / "dcmotor.toml")
+    check(dcmotor, "gains", [0.08, 4.0])  # the README's retune
+    for bad in ([1e308, 4.0], [1.0, 3.0], [0.05, 1e9], [-0.05, 3.0]):  # kp = 1 already makes ±24 V bang-bang
+        with pytest.raises(ValueError, match="outside its range"):
+            check(dcmotor, "gains", bad)
+    jiwy = load_app(EXAMPLE.parent / "jiwy" / "jiwy.toml")
+    check(jiwy, "setpoint", [0.5, 0.3])
+    with pytest.raises(ValueError, match="outside its range"):
+        check(jiwy, "setpoint", [1e308, 0.0])
+
+
 def test_live_parameters_are_one_line_on_a_runnable_and_become_named_inputs() -> None:
     class Gain(rtloop.Runnable):
         n_inputs, n_outputs = 1, 1

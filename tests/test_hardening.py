@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 from pathlib import Path
 
@@ -181,6 +182,32 @@ def test_port_range_rejects_values_outside_like_nan(tmp_path: Path) -> None:
         assert layout.input_ports["set"].writes == 1
     finally:
         layout.close()
+
+
+def test_a_range_per_value_bounds_each_value_of_the_port_on_its_own(tmp_path: Path) -> None:
+    name = _unique("ranged2")
+    path = _write(tmp_path, f'name = "{name}"\n' + GOOD_TASK +
+                  '[ports.set]\nto = "t.u"\nrange = [[0, 0.5], [0, 20]]\n')
+    app = load_app(path)
+    assert app.ports["set"].value_range == ((0.0, 0.0), (0.5, 20.0))
+    layout = AppLayout.create(app)
+    try:
+        running = connect_app(name)  # the range goes through the registry to every writer
+        running.write("set", [0.5, 20.0])
+        for bad, message in (([1e308, 4.0], r"1e\+308 at index 0 .* range \[0.0, 0.5\]"),
+                             ([0.1, 25.0], r"25.0 at index 1 .* range \[0.0, 20.0\]")):
+            with pytest.raises(PortValueError, match=message):
+                running.write("set", bad)
+        assert layout.input_ports["set"].writes == 1
+    finally:
+        layout.close()
+    assert narrowest_range(((0.0, 0.0), (0.5, 20.0)), (-1.0, 10.0)) == ((0.0, 0.0), (0.5, 10.0))
+    for wrong, said in (("[[0, 1]]", "1 [lo, hi] pairs, the port has 2"), ("[[0, 1], [2, 1]]", "lo ≤ hi"),
+                        ("[[0, 1], 5]", "range must hold numbers"),
+                        ("[1, 2, 3]", "range must be [lo, hi] or one [lo, hi] per value")):
+        path.write_text(f'name = "{name}"\n' + GOOD_TASK + f'[ports.set]\nto = "t.u"\nrange = {wrong}\n')
+        with pytest.raises(AppError, match=re.escape(said)):
+            load_app(path)
 
 
 def test_validate_values_range() -> None:

@@ -40,7 +40,8 @@
                                                # column per value; each row holds until the next
     nudge = "offset"                           # with a feed, live writes add to it ("override": a write
                                                # holds until the next row); without nudge they are refused
-    range = [-1.0, 1.0]                        # writes outside it are refused and counted (or value_range)
+    range = [-1.0, 1.0]                        # writes outside it are refused and counted (or value_range);
+                                               # [[0.0, 0.5], [0.0, 20.0]]: one [lo, hi] per value
 
     [record]
     signals = ["plant.y", "controller.y"]

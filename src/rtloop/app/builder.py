@@ -191,6 +191,10 @@ class Connection:
     """Let NaN and ±inf cross (counted and named in the summary); otherwise they are a fault."""
 
 
+ValueRange = tuple[float, float] | tuple[tuple[float, ...], tuple[float, ...]]
+"""A port's ``(lo, hi)``: two numbers for all its values, or two tuples with one number per value."""
+
+
 @dataclass(frozen=True, slots=True)
 class PortSpec:
     """A named endpoint between the app and non-real-time code."""
@@ -202,8 +206,8 @@ class PortSpec:
     allow_nonfinite: bool = False
     capacity: int = 4096
     feed: Path | None = None
-    value_range: tuple[float, float] | None = None
-    """``[lo, hi]``: values written to an input port outside it are refused (like NaN)."""
+    value_range: ValueRange | None = None
+    """``[lo, hi]`` (or one pair per value): values written to an input port outside it are refused (like NaN)."""
     nudge: str | None = None
     """A port fed from a profile takes live writes too: ``offset`` (the task sees the profile
     plus the latest value written) or ``override`` (a write holds until the profile's next row)."""
@@ -474,9 +478,9 @@ class App:
         allow_nonfinite: bool = False,
         capacity: int = 4096,
         feed: str | Path | None = None,
-        value_range: tuple[float, float] | list[float] | None = None,
+        value_range: tuple[float, float] | list[float] | list[list[float]] | None = None,
         nudge: str | None = None,
-        range: tuple[float, float] | list[float] | None = None,  # the app file's key, accepted here too
+        range: tuple[float, float] | list[float] | list[list[float]] | None = None,  # the app file's key too
     ) -> PortSpec:
         """A port into a task (``to=``, latest value) or out of one (``source=``, every tick).
 
@@ -485,9 +489,9 @@ class App:
         it (``t_s`` then one column per value, each row held until the next: zero-order
         hold); live writes are then refused unless ``nudge="offset"`` (the task reads the
         row plus the latest value written, 0 until then) or ``nudge="override"`` (a write
-        holds until the next row starts). ``value_range=(lo, hi)`` (``range`` in an app file):
-        values written from outside that fall outside it are refused and counted, like NaN;
-        ``range=`` is accepted as the same.
+        holds until the next row starts). ``value_range=(lo, hi)`` (``range`` in an app file),
+        or one ``(lo, hi)`` per value (``[[0, 0.5], [0, 50]]``): values written from outside that
+        fall outside it are refused and counted, like NaN; ``range=`` is accepted as the same.
         """
         what = f"port {shorten(name)}"
         if range is not None:
@@ -506,14 +510,16 @@ class App:
                 raise AppError(f"{what}: to={ref} must be a task input (u)")
             self._check_single_writer(ref, what)
             initial_values = None
-            checked_range = _check_range(what, value_range)
+            checked_range = _check_range(what, value_range, ref.size)
             if initial is not None:
                 if len(initial) != ref.size:
                     raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
                 initial_values = tuple(_number(what, "initial", v) for v in initial)
-                if checked_range and any(not checked_range[0] <= v <= checked_range[1] for v in initial_values):
-                    raise AppError(f"{what}: initial {shorten(list(initial_values))} is outside its range "
-                                   f"{list(checked_range)}")
+                for index, value in enumerate(initial_values if checked_range else ()):
+                    low, high = range_of_value(checked_range, index)  # type: ignore[arg-type]
+                    if not low <= value <= high:
+                        raise AppError(f"{what}: initial {shorten(list(initial_values))} is outside its range: "
+                                       f"value {index} must lie in [{low!r}, {high!r}]")
             if nudge is not None and nudge not in NUDGE_MODES:
                 raise AppError(f"{what}: nudge {shorten(nudge)}; expected one of {list(NUDGE_MODES)}")
             spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
@@ -744,15 +750,30 @@ def _number(what: str, key: str, value: object) -> float:
         raise AppError(f"{what}: {key} value {shorten(value)} does not fit a float64") from None
 
 
-def _check_range(what: str, value_range: object) -> tuple[float, float] | None:
+def _check_range(what: str, value_range: object, size: int | None = None) -> ValueRange | None:
+    """``[lo, hi]`` for every value, or (a port of ``size`` values) ``[[lo, hi], ...]``, one pair per
+    value: a port of gains in different units needs a bound of its own for each."""
     if value_range is None:
         return None
+    if size is not None and isinstance(value_range, list | tuple) and value_range \
+            and all(isinstance(pair, list | tuple) for pair in value_range):
+        if len(value_range) != size:
+            raise AppError(f"{what}: range has {len(value_range)} [lo, hi] pairs, the port has {size} values")
+        pairs = [_check_range(f"{what}: range[{index}]", pair) for index, pair in enumerate(value_range)]
+        return tuple(pair[0] for pair in pairs), tuple(pair[1] for pair in pairs)  # type: ignore[index,return-value]
     if not isinstance(value_range, list | tuple) or len(value_range) != 2:
-        raise AppError(f"{what}: range must be [lo, hi], got {shorten(value_range)}")
+        one_per_value = " or one [lo, hi] per value" if size is not None and size > 1 else ""
+        raise AppError(f"{what}: range must be [lo, hi]{one_per_value}, got {shorten(value_range)}")
     low, high = (_number(what, "range", v) for v in value_range)
     if not (math.isfinite(low) and math.isfinite(high) and low <= high):
         raise AppError(f"{what}: range [{low!r}, {high!r}] must be finite with lo ≤ hi")
     return low, high
+
+
+def range_of_value(value_range: ValueRange, index: int) -> tuple[float, float]:
+    """The ``(lo, hi)`` that value ``index`` of a port must lie in."""
+    low, high = value_range
+    return (low[index] if isinstance(low, tuple) else low, high[index] if isinstance(high, tuple) else high)
 
 
 def _check_cpu(where: str, cpu: int | None, policy: str) -> None:

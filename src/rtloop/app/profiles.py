@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -11,10 +12,10 @@ from rtloop.errors import AppError, ConnectionSizeError
 
 
 def load_profile(path: Path, size: int, where: str,
-                 value_range: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 value_range: tuple[Any, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Read a CSV profile: header ``t_s,...`` then rows; returns (t_ns, values).
 
-    ``value_range``: the port's ``[lo, hi]``; a profile value outside it is refused as a
+    ``value_range``: the port's ``[lo, hi]`` (or one per value); a profile value outside it is refused as a
     live write would be (naming the file, the row and the column).
     """
     try:
@@ -43,8 +44,8 @@ def load_profile(path: Path, size: int, where: str,
         if not all(np.isfinite(numbers)):
             raise AppError(f"{where}: {path}:{line_number}: NaN or infinite value in {row}")
         if value_range is not None:
-            low, high = value_range
-            for column, value in zip(header[1:], numbers[1:], strict=True):
+            for index, (column, value) in enumerate(zip(header[1:], numbers[1:], strict=True)):
+                low, high = (bound[index] if isinstance(bound, tuple) else bound for bound in value_range)
                 if not low <= value <= high:
                     raise AppError(f"{where}: {path}:{line_number}: column {column.strip()!r} is {value!r}, outside "
                                    f"the port's range [{low!r}, {high!r}]")

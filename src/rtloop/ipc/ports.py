@@ -168,9 +168,13 @@ class PortReader:
         self.close()
 
 
-def port_range(info: dict[str, Any]) -> tuple[float, float] | None:
+def port_range(info: dict[str, Any]) -> tuple[Any, Any] | None:
+    """The registry's range of a port: ``(lo, hi)``, each a number or a tuple with one per value."""
     value = info.get("range")
-    return (float(value[0]), float(value[1])) if value else None
+    if not value:
+        return None
+    return tuple(tuple(float(v) for v in bound) if isinstance(bound, list | tuple) else float(bound)
+                 for bound in value[:2])  # type: ignore[return-value]
 
 
 def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp:

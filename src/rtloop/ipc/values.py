@@ -31,13 +31,14 @@ class RejectedValues(PortValueError):
 
 
 def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, where: str = "value",
-                    value_range: tuple[float, float] | None = None) -> np.ndarray:
+                    value_range: tuple[Any, Any] | None = None) -> np.ndarray:
     """``values`` as a new flat float64 array of ``size`` numbers, or :class:`RejectedValues` naming what is wrong.
 
     Only ints and floats count as numbers (numpy would otherwise read ``"1.5"`` or ``True``);
     a single number stands for one value. NaN and ±inf are refused unless ``allow_nonfinite``
     (one NaN fed back into a controller makes every later output NaN); with ``value_range``
-    ``(lo, hi)``, a value outside it is refused (a NaN, when allowed, passes).
+    ``(lo, hi)`` (numbers, or sequences with one bound per value), a value outside it is refused
+    (a NaN, when allowed, passes).
     """
     try:
         raw = np.asarray(values)
@@ -56,10 +57,10 @@ def validate_values(values: Any, size: int, *, allow_nonfinite: bool = False, wh
             raise RejectedValues("nonfinite", f"{where}: NaN or infinite value at index {shorten(bad.tolist())} of "
                                  f"{shorten(array.tolist())}")
     if value_range is not None:
-        low, high = value_range
+        low, high = (np.broadcast_to(np.asarray(bound, dtype=np.float64), array.shape) for bound in value_range)
         outside = np.flatnonzero(~((array >= low) & (array <= high)) & ~np.isnan(array))
         if outside.size:
             first = int(outside[0])
             raise RejectedValues("range", f"{where}: value {float(array[first])!r} at index {first} is outside its "
-                                 f"range [{float(low)!r}, {float(high)!r}]")
+                                 f"range [{float(low[first])!r}, {float(high[first])!r}]")
     return array

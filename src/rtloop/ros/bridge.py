@@ -17,12 +17,15 @@ stalls the real-time side: ports drop and count when nobody reads them.
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from rtloop.app.builder import RosTopic
 from rtloop.errors import PortValueError
@@ -230,12 +233,19 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats) 
             subscriber.wait(0.05)
 
 
-def narrowest_range(*ranges: tuple[float, float] | None) -> tuple[float, float] | None:
-    """Where all the given ranges overlap (the topic's and the port's); None if none is given."""
+def narrowest_range(*ranges: tuple[Any, Any] | None) -> tuple[Any, Any] | None:
+    """Where all the given ranges overlap (the topic's and the port's, value by value when either
+    has one bound per value); None if none is given."""
     given = [r for r in ranges if r is not None]
     if not given:
         return None
-    return max(low for low, _ in given), min(high for _, high in given)
+    low = functools.reduce(np.maximum, (np.asarray(r[0], dtype=np.float64) for r in given))
+    high = functools.reduce(np.minimum, (np.asarray(r[1], dtype=np.float64) for r in given))
+    return tuple(_plain(bound) for bound in (low, high))  # type: ignore[return-value]
+
+
+def _plain(bound: np.ndarray) -> float | tuple[float, ...]:
+    return float(bound) if bound.ndim == 0 else tuple(float(v) for v in bound)
 
 
 def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -> None:
