@@ -89,7 +89,7 @@ def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_0
     kernel worker of normal priority, which a loaded shared machine can starve for tens of ms."""
     text = (EXAMPLE / "dcmotor_serial.toml").read_text()
     text = text.replace('name = "dcmotor_serial"', f'name = "{name}"')
-    text = text.replace('"/tmp/dcmotor-serial.tty"', f'"{port}"').replace("timeout_ms = 0.8 ", "timeout_ms = 1000.0")
+    text = text.replace('"runs/dcmotor-serial.tty"', f'"{port}"').replace("timeout_ms = 0.8 ", "timeout_ms = 1000.0")
     text = text.replace("period_ns = 1_000_000", f"period_ns = {period_ns}")
     profile = EXAMPLE.parent / "dcmotor" / "profiles" / "speed_steps.csv"
     text = text.replace('"../dcmotor/profiles/speed_steps.csv"', f'"{profile}"')

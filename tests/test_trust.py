@@ -495,3 +495,42 @@ def test_a_sweep_into_roots_folder_says_so_in_one_line(second_user, open_dir: Pa
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert f"--out {out}" in done.stderr and "permission denied" in done.stderr.lower(), done.stderr
     assert (out / "sweep.csv").read_text() == "pi.kp\n"
+
+
+# --- serial devices: a link or a pty another user planted (B7) --------------------------------
+@pytest.fixture
+def pty_path() -> Iterator[str]:
+    main, follower = os.openpty()
+    yield os.ttyname(follower)
+    os.close(main)
+    os.close(follower)
+
+
+def _serial(port: Path | str):
+    from rtloop.io.serial import SerialDevice
+
+    return SerialDevice("motor", port=str(port), baudrate=115200, timeout_ms=5.0, commands=["v"], readings=["w"])
+
+
+@needs_root
+def test_a_serial_link_another_user_planted_is_refused(open_dir: Path, pty_path: str) -> None:
+    from rtloop.errors import DeviceError
+
+    link = open_dir / "motor.tty"  # /tmp-like: anyone may plant a name there first
+    link.symlink_to(pty_path)
+    _serial(link).check()  # root's own link to root's pty
+    os.chown(link, NOBODY_UID, NOBODY_UID, follow_symlinks=False)
+    with pytest.raises(DeviceError, match=f"{link} is a symbolic link owned by uid {NOBODY_UID}"):
+        _serial(link).check()
+
+
+@needs_root
+def test_a_serial_device_node_of_another_user_is_refused(open_dir: Path, pty_path: str) -> None:
+    from rtloop.errors import DeviceError
+
+    link = open_dir / "motor.tty"
+    link.symlink_to(pty_path)
+    os.chown(pty_path, NOBODY_UID, -1)  # their pty: they read every command and answer as the motor
+    for port in (pty_path, link):
+        with pytest.raises(DeviceError, match=f"{pty_path} is owned by uid {NOBODY_UID}"):
+            _serial(port).check()

@@ -124,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     master, slave = os.openpty()  # the driver keeps the slave open too: the line stays up between clients
     tty.setraw(slave)
     slave_path = os.ttyname(slave)
+    args.link.parent.mkdir(parents=True, exist_ok=True)
     if args.link.is_symlink():
         args.link.unlink()
     os.symlink(slave_path, args.link)

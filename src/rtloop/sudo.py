@@ -17,3 +17,13 @@ def invoking_user() -> tuple[int, int] | None:
     if not (_NUMBER.fullmatch(uid) and _NUMBER.fullmatch(gid)):
         return None
     return int(uid), int(gid)
+
+
+def trusted_uids() -> set[int]:
+    """Whose files rtloop may run or talk to: root's, the caller's and, under sudo, those of the
+    user who ran sudo (they could run anything as root already)."""
+    uids = {0, os.geteuid()}
+    invoker = invoking_user()
+    if invoker is not None:
+        uids.add(invoker[0])
+    return uids

@@ -38,7 +38,7 @@ from types import ModuleType
 from typing import Any, ClassVar
 
 from rtloop.errors import AppError
-from rtloop.sudo import invoking_user
+from rtloop.sudo import trusted_uids
 
 
 class ModuleRefused(AppError):
@@ -159,11 +159,7 @@ def _whom() -> str:
 
 
 def _trusted_uids() -> set[int]:
-    uids = {0, os.geteuid()}
-    invoker = invoking_user()
-    if invoker is not None:
-        uids.add(invoker[0])
-    return uids
+    return trusted_uids()
 
 
 def load_module_file(module_name: str, path: str | Path) -> ModuleType:

@@ -36,6 +36,7 @@ import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import Device, FloatVector, Setting
+from rtloop.sudo import trusted_uids
 
 REQUEST_SYNC = 0xA5
 RESPONSE_SYNC = 0x5A
@@ -125,6 +126,29 @@ def _names(value: list[Any]) -> str | None:
     return None if len(set(value)) == len(value) else "a name is given twice"
 
 
+def foreign_owner(path: str, opened: os.stat_result | None = None) -> str | None:
+    """Why ``path`` may lead to another user's line (None: it does not). A symbolic link on the
+    way owned by another user, or a device node of theirs (a pty they hold the other end of),
+    would let them read every command and answer as the device. A tty of root:dialout is fine."""
+    trusted = trusted_uids()
+    whom = f"not by you (uid {os.geteuid()}) or root; rtloop will not talk to it"
+    current = path
+    try:
+        for _ in range(40):  # the kernel's own limit of links followed
+            facts = os.lstat(current)
+            if not stat.S_ISLNK(facts.st_mode):
+                break
+            if facts.st_uid not in trusted:
+                return f"{current} is a symbolic link owned by uid {facts.st_uid}, {whom}"
+            current = os.path.join(os.path.dirname(current), os.readlink(current))
+        node = opened or os.stat(path)
+    except OSError as error:
+        return f"{current}: cannot follow it ({error.strerror}); it changed while rtloop looked"
+    if node.st_uid not in trusted:
+        return f"{os.path.realpath(path)} is owned by uid {node.st_uid}, {whom}"
+    return None
+
+
 class SerialDevice(Device):
     """A device answering one framed request per cycle on a serial line (see the module)."""
 
@@ -167,6 +191,9 @@ class SerialDevice(Device):
             raise DeviceError(self.name, "", "port", f"{path}: no permission to look at it") from None
         if not stat.S_ISCHR(status.st_mode):
             raise DeviceError(self.name, "", "port", f"{path} is not a character device (a serial line)")
+        foreign = foreign_owner(path)
+        if foreign:
+            raise DeviceError(self.name, "", "port", foreign)
         if not os.access(path, os.R_OK | os.W_OK):
             try:
                 group = grp.getgrgid(status.st_gid).gr_name
@@ -188,6 +215,10 @@ class SerialDevice(Device):
                                        exclusive=True)
         except (serial.SerialException, OSError, ValueError) as error:
             raise DeviceError(self.name, "", "port", f"cannot open {self.config['port']}: {error}") from None
+        foreign = foreign_owner(self.config["port"], os.fstat(self._line.fileno()))  # the node opened
+        if foreign:
+            self._line.close()
+            raise DeviceError(self.name, "", "port", foreign)
         self._line.reset_input_buffer()  # nothing left over from before counts as an answer
         self.fd = self._line.fileno()
         self.poller = select.poll()
