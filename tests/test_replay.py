@@ -187,13 +187,13 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
                              "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s", "--quiet"],
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "20",
+        process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "8",
                                     "--out", str(run_dir), "-q"], env=rtloop_env,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             app = connect_app(name, timeout_s=30)
-            for step in range(12):  # a new setpoint every 1.5 s, the first at about 1 s
-                time.sleep(1.5 if step else 1.0)
+            for step in range(8):  # a new setpoint every 0.6 s, the first at about 1 s
+                time.sleep(0.6 if step else 1.0)
                 app.write("setpoint", [0.4 * (-1) ** step, 0.1 * (step % 3)])
         finally:
             _out, err = process.communicate(timeout=120)
@@ -371,7 +371,7 @@ def _keep_run_replays_its_window(tmp_path: Path, fmu: Path, duration_s: float, k
     def write_setpoints() -> None:  # live port writes all along, some before the window, some in it
         app = connect_app(name, timeout_s=60)
         step = 0
-        while not done.wait(0.7):
+        while not done.wait(min(0.7, keep_s / 3)):  # several inside the window
             app.write("setpoint", [0.3 * (-1) ** step, 0.05 * (step % 4)])
             step += 1
 
@@ -394,17 +394,23 @@ def _keep_run_replays_its_window(tmp_path: Path, fmu: Path, duration_s: float, k
 
 @pytest.mark.rt
 @pytest.mark.timeout(400)
-def test_a_keep_run_replays_its_last_window_python_and_fmu_tasks(tmp_path: Path, jiwy_fmu: Path) -> None:
-    # 16 one-second segments, more than the flight recorder keeps (12 pinned + the window):
-    # the early ones are gone, so the replay must start from a snapshot
-    _keep_run_replays_its_window(tmp_path, jiwy_fmu, 16.0, 1.0)
+def test_a_keep_run_replays_its_last_window_python_and_fmu_tasks(tmp_path: Path, jiwy_fmu: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    # 20 segments of a quarter of a second (the recorder's shortest is 1 s; shortened here, the
+    # run is the same in every other respect), more than the flight recorder keeps (12 pinned +
+    # the window of 0.5 s, its snapshot's segment and the current one): the early ones are gone,
+    # so the replay must start from a snapshot
+    from rtloop.record import flight
+
+    monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)
+    _keep_run_replays_its_window(tmp_path, jiwy_fmu, 5.0, 0.5)
 
 
 @pytest.mark.rt
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 @pytest.mark.skipif(os.environ.get(LONG_TESTS_ENV) != "1", reason=f"a 60 s run: set {LONG_TESTS_ENV}=1 to run it "
-                    "(test_a_keep_run_replays_its_last_window_python_and_fmu_tasks is its 16 s variant)")
+                    "(test_a_keep_run_replays_its_last_window_python_and_fmu_tasks is its 5 s variant)")
 def test_a_keep_10_run_of_60_s_replays_its_last_window_python_and_fmu_tasks(tmp_path: Path, jiwy_fmu: Path) -> None:
     _keep_run_replays_its_window(tmp_path, jiwy_fmu, 60.0, 10.0)
 
