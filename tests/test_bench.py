@@ -185,3 +185,11 @@ def test_markdown_table_has_one_row_per_task() -> None:
 def test_rt_neighbours_leaves_out_this_process() -> None:
     found = experiments.rt_neighbours(set(os.sched_getaffinity(0)))
     assert all(f"pid {os.getpid()} " not in entry for entry in found)
+
+
+def test_the_bench_apps_are_named_per_process() -> None:
+    """A live app's name is its user's alone: two benches at once (two checkouts' suites) must not collide."""
+    settings = experiments.Settings(1.0, Path("unused"), 1, 0, "other", trim=0)
+    names = {experiments.primes_pair_app("same_core", settings, (1, 1)).name,
+             experiments.single_task_app("noop", settings, experiments.NoOp(), "noop").name}
+    assert names == {f"same_core_{os.getpid()}", f"noop_{os.getpid()}"}

@@ -275,10 +275,16 @@ def write_outcome(outcome: Outcome, run_dirs: list[Path], settings: Settings) ->
     return outcome
 
 
+def bench_app_name(run: str) -> str:
+    """The app name of one run: a live app's name is its user's alone, and another bench (another checkout's
+    test, another terminal) may run at the same time; its threads are noted as neighbours, not refused."""
+    return f"{run}_{os.getpid()}"
+
+
 # --- affinity (thesis 6.3.1) ---------------------------------------------------------------------
 def primes_pair_app(name: str, settings: Settings, cpus: tuple[int, int]) -> App:
     """Two primes tasks, priorities 80 and 79, on ``cpus``."""
-    app = App(name)
+    app = App(bench_app_name(name))
     for index, (cpu, priority) in enumerate(zip(cpus, (HIGH_PRIORITY, LOW_PRIORITY), strict=True), start=1):
         app.add_task(f"primes{index}", Primes(PRIMES_LIMIT), period_ns=PERIOD_NS,
                      priority=settings.priority(priority), cpu=cpu, policy=settings.policy)
@@ -316,7 +322,7 @@ def stress_command(settings: Settings) -> list[str]:
 
 def single_task_app(name: str, settings: Settings, runnable: Runnable, task: str) -> App:
     """One task at priority 80 on the measured core."""
-    app = App(name)
+    app = App(bench_app_name(name))
     app.add_task(task, runnable, period_ns=PERIOD_NS, priority=settings.priority(HIGH_PRIORITY), cpu=settings.cpu,
                  policy=settings.policy)
     return app
