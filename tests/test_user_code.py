@@ -177,3 +177,16 @@ def test_a_local_class_round_trips_with_its_closure_and_parameters() -> None:
     y = np.zeros(1)
     copy.step(np.ones(1), y)
     assert y[0] == 10.0
+
+
+def test_a_sibling_that_links_to_a_module_elsewhere_loads_that_file(tmp_path: Path) -> None:
+    elsewhere = tmp_path / "lib"
+    elsewhere.mkdir()
+    app_folder = tmp_path / "app"
+    app_folder.mkdir()
+    motor, faulty = _two_modules(elsewhere, secrets.token_hex(3))
+    (app_folder / f"{faulty}.py").write_text((elsewhere / f"{faulty}.py").read_text())
+    (app_folder / f"{motor}.py").symlink_to(elsewhere / f"{motor}.py")
+    app = load_app(_app_toml(app_folder, f"link{os.getpid()}", f"{faulty}:Faulty"))
+    assert sys.modules[motor].__file__ == str(elsewhere / f"{motor}.py")
+    assert type(app.tasks["t"].runnable).__mro__[1].__name__ == "PiSpeed"

@@ -214,7 +214,10 @@ class SiblingFinder(importlib.abc.MetaPathFinder):
         for folder in self.folders:
             candidate = module_beside(folder, fullname)
             if candidate is not None:
+                candidate = candidate.resolve()  # a link to a module elsewhere: that file, in its folder
                 check_owner(candidate)
+                if candidate.parent != folder:
+                    check_folders(candidate.parent)
                 loader = _SourceOnlyLoader(fullname, str(candidate))
                 return importlib.util.spec_from_file_location(fullname, candidate, loader=loader)
         return None
