@@ -55,8 +55,15 @@ def test_a_nan_crossing_a_connection_is_a_fault_naming_task_cycle_and_output(tmp
     with pytest.raises(TaskFailed) as failed:
         run(_app(f"nan_fault_{mode}_{hot_path}_{os.getpid()}", allow=False), 0.2, tmp_path)
     error = failed.value
-    assert error.task == "plant" and error.phase == "step" and error.cycle == 30
-    assert "plant.y[1] (speed)" in error.reason and "nan" in error.reason and "cycle 30" in error.reason
+    assert error.task == "plant" and error.phase == "step"
+    if mode == "simulate":
+        assert error.cycle == 30
+    else:  # the first cycle that ran from 30 on: a loaded machine may skip releases 30, 31, ...
+        with open(tmp_path / "timing.csv") as file:
+            ran = [int(row.split(",")[1]) for row in file if row.startswith("plant,")]
+        assert error.cycle >= 30 and ran and max(ran) < 30, (error.cycle, ran[-3:])
+    assert "plant.y[1] (speed)" in error.reason and "nan" in error.reason
+    assert f"cycle {error.cycle}" in error.reason
     assert "allow_nonfinite" in error.reason  # says how to let it through
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["tasks"]["plant"]["nonfinite_values"] == 1
