@@ -150,7 +150,8 @@ def test_unlogged_port_values_dropped_reads_and_a_stopped_recording_are_named(tm
         "then on",
         "the run's read log of plant dropped 4 stale reads (recording.reads_dropped: ring full): the replay reads "
         "what logical execution time promised there instead",
-        "the recording stopped during the run (disk full): its files end there, the rest of the run is not compared")
+        "the recording stopped during the run (disk full): its files end there (timing.csv holds every task up to "
+        "t = 0.2 s), what was recorded is replayed and compared, the rest of the run is not")
     assert result.divergence is not None and result.divergence.task == "controller", "the unlogged write shows"
 
 
@@ -198,3 +199,41 @@ def test_timing_records_said_lost_where_timing_csv_shows_no_place_for_them_are_n
     assert not result.equal and result.cannot is None
     assert result.lost == ("the run says it lost 1 of plant's timing records (recording.lost), yet timing.csv shows "
                            "no place they could have been: the replay cannot tell what they were",)
+
+
+def test_a_recording_stopped_by_a_full_disk_replays_what_it_holds_and_says_where_it_stopped(tmp_path: Path) -> None:
+    from rtloop.runtime.replay import replay
+
+    run = _run(tmp_path, "lost_enospc")
+    _lose(run, stopped="recording stopped at 0.1 s of run time: ENOSPC No space left on device; the run went on")
+    header, *rows = _rows(run / "timing.csv")
+    _write_rows(run / "timing.csv", [header, *sorted(rows, key=lambda row: int(row[2]))])  # as a run drains them
+    timing = (run / "timing.csv").read_text()
+    cut_at = timing.index("controller,120,")
+    (run / "timing.csv").write_text(timing[:cut_at + 20])  # the writer stopped in the middle of a line
+    signals = (run / "signals.csv").read_text()
+    (run / "signals.csv").write_text(signals[:signals.index("\n0.15,") + 9])
+    result = replay(run, tmp_path / "replay", app=_app("lost_enospc"))
+    assert result.cannot is None and result.divergence is None, result
+    assert not result.equal  # the rest of the run was never compared
+    assert f"timing.csv line {timing[:cut_at].count(chr(10)) + 1}: its last line is cut short" in "\n".join(result.lost)
+    assert "signals.csv line 152: its last line is cut short" in "\n".join(result.lost)
+    assert "ENOSPC" in result.lost[0] and "holds every task up to t = " in result.lost[0]
+    assert 100 <= result.rows_compared == result.rows_in_run < 151
+
+
+def test_a_run_killed_during_keep_is_said_to_have_never_finished(tmp_path: Path) -> None:
+    from rtloop.errors import AppError
+    from rtloop.runtime.replay import replay
+
+    run = _run(tmp_path, "lost_killed", 0.02)
+    (run / "timing.csv").unlink()
+    (run / "segments").mkdir()  # what a kill -9 of the supervisor during --keep leaves
+    with pytest.raises(AppError, match=r"the run never finished \(killed, or still running\): its recording is in "
+                                       r"segments/"):
+        replay(run, tmp_path / "replay", app=_app("lost_killed"))
+    (run / "segments").rmdir()
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({**summary, "running": True}))
+    with pytest.raises(AppError, match=r"summary\.json still says running"):
+        replay(run, tmp_path / "replay", app=_app("lost_killed"))

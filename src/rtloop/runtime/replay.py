@@ -26,6 +26,7 @@ import copy
 import csv
 import json
 import shutil
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -36,7 +37,7 @@ import numpy as np
 from rtloop.app.builder import App
 from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
-from rtloop.runtime.session import check_out_dir
+from rtloop.runtime.session import UNFINISHED_FOLDER, check_out_dir
 from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
 from rtloop.runtime.snapshot import SNAPSHOTS_DIR, TaskSnapshot, read_snapshots, restore_state
 
@@ -194,15 +195,41 @@ def port_writes(run_dir: Path) -> PortWrites:
     return writes
 
 
-def read_timing(run_dir: Path, periods_ns: dict[str, int]) -> tuple[dict[str, list[CycleRecord]], int]:
-    """Each task's cycles from timing.csv (times since T0), in order, and T0 (ns, the run's clock)."""
+def whole_lines(file: Iterable[str], name: str, cut: list[str]) -> Iterator[str]:
+    """The lines of a file the recorder wrote, without a last line cut short (a full disk or a
+    kill -9 stopped the writer in the middle of it): where it was cut is added to ``cut``."""
+    for number, line in enumerate(file, start=1):
+        if not line.endswith("\n"):
+            cut.append(f"{name} line {number}: its last line is cut short (the recording stopped there); left out")
+            return
+        yield line
+
+
+def unfinished(run_dir: Path, summary: dict[str, Any]) -> str:
+    """Why a run's files were never joined (a run killed, or still running), '' if they were."""
+    if (run_dir / UNFINISHED_FOLDER).is_dir():
+        return (f"{run_dir}: the run never finished (killed, or still running): its recording is in "
+                f"{UNFINISHED_FOLDER}/, never joined into timing.csv and signals.csv, so it cannot be replayed "
+                "(rtloop.load reads it)")
+    if summary.get("running"):
+        return (f"{run_dir}: the run never finished (summary.json still says running: killed, or still "
+                "running): its timing.csv is not whole, so it cannot be replayed")
+    return ""
+
+
+def read_timing(run_dir: Path, periods_ns: dict[str, int],
+                cut: list[str] | None = None) -> tuple[dict[str, list[CycleRecord]], int]:
+    """Each task's cycles from timing.csv (times since T0), in order, and T0 (ns, the run's clock).
+
+    A last line cut short is left out, and said in ``cut``."""
     path = run_dir / "timing.csv"
     if not path.is_file():
         raise AppError(f"{run_dir}: no timing.csv: the run's timeline is unknown")
     cycles: dict[str, list[CycleRecord]] = {name: [] for name in periods_ns}
     t0_ns: int | None = None
     with open(path, newline="") as file:
-        for number, row in enumerate(csv.DictReader(file), start=2):
+        for number, row in enumerate(csv.DictReader(whole_lines(file, path.name, [] if cut is None else cut)),
+                                     start=2):
             try:
                 task, cycle = row["task"], int(row["cycle"])
                 release, start, end = int(row["release_ns"]), int(row["start_ns"]), int(row["end_ns"])
@@ -389,12 +416,14 @@ class LostCells:
 
 
 def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | None = None,
-                   from_ns: int = 0, lost: LostCells | None = None) -> tuple[int, int, Divergence | None]:
+                   from_ns: int = 0, lost: LostCells | None = None,
+                   cut: list[str] | None = None) -> tuple[int, int, Divergence | None]:
     """(rows in the run, rows equal from the first, the first divergence) from ``from_ns`` up to
     ``until_ns`` (None: the end). An empty cell of the run is a value it lost: not compared, kept
-    in ``lost``."""
+    in ``lost``; a last row cut short is left out, and said in ``cut``."""
+    cut = [] if cut is None else cut
     with open(run_csv, newline="") as a, open(replay_csv, newline="") as b:
-        run_rows, replay_rows = list(csv.reader(a)), list(csv.reader(b))
+        run_rows, replay_rows = list(csv.reader(whole_lines(a, run_csv.name, cut))), list(csv.reader(b))
     if not run_rows:
         return 0, 0, None
     header, rows = run_rows[0], run_rows[1:]
@@ -464,7 +493,8 @@ def first_miss_s(run_dir: Path) -> float | None:
     to there a run equals its plain simulation (the logical timeline); its replay goes further."""
     summary = read_summary(run_dir)
     periods = {name: task["period_ns"] for name, task in summary["tasks"].items()}
-    records, _t0_ns = read_timing(run_dir, periods)
+    cut: list[str] = []
+    records, _t0_ns = read_timing(run_dir, periods, cut)
     first: int | None = None
     for task, run in records.items():
         previous = -1
@@ -512,6 +542,9 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     run_dir, out = Path(run_dir), Path(out)
     check_out_dir(out, protect=[run_dir])  # before reading anything: refusals come first
     summary = read_summary(run_dir)
+    never_finished = unfinished(run_dir, summary)
+    if never_finished:
+        raise AppError(never_finished)
     if app is None:
         app, _duration_s = load_replay_app(run_dir)
     if app.devices:
@@ -519,7 +552,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     pristine = copy.deepcopy(app)  # runnables as before any prerun, for a second pass
     recording = summary.get("recording") or {}
     periods = {name: task.config.period_ns for name, task in app.tasks.items()}
-    records, _t0_ns = read_timing(run_dir, periods)
+    cut: list[str] = []
+    records, _t0_ns = read_timing(run_dir, periods, cut)
     tasks = summary.get("tasks") or {}
     lost_timing = recording_losses(recording, run_dir).get("timing_records", {})
     dropped = {name: max(int((tasks.get(name) or {}).get("timing_samples_dropped") or 0), lost_timing.get(name, 0))
@@ -555,12 +589,16 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     gap = check_timeline(records, periods, dropped, starts)
     at_end = timing_lost_at_the_end(records, periods, dropped, _run_end_ns(summary, records, periods))
     problems = sorted(followed.problems + ([gap] if gap else []) + at_end)
+    recorded_until_ns = None
+    if recording.get("stopped"):  # the run went on without its recording: compare up to where every task has it
+        recorded_until_ns = min((run[-1].release_ns + periods[name] if run else 0) for name, run in records.items())
+        problems = [problem for problem in problems if problem[0] < recorded_until_ns] or [(recorded_until_ns, "")]
     cannot = None
-    if problems:
+    if problems and problems[0][1]:
         at_ns, why = problems[0]
         cannot = f"from t = {at_ns / 1e9!r} s: {why}"
     skipped = sum(b.cycle - a.cycle - 1 for run in records.values() for a, b in pairwise(run))
-    lost = lost_on_the_way(recording, run_dir)
+    lost = lost_on_the_way(recording, run_dir, recorded_until_ns) + cut
     for task, run in records.items() if not from_ns else ():  # from t = 0 a loss must show in timing.csv
         shown = any(b.cycle != a.cycle + 1 for a, b in pairwise(run)) or any(
             f" of {task}'s timing records" in why for _at, why in at_end)
@@ -576,7 +614,8 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     until_ns = problems[0][0] if problems else None
     lost_cells = LostCells()
     rows, equal_rows, divergence = compare_replay(run_dir / "signals.csv", out / "signals.csv", app, until_ns,
-                                                  from_ns, lost_cells)
+                                                  from_ns, lost_cells, cut)
+    common["lost"] += tuple(line for line in cut if line not in common["lost"])
     if lost_cells.rows:
         common["lost"] += (lost_cells.describe(recording_losses(recording, run_dir).get("signal_rows", {})),)
     if not rows and common["cannot"] is None:
@@ -635,7 +674,7 @@ def timing_lost_at_the_end(records: dict[str, list[CycleRecord]], periods_ns: di
     return problems
 
 
-def lost_on_the_way(recording: dict[str, Any], run_dir: Path) -> list[str]:
+def lost_on_the_way(recording: dict[str, Any], run_dir: Path, recorded_until_ns: int | None = None) -> list[str]:
     """What the run's summary says it lost (besides timing records: those cut the timeline) and the
     replay therefore cannot check, each with what it means for the replay."""
     losses = recording_losses(recording, run_dir)
@@ -648,8 +687,9 @@ def lost_on_the_way(recording: dict[str, Any], run_dir: Path) -> list[str]:
         lost.append(f"the run's read log of {task} dropped {count} stale reads (recording.reads_dropped: ring "
                     "full): the replay reads what logical execution time promised there instead")
     if recording.get("stopped"):
-        lost.append(f"the recording stopped during the run ({recording['stopped']}): its files end there, the rest "
-                    "of the run is not compared")
+        until = f" (timing.csv holds every task up to t = {recorded_until_ns / 1e9!r} s)" if recorded_until_ns else ""
+        lost.append(f"the recording stopped during the run ({recording['stopped']}): its files end there{until}, "
+                    "what was recorded is replayed and compared, the rest of the run is not")
     return lost
 
 
