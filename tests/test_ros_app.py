@@ -293,14 +293,18 @@ def test_bad_setpoints_are_rejected_counted_and_never_reach_the_port(tmp_path: P
     domain = random_domain()
     out = tmp_path / "out"
     messages = [[0.1], [0.3, -0.1], [math.nan, 0.2], [0.1, 0.2, 0.3], [0.2, math.inf], [0.4, -0.2]]
-    run = start_app(JIWY, out, domain, duration_s=4)
+    run = start_app(JIWY, out, domain, duration_s=10)
     peer = Peer("publish", "rt/jiwy/setpoint", json.dumps(messages), domain=domain)  # Python json writes NaN/Infinity
     try:
         peer.expect("MATCHED")
-        peer.expect("DONE")
+        peer.expect("DONE")  # a second after the last message: each was taken or rejected by then
+        run.send_signal(signal.SIGINT)
         code, stderr = finish(run)
     finally:
         peer.close()
+        if run.poll() is None:  # the peer failed: end the run too
+            run.send_signal(signal.SIGINT)
+            run.communicate(timeout=60)
     assert code == 0, stderr
     summary = summary_of(out)
     bridge = summary["bridges"]["subscribe /jiwy/setpoint"]
@@ -347,6 +351,8 @@ def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
             if "JointState_(" in output:
                 break
     finally:
+        if run.poll() is None:  # seen (or given up): Ctrl-C ends the run, no need to wait out its 12 s
+            run.send_signal(signal.SIGINT)
         code, stderr = finish(run)
     assert code == 0, stderr
     assert output.count("JointState_(") >= 5, output[-2000:]
