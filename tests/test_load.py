@@ -73,6 +73,29 @@ def test_a_simulation_loads_as_the_files_say(tmp_path: Path) -> None:
     assert gain[np.searchsorted(run.signals.t_s, 0.082)] == 2.5
 
 
+def test_a_port_without_live_values_says_why_it_has_none(tmp_path: Path) -> None:
+    gain = rtloop.App("load_noinput")
+    task = gain.add_task("gain", Gain(2), period_ns=MS, policy="other")
+    gain.port("setpoint", to=task.u[0:1], feed=str(_profile(tmp_path)))
+    gain.port("offset", to=task.u[1:2])
+    gain.port("out", source=task.y)
+    rtloop.simulate(gain, 0.05, tmp_path / "sim")
+    run = rtloop.load(tmp_path / "sim")
+    assert dict(run.inputs) == {}
+    for name, said in (("setpoint", "was fed from .* not written live: its values are in run.signals"),
+                       ("offset", "took no live value in this run"),
+                       ("out", "is an output port"),
+                       ("nope", r"no input port 'nope' in this run \(its input ports: \['offset', 'setpoint'\]\)")):
+        with pytest.raises(KeyError, match=said):
+            run.inputs[name]
+
+
+def _profile(tmp_path: Path) -> Path:
+    path = tmp_path / "profile.csv"
+    path.write_text("t_s,v\n0.0,1.0\n0.02,2.0\n")
+    return path
+
+
 def test_to_pandas(tmp_path: Path) -> None:
     pandas = pytest.importorskip("pandas", reason="pandas is an optional extra: pip install 'rtloop[pandas]'")
     out = tmp_path / "sim"

@@ -152,6 +152,29 @@ class PortInputs:
     """One row per value taken, one column per element of the port."""
 
 
+class InputsByPort(dict[str, "PortInputs"]):
+    """``run.inputs``: a dict of the ports that took live values; asked for another, it says why not."""
+
+    def __init__(self, found: dict[str, PortInputs], ports: dict[str, Any]) -> None:
+        super().__init__(found)
+        self._ports = ports if isinstance(ports, dict) else {}
+
+    def __missing__(self, name: str) -> PortInputs:
+        port = self._ports.get(name)
+        written = f"ports with live values in this run: {sorted(self)}" if self else "no port took a live value"
+        if not isinstance(port, dict):
+            inputs = sorted(n for n, p in self._ports.items() if isinstance(p, dict) and p.get("direction") == "in")
+            raise KeyError(f"no input port {name!r} in this run (its input ports: {inputs}); {written}")
+        if port.get("direction") != "in":
+            raise KeyError(f"port {name!r} is an output port ({port.get('signal')}): it takes no values; {written}")
+        feed = port.get("feed") if isinstance(port.get("feed"), dict) else None
+        if feed is not None and not feed.get("nudge"):
+            raise KeyError(f"port {name!r} was fed from {feed.get('file')}, not written live: its values are in "
+                           f"run.signals ({port.get('signal')}); {written}")
+        raise KeyError(f"port {name!r} took no live value in this run (rtloop port write, Python, ROS 2 or "
+                       f"Foxglove write there); {written}")
+
+
 @dataclass(frozen=True)
 class RunData:
     """One run directory, loaded: what :func:`load` returns."""
@@ -165,7 +188,8 @@ class RunData:
     timing: dict[str, TimingSamples]
     """Per task: ``cycle``, ``release_ns``, ``start_ns``, ``end_ns`` of every recorded cycle (int64)."""
     inputs: dict[str, PortInputs]
-    """Per live input port: the values that entered the run and when (``inputs.csv``)."""
+    """Per input port that took live values: those values and when (``inputs.csv``); another port's
+    name raises a KeyError saying why it has none (a profile fed it, nothing was written, no such port)."""
     problems: list[str] = field(default_factory=list)
     """What loading found wrong or incomplete (a cut last line, rows that disagree with the summary)."""
 
@@ -221,7 +245,7 @@ def load(run_dir: str | os.PathLike[str], *, memory_limit_bytes: int = MEMORY_LI
         if isinstance(counted, int) and recorded != counted and not summary.get("recording", {}).get("keep_s"):
             problems.append(f"task {name}: timing.csv has {recorded} rows but summary.json counts {counted} cycles")
     signals = _load_signals(path, summary, spill, problems)
-    inputs = _load_inputs(path / "inputs.csv", summary, problems)
+    inputs = InputsByPort(_load_inputs(path / "inputs.csv", summary, problems), summary.get("ports") or {})
     return RunData(path, summary, signals, timing, inputs, problems)
 
 
