@@ -534,3 +534,32 @@ def test_a_serial_device_node_of_another_user_is_refused(open_dir: Path, pty_pat
     for port in (pty_path, link):
         with pytest.raises(DeviceError, match=f"{pty_path} is owned by uid {NOBODY_UID}"):
             _serial(port).check()
+
+
+# --- model files: an FMU or 20-sim export is code too ------------------------------------------
+def _model_app(folder: Path, name: str, model: str) -> Path:
+    path = folder / f"{name}.toml"
+    path.write_text(f'name = "{name}"\n[tasks.t]\nmodel = "{model}"\nperiod_ns = 1_000_000\n')
+    return path
+
+
+@needs_root
+@pytest.mark.parametrize("what", ["fmu file", "20-sim file", "folder"])
+def test_a_model_another_user_could_change_is_refused(tmp_path: Path, what: str) -> None:
+    folder = tmp_path / "app"
+    (folder / "models" / "Plant").mkdir(parents=True)
+    fmu = folder / "plant.fmu"
+    fmu.write_bytes(b"PK\x05\x06" + bytes(18))  # an empty zip: never opened when refused
+    source = folder / "models" / "Plant" / "Plant.c"
+    source.write_text("/* a 20-sim export */\n")
+    if what == "fmu file":
+        os.chown(fmu, NOBODY_UID, NOBODY_UID)
+        spec, culprit = "fmu:plant.fmu", fmu
+    elif what == "20-sim file":
+        os.chown(source, NOBODY_UID, NOBODY_UID)
+        spec, culprit = "20sim:models/Plant", source
+    else:
+        os.chown(folder, NOBODY_UID, NOBODY_UID)
+        spec, culprit = "fmu:plant.fmu", folder
+    with pytest.raises(AppFileError, match=f"tasks.t.model: {culprit} is owned by uid {NOBODY_UID}"):
+        load_app(_model_app(folder, f"model{os.getpid()}", spec))

@@ -75,7 +75,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, parse_signal
-from rtloop.app.modules import ModuleRefused, installed_origin, load_module_file, module_beside
+from rtloop.app.modules import ModuleRefused, check_model_files, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
 from rtloop.io.device import build_device
 from rtloop.runnable import Runnable
@@ -339,9 +339,15 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
     _check_finite_parameters(shown, where, parameters)
     if has_model:
         try:
-            from rtloop.models import load_model
+            from rtloop.models import load_model, model_path
         except ImportError as error:
             raise AppFileError(shown, f"{where}.model", f"model support unavailable: {error}") from None
+        path = model_path(table["model"], base_dir) if isinstance(table["model"], str) else None
+        try:
+            if path is not None:
+                check_model_files(path)
+        except ModuleRefused as error:
+            raise AppFileError(shown, f"{where}.model", str(error)) from None
         if parameters is not None:
             args = {**args, "parameters": parameters}
         try:

@@ -90,6 +90,28 @@ def check_folders(folder: Path, trusted: set[int] | None = None, whom: str | Non
                                 f"(chmod go-w {path})")
 
 
+def check_model_files(path: Path) -> None:
+    """A model (an FMU, a 20-sim export folder) is code that runs as the app's user: the same
+    owner and writer rules as a module, for the file or every file of the folder, and the
+    folders above."""
+    path = path.resolve()
+    if not path.exists():
+        return  # the model's own loader says what is missing
+    trusted = _trusted_uids()
+    check_folders(path.parent)
+    files = [path]
+    if path.is_dir():
+        check_folders(path)
+        files = [child for child in sorted(path.rglob("*")) if not child.is_symlink()]
+    for file in files:
+        facts = os.stat(file)
+        if facts.st_uid not in trusted:
+            raise ModuleRefused(f"{file} is owned by uid {facts.st_uid}, not by {_whom()}; rtloop will not run it")
+        writer = _untrusted_writer(facts, trusted, _whom())
+        if writer and not (stat.S_ISDIR(facts.st_mode) and facts.st_mode & stat.S_ISVTX):
+            raise ModuleRefused(f"{file} is {writer}; rtloop will not run it (chmod go-w {file})")
+
+
 def check_code_for_user(folder: Path, uid: int, whom: str) -> None:
     """Would a process of ``uid`` (without sudo) accept the modules loaded here from ``folder``
     (an app file's), and the folders above? For a service that will load the app as that user."""

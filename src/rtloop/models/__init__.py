@@ -39,6 +39,7 @@ __all__ = [
     "cli_model_info",
     "load_model",
     "model_info",
+    "model_path",
     "open_model",
 ]
 
@@ -62,6 +63,12 @@ def _resolve(path: str, base_dir: str | os.PathLike[str] | None) -> Path:
     if not p.is_absolute() and base_dir is not None:
         p = Path(base_dir) / p
     return p
+
+
+def model_path(spec: str | os.PathLike[str], base_dir: str | os.PathLike[str] | None = None) -> Path | None:
+    """The file or folder a model spec loads code from (None for ``python:``, an installed module)."""
+    scheme, rest = _split(spec)
+    return None if scheme == "python" else _resolve(rest, base_dir)
 
 
 def open_model(
