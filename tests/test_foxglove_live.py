@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import struct
 import subprocess
 import sys
@@ -99,7 +100,9 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
     try:
         url = url_from(stderr_lines, 30)
         assert url.startswith("ws://localhost:")
-        with websockets_sync.connect(url, subprotocols=[subprotocol], open_timeout=20) as client:
+        # close_timeout: the server leaves the client's close frame unanswered while the run goes on
+        # (websockets waits 10 s by default for the answer before it drops the connection)
+        with websockets_sync.connect(url, subprotocols=[subprotocol], open_timeout=20, close_timeout=1) as client:
             assert client.subprotocol == subprotocol  # the name the client offered, answered as offered
             channels: dict[str, int] = {}
             deadline = time.monotonic() + 20
@@ -144,6 +147,8 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
             assert followed, f"the task never followed the setpoint sent from Foxglove; last rows {rows[-3:]}"
             assert not any(v != v for row in rows for v in row), "a rejected NaN reached the task"
     finally:
+        if run.poll() is None:  # seen all it had to see: Ctrl-C ends the run (12 s at most)
+            run.send_signal(signal.SIGINT)
         try:
             run.wait(timeout=60)
         except subprocess.TimeoutExpired:
