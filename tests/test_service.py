@@ -235,3 +235,18 @@ def test_install_refuses_code_the_services_user_would_refuse(tmp_path: Path, mon
     assert list(units.iterdir()) == []  # nothing installed that would fail at every start
     assert cli_main(["service", str(app_file), "--install", "--unit-dir", str(units), "--user", "nobody"]) == 0
     assert len(list(units.iterdir())) == 1
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="plays a sudo user: needs root to chown")
+def test_install_refuses_a_model_the_services_user_would_refuse(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    fmu = tmp_path / "plant.fmu"
+    fmu.write_bytes(b"PK\x05\x06" + bytes(18))
+    os.chown(fmu, 65534, 65534)
+    app_file = tmp_path / "svc.toml"
+    app_file.write_text(f'name = "svc_fmu_{os.getpid()}"\n[tasks.t]\nmodel = "fmu:plant.fmu"\nperiod_ns = 1_000_000\n')
+    monkeypatch.setenv("SUDO_UID", "65534")
+    monkeypatch.setenv("SUDO_GID", "65534")
+    assert cli_main(["service", str(app_file), "--install", "--unit-dir", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    assert f"would refuse the app's code: {fmu} is owned by uid 65534, not by root" in error, error

@@ -132,6 +132,10 @@ def _similar(a: str, b: str) -> bool:
     return difflib.SequenceMatcher(None, a[:40], b[:40]).ratio() >= 0.75
 
 
+class CodeRefused(AppFileError):
+    """The app's code (a module beside the app file, a model) is refused: who owns it or may write it."""
+
+
 def load_app(path: str | Path) -> App:
     """Read and validate an app file; builds the runnables (in this process)."""
     file = Path(path)
@@ -347,7 +351,7 @@ def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Pat
             if path is not None:
                 check_model_files(path)
         except ModuleRefused as error:
-            raise AppFileError(shown, f"{where}.model", str(error)) from None
+            raise CodeRefused(shown, f"{where}.model", str(error)) from None
         if parameters is not None:
             args = {**args, "parameters": parameters}
         try:
@@ -431,7 +435,7 @@ def _import_runnable_module(shown: str, key: str, module_name: str, base_dir: Pa
     except AppFileError:
         raise
     except ModuleRefused as error:
-        raise AppFileError(shown, key, str(error)) from None
+        raise CodeRefused(shown, key, str(error)) from None
     except ImportError as error:
         raise AppFileError(shown, key, f"cannot import module {module_name!r} (looked for {module_name}.py "
                            f"beside the app file, then installed modules): {clip(str(error), 120)}") from error

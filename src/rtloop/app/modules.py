@@ -24,6 +24,7 @@ same name always wins, and the owner check applies to each file.
 
 from __future__ import annotations
 
+import contextlib
 import copyreg
 import grp
 import importlib.abc
@@ -33,6 +34,7 @@ import os
 import pwd
 import stat
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any, ClassVar
@@ -112,24 +114,18 @@ def check_model_files(path: Path) -> None:
             raise ModuleRefused(f"{file} is {writer}; rtloop will not run it (chmod go-w {file})")
 
 
-def check_code_for_user(folder: Path, uid: int, whom: str) -> None:
-    """Would a process of ``uid`` (without sudo) accept the modules loaded here from ``folder``
-    (an app file's), and the folders above? For a service that will load the app as that user."""
-    trusted = {0, uid}
-    for path in loaded_module_files(folder):
-        check_owner(path, trusted, whom)
-        writer = _untrusted_writer(os.stat(path), trusted, whom)
-        if writer:
-            raise ModuleRefused(f"{path} is {writer}; rtloop will not run it (chmod go-w {path})")
-        check_folders(path.parent, trusted, whom)
+_TRUST_OVERRIDES: list[tuple[set[int], str]] = []
+"""Set by :func:`trusting_only`: whose code to accept instead of this process's trusted users."""
 
 
-def loaded_module_files(folder: Path) -> list[Path]:
-    """The modules this process loaded by path from ``folder`` (beside an app file)."""
-    folder = folder.resolve()
-    return [Path(module.__file__) for module in list(sys.modules.values())
-            if isinstance(getattr(module, "__loader__", None), _SourceOnlyLoader) and module.__file__
-            and Path(module.__file__).parent == folder]
+@contextlib.contextmanager
+def trusting_only(uid: int, whom: str) -> Iterator[None]:
+    """Check code as a process of ``uid`` without sudo would (a service's user), not as this one."""
+    _TRUST_OVERRIDES.append(({0, uid}, whom))
+    try:
+        yield
+    finally:
+        _TRUST_OVERRIDES.pop()
 
 
 def _untrusted_writer(facts: os.stat_result, trusted: set[int], whom: str) -> str | None:
@@ -177,11 +173,11 @@ def read_checked_source(path: Path) -> bytes:
 
 
 def _whom() -> str:
-    return f"you (uid {os.geteuid()}) or root"
+    return _TRUST_OVERRIDES[-1][1] if _TRUST_OVERRIDES else f"you (uid {os.geteuid()}) or root"
 
 
 def _trusted_uids() -> set[int]:
-    return trusted_uids()
+    return _TRUST_OVERRIDES[-1][0] if _TRUST_OVERRIDES else trusted_uids()
 
 
 def load_module_file(module_name: str, path: str | Path) -> ModuleType:

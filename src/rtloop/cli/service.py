@@ -11,6 +11,7 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from rtloop.cli.arguments import EXIT_FAILED, BadInput
 from rtloop.runtime.service_unit import (
@@ -67,25 +68,26 @@ def check_options(args: argparse.Namespace) -> None:
         raise BadInput(f"ROS_DOMAIN_ID={domain!r} in the environment: expected a number")
 
 
-def check_code_as_service_user(app_file: Path, user: str | None) -> None:
-    """The service loads the app as ``user`` (root by default) without sudo: refuse now, with
-    the fix, what it would refuse at every start (exit 2, so systemd would leave it failed)."""
+def load_as_service_user(app_file: Path, user: str | None) -> Any:
+    """Load the app as the service will, as ``user`` (root by default) without sudo: refuse now,
+    with the fix, code it would refuse at every start (exit 2, so systemd would leave it failed)."""
     import pwd
 
-    from rtloop.app.modules import ModuleRefused, check_code_for_user
+    from rtloop.app.appfile import CodeRefused, load_app
+    from rtloop.app.modules import trusting_only
 
     try:
         uid = pwd.getpwnam(user).pw_uid if user is not None else 0
     except KeyError:
         raise BadInput(f"--user {user!r}: no such user") from None
-    whom = "root" if uid == 0 else f"{user} (uid {uid}) or root"
     try:
-        check_code_for_user(app_file.absolute().parent, uid, whom)
-    except ModuleRefused as error:
+        with trusting_only(uid, "root" if uid == 0 else f"{user} (uid {uid}) or root"):
+            return load_app(app_file)
+    except CodeRefused as error:
         owner = _owner_name(app_file)
-        fix = (f"run the service as {owner} (--user {owner}) or " if owner not in (None, "root", user) else "")
-        raise BadInput(f"the service, run as {user or 'root'}, would refuse the app's code: {error}; {fix}"
-                       "copy the app to a folder only root can write (e.g. /opt/rtloop/APP)") from None
+        fix = f"run the service as {owner} (--user {owner}) or " if owner not in (None, "root", user) else ""
+        raise BadInput(f"the service, run as {user or 'root'}, would refuse the app's code: {error.problem}; "
+                       f"{fix}copy the app to a folder only root can write (e.g. /opt/rtloop/APP)") from None
 
 
 def _owner_name(path: Path) -> str | None:
@@ -101,9 +103,7 @@ def run(args: argparse.Namespace) -> int:
     """Print the unit, or install it and print what to do next; 1 when it cannot be written."""
     from rtloop.app.appfile import load_app
     check_options(args)
-    app = load_app(args.app)
-    if args.install:
-        check_code_as_service_user(Path(args.app), args.user)
+    app = load_as_service_user(Path(args.app), args.user) if args.install else load_app(args.app)
     options = ServiceOptions(
         app_file=Path(args.app).absolute(),
         out=Path(args.out).absolute() if args.out is not None else default_out(app),
