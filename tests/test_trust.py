@@ -563,3 +563,29 @@ def test_a_model_another_user_could_change_is_refused(tmp_path: Path, what: str)
         spec, culprit = "fmu:plant.fmu", folder
     with pytest.raises(AppFileError, match=f"tasks.t.model: {culprit} is owned by uid {NOBODY_UID}"):
         load_app(_model_app(folder, f"model{os.getpid()}", spec))
+
+
+def _grant_write_by_acl(path: Path, uid: int) -> None:
+    """An access ACL (as setfacl -m u:UID:rwx writes it) letting ``uid`` write; group bits become its mask."""
+    import struct
+
+    undefined = 0xFFFFFFFF
+    entries = [(0x01, 7, undefined), (0x02, 7, uid), (0x04, 5, undefined), (0x10, 7, undefined), (0x20, 5, undefined)]
+    acl = struct.pack("<I", 2) + b"".join(struct.pack("<HHI", *entry) for entry in entries)
+    try:
+        os.setxattr(path, "system.posix_acl_access", acl)
+    except OSError as error:
+        pytest.skip(f"no POSIX ACLs on this file system ({error.strerror})")
+
+
+@needs_root
+def test_a_folder_another_user_may_write_through_an_acl_is_refused(tmp_path: Path) -> None:
+    folder = tmp_path / "app"
+    folder.mkdir()
+    module = f"acl_{secrets.token_hex(3)}"
+    (folder / f"{module}.py").write_text(PLANTED_PYC_MODULE)
+    app_file = _app_toml(folder, f"acl{os.getpid()}", f"{module}:Here")
+    _grant_write_by_acl(folder, NOBODY_UID)
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o775 and folder.stat().st_gid == 0  # group root: looks fine
+    with pytest.raises(AppFileError, match=f"{folder} is writable through an ACL by uid {NOBODY_UID}"):
+        load_app(app_file)
