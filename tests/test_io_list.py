@@ -60,6 +60,10 @@ def test_the_doctor_says_which_cannot_be_used_and_the_fix(tmp_path: Path) -> Non
     assert check.status == "warn" and "vcan0" in check.detail and "sudo ip link set vcan0 up" in check.fix
     empty = check_devices(tmp_path / "nothing")
     assert empty.status == "ok" and "no GPIO chip" in empty.detail
+    one = tmp_path / "one"
+    (one / "dev").mkdir(parents=True)
+    (one / "dev" / "i2c-1").write_text("")
+    assert check_devices(one).detail.startswith("1 interface (i2c), all usable")  # not "1 interfaces"
 
 
 @pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,

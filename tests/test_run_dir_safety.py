@@ -219,8 +219,10 @@ def test_a_disk_with_room_for_the_reserve_only_runs_and_says_so(tiny_disk: Path,
     fill(tiny_disk, leave_bytes=64 * 1024)
     out = tiny_disk / "run"
     result = subprocess.run([*CLI, "simulate", str(app_file(tmp_path, "safety_reserve")), "--duration", "0.2",
-                             "--out", str(out), "-q"], env=rtloop_env, capture_output=True, text=True)
+                             "--out", str(out)], env=rtloop_env, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+    listed = next(line for line in result.stdout.splitlines() if line.startswith("artifacts in"))
+    assert listed.endswith(": summary.json"), listed  # never an empty timing.csv or run.mcap
     assert "ENOSPC" in json.loads((out / "summary.json").read_text())["recording"]["stopped"]
     assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no reserve, no temporary
     assert any("ENOSPC" in note for note in rtloop.load(out).notes)

@@ -72,6 +72,7 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
                      "--out", str(tmp_path / "s"), "--processes", "1"]) == 0
     out = capsys.readouterr().out
     assert "step of plant.speed_rad_s" in out and "overshoot" in out
+    assert "ss error [rad/s]" in out  # the steady-state error has the measured signal's unit
     assert (tmp_path / "s" / "sweep.csv").is_file() and (tmp_path / "s" / "0" / "signals.csv").is_file()
     again = ["sweep", str(DCMOTOR), "--param", "pi.kp=0.02:0.1:2", "--duration", "0.3", "--out", str(tmp_path / "s"),
              "--processes", "1"]
@@ -80,6 +81,7 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
     capsys.readouterr()
     for argv, words in (
         (["--param", "pi.kp=0.1:1"], "START:STOP:COUNT"),
+        (["--param", "pi.kp=0:1:100000"], "COUNT must be 1 to 10000, got 100000"),
         (["--param", "pi.nope=0.1:1:3"], "unknown parameter 'nope'"),
         (["--param", "ghost.kp=1,2"], "no task 'ghost'"),
         (["--param", "pi.kp=nan,1"], "finite"),

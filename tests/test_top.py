@@ -109,8 +109,15 @@ def test_top_forgets_an_app_that_ended(running_app, capsys: pytest.CaptureFixtur
     name, process = running_app
     process.terminate()
     process.wait(timeout=20)
-    assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 1
-    assert "no running rtloop app" in capsys.readouterr().out
+    assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 2
+    assert f"no running app named '{name}'" in capsys.readouterr().err
+
+
+def test_top_of_an_app_that_does_not_run_names_it_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    name = f"top_nope_{os.getpid()}"
+    assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"rtloop top: no running app named '{name}'; running: ") and len(err.splitlines()) == 1, err
 
 
 def test_registry_of_a_dead_supervisor_is_ignored(tmp_path: Path) -> None:

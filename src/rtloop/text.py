@@ -18,3 +18,8 @@ def clip(text: str, limit: int = 80, *, keep_end: int = 0) -> str:
 def shorten(value: object, limit: int = 80) -> str:
     """``repr(value)`` clipped to ``limit`` characters, keeping its last four: for quoting input."""
     return clip(repr(value), limit, keep_end=4)
+
+
+def counted(count: int, noun: str, plural: str | None = None) -> str:
+    """``1 port input``, ``2 port inputs``: a count with its noun in the right number."""
+    return f"{count} {noun if count == 1 else plural or noun + 's'}"

@@ -42,6 +42,7 @@ def check_devices(root: Path) -> Check:
     """Interfaces devices can use (``rtloop io list`` has the details): may this user open them?"""
     from rtloop.io.inventory import list_interfaces
     from rtloop.linux.readiness import Check
+    from rtloop.text import counted
 
     interfaces = list_interfaces(root)
     if not interfaces:
@@ -50,7 +51,8 @@ def check_devices(root: Path) -> Check:
     blocked = [item for item in interfaces if not item.usable]
     kinds = ", ".join(sorted({item.kind for item in interfaces}))
     if not blocked:
-        return Check("devices", "ok", f"{len(interfaces)} interfaces ({kinds}), all usable (rtloop io list)", "")
-    return Check("devices", "warn", f"{len(blocked)} of {len(interfaces)} interfaces cannot be used now: "
+        return Check("devices", "ok", f"{counted(len(interfaces), 'interface')} ({kinds}), all usable (rtloop io list)",
+                     "")
+    return Check("devices", "warn", f"{len(blocked)} of {counted(len(interfaces), 'interface')} cannot be used now: "
                  + ", ".join(item.path for item in blocked),
                  "; ".join(f"{item.path}: {item.fix}" for item in blocked))

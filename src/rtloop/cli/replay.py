@@ -21,10 +21,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """0 when the replay's signals equal the run's, bit for bit; 1 (saying where and why) when not."""
     from rtloop.runtime.replay import replay
+    from rtloop.text import counted
 
     result = replay(args.run_dir, args.out, force=args.force)
-    followed = (f"{result.skipped_releases} skipped releases, {result.stale_reads} stale reads and "
-                f"{result.port_inputs} port inputs followed")
+    followed = (f"{counted(result.skipped_releases, 'skipped release')}, {counted(result.stale_reads, 'stale read')} "
+                f"and {counted(result.port_inputs, 'port input')} followed")
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)
     if result.equal:

@@ -155,9 +155,17 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
         lines.append(f"port {name} ({port.direction}, {port.signal}): {port.describe()}{idle}")
     lines += [f"note: {note}" for note in summary.notes]
-    written = [name for name in ARTIFACTS if (out / name).exists()]
+    written = [name for name in ARTIFACTS if _holds_something(out / name)]
     lines.append(f"artifacts in {out}/: {', '.join(written)}")
     return "\n".join(lines)
+
+
+def _holds_something(path: Path) -> bool:
+    """A file worth listing among the artifacts (an empty run.mcap, left by a full disk, is not)."""
+    try:
+        return path.stat().st_size > 0
+    except OSError:
+        return False
 
 
 def _us(value_ns: float) -> str:

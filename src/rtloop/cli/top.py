@@ -13,7 +13,8 @@ HELP = "live view of running apps: cycles, latency, misses, CPU, page faults"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("app", nargs="?", help="app name (default: every running app)")
     parser.add_argument("--once", action="store_true",
-                        help="print one frame and exit (for scripts; exit status 1 when no app is running)")
+                        help="print one frame and exit (for scripts; exit status 1 when no app is running, "
+                             "2 when the APP named is not)")
     parser.add_argument("--interval", type=positive_seconds, default=1.0, metavar="S",
                         help="seconds between refreshes (default 1)")
 
@@ -30,6 +31,8 @@ def run(args: argparse.Namespace) -> int:
     if not console.is_terminal:
         console = Console(width=max(console.width, 200))
     monitor = Monitor(args.app)
+    if args.app is not None and not monitor.refresh_apps():
+        refuse_unknown_app(args.app)
     if args.once:
         monitor.snapshot()  # first look: starts the %CPU, cycles/s and maximum measurements
         monitor.poll_for(min(args.interval, 0.5))
@@ -43,3 +46,13 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     return 0
+
+
+def refuse_unknown_app(name: str) -> None:
+    """An app asked for by name that is not running: bad input, naming it and those that run (as ``port`` does)."""
+    from rtloop.ipc.ports import AppNotRunning
+    from rtloop.runtime.monitor import find_apps
+    from rtloop.text import shorten
+
+    running = ", ".join(sorted({registry.app for registry in find_apps()})) or "none"
+    raise AppNotRunning(f"no running app named {shorten(name)}; running: {running}")

@@ -61,22 +61,25 @@ class SweepResult:
     """Worker processes used."""
     parameters: list[str] = field(default_factory=list)
     """The swept parameters, ``task.name``."""
+    unit: str = ""
+    """The measured signal's unit (that of the steady-state error); '' when it declares none."""
 
 
 def grid(text: str) -> list[float]:
     """``0.1:1.0:10`` (10 values from 0.1 to 1.0) or ``0.1,0.2,0.5`` → the values."""
+    number = 0
     try:
         if ":" in text:
             start, stop, count = text.split(":")
             number = int(count)
-            if not 1 <= number <= MAX_POINTS:
-                raise ValueError
-            values = np.linspace(float(start), float(stop), number).tolist()
+            values = np.linspace(float(start), float(stop), number).tolist() if 1 <= number <= MAX_POINTS else []
         else:
             values = [float(v) for v in text.split(",")]
     except ValueError:
         raise AppError(f"sweep values {shorten(text, 60)}: expected START:STOP:COUNT (e.g. 0.1:1.0:10) "
                        "or a list (0.1,0.2,0.5)") from None
+    if ":" in text and not 1 <= number <= MAX_POINTS:
+        raise AppError(f"sweep values {shorten(text, 60)}: COUNT must be 1 to {MAX_POINTS}, got {number}")
     if not values or not all(math.isfinite(v) for v in values):
         raise AppError(f"sweep values {shorten(text, 60)}: need finite numbers")
     return values
@@ -170,9 +173,11 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
     elapsed = time.perf_counter() - started
     measured = next((r["signal"] for r in rows if r.get("signal")), signal or "")
     paired = next((r["setpoint"] for r in rows if r.get("setpoint")), setpoint)
+    unit = next((r["unit"] for r in rows if r.get("unit")), "")
     for row in rows:
         row.pop("signal", None)
         row.pop("setpoint", None)
+        row.pop("unit", None)
     table = out / "sweep.csv"
     columns = [*names, *METRICS, "run_dir", "error"]
     with _out_errors(out, "the runs are there, the table was not written"):
@@ -181,7 +186,7 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
             writer.writeheader()
             writer.writerows(rows)
         give_to_invoking_user(table)
-    return SweepResult(rows, table, measured, paired, elapsed, workers, names)
+    return SweepResult(rows, table, measured, paired, elapsed, workers, names, unit)
 
 
 def _prepare_out(out: Path, run_dirs: list[Path], force: bool) -> None:
@@ -280,7 +285,7 @@ def _simulate_point(source: _AppSource, values: dict[str, float], duration_s: fl
         row["error"] = f"no signal {signal!r} recorded" if signal else "no setpoint pair in signals.json: give --signal"
         return row
     row.update(step_response(signals.t_s, signals[measured], signals[paired] if paired else None))
-    row["signal"], row["setpoint"] = measured, paired
+    row["signal"], row["setpoint"], row["unit"] = measured, paired, signals.units.get(measured, "")
     return row
 
 
@@ -300,7 +305,8 @@ def _measured_signal(signals: Any, signal: str | None, setpoint: str | None) -> 
 
 def format_table(result: SweepResult) -> str:
     """The sweep's table as aligned text."""
-    header = [*result.parameters, "rise [s]", "overshoot [%]", "settling [s]", "ss error", "run"]
+    error = f"ss error [{result.unit}]" if result.unit else "ss error [signal's unit]"
+    header = [*result.parameters, "rise [s]", "overshoot [%]", "settling [s]", error, "run"]
     lines = [header]
     for row in result.rows:
         cells = [f"{row[n]:.6g}" for n in result.parameters]
