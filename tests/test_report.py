@@ -71,6 +71,14 @@ def synthetic_run(tmp_path: Path) -> Path:
     return write_run(tmp_path / "synthetic", {"a": synthetic_records(seed=1), "b": synthetic_records(seed=2)})
 
 
+@pytest.fixture(scope="module")
+def synthetic_report(tmp_path_factory: pytest.TempPathFactory) -> report.Report:
+    """The report of the synthetic run, drawn once (seconds of figures) for the tests that only read it."""
+    run = write_run(tmp_path_factory.mktemp("report") / "synthetic",
+                    {"a": synthetic_records(seed=1), "b": synthetic_records(seed=2)})
+    return report.build_report([run])
+
+
 def assert_histograms_match_summary(run: report.Run, hists: dict[str, report.Histogram], task: str) -> None:
     entry = run.tasks[task]
     kept = entry["cycles"] - entry["trimmed"]
@@ -85,8 +93,8 @@ def assert_histograms_match_summary(run: report.Run, hists: dict[str, report.His
     assert hists["jitter"].n <= kept - 1
 
 
-def test_histograms_equal_summary_statistics(synthetic_run: Path) -> None:
-    built = report.build_report([synthetic_run])
+def test_histograms_equal_summary_statistics(synthetic_report: report.Report) -> None:
+    built = synthetic_report
     run = built.runs[0]
     for task in ("a", "b"):
         hists = built.histograms[(run.label, task)]
@@ -124,8 +132,7 @@ def test_simulated_primes_report(tmp_path: Path) -> None:
     out = tmp_path / "sim"
     assert cli_main(["simulate", str(EXAMPLES / "primes" / "primes.toml"), "--duration", "0.5",
                      "--out", str(out), "--quiet"]) == 0
-    assert cli_main(["report", str(out)]) == 0
-    built = report.build_report([out], write_html=False)
+    built = report.build_report([out])  # what `rtloop report DIR` draws (the command: the tests below)
     run = built.runs[0]
     assert set(run.tasks) == {"primes1", "primes2"}
     for task in run.tasks:
@@ -135,8 +142,8 @@ def test_simulated_primes_report(tmp_path: Path) -> None:
     assert html.count("data:image/png;base64,") == len(built.pngs) == 2 + 1 + 1  # 2 tasks, over-time, signals
 
 
-def test_html_is_self_contained(synthetic_run: Path) -> None:
-    built = report.build_report([synthetic_run])
+def test_html_is_self_contained(synthetic_report: report.Report) -> None:
+    built = synthetic_report
     assert built.html is not None
     html = built.html.read_text()
     assert html.count('src="data:image/png;base64,') == len(built.pngs) == 4
@@ -228,8 +235,7 @@ def test_a_report_of_several_runs_leaves_no_figure_of_an_earlier_report(tmp_path
     isolated = write_run(tmp_path / "isolated", {"a": synthetic_records(seed=4)})
     assert cli_main(["report", str(shared)]) == 0
     assert (shared / "report-figures" / "run-a-timing.png").is_file()
-    assert cli_main(["report", str(shared), str(isolated)]) == 0
-    built = report.build_report([shared, isolated], write_html=False)
+    built = report.build_report([shared, isolated])  # what `rtloop report DIR DIR` draws, drawn once
     assert sorted(p.name for p in (shared / "report-figures").iterdir()) == sorted(p.name for p in built.pngs)
 
 
