@@ -589,3 +589,40 @@ def test_a_folder_another_user_may_write_through_an_acl_is_refused(tmp_path: Pat
     assert stat.S_IMODE(folder.stat().st_mode) == 0o775 and folder.stat().st_gid == 0  # group root: looks fine
     with pytest.raises(AppFileError, match=f"{folder} is writable through an ACL by uid {NOBODY_UID}"):
         load_app(app_file)
+
+
+@needs_root
+def test_a_cached_20sim_library_another_user_could_have_written_is_refused(tmp_path: Path) -> None:
+    import shutil
+
+    from rtloop.models.base import ModelError
+    from rtloop.models.twentysim import build_library, inspect
+
+    plant = Path(__file__).parents[1] / "examples" / "jiwy" / "models" / "Plant"
+    if shutil.which("gcc") is None and shutil.which("cc") is None:
+        pytest.skip("no C compiler to build the 20-sim model")
+    info = inspect(plant)
+    cache = tmp_path / "cache"
+    library = build_library(info, cache_dir=cache)
+    assert build_library(info, cache_dir=cache) == library  # root's own: taken from the cache
+    os.chown(library, NOBODY_UID, NOBODY_UID)  # one they replaced, with the name the hash gives
+    with pytest.raises(ModelError, match=f"{library} is owned by uid {NOBODY_UID}"):
+        build_library(info, cache_dir=cache)
+    os.chown(library, 0, 0)
+    cache.chmod(0o777)
+    with pytest.raises(ModelError, match=f"{cache} is writable by every user"):
+        build_library(info, cache_dir=cache)
+
+
+@needs_root
+def test_a_cache_writable_by_a_private_group_is_fine(tmp_path: Path) -> None:
+    from rtloop.models.twentysim import _foreign_cache
+
+    library = tmp_path / "cache" / "m.so"  # umask 002 (user private groups) makes folders 775
+    library.parent.mkdir()
+    library.write_bytes(b"")
+    for path in (library, library.parent):
+        path.chmod(0o775)
+    assert _foreign_cache(library) is None  # group root: only root in it
+    os.chown(library.parent, 0, NOBODY_UID)
+    assert "writable by group" in _foreign_cache(library)

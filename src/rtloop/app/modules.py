@@ -26,12 +26,10 @@ from __future__ import annotations
 
 import contextlib
 import copyreg
-import grp
 import importlib.abc
 import importlib.machinery
 import importlib.util
 import os
-import pwd
 import stat
 import struct
 import sys
@@ -41,6 +39,7 @@ from types import ModuleType
 from typing import Any, ClassVar
 
 from rtloop.errors import AppError
+from rtloop.owners import group_members
 from rtloop.sudo import trusted_uids
 
 
@@ -134,7 +133,7 @@ def _untrusted_writer(facts: os.stat_result, trusted: set[int], whom: str, targe
     if facts.st_mode & stat.S_IWOTH:
         return "writable by every user"
     if facts.st_mode & stat.S_IWGRP:  # with an access ACL these bits are its mask: ask the ACL too
-        if not _group_members(facts.st_gid) <= trusted:
+        if not group_members(facts.st_gid) <= trusted:
             return f"writable by group {facts.st_gid}, whose members are not all {whom}"
         others = sorted(_acl_writers(target) - trusted)
         if others:
@@ -160,24 +159,8 @@ def _acl_writers(target: Path | int) -> set[int]:
             if tag == _ACL_USER:
                 writers.add(ident)
             elif tag == _ACL_GROUP:
-                writers |= _group_members(ident)
+                writers |= group_members(ident)
     return writers
-
-
-def _group_members(gid: int) -> set[int]:
-    """Every uid in group ``gid``: listed members and users whose primary group it is. A group
-    unknown here may hold anyone: it answers with a uid no trusted set contains."""
-    try:
-        names = grp.getgrgid(gid).gr_mem
-    except KeyError:
-        return {-1}
-    members = {user.pw_uid for user in pwd.getpwall() if user.pw_gid == gid}
-    for name in names:
-        try:
-            members.add(pwd.getpwnam(name).pw_uid)
-        except KeyError:
-            members.add(-1)
-    return members
 
 
 def read_checked_source(path: Path) -> bytes:

@@ -41,6 +41,7 @@ import hashlib
 import os
 import re
 import shutil
+import stat
 import subprocess
 import tempfile
 from dataclasses import dataclass
@@ -50,7 +51,9 @@ from typing import Any
 import numpy as np
 
 from rtloop.models.base import ModelBuildError, ModelError, StateNotCaptured
+from rtloop.owners import group_members
 from rtloop.runnable import FloatVector
+from rtloop.sudo import trusted_uids
 
 __all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
 
@@ -466,6 +469,10 @@ def build_library(
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     library = cache / f"{info.name}-{info.template}-{_build_key(info, compiler, flags, shim)}.so"
     if library.exists():
+        foreign = _foreign_cache(library)
+        if foreign:
+            raise ModelError(f"{foreign}; rtloop will not load it (remove it, or point RTLOOP_CACHE_DIR at a "
+                             "folder of your own)")
         return library
     cache.mkdir(parents=True, exist_ok=True)
     try:
@@ -479,6 +486,22 @@ def build_library(
         first = next((line for line in error.compiler_output.splitlines() if "error" in line), "")
         _state_note(library).write_text(f"the generated copy of its state did not compile ({first.strip()})")
     return library
+
+
+def _foreign_cache(library: Path) -> str | None:
+    """Why a cached library may be another user's (None: it is not): it, or its folder, is theirs or
+    writable by them (a sticky folder aside). Its name is a hash anyone can compute."""
+    trusted = trusted_uids()
+    for path, facts in ((library, os.lstat(library)), (library.parent, os.stat(library.parent))):
+        if facts.st_uid not in trusted:
+            return f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or root"
+        if stat.S_ISDIR(facts.st_mode) and facts.st_mode & stat.S_ISVTX:
+            continue  # sticky: nobody replaces what is not theirs
+        if facts.st_mode & stat.S_IWOTH:
+            return f"{path} is writable by every user"
+        if facts.st_mode & stat.S_IWGRP and not group_members(facts.st_gid) <= trusted:  # a private group is fine
+            return f"{path} is writable by group {facts.st_gid}, whose members are not all you or root"
+    return None
 
 
 def _state_note(library: Path) -> Path:
