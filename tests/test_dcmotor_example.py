@@ -136,6 +136,11 @@ def test_a_parameter_that_is_not_finite_is_refused_when_the_app_file_loads(tmp_p
     (tmp_path / "dcmotor.py").write_text((EXAMPLE / "dcmotor.py").read_text())
     with pytest.raises(AppFileError, match=rf"app\.toml: tasks\.pi\.parameters\.ki: {bad} is not a finite number"):
         load_app(tmp_path / "app.toml")
+    text = (EXAMPLE / "dcmotor.toml").read_text().replace('to = "pi.u[2:4]"\n',
+                                                          f'to = "pi.u[2:4]"\ninitial = [0.05, {bad}]\n')
+    (tmp_path / "app.toml").write_text(text)
+    with pytest.raises(AppFileError, match=r"ports\.gains: port 'gains': initial .* holds NaN or inf"):
+        load_app(tmp_path / "app.toml")  # a port's initial values too: the task reads them at cycle 0
     pi = load_module_file("dcmotor", EXAMPLE / "dcmotor.py").PiSpeed()
     from rtloop.models.base import apply_parameters
 

@@ -515,6 +515,9 @@ class App:
                 if len(initial) != ref.size:
                     raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
                 initial_values = tuple(_number(what, "initial", v) for v in initial)
+                if not allow_nonfinite and not all(math.isfinite(v) for v in initial_values):
+                    raise AppError(f"{what}: initial {shorten(list(initial_values))} holds NaN or inf: the task would "
+                                   "read it at cycle 0 (allow_nonfinite = true on the port lets it through)")
                 for index, value in enumerate(initial_values if checked_range else ()):
                     low, high = range_of_value(checked_range, index)  # type: ignore[arg-type]
                     if not low <= value <= high:
