@@ -46,6 +46,25 @@ def _wait_running(name: str, timeout_s: float = 30) -> None:
         time.sleep(0.05)
 
 
+def _starve_and_interrupt(tmp_path: Path, name: str, cpus: list[int], env: dict[str, str]) -> tuple[float, int, str]:
+    """Start the starving app, let its queues fill, send SIGINT: (seconds to the end, exit code, stderr)."""
+    out = tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "rtloop.cli", "run", str(_app_file(tmp_path, name, cpus[-2:])), "--out", str(out)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_running(name)
+        time.sleep(3)  # the queues fill: the supervisor falls behind
+        sent_at = time.monotonic()
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+        return time.monotonic() - sent_at, process.returncode, stderr
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+
+
 @pytest.mark.rt
 @pytest.mark.slow
 def test_ctrl_c_ends_a_run_that_starves_the_supervisor_and_reports_what_was_lost(tmp_path: Path, rtloop_env):
@@ -53,23 +72,18 @@ def test_ctrl_c_ends_a_run_that_starves_the_supervisor_and_reports_what_was_lost
     if len(cpus) < 2:
         pytest.skip("needs two processors: one busy task on each starves the supervisor")
     name = f"starved_stop_{os.getpid()}"
-    out = tmp_path / "out"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "rtloop.cli", "run", str(_app_file(tmp_path, name, cpus[-2:])), "--out", str(out)],
-        env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_running(name)
-        time.sleep(3)  # the queues fill: the supervisor falls behind
-        sent_at = time.monotonic()
-        process.send_signal(signal.SIGINT)
-        _, stderr = process.communicate(timeout=60)
-        stop_s = time.monotonic() - sent_at
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-    assert process.returncode == 0, stderr
-    assert stop_s < STOP_BOUND_S, f"SIGINT took {stop_s:.1f} s to end the run"
+    # A second try when the first stop took too long: real-time work of other runs on this shared
+    # machine can hold the supervisor off for seconds now and then. Two slow stops in a row fail
+    # (the old behaviour, the whole backlog written first, was slow in nearly every run).
+    for attempt in range(2):
+        attempt_path = tmp_path / f"attempt{attempt}"
+        attempt_path.mkdir()
+        stop_s, returncode, stderr = _starve_and_interrupt(attempt_path, name, cpus, rtloop_env)
+        if returncode != 0 or stop_s < STOP_BOUND_S:
+            break
+    out = attempt_path / "out"
+    assert returncode == 0, stderr
+    assert stop_s < STOP_BOUND_S, f"SIGINT took {stop_s:.1f} s to end the run (twice)"
 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stopped_by"] == "signal"
