@@ -253,7 +253,7 @@ class SiblingFinder(importlib.abc.MetaPathFinder):
 
 class _SourceOnlyLoader(importlib.machinery.SourceFileLoader):
     """Compiles the checked source every time, never touching ``__pycache__``: a user module is a
-    few kB, compiled in a millisecond, and bytecode there could come from another user."""
+    few kB, compiled in a few milliseconds, and bytecode there could come from another user."""
 
     def get_code(self, fullname: str) -> Any:
         return self.source_to_code(read_checked_source(Path(self.path)), self.path)
