@@ -175,14 +175,17 @@ def test_keep_bounds_the_files_and_keeps_the_cycles_around_a_miss(tmp_path: Path
     assert not (tmp_path / "segments").exists()
 
 
-def test_run_mcap_of_a_kept_window_reads_back(tmp_path: Path) -> None:
+def test_run_mcap_of_a_kept_window_reads_back(tmp_path: Path, monkeypatch) -> None:
     pytest.importorskip("mcap")
     from mcap.reader import make_reader
 
+    from rtloop.record import flight
+
+    monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)  # 8 segments in 2 s: the early ones dropped
     app = App("days_keep_mcap")
     counter = app.add_task("counter", Counter(), period_ns=2 * MS, policy="other")
     app.record(counter.y)
-    rtloop.run(app, 4.0, tmp_path, keep_s=1.0)
+    rtloop.run(app, 2.0, tmp_path, keep_s=0.5)
     with open(tmp_path / "run.mcap", "rb") as file:
         topics = [channel.topic for _schema, channel, _message in make_reader(file).iter_messages()]
     kept = len(timing_rows(tmp_path / "timing.csv", "counter"))
