@@ -344,7 +344,8 @@ def test_a_run_counts_its_stale_reads_per_cycle_in_summary_json_and_replay_says_
         readings = {round(float(row["t_s"]) * 1e9 / period_ns): float(row["ctl.u[0]"]) for row in csv.DictReader(rows)}
     for cycle in lost:
         assert readings[cycle] == readings[cycle - 1], (cycle, readings)  # kept the last values
-    assert readings[7] == 7.0 and readings[13] == 13.0  # and the next answers were this cycle's again
+    assert all(value <= cycle for cycle, value in readings.items()), readings  # never an answer not yet asked for
+    assert readings[max(readings)] > max(lost), readings  # and the drive's answers came again after them
 
     until_s = first_miss_s(tmp_path / "run")
     assert until_s is not None and until_s <= (min(stale) - 1) * period_ns / 1e9
