@@ -31,9 +31,9 @@ def run(args: argparse.Namespace) -> int:
     if not console.is_terminal:
         console = Console(width=max(console.width, 200))
     monitor = Monitor(args.app)
-    if args.app is not None and not monitor.refresh_apps():
-        refuse_unknown_app(args.app)
     if args.once:
+        if args.app is not None and not monitor.refresh_apps():
+            refuse_unknown_app(args.app)  # the live view instead waits for it to start
         monitor.snapshot()  # first look: starts the %CPU, cycles/s and maximum measurements
         monitor.poll_for(min(args.interval, 0.5))
         views = monitor.snapshot()
