@@ -278,3 +278,25 @@ def test_a_hardware_run_replays_without_the_hardware(tmp_path: Path) -> None:
     simulated = tmp_path / "sim"
     rtloop.simulate(echo_app(tmp_path / "unused", "dev_replay_sim", gain=3.0), 0.2, simulated)
     assert signals(simulated)[3] != signals(tmp_path / "run")[3]  # the gain-3 twin alone would not reproduce it
+
+
+def test_the_run_equals_simulation_window_ends_before_a_devices_first_stale_read(tmp_path: Path) -> None:
+    """first_miss_s: a cycle that read a device's stale values (summary.json devices) ends the window
+    like a deadline miss, at the release before it; the earlier of the two wins."""
+    import json
+
+    period_ns, t0_ns = 1_000_000, 5_000_000_000
+    rows = ["task,cycle,release_ns,start_ns,end_ns"] + [
+        f"ctl,{k},{t0_ns + k * period_ns},{t0_ns + k * period_ns + 1000},"
+        f"{t0_ns + k * period_ns + (3 * period_ns if k == 8 else 2000)}" for k in range(10)]  # cycle 8 ends late
+    (tmp_path / "timing.csv").write_text("\n".join(rows) + "\n")
+
+    def window_with(stale_cycles: list[int]) -> float | None:
+        device = {"task": "ctl", "kind": "can", "stale_reads": len(stale_cycles), "first_stale_cycles": stale_cycles}
+        summary = {"tasks": {"ctl": {"period_ns": period_ns}}, "devices": {"drive": device}}
+        (tmp_path / "summary.json").write_text(json.dumps(summary))
+        return first_miss_s(tmp_path)
+
+    assert window_with([]) == 8 * period_ns / 1e9  # the late cycle alone
+    assert window_with([5, 6]) == 4 * period_ns / 1e9  # cycle 5's readings were old: equal up to cycle 4
+    assert window_with([9]) == 8 * period_ns / 1e9
