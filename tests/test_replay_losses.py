@@ -233,8 +233,11 @@ def test_a_run_killed_during_keep_is_said_to_have_never_finished(tmp_path: Path)
     with pytest.raises(AppError, match=r"the run never finished \(killed, or still running\): its recording is in "
                                        r"segments/"):
         replay(run, tmp_path / "replay", app=_app("lost_killed"))
-    (run / "segments").rmdir()
     summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").unlink()  # killed before it wrote one
+    with pytest.raises(AppError, match=r"the run never finished \(killed, or still running\)"):
+        replay(run, tmp_path / "replay", app=_app("lost_killed"))
+    (run / "segments").rmdir()
     (run / "summary.json").write_text(json.dumps({**summary, "running": True}))
     with pytest.raises(AppError, match=r"summary\.json still says running"):
         replay(run, tmp_path / "replay", app=_app("lost_killed"))

@@ -205,13 +205,14 @@ def whole_lines(file: Iterable[str], name: str, cut: list[str]) -> Iterator[str]
         yield line
 
 
-def unfinished(run_dir: Path, summary: dict[str, Any]) -> str:
-    """Why a run's files were never joined (a run killed, or still running), '' if they were."""
+def unfinished(run_dir: Path, summary: dict[str, Any] | None = None) -> str:
+    """Why a run's files were never joined (a run killed, or still running), '' if they were
+    (``summary``: its summary.json, when it has one)."""
     if (run_dir / UNFINISHED_FOLDER).is_dir():
         return (f"{run_dir}: the run never finished (killed, or still running): its recording is in "
                 f"{UNFINISHED_FOLDER}/, never joined into timing.csv and signals.csv, so it cannot be replayed "
                 "(rtloop.load reads it)")
-    if summary.get("running"):
+    if summary is not None and summary.get("running"):
         return (f"{run_dir}: the run never finished (summary.json still says running: killed, or still "
                 "running): its timing.csv is not whole, so it cannot be replayed")
     return ""
@@ -541,6 +542,9 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     """
     run_dir, out = Path(run_dir), Path(out)
     check_out_dir(out, protect=[run_dir])  # before reading anything: refusals come first
+    never_finished = unfinished(run_dir)  # a run killed early may not even have a summary.json
+    if never_finished:
+        raise AppError(never_finished)
     summary = read_summary(run_dir)
     never_finished = unfinished(run_dir, summary)
     if never_finished:
