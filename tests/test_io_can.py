@@ -275,6 +275,41 @@ def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cyc
         "stale_reads_by_source": {"receive[0] (id 0x180)": 3}}}
 
 
+def test_counting_stale_reads_allocates_nothing_that_stays():
+    """10,000 cycles of TaskDevices.at_release with a CAN device that reads stale every other cycle."""
+    from rtloop.io.cansocket import CanSocket
+    from rtloop.io.device import CommandLimit
+    from rtloop.io.host import DeviceWiring, TaskDevices
+
+    device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 0.001, "on_missing": "stale"}])
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    device.configure = lambda: None
+    limits = (CommandLimit(-100.0, 100.0, 0.0), CommandLimit(0.0, 255.0, 0.0))
+    task_u, task_y = np.zeros(1), np.zeros(2)
+    devices = TaskDevices("ctl", 1_000_000, [DeviceWiring(device, "let", limits, ((slice(0, 2), slice(0, 2)),),
+                                                          ((slice(0, 1), slice(0, 1)),))], task_u, task_y)
+    answer, incoming, cycle = bytearray(frame(0x180, struct.pack("<i", 7))), bytearray(72), [0]
+
+    def one_cycle():
+        if cycle[0] & 1:
+            peer.send(answer)
+        devices.at_release(cycle[0])
+        peer.recv_into(incoming)  # the command frame and the heartbeat, taken off the pair
+        peer.recv_into(incoming)
+        cycle[0] += 1
+
+    try:
+        devices.configure()
+        devices.activate()
+        assert bytes_kept_by(one_cycle, 10_000) <= KEPT_BYTES_ALLOWED
+    finally:
+        devices.stop()
+        peer.close()
+    report = devices.stale_report()["drive"]
+    assert report["stale_cycles"] == 6_000 and report["longest_lag_cycles"] == 1  # 12,000 cycles, every other
+
+
 PEER = """
 import os, socket, struct, sys
 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(70))  # answers in time, as a drive does
