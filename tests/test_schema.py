@@ -165,3 +165,50 @@ def test_both_twins_keep_the_same_timeline_cycle_by_cycle(catch_up: bool, max_mi
         for segment in made:
             segment.unlink()
 
+
+
+@pytest.mark.parametrize("kind", ["c", "python"])
+@pytest.mark.parametrize("catch_up", [False, True], ids=["skip", "catch_up"])
+def test_releases_after_the_runs_end_are_no_overruns(kind: str, catch_up: bool) -> None:
+    """A run of releases 0-4: cycle 2 ends 1.5 periods late (release 3, inside the run, is an
+    overrun), cycle 4 ends 2.5 periods late (releases 5 and 6 lie past the run's end: no overruns)."""
+    if kind == "c" and not hotpath.c_built():
+        pytest.skip(f"the C hot path is not built: {hotpath.why_python()}")
+    made: list[Segment] = []
+    try:
+        work, status, _ = _twin(kind, catch_up, None, made)
+        t0 = 10 * P
+        work.start(t0, t0 + 5 * P, 0)
+        while work.begin_at(work.release_ns):
+            cycle = (work.release_ns - t0) // P
+            work.finish_at(work.release_ns + {2: round(1.5 * P), 4: round(2.5 * P)}.get(cycle, P // 5))
+        assert status[StatusWord.DEADLINE_MISSES] == 2
+        assert status[StatusWord.OVERRUNS] == 1
+        work.close()
+    finally:
+        for segment in made:
+            segment.unlink()
+
+
+@needs_c
+def test_a_compiled_cycle_left_in_a_reference_cycle_is_collected_without_a_crash(tmp_path: Path) -> None:
+    """An exception's traceback can keep a task's hot path in a reference cycle with the views it
+    holds; the collector used to clear a memoryview before the hot path released its export of it,
+    and the process died with SIGSEGV (pytest showed it while formatting a failure)."""
+    script = tmp_path / "cycle.py"
+    script.write_text(
+        "import gc, sys\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from test_schema import P, _twin\n"
+        "made = []\n"
+        "work, status, timing = _twin('c', False, None, made)\n"
+        "work.start(10 * P, 15 * P, 0)\n"
+        "for segment in made:\n"
+        "    segment.unlink()\n"
+        "garbage = [work, status, timing, made]\n"
+        "garbage.append(garbage)\n"
+        "del work, status, timing, made, garbage\n"
+        "gc.collect()\n"
+        "print('collected')\n")
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout == "collected\n", (result.returncode, result.stderr[-2000:])

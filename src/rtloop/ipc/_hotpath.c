@@ -769,13 +769,17 @@ static PyObject *end_cycle(Core *self, int64_t end_ns) {
         if (self->misses_in_a_row > LOAD(&status[STATUS_MISSES_IN_A_ROW_MAX], relaxed))
             STORE(&status[STATUS_MISSES_IN_A_ROW_MAX], self->misses_in_a_row, relaxed);
         go_on = self->max_misses == 0 || self->misses_in_a_row < self->max_misses;
-        int64_t skipped = 1;
+        int64_t skipped = 1, first_missed_ns = release_ns;
         if (!self->catch_up) {
             int64_t next_cycle = (end_ns - self->t0_ns) / period_ns + 1;
             skipped = next_cycle - cycle;
             cycle = next_cycle;
             release_ns = self->t0_ns + next_cycle * period_ns;
         }
+        /* releases at or after the run's end were never the run's: they are no overruns */
+        int64_t left_ns = self->end_ns - first_missed_ns;
+        if (left_ns < skipped * period_ns)
+            skipped = left_ns <= 0 ? 0 : (left_ns + period_ns - 1) / period_ns;
         STORE(&status[STATUS_OVERRUNS], LOAD(&status[STATUS_OVERRUNS], relaxed) + skipped, relaxed);
     } else {
         self->misses_in_a_row = 0;
@@ -882,8 +886,10 @@ static int Core_traverse(Core *self, visitproc visit, void *arg) {
     Py_VISIT(self->tick);
     Py_VISIT(self->check_labels);
     Py_VISIT(self->check_error);
-    for (Py_ssize_t i = 0; i < self->n_views; i++)
-        Py_VISIT(self->views[i].obj);
+    /* The buffers' exporters (memoryviews, arrays, mappings of shared memory) are not visited: none
+       refers back to a Core, and a memoryview the collector cleared before us (its tp_clear drops
+       its managed buffer while we still hold an export) crashes in our release of it. Unvisited,
+       they stay alive until Core_clear releases them. */
     return 0;
 }
 

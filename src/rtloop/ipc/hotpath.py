@@ -226,11 +226,13 @@ class PythonCycle:
             if self.misses_in_a_row > status[StatusWord.MISSES_IN_A_ROW_MAX]:
                 status[StatusWord.MISSES_IN_A_ROW_MAX] = self.misses_in_a_row
             go_on = self.max_misses is None or self.misses_in_a_row < self.max_misses
-            skipped = 1
+            skipped, first_missed_ns = 1, release_ns
             if not self.catch_up:  # skip the releases already missed
                 next_cycle = (end_ns - self.t0_ns) // period_ns + 1
                 skipped = next_cycle - cycle
                 cycle, release_ns = next_cycle, self.t0_ns + next_cycle * period_ns
+            left_ns = self.end_ns - first_missed_ns  # releases at or after the run's end are no overruns
+            skipped = min(skipped, max(0, -(-left_ns // period_ns)))
             status[StatusWord.OVERRUNS] += skipped
         else:
             self.misses_in_a_row = 0
