@@ -15,7 +15,8 @@ a trio nursery: whatever it opens, it closes on every way out). It owns
 - the counts of what was lost on the way (timing records, signal rows, logged inputs), for
   the summary's notes;
 - the cleanup: the recorder closed, the final summary written (a second Ctrl-C waits until
-  it is), the reserve file given back, every segment removed.
+  it is), the reserve file given back, every segment removed and closed here
+  (descriptors and mappings: a library's caller runs many apps in one process).
 
 The supervisor (``runtime/supervisor.py``) keeps only the processes' lifecycle; the
 simulator only its logical clock.
