@@ -17,7 +17,7 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu, unique_name, wait_for_app, wait_for_cycles
+from conftest import other_cpu, scaled_ns, scaled_s, unique_name, wait_for_app, wait_for_cycles
 from rt_test_runnables import Counter, Gain, Integrator, Noop, PiController
 from rtloop import App, AppError, ConnectionSizeError, PortValueError
 from rtloop.app.appfile import load_app
@@ -34,11 +34,11 @@ def read_rows(path: Path) -> list[list[str]]:
         return list(csv.reader(file))
 
 
-def closed_loop_app(profile: Path, cpu: int | None) -> App:
+def closed_loop_app(profile: Path, cpu: int | None, period_ns: int = P) -> App:
     app = App("closed_loop")
-    controller = app.add_task("controller", PiController(2), period_ns=P, priority=80, cpu=cpu)
-    plant = app.add_task("plant", Integrator(2), period_ns=P, priority=81, cpu=cpu)
-    monitor = app.add_task("monitor", Gain(2, gain=2.0), period_ns=2 * P, priority=70, cpu=cpu)
+    controller = app.add_task("controller", PiController(2), period_ns=period_ns, priority=80, cpu=cpu)
+    plant = app.add_task("plant", Integrator(2), period_ns=period_ns, priority=81, cpu=cpu)
+    monitor = app.add_task("monitor", Gain(2, gain=2.0), period_ns=2 * period_ns, priority=70, cpu=cpu)
     app.connect(plant.y, controller.u[0:2])
     app.connect(controller.y, plant.u)
     app.connect(plant.y[0:2], monitor.u)  # a slower reader: multi-rate
@@ -47,11 +47,11 @@ def closed_loop_app(profile: Path, cpu: int | None) -> App:
     return app
 
 
-def first_unclean_time_ns(out: Path) -> int:
+def first_unclean_time_ns(out: Path, period_ns: int = P) -> int:
     """Release time (since T0) of the first cycle that missed its deadline or was skipped."""
     rows = read_rows(out / "timing.csv")[1:]
     t0 = min(int(r[2]) for r in rows)
-    periods = {"controller": P, "plant": P, "monitor": 2 * P}
+    periods = {"controller": period_ns, "plant": period_ns, "monitor": 2 * period_ns}
     worst = 10**18
     last_cycle: dict[str, int] = {}
     for task, cycle, release, _start, end in rows:
@@ -67,15 +67,17 @@ def first_unclean_time_ns(out: Path) -> int:
 @pytest.mark.rt
 @pytest.mark.usefixtures("hot_path")
 def test_run_reproduces_simulation_value_for_value(tmp_path: Path) -> None:
+    # the same 1,000 cycles and the same steps wherever it runs: periods and times stretched by the slowdown
+    period_ns, duration_s = scaled_ns(P), scaled_s(1.0)
     profile = tmp_path / "steps.csv"
-    profile.write_text("t_s,a,b\n0,0,0\n0.1,1.0,-0.5\n0.35,0.25,2.0\n")
-    simulated = rtloop.simulate(closed_loop_app(profile, None), 1.0, tmp_path / "sim")
+    profile.write_text(f"t_s,a,b\n0,0,0\n{scaled_s(0.1):g},1.0,-0.5\n{scaled_s(0.35):g},0.25,2.0\n")
+    simulated = rtloop.simulate(closed_loop_app(profile, None, period_ns), duration_s, tmp_path / "sim")
     assert simulated.tasks["plant"].stale_reads == 0
     compared, horizons = 0, []
     for attempt in range(5):  # a hypervisor stall or a busy machine can spoil a run early; the rule is the same
         out = tmp_path / f"run{attempt}"
-        rtloop.run(closed_loop_app(profile, other_cpu()), 1.0, out)
-        horizon_ns = first_unclean_time_ns(out)
+        rtloop.run(closed_loop_app(profile, other_cpu(), period_ns), duration_s, out)
+        horizon_ns = first_unclean_time_ns(out, period_ns)
         horizons.append(horizon_ns)
         sim_rows = read_rows(tmp_path / "sim" / "signals.csv")
         run_rows = read_rows(out / "signals.csv")
