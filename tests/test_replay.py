@@ -172,7 +172,7 @@ def _lets_own_simulation_differs(app_file: Path, run_dir: Path, tmp_path: Path, 
 @pytest.mark.skipif(shutil.which("stress-ng") is None, reason="stress-ng is not installed (apt install stress-ng)")
 def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_stale_reads_included(
         tmp_path: Path, rtloop_env) -> None:
-    from conftest import other_cpu
+    from conftest import other_cpu, wait_for_cycles
     from rtloop.ipc.ports import connect_app
 
     cpu = other_cpu()
@@ -192,6 +192,7 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             app = connect_app(name, timeout_s=30)
+            wait_for_cycles(app, "controller", 1, process)  # the run is under way (start-up may take long)
             for step in range(8):  # a new setpoint every 0.6 s, the first at about 1 s
                 time.sleep(0.6 if step else 1.0)
                 app.write("setpoint", [0.4 * (-1) ** step, 0.1 * (step % 3)])
