@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import find_cyclonedds_cli, skip_in_rtkernel_guest
+from conftest import find_cyclonedds_cli, skip_in_rtkernel_guest, unique_name
 from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
@@ -108,10 +108,19 @@ def env_with_domain(domain: int) -> dict[str, str]:
 
 
 def start_app(app_file: Path, out: Path, domain: int, duration_s: float) -> subprocess.Popen:
+    """``rtloop run`` of a copy of ``app_file`` beside ``out`` under a name of this test run alone
+    (a live app holds its name: another run of this suite, or the JIWY demo, may hold the example's)."""
+    text = app_file.read_text()
+    original = next(line for line in text.splitlines() if line.startswith("name = "))
+    name = unique_name(original.split('"')[1])
+    copy = out.parent / f"{name}.toml"
+    copy.write_text(text.replace(original, f'name = "{name}"'))
+    env = env_with_domain(domain)
+    env["PYTHONPATH"] = os.pathsep.join([str(app_file.parent), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     return subprocess.Popen(
-        [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s),
+        [sys.executable, "-m", "rtloop.cli", "run", str(copy), "--duration", str(duration_s),
          "--out", str(out), "--quiet"],
-        env=env_with_domain(domain), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
 
 
