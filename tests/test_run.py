@@ -35,14 +35,14 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 @pytest.mark.rt
 @pytest.mark.usefixtures("hot_path")
 def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
-    app = App("two_counters")
+    app = App(unique_name("two_counters"))
     a = app.add_task("a", Counter(), period_ns=P, priority=70, cpu=other_cpu())
     app.add_task("b", Noop(), period_ns=2 * P, priority=60, cpu=other_cpu())
     app.record(a.y)
     duration_s = scaled_s(0.5)  # 500 cycles
     summary = rtloop.run(app, duration_s, tmp_path)
     data = json.loads((tmp_path / "summary.json").read_text())
-    assert data["app"] == "two_counters" and data["duration_s"] == duration_s and data["rt_capable"] is True
+    assert data["app"] == app.name and data["duration_s"] == duration_s and data["rt_capable"] is True
     task = data["tasks"]["a"]
     assert (task["rt"], task["policy"], task["priority"], task["cpu"]) == (True, "fifo", 70, other_cpu())
     for key in ("period_ns", "cycles", "trimmed", "latency_ns", "period_jitter_ns", "exec_ns",
@@ -68,7 +68,7 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
 
 @pytest.mark.rt
 def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> None:
-    app = App("settings")
+    app = App(unique_name("settings"))
     t = app.add_task("probe", ReportSettings(), period_ns=P, priority=42, cpu=other_cpu(), policy="rr")
     app.record(t.y)
     rtloop.run(app, scaled_s(0.1), tmp_path)
@@ -82,7 +82,7 @@ def test_rt_settings_are_really_applied_in_the_task_process(tmp_path: Path) -> N
 @pytest.mark.rt
 @pytest.mark.usefixtures("hot_path")
 def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(tmp_path: Path) -> None:
-    app = App("faulty")
+    app = App(unique_name("faulty"))
     # catch_up: every cycle up to the fault runs even if this loaded machine stalls the task once
     bad = app.add_task("bad", RaiseAt(cycle=123), period_ns=P, cpu=other_cpu(), overrun="catch_up")
     app.add_task("good", Counter(), period_ns=P, cpu=other_cpu(), priority=70)
@@ -104,7 +104,7 @@ def test_exception_in_step_reports_task_cycle_and_traceback_and_keeps_artifacts(
 
 
 def test_exception_in_prerun_is_reported_before_the_loop(tmp_path: Path) -> None:
-    app = App("badprerun")
+    app = App(unique_name("badprerun"))
     app.add_task("t", BadPrerun(), period_ns=P, policy="other")
     with pytest.raises(TaskFailed, match="sensor not found") as caught:
         rtloop.run(app, 1, tmp_path)
@@ -215,7 +215,7 @@ def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: 
 
 @pytest.mark.rt
 def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> None:
-    app = App("overrun")
+    app = App(unique_name("overrun"))
     slow = app.add_task("slow", Sleepy(scaled_s(0.0035), every=50), period_ns=P, cpu=other_cpu())
     app.record(slow.y)
     summary = rtloop.run(app, scaled_s(0.5), tmp_path)
@@ -229,7 +229,7 @@ def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> No
 
 @pytest.mark.rt
 def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: Path) -> None:
-    app = App("deadline")
+    app = App(unique_name("deadline"))
     app.add_task("t", ReportSettings(), period_ns=P, policy="deadline")
     with pytest.raises(AppError, match="cannot be pinned"):
         app.add_task("pinned", Noop(), period_ns=P, policy="deadline", cpu=0)

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
+from conftest import unique_name
 from rt_test_runnables import Counter, LateFrom, LateOnce, SpinFrom
 from rtloop import App, TaskFailed
 from rtloop.app.appfile import load_app
@@ -146,7 +147,7 @@ def test_keep_bounds_the_files_and_keeps_the_cycles_around_a_miss(tmp_path: Path
 
     monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)
     period_ns, late_from, duration_s, keep_s = 2 * MS, 250, 5.0, 0.5
-    app = App("days_keep_bounds")
+    app = App(unique_name("days_keep_bounds"))
     late = app.add_task("late", LateOnce(late_from), period_ns=period_ns, priority=50, cpu=0)
     app.record(late.y)
     summary = rtloop.run(app, duration_s, tmp_path, keep_s=keep_s)
@@ -182,7 +183,7 @@ def test_run_mcap_of_a_kept_window_reads_back(tmp_path: Path, monkeypatch) -> No
     from rtloop.record import flight
 
     monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)  # 8 segments in 2 s: the early ones dropped
-    app = App("days_keep_mcap")
+    app = App(unique_name("days_keep_mcap"))
     counter = app.add_task("counter", Counter(), period_ns=2 * MS, policy="other")
     app.record(counter.y)
     rtloop.run(app, 2.0, tmp_path, keep_s=0.5)
@@ -255,7 +256,7 @@ def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env)
 # --- watchdog and misses in a row -------------------------------------------------------------------
 def test_watchdog_stops_the_app_when_a_step_spins(tmp_path: Path) -> None:
     stuck_file = tmp_path / "stuck_cycle"
-    app = App("days_watchdog")
+    app = App(unique_name("days_watchdog"))
     app.add_task("spinner", SpinFrom(30, str(stuck_file)), period_ns=10 * MS, policy="other", watchdog_periods=50)
     app.add_task("counter", Counter(), period_ns=10 * MS, policy="other")
     started = time.monotonic()
@@ -269,11 +270,11 @@ def test_watchdog_stops_the_app_when_a_step_spins(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["stopped_by"] == "watchdog" and summary["failure"]["task"] == "spinner"
     assert summary["tasks"]["counter"]["cycles"] > 30  # the other task stopped the orderly way
-    assert segments_of("days_watchdog") == []
+    assert segments_of(unique_name("days_watchdog")) == []
 
 
 def test_max_consecutive_misses_stops_the_app(tmp_path: Path) -> None:
-    app = App("days_misses_in_a_row")
+    app = App(unique_name("days_misses_in_a_row"))
     app.add_task("late", LateFrom(20), period_ns=5 * MS, policy="other", max_consecutive_misses=3)
     with pytest.raises(TaskFailed) as failed:
         rtloop.run(app, 30.0, tmp_path)
@@ -284,7 +285,7 @@ def test_max_consecutive_misses_stops_the_app(tmp_path: Path) -> None:
 
 
 def test_misses_in_a_row_are_counted_and_the_run_goes_on_by_default(tmp_path: Path) -> None:
-    app = App("days_misses_go_on")
+    app = App(unique_name("days_misses_go_on"))
     app.add_task("late", LateFrom(20), period_ns=5 * MS, policy="other")
     summary = rtloop.run(app, 1.0, tmp_path)
     assert summary.stopped_by == "duration"

@@ -35,7 +35,7 @@ def read_rows(path: Path) -> list[list[str]]:
 
 
 def closed_loop_app(profile: Path, cpu: int | None, period_ns: int = P) -> App:
-    app = App("closed_loop")
+    app = App(unique_name("closed_loop"))
     controller = app.add_task("controller", PiController(2), period_ns=period_ns, priority=80, cpu=cpu)
     plant = app.add_task("plant", Integrator(2), period_ns=period_ns, priority=81, cpu=cpu)
     monitor = app.add_task("monitor", Gain(2, gain=2.0), period_ns=2 * period_ns, priority=70, cpu=cpu)
