@@ -16,7 +16,7 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu
+from conftest import other_cpu, unique_name
 from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController, RaiseAt
 from rtloop import App
 from rtloop.ipc import hotpath
@@ -40,7 +40,7 @@ def rows_of(path: Path) -> list[list[str]]:
 
 def every_feature_app(profile: Path) -> App:
     """Connections (two from one writer, one multi-rate), a profile, a live port, an output port."""
-    app = App("hotpath_all")
+    app = App(unique_name("hotpath_all"))
     controller = app.add_task("controller", PiController(2), period_ns=P)
     plant = app.add_task("plant", Integrator(2), period_ns=P)
     monitor = app.add_task("monitor", Gain(4, gain=2.0), period_ns=3 * P)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
-from conftest import other_cpu
+from conftest import other_cpu, unique_name
 from rt_test_runnables import Counter, SegfaultAt
 from rtloop import App, TaskFailed
 from rtloop.app.appfile import load_app
@@ -90,7 +90,7 @@ def test_model_info_cli_lists_signals_and_step_size() -> None:
 
 @pytest.mark.rt
 def test_a_model_that_segfaults_kills_only_its_task_and_is_reported(tmp_path: Path) -> None:
-    app = App("segfault")
+    app = App(unique_name("segfault"))
     crash = app.add_task("crash", SegfaultAt(cycle=200), period_ns=1_000_000, cpu=other_cpu())
     app.add_task("other", Counter(), period_ns=1_000_000, cpu=other_cpu(), priority=70)
     app.record(crash.y)

@@ -17,6 +17,7 @@ import pytest
 from jiwy_models import PAN_AXIS, JiwyPlant
 
 import rtloop
+from conftest import unique_name
 from rtloop import App
 from rtloop.models import FmuError, ModelError, load_model
 from rtloop.runnable import TickInfo
@@ -80,7 +81,7 @@ def test_a_tunable_parameter_is_an_input_that_keeps_its_start_value(features_fmu
     r.step(u, y)
     assert y[0] == pytest.approx(0.5 + 5.0 * 0.01)  # the new gain applied at this step
     r.postrun()
-    app = App("tunable_fmu")
+    app = App(unique_name("tunable_fmu"))
     task = app.add_task("m", load_model(f"fmu:{features_fmu}", inputs=["u", "gain"]), period_ns=10_000_000)
     app.port("gain", to=task.u[1:2])
     from rtloop.runtime.layout import AppLayout
@@ -106,7 +107,7 @@ def test_refusals_name_the_culprit_and_list_what_exists(features_fmu: Path) -> N
 
 
 def test_terminate_simulation_stops_the_app_in_order_with_the_fmus_reason(features_fmu: Path, tmp_path: Path) -> None:
-    app = App("terminating_fmu")
+    app = App(unique_name("terminating_fmu"))
     task = app.add_task("m", load_model(f"fmu:{features_fmu}", parameters={"stop_at": 0.05}), period_ns=10_000_000)
     app.record(task.y)
     summary = rtloop.simulate(app, 1.0, tmp_path)
@@ -120,7 +121,7 @@ def test_rtloop_equals_fmpy_with_parameters_set(features_fmu: Path, tmp_path: Pa
     from fmpy import simulate_fmu
 
     parameters = {"x0": 0.25, "gain": 3.0}
-    app = App("fmpy_equal")
+    app = App(unique_name("fmpy_equal"))
     task = app.add_task("m", load_model(f"fmu:{features_fmu}", inputs=["u"], parameters=parameters),
                         period_ns=10_000_000)
     app.port("u", to=task.u, initial=[0.7])

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
+from conftest import unique_name
 from rtloop import App, Runnable
 from rtloop.app.appfile import load_app
 from rtloop.cli.run import format_summary
@@ -69,7 +70,7 @@ def test_a_fast_step_gets_no_such_note(tmp_path: Path) -> None:
 
 @pytest.mark.rt
 def test_a_run_says_when_a_step_is_slower_than_its_period(tmp_path: Path) -> None:
-    app = App("slowrun")
+    app = App(unique_name("slowrun"))
     app.add_task("slow", SlowStep(), period_ns=1_000_000, priority=10)
     summary = rtloop.run(app, 0.3, tmp_path / "run")
     notes = [note for note in summary.notes if note.startswith("slow's step")]
