@@ -75,7 +75,7 @@ def timing_rows(path: Path, task: str) -> list[int]:
 # --- until stopped ------------------------------------------------------------------------------
 def test_without_duration_it_runs_until_sigint_and_exits_0(tmp_path: Path, rtloop_env) -> None:
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, "days_until_sigint")),
+    command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, unique_name("days_until_sigint"))),
                "--out", str(out)]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -87,7 +87,7 @@ def test_without_duration_it_runs_until_sigint_and_exits_0(tmp_path: Path, rtloo
         assert load_run(out).tasks["counter"]["cycles"] > 100  # `rtloop report` reads a live run
         from rtloop.runtime.monitor import Monitor
 
-        views = Monitor("days_until_sigint").snapshot()  # and `rtloop top` shows what it says
+        views = Monitor(unique_name("days_until_sigint")).snapshot()  # and `rtloop top` shows what it says
         assert len(views) == 1 and "counter p99" in views[0].summary_line
         time.sleep(1.0)
         assert process.poll() is None, "it stopped by itself"
@@ -123,7 +123,8 @@ def test_keep_and_duration_reject_what_is_not_positive_seconds(tmp_path: Path, r
 # --- kill -9 --------------------------------------------------------------------------------------
 def test_kill_9_of_the_supervisor_leaves_a_parseable_summary(tmp_path: Path, rtloop_env) -> None:
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, "days_kill9")), "--out", str(out)]
+    command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, unique_name("days_kill9"))),
+               "--out", str(out)]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         wait_for_live_summary(out / "summary.json")
@@ -234,7 +235,7 @@ def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env)
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
     try:
-        name = "days_disk_full"
+        name = unique_name("days_disk_full")
         out = disk / "out"
         command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, name)), "--duration", "4",
                    "--out", str(out)]
