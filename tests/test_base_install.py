@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import unique_name
+
 REPO = Path(__file__).resolve().parents[1]
 JIWY = REPO / "examples" / "jiwy" / "jiwy.toml"
 
@@ -32,8 +34,11 @@ def base_venv(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return venv
 
 
-def rtloop(venv: Path, *args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def rtloop(venv: Path, *args: str, cwd: Path, models: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """The base install's ``rtloop``; nothing of this checkout on its path but the ``models`` folder."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    if models is not None:
+        env["PYTHONPATH"] = str(models)
     return subprocess.run([str(venv / "bin" / "rtloop"), *args], capture_output=True, text=True,
                           timeout=120, cwd=cwd, env=env)
 
@@ -42,8 +47,10 @@ def rtloop(venv: Path, *args: str, cwd: Path) -> subprocess.CompletedProcess[str
 @pytest.mark.parametrize("command", ["simulate", "run"])
 def test_base_install_runs_jiwy(base_venv: Path, tmp_path: Path, command: str) -> None:
     out = tmp_path / command
-    result = rtloop(base_venv, command, str(JIWY), "--duration", "0.5", "--out", str(out), "--quiet",
-                    cwd=tmp_path)
+    app_file = tmp_path / "jiwy.toml"  # under a name of this test run alone: a live app holds its name
+    app_file.write_text(JIWY.read_text().replace('name = "jiwy"', f'name = "{unique_name("jiwy_base")}"', 1))
+    result = rtloop(base_venv, command, str(app_file), "--duration", "0.5", "--out", str(out), "--quiet",
+                    cwd=tmp_path, models=JIWY.parent)
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
     for name in ("summary.json", "timing.csv", "signals.csv"):
