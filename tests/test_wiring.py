@@ -301,8 +301,11 @@ def test_bad_profile_is_refused_before_running(tmp_path: Path) -> None:
 
 def _jiwy_cli(tmp_path: Path, name: str, duration: float | None = None) -> subprocess.Popen:
     """examples/jiwy/jiwy.toml under a name of its own (other apps here may be called 'jiwy'),
-    without its ROS 2 bridges; runs until SIGINT when ``duration`` is None."""
+    without its ROS 2 bridges; runs until SIGINT when ``duration`` is None. Its 1 kHz is stretched
+    by the slowdown: under emulation two Python tasks at 1 kHz would leave no time to the CLI."""
     text = (EXAMPLES / "jiwy" / "jiwy.toml").read_text().split("# ROS 2 topics")[0]
+    assert text.count("period_ns = 1_000_000") == 2
+    text = text.replace("period_ns = 1_000_000", f"period_ns = {scaled_ns(1_000_000)}")
     app_file = tmp_path / f"{name}.toml"
     app_file.write_text(text.replace('name = "jiwy"', f'name = "{name}"'))
     run = [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--out", str(tmp_path / "out")]
