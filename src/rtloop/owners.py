@@ -1,9 +1,14 @@
-"""Who may write a file through its group: every member of a group, from the user and group databases."""
+"""Who may write a file besides its owner: through its mode, its group (every member, from the user
+and group databases) or an access ACL. The trust checks of code, models and caches ask here."""
 
 from __future__ import annotations
 
 import grp
+import os
 import pwd
+import stat
+import struct
+from pathlib import Path
 
 
 def group_members(gid: int) -> set[int]:
@@ -20,3 +25,38 @@ def group_members(gid: int) -> set[int]:
         except KeyError:
             members.add(-1)
     return members
+
+
+def untrusted_writer(facts: os.stat_result, trusted: set[int], whom: str, target: Path | int) -> str | None:
+    """Who other than a trusted user may write ``target`` (a path or descriptor with these facts; None: nobody)."""
+    if facts.st_mode & stat.S_IWOTH:
+        return "writable by every user"
+    if facts.st_mode & stat.S_IWGRP:  # with an access ACL these bits are its mask: ask the ACL too
+        if not group_members(facts.st_gid) <= trusted:
+            return f"writable by group {facts.st_gid}, whose members are not all {whom}"
+        others = sorted(_acl_writers(target) - trusted)
+        if others:
+            return f"writable through an ACL by uid {others[0]} (getfacl shows it), not only by {whom}"
+    return None
+
+
+_ACL_USER, _ACL_GROUP, _ACL_MASK = 0x02, 0x08, 0x10  # tags of the kernel's posix_acl_access xattr
+_ACL_WRITE = 0x02
+
+
+def _acl_writers(target: Path | int) -> set[int]:
+    """The uids an access ACL lets write ``target`` (named users, members of named groups); none without one."""
+    try:
+        raw = os.getxattr(target if isinstance(target, int) else os.fspath(target), "system.posix_acl_access")
+    except OSError:
+        return set()  # no ACL, or a file system without them
+    entries = [struct.unpack_from("<HHI", raw, offset) for offset in range(4, len(raw) - 7, 8)]
+    mask = next((perm for tag, perm, _ in entries if tag == _ACL_MASK), 7)
+    writers: set[int] = set()
+    for tag, perm, ident in entries:
+        if perm & mask & _ACL_WRITE:
+            if tag == _ACL_USER:
+                writers.add(ident)
+            elif tag == _ACL_GROUP:
+                writers |= group_members(ident)
+    return writers

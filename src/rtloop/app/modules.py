@@ -31,7 +31,6 @@ import importlib.machinery
 import importlib.util
 import os
 import stat
-import struct
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -39,7 +38,7 @@ from types import ModuleType
 from typing import Any, ClassVar
 
 from rtloop.errors import AppError
-from rtloop.owners import group_members
+from rtloop.owners import untrusted_writer
 from rtloop.sudo import trusted_uids
 
 
@@ -86,7 +85,7 @@ def check_folders(folder: Path, trusted: set[int] | None = None, whom: str | Non
         if facts.st_uid not in trusted:
             raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by {whom or _whom()}; "
                                 "rtloop will not run code from below it")
-        writer = _untrusted_writer(facts, trusted, whom or _whom(), path)
+        writer = untrusted_writer(facts, trusted, whom or _whom(), path)
         if writer and not facts.st_mode & stat.S_ISVTX:
             raise ModuleRefused(f"{path} is {writer}; rtloop will not run code from below it "
                                 f"(chmod go-w {path})")
@@ -109,7 +108,7 @@ def check_model_files(path: Path) -> None:
         facts = os.stat(file)
         if facts.st_uid not in trusted:
             raise ModuleRefused(f"{file} is owned by uid {facts.st_uid}, not by {_whom()}; rtloop will not run it")
-        writer = _untrusted_writer(facts, trusted, _whom(), file)
+        writer = untrusted_writer(facts, trusted, _whom(), file)
         if writer and not (stat.S_ISDIR(facts.st_mode) and facts.st_mode & stat.S_ISVTX):
             raise ModuleRefused(f"{file} is {writer}; rtloop will not run it (chmod go-w {file})")
 
@@ -128,41 +127,6 @@ def trusting_only(uid: int, whom: str) -> Iterator[None]:
         _TRUST_OVERRIDES.pop()
 
 
-def _untrusted_writer(facts: os.stat_result, trusted: set[int], whom: str, target: Path | int) -> str | None:
-    """Who other than a trusted user may write ``target`` (a path or descriptor with these facts; None: nobody)."""
-    if facts.st_mode & stat.S_IWOTH:
-        return "writable by every user"
-    if facts.st_mode & stat.S_IWGRP:  # with an access ACL these bits are its mask: ask the ACL too
-        if not group_members(facts.st_gid) <= trusted:
-            return f"writable by group {facts.st_gid}, whose members are not all {whom}"
-        others = sorted(_acl_writers(target) - trusted)
-        if others:
-            return f"writable through an ACL by uid {others[0]} (getfacl shows it), not only by {whom}"
-    return None
-
-
-_ACL_USER, _ACL_GROUP, _ACL_MASK = 0x02, 0x08, 0x10  # tags of the kernel's posix_acl_access xattr
-_ACL_WRITE = 0x02
-
-
-def _acl_writers(target: Path | int) -> set[int]:
-    """The uids an access ACL lets write ``target`` (named users, members of named groups); none without one."""
-    try:
-        raw = os.getxattr(target if isinstance(target, int) else os.fspath(target), "system.posix_acl_access")
-    except OSError:
-        return set()  # no ACL, or a file system without them
-    entries = [struct.unpack_from("<HHI", raw, offset) for offset in range(4, len(raw) - 7, 8)]
-    mask = next((perm for tag, perm, _ in entries if tag == _ACL_MASK), 7)
-    writers: set[int] = set()
-    for tag, perm, ident in entries:
-        if perm & mask & _ACL_WRITE:
-            if tag == _ACL_USER:
-                writers.add(ident)
-            elif tag == _ACL_GROUP:
-                writers |= group_members(ident)
-    return writers
-
-
 def read_checked_source(path: Path) -> bytes:
     """The bytes of module file ``path``, checked on the very file that is read (no swap between)."""
     fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
@@ -173,7 +137,7 @@ def read_checked_source(path: Path) -> bytes:
         trusted = _trusted_uids()
         if facts.st_uid not in trusted:
             raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by {_whom()}; rtloop will not run it")
-        writer = _untrusted_writer(facts, trusted, _whom(), fd)
+        writer = untrusted_writer(facts, trusted, _whom(), fd)
         if writer:
             raise ModuleRefused(f"{path} is {writer}; rtloop will not run it (chmod go-w {path})")
         with os.fdopen(os.dup(fd), "rb") as stream:

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.models.base import ModelBuildError, ModelError, StateNotCaptured
-from rtloop.owners import group_members
+from rtloop.owners import untrusted_writer
 from rtloop.runnable import FloatVector
 from rtloop.sudo import trusted_uids
 
@@ -492,15 +492,15 @@ def _foreign_cache(library: Path) -> str | None:
     """Why a cached library may be another user's (None: it is not): it, or its folder, is theirs or
     writable by them (a sticky folder aside). Its name is a hash anyone can compute."""
     trusted = trusted_uids()
+    whom = f"you (uid {os.geteuid()}) or root"
     for path, facts in ((library, os.lstat(library)), (library.parent, os.stat(library.parent))):
         if facts.st_uid not in trusted:
-            return f"{path} is owned by uid {facts.st_uid}, not by you (uid {os.geteuid()}) or root"
+            return f"{path} is owned by uid {facts.st_uid}, not by {whom}"
         if stat.S_ISDIR(facts.st_mode) and facts.st_mode & stat.S_ISVTX:
             continue  # sticky: nobody replaces what is not theirs
-        if facts.st_mode & stat.S_IWOTH:
-            return f"{path} is writable by every user"
-        if facts.st_mode & stat.S_IWGRP and not group_members(facts.st_gid) <= trusted:  # a private group is fine
-            return f"{path} is writable by group {facts.st_gid}, whose members are not all you or root"
+        writer = untrusted_writer(facts, trusted, whom, path)  # a private group is fine
+        if writer:
+            return f"{path} is {writer}"
     return None
 
 
