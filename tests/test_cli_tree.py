@@ -95,10 +95,10 @@ def test_bad_input_found_by_a_command_is_one_line_and_exit_2(tmp_path, capsys: p
     assert err.startswith("rtloop service: --keep 0") and err.count("\n") == 1, err
 
 
-def _modules_after(code: str, rtloop_env: dict[str, str]) -> tuple[list[str], str]:
-    """The heavy modules loaded by ``code`` in a fresh interpreter, and its stderr."""
+def _modules_after(code: str, rtloop_env: dict[str, str], heavy: tuple[str, ...] = HEAVY) -> tuple[list[str], str]:
+    """The ``heavy`` modules loaded by ``code`` in a fresh interpreter, and its stderr."""
     probe = (f"import json, sys\n{code}\n"
-             f"heavy = {HEAVY!r}\n"
+             f"heavy = {heavy!r}\n"
              "below = tuple(h + '.' for h in heavy)\n"
              "print(json.dumps(sorted(m for m in sys.modules if m in heavy or m.startswith(below))))")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=rtloop_env, timeout=60)
@@ -109,6 +109,20 @@ def _modules_after(code: str, rtloop_env: dict[str, str]) -> tuple[list[str], st
 def test_building_the_tree_imports_no_engine(rtloop_env: dict[str, str]) -> None:
     loaded, _ = _modules_after("from rtloop.cli.main import build_parser\nbuild_parser().format_help()", rtloop_env)
     assert loaded == []
+
+
+def test_help_loads_no_numpy(rtloop_env: dict[str, str]) -> None:
+    """``rtloop --help`` (and a usage error) answer without numpy or the app description:
+    the package's top-level names are imported on first use (``rtloop/__init__.py``)."""
+    light = ("numpy", "rtloop.app", "rtloop.runnable", "rtloop.stats.timing", "rtloop.runtime.bench")
+    for argv in (["--help"], ["bench", "--help"], ["service", "--help"], ["top", "--interval", "0"]):
+        code = f"from rtloop.cli.main import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass"
+        loaded, _ = _modules_after(code, rtloop_env, light)
+        assert loaded == [], (argv, loaded)
+    # The check can fail: a command that works with values (a port client) loads numpy.
+    loaded, _ = _modules_after("from rtloop.cli.main import main\nmain(['port', 'write', 'no_app', 'x', '1'])",
+                               rtloop_env, light)
+    assert "numpy" in loaded
 
 
 def test_the_heavy_modules_are_heavy(rtloop_env: dict[str, str]) -> None:

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtloop.cli.arguments import count, positive_seconds
-from rtloop.runtime.bench import DEFAULT_STRESS, EXPERIMENTS, STRESSORS  # names only: the runs import lazily
-from rtloop.stats.timing import DEFAULT_TRIM
+from rtloop.runtime.bench_choices import DEFAULT_STRESS, EXPERIMENTS, STRESSORS  # the runs import lazily
+from rtloop.stats import DEFAULT_TRIM
 
 if TYPE_CHECKING:
     from rtloop.runtime.bench import Outcome, Settings
@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stress-task", choices=("primes", "noop"), default="primes",
                         help="the task measured under stress (default primes)")
     parser.add_argument("--trim", type=count, default=DEFAULT_TRIM, metavar="N",
-                        help="cycles left out at each end of the statistics (default 20)")
+                        help=f"cycles left out at each end of the statistics (default {DEFAULT_TRIM})")
     parser.add_argument("--allow-non-rt", action="store_true",
                         help="run under SCHED_OTHER where real-time scheduling is not allowed (numbers mean little)")
 

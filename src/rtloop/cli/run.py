@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from rtloop.cli.arguments import count, port_feed, positive_seconds
 from rtloop.errors import AppError
+from rtloop.stats import DEFAULT_TRIM
 
 if TYPE_CHECKING:
     from rtloop.record.summary import RunSummary
@@ -41,8 +42,8 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="feed an input port from a CSV profile (t_s, values...)")
     parser.add_argument("--cpu", type=int, default=None, metavar="N",
                         help="pin every task to CPU N, whatever the app file says")
-    parser.add_argument("--trim", type=count, default=20, metavar="N",
-                        help="cycles left out at each end of the statistics (default 20)")
+    parser.add_argument("--trim", type=count, default=DEFAULT_TRIM, metavar="N",
+                        help=f"cycles left out at each end of the statistics (default {DEFAULT_TRIM})")
     parser.add_argument("--quiet", "-q", action="store_true", help="no progress, no summary table")
     parser.add_argument("--foxglove", type=_parse_host_port, default=None, metavar="[HOST:]PORT",
                         help="serve signals and timing live to Foxglove (ws://, binds 127.0.0.1 unless HOST is given)")

@@ -1,6 +1,6 @@
 """The thesis's chapter-6 experiments (section 6.3) on this machine: the engine of ``rtloop bench``.
 
-Three experiments (:data:`EXPERIMENTS`; :mod:`rtloop.cli.bench` describes them and is the
+Three experiments (:data:`rtloop.runtime.bench_choices.EXPERIMENTS`; :mod:`rtloop.cli.bench` describes them and is the
 command line): two primes tasks on one core and on two, one task with and without
 ``stress-ng`` load, a no-op task beside ``cyclictest``. Each run is an ordinary run
 directory; each experiment writes ``table.md``, ``bench.json`` and, through
@@ -29,22 +29,14 @@ from rtloop.app.builder import App
 from rtloop.errors import RtloopError
 from rtloop.linux import rt
 from rtloop.runnable import Runnable
+from rtloop.runtime.bench_choices import DEFAULT_STRESS, STRESSORS
 from rtloop.stats import timing
 
-EXPERIMENTS = ("affinity", "stress", "cyclictest")
 PERIOD_NS = 1_000_000
 """1 kHz, as in the thesis."""
 HIGH_PRIORITY, LOW_PRIORITY = 80, 79
 PRIMES_LIMIT = 700
 """The thesis's load: primes up to 700 every period (section 6.3.1)."""
-STRESSORS = {
-    "cpu": ["--cpu", "1"],
-    "vm": ["--vm", "1", "--vm-bytes", "128M"],
-    "io": ["--io", "1"],
-    "cache": ["--cache", "1"],
-}
-"""stress-ng stressor groups (``--stress`` picks some; each gets one worker on the task's core)."""
-DEFAULT_STRESS = ("cpu", "vm", "io")
 
 
 class BenchError(RtloopError, RuntimeError):

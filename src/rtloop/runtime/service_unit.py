@@ -13,10 +13,13 @@ import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from rtloop.app.builder import App
 from rtloop.errors import RtloopError
 from rtloop.version import __version__
+
+if TYPE_CHECKING:  # annotations only: the command line imports this module to parse (no numpy)
+    from rtloop.app.builder import App
 
 UNIT_DIR = Path("/etc/systemd/system")
 STATE_ROOT = Path("/var/lib/rtloop")

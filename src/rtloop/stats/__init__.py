@@ -6,3 +6,7 @@ sample; :mod:`timing_stream` computes the same record from batches in fixed memo
 (the recorder streams), ``rtloop bench`` and the report's figures all count a cycle alike.
 Nothing here does I/O.
 """
+
+DEFAULT_TRIM = 20
+"""Cycles left out at each end of a task's statistics (the thesis's choice). Here, not in
+:mod:`timing`, so the command line gives it as a default without importing numpy."""

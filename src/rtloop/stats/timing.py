@@ -23,7 +23,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import numpy.typing as npt
 
-DEFAULT_TRIM = 20
+from rtloop.stats import DEFAULT_TRIM as DEFAULT_TRIM
+
 DRIFT_WINDOW_CYCLES = 10_000
 THESIS_JITTER_FRACTION = 0.03
 
