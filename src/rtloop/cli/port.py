@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import re
 import time
+from typing import Any
 
 from rtloop.cli.arguments import at_least_one
+from rtloop.text import clip, counted
 
 HELP = "write to or read from a running app's port"
 
@@ -39,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
         for app in apps:
             print(f"{app.name} (supervisor pid {app.pid}, uid {app.uid})")
             for name, info in app.ports.items():
-                print(f"  {name:<16} {info['direction']:<4} {info['signal']}  ({info['size']} values)")
+                print("\n".join(describe_port(name, info)))
         for refusal in refused:
             print(f"not listed: {refusal.path.name}: {refusal.reason}")
         return 0
@@ -76,3 +78,68 @@ def element_names(signal: str) -> list[str]:
     task, side, start, stop = match.groups()
     stop_index = int(stop) if stop is not None else int(start) + 1
     return [f"{task}.{side}[{index}]" for index in range(int(start), stop_index)]
+
+
+def describe_port(name: str, info: dict[str, Any]) -> list[str]:
+    """The lines of ``rtloop port list`` for one port of a registry: direction, signal, size, and
+    the range and unit of its values. One range and unit for all values: on the port's line
+    (``range [-1.5, 1.5] rad``); else one line per value, named as the runnable names it.
+
+    The registry is another process's file (root lists other users' apps): what it says is
+    shown, made printable, and a field of the wrong shape is left out, never a traceback."""
+    info = info if isinstance(info, dict) else {}
+    size = info.get("size")
+    size = size if isinstance(size, int) and 0 < size <= MAX_VALUES_LISTED else None
+    head = (f"  {_printable(name):<16} {_printable(info.get('direction')):<4} {_printable(info.get('signal'))}"
+            f"  ({counted(size, 'value') if size else '? values'})")
+    if size is None:
+        return [head]
+    ranges = _ranges(info.get("range"), size)
+    units = _strings(info.get("units"), size)
+    names = _strings(info.get("names"), size)
+    details = [" ".join(part for part in (_range_text(ranges[i]), units[i]) if part) for i in range(size)]
+    if len(set(details)) == 1:
+        return [head + (f"  {details[0]}" if details[0] else "")]
+    labels = [names[i] or f"[{i}]" for i in range(size)]
+    width = max(len(label) for label in labels)
+    return [head] + [f"      {label:<{width}}  {detail or '-'}" for label, detail in zip(labels, details, strict=True)]
+
+
+MAX_VALUES_LISTED = 1024
+"""A port with more values than this is listed without them (a registry is not to flood a terminal)."""
+
+
+def _ranges(value: object, size: int) -> list[tuple[float, float] | None]:
+    """The registry's ``range`` (``[lo, hi]``, each a number or one per value) as one pair per value."""
+    if not isinstance(value, list) or len(value) != 2:
+        return [None] * size
+    bounds = []
+    for bound in value:
+        if _is_number(bound):
+            bounds.append([float(bound)] * size)
+        elif isinstance(bound, list) and len(bound) == size and all(map(_is_number, bound)):
+            bounds.append([float(b) for b in bound])
+        else:
+            return [None] * size
+    return list(zip(*bounds, strict=True))
+
+
+def _range_text(pair: tuple[float, float] | None) -> str:
+    return "" if pair is None else f"range [{pair[0]:g}, {pair[1]:g}]"
+
+
+def _strings(value: object, size: int) -> list[str]:
+    """One printable string per value ('' where the registry has none)."""
+    if not isinstance(value, list) or len(value) != size:
+        return [""] * size
+    return [_printable(item) if isinstance(item, str) else "" for item in value]
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _printable(value: object) -> str:
+    """At most 40 characters, control characters (a terminal's escape sequences) as '?'."""
+    text = value if isinstance(value, str) else "?"
+    return clip("".join(c if c.isprintable() else "?" for c in text), 40)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from rtloop.app.builder import App, PortSpec
+from rtloop.app.plots import element_units, elements
 from rtloop.app.profiles import load_profile
 from rtloop.errors import AppError
 from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
@@ -281,6 +282,7 @@ class AppLayout:
 
     # --- registry: how `rtloop port` and bridges find a running app's ports -------------
     def _write_registry(self, summary_path: Path | None) -> None:
+        units = element_units(self.app)
         ports = {
             name: {
                 "direction": spec.direction,
@@ -289,6 +291,8 @@ class AppLayout:
                 "size": spec.signal.size,
                 "allow_nonfinite": spec.allow_nonfinite,
                 "range": list(spec.value_range) if spec.value_range is not None else None,
+                "names": _element_names(self.app, spec),
+                "units": [units.get(element, "") for element in elements(spec.signal)],
                 "period_ns": self.app.tasks[spec.signal.task].config.period_ns,
             }
             for name, spec in self.app.ports.items()
@@ -329,3 +333,11 @@ class AppLayout:
         self.tasks, self.input_ports, self.output_ports = {}, {}, {}
         del self.control
         close_segments(self.segments)
+
+
+def _element_names(app: App, spec: PortSpec) -> list[str]:
+    """The name the runnable gives each value of a port ('' where it gives none): ``rtloop port list``."""
+    ref = spec.signal
+    runnable = app.tasks[ref.task].runnable
+    names = list(getattr(runnable, "input_names" if ref.side == "u" else "output_names", None) or ())
+    return [str(names[i]) if i < len(names) else "" for i in range(ref.start, ref.stop)]
