@@ -1,10 +1,12 @@
 /* The devices' per-cycle work in C: the command guard, signals packed into and out of frame
- * bytes, and a CAN socket drained into the newest copy of each declared frame.
+ * bytes, a CAN socket drained into the newest copy of each declared frame, a GPIO device's
+ * lines set and read, and an SPI frame sealed, transferred and checked.
  *
  * Each is the compiled twin of a Python reference that stays the fallback and is tested
  * against it: Guard <-> io/limits.py CommandGuard.apply (+ the copies of io/host.py),
  * Layout <-> io/bytelayout.py ByteLayout.pack_into/unpack_from, CanReceiver <->
- * io/cansocket.py CanSocket._drain. Same arithmetic in the same order, so the results are
+ * io/cansocket.py CanSocket._drain, GpioLines <-> io/gpio.py GpioDevice.write/read, SpiFrame <->
+ * io/spi.py SpiDevice with io/spiframe.py. Same arithmetic in the same order, so the results are
  * bit for bit the Python ones. Every buffer a cycle touches is acquired once, when the
  * object is built; a cycle allocates nothing. Built by pip with the system compiler
  * (optional: without a compiler the Python path runs).
@@ -17,6 +19,7 @@
 #include <poll.h>
 #include <stdint.h>
 #include <string.h>
+#include <sys/ioctl.h>
 #include <sys/socket.h>
 
 /* A float64 vector held for the object's life (a numpy array or a view of one, contiguous). */
@@ -274,6 +277,7 @@ typedef struct {
 typedef struct {
     PyObject_HEAD
     Py_ssize_t n;
+    Py_ssize_t end; /* the bytes the fields reach from the frame's ``at``: checked once per call */
     FieldPlan *fields;
 } Layout;
 
@@ -295,7 +299,8 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
     Py_ssize_t count = PySequence_Fast_GET_SIZE(items);
     PyMem_Free(self->fields);
     self->fields = PyMem_Calloc(count ? count : 1, sizeof(FieldPlan));
-    self->n = 0;
+    self->n = self->end = 0;
+    Py_ssize_t end = 0;
     if (self->fields == NULL) {
         PyErr_NoMemory();
         goto fail;
@@ -320,12 +325,16 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
             PyErr_Format(PyExc_ValueError, "unknown field code %R", PySequence_Fast_GET_ITEM(items, i));
             goto fail;
         }
-        if (code[1] != '\0' || f->start < 0) {
+        if (code[1] != '\0' || f->start < 0 || f->start > PY_SSIZE_T_MAX - 8) {
             PyErr_SetString(PyExc_ValueError, "a field is (one struct code, start >= 0, scale, offset, big_endian)");
             goto fail;
         }
+        if (f->start + f->size > end) {
+            end = f->start + f->size;
+        }
     }
     self->n = count; /* only a whole plan is used: n stays 0 on failure */
+    self->end = end;
     Py_DECREF(items);
     return 0;
 fail:
@@ -347,42 +356,15 @@ static uint64_t get_bits(const unsigned char *at, int size, int big_endian) {
     return bits;
 }
 
-/* pack_into(frame, at, values, first) -> -1, or the index (in this layout) of the field whose
- * value is not finite (or too large for an f32): nothing of that field is written. */
-static PyObject *Layout_pack_into(Layout *self, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 4) {
-        PyErr_SetString(PyExc_TypeError, "pack_into(frame, at, values, first)");
-        return NULL;
-    }
-    Py_ssize_t at = PyLong_AsSsize_t(args[1]), first = PyLong_AsSsize_t(args[3]);
-    if ((at == -1 || first == -1) && PyErr_Occurred()) {
-        return NULL;
-    }
-    Py_buffer frame, values;
-    if (PyObject_GetBuffer(args[0], &frame, PyBUF_WRITABLE) < 0) {
-        return NULL;
-    }
-    if (get_vector(args[2], &values, 0, "values") < 0) {
-        PyBuffer_Release(&frame);
-        return NULL;
-    }
-    long bad = -1;
-    if (first < 0 || first + self->n > values.len / 8) {
-        PyErr_SetString(PyExc_IndexError, "values: fewer than the layout's fields");
-        goto error;
-    }
-    const double *value = (const double *)values.buf + first;
-    for (Py_ssize_t i = 0; i < self->n; i++) {
-        const FieldPlan *f = &self->fields[i];
-        if (at < 0 || at + f->start + f->size > frame.len) {
-            PyErr_SetString(PyExc_ValueError, "the frame is shorter than the layout");
-            goto error;
-        }
-        unsigned char *place = (unsigned char *)frame.buf + at + f->start;
+/* The layout's fields packed into ``frame`` (at least layout->end bytes) from value[0..n-1]:
+ * -1, or the index of the first field whose value is not finite (or too large for an f32);
+ * nothing of that field or the ones after it is written (as the Python reference stops there). */
+static long layout_pack(const Layout *layout, unsigned char *frame, const double *value) {
+    for (Py_ssize_t i = 0; i < layout->n; i++) {
+        const FieldPlan *f = &layout->fields[i];
         double raw = (value[i] - f->offset) / f->scale;
         if (!isfinite(raw)) {
-            bad = (long)i;
-            break;
+            return (long)i;
         }
         uint64_t bits;
         if (f->code == 'd') {
@@ -390,8 +372,7 @@ static PyObject *Layout_pack_into(Layout *self, PyObject *const *args, Py_ssize_
         } else if (f->code == 'f') {
             float narrow = (float)raw;
             if (isinf(narrow)) { /* as struct.pack('f') refuses it */
-                bad = (long)i;
-                break;
+                return (long)i;
             }
             uint32_t word;
             memcpy(&word, &narrow, 4);
@@ -416,47 +397,16 @@ static PyObject *Layout_pack_into(Layout *self, PyObject *const *args, Py_ssize_
                 bits &= ((uint64_t)1 << width) - 1;
             }
         }
-        put_bits(place, bits, f->size, f->big_endian);
+        put_bits(frame + f->start, bits, f->size, f->big_endian);
     }
-    PyBuffer_Release(&frame);
-    PyBuffer_Release(&values);
-    return PyLong_FromLong(bad);
-error:
-    PyBuffer_Release(&frame);
-    PyBuffer_Release(&values);
-    return NULL;
+    return -1;
 }
 
-/* unpack_from(frame, at, out, first): the fields of ``frame`` into out[first:first + n]. */
-static PyObject *Layout_unpack_from(Layout *self, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 4) {
-        PyErr_SetString(PyExc_TypeError, "unpack_from(frame, at, out, first)");
-        return NULL;
-    }
-    Py_ssize_t at = PyLong_AsSsize_t(args[1]), first = PyLong_AsSsize_t(args[3]);
-    if ((at == -1 || first == -1) && PyErr_Occurred()) {
-        return NULL;
-    }
-    Py_buffer frame, out;
-    if (PyObject_GetBuffer(args[0], &frame, PyBUF_SIMPLE) < 0) {
-        return NULL;
-    }
-    if (get_vector(args[2], &out, 1, "out") < 0) {
-        PyBuffer_Release(&frame);
-        return NULL;
-    }
-    if (first < 0 || first + self->n > out.len / 8) {
-        PyErr_SetString(PyExc_IndexError, "out: fewer than the layout's fields");
-        goto error;
-    }
-    double *target = (double *)out.buf + first;
-    for (Py_ssize_t i = 0; i < self->n; i++) {
-        const FieldPlan *f = &self->fields[i];
-        if (at < 0 || at + f->start + f->size > frame.len) {
-            PyErr_SetString(PyExc_ValueError, "the frame is shorter than the layout");
-            goto error;
-        }
-        uint64_t bits = get_bits((const unsigned char *)frame.buf + at + f->start, f->size, f->big_endian);
+/* The layout's fields of ``frame`` (at least layout->end bytes) into target[0..n-1]. */
+static void layout_unpack(const Layout *layout, const unsigned char *frame, double *target) {
+    for (Py_ssize_t i = 0; i < layout->n; i++) {
+        const FieldPlan *f = &layout->fields[i];
+        uint64_t bits = get_bits(frame + f->start, f->size, f->big_endian);
         double raw;
         if (f->code == 'd') {
             memcpy(&raw, &bits, 8);
@@ -475,13 +425,70 @@ static PyObject *Layout_unpack_from(Layout *self, PyObject *const *args, Py_ssiz
         }
         target[i] = raw * f->scale + f->offset;
     }
+}
+
+/* The frame and vector of a pack_into/unpack_from call, sizes checked: 0, or -1 with an error set
+ * (nothing held then). */
+static int layout_buffers(const Layout *self, PyObject *const *args, Py_ssize_t nargs, int packing,
+                          Py_buffer *frame, Py_buffer *vector, Py_ssize_t *at, Py_ssize_t *first) {
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, packing ? "pack_into(frame, at, values, first)"
+                                                 : "unpack_from(frame, at, out, first)");
+        return -1;
+    }
+    *at = PyLong_AsSsize_t(args[1]);
+    *first = PyLong_AsSsize_t(args[3]);
+    if ((*at == -1 || *first == -1) && PyErr_Occurred()) {
+        return -1;
+    }
+    if (PyObject_GetBuffer(args[0], frame, packing ? PyBUF_WRITABLE : PyBUF_SIMPLE) < 0) {
+        return -1;
+    }
+    if (get_vector(args[2], vector, !packing, packing ? "values" : "out") < 0) {
+        PyBuffer_Release(frame);
+        return -1;
+    }
+    if (*first < 0 || *first > vector->len / 8 - self->n) {
+        PyErr_SetString(PyExc_IndexError, packing ? "values: fewer than the layout's fields"
+                                                  : "out: fewer than the layout's fields");
+        goto fail;
+    }
+    if (*at < 0 || *at > frame->len - self->end) {
+        PyErr_SetString(PyExc_ValueError, "the frame is shorter than the layout");
+        goto fail;
+    }
+    return 0;
+fail:
+    PyBuffer_Release(frame);
+    PyBuffer_Release(vector);
+    return -1;
+}
+
+/* pack_into(frame, at, values, first) -> -1, or the index (in this layout) of the field whose
+ * value is not finite (or too large for an f32): nothing of that field is written. */
+static PyObject *Layout_pack_into(Layout *self, PyObject *const *args, Py_ssize_t nargs) {
+    Py_buffer frame, values;
+    Py_ssize_t at, first;
+    if (layout_buffers(self, args, nargs, 1, &frame, &values, &at, &first) < 0) {
+        return NULL;
+    }
+    long bad = layout_pack(self, (unsigned char *)frame.buf + at, (const double *)values.buf + first);
+    PyBuffer_Release(&frame);
+    PyBuffer_Release(&values);
+    return PyLong_FromLong(bad);
+}
+
+/* unpack_from(frame, at, out, first): the fields of ``frame`` into out[first:first + n]. */
+static PyObject *Layout_unpack_from(Layout *self, PyObject *const *args, Py_ssize_t nargs) {
+    Py_buffer frame, out;
+    Py_ssize_t at, first;
+    if (layout_buffers(self, args, nargs, 0, &frame, &out, &at, &first) < 0) {
+        return NULL;
+    }
+    layout_unpack(self, (const unsigned char *)frame.buf + at, (double *)out.buf + first);
     PyBuffer_Release(&frame);
     PyBuffer_Release(&out);
     Py_RETURN_NONE;
-error:
-    PyBuffer_Release(&frame);
-    PyBuffer_Release(&out);
-    return NULL;
 }
 
 static PyMethodDef Layout_methods[] = {
@@ -676,19 +683,533 @@ static PyTypeObject CanReceiverType = {
 };
 
 /* ------------------------------------------------------------------------------------------ */
+/* GpioLines: a GPIO device's outputs and inputs, one ioctl each per cycle (GPIO character      */
+/* device v2), and the E-stop's pending edge.                                                   */
+/*                                                                                              */
+/* The GIL is kept across the ioctls, as the task's hot path keeps it for the scope pin: they    */
+/* do not wait for anything (the kernel sets or reads the lines and returns), and giving the GIL */
+/* away would let another thread of the process delay the loop when it is taken back.            */
+
+#define GPIO_LINES_MAX 64 /* GPIO_V2_LINES_MAX: a request holds at most 64 lines, one bit each */
+
+/* struct gpio_v2_line_values of <linux/gpio.h>: the bits of the request's lines, and which count */
+struct gpio_values {
+    uint64_t bits, mask;
+};
+
+typedef struct {
+    PyObject_HEAD
+    int out_fd, in_fd, estop_fd;         /* line request fds; -1: none */
+    unsigned long set_request, get_request;
+    Py_ssize_t n_out, n_in;
+    unsigned char out_bits[GPIO_LINES_MAX]; /* output i's bit in its request's bitmap */
+    unsigned char in_bits[GPIO_LINES_MAX];
+    uint64_t out_mask, in_mask;          /* the scope pin (same request as the outputs) is not in out_mask */
+} GpioLines;
+
+/* Bits of a sequence of line positions (0..63) into ``bits``; their mask, or -1 with an error set. */
+static int gpio_bits(PyObject *positions, unsigned char *bits, Py_ssize_t *n, uint64_t *mask) {
+    PyObject *items = PySequence_Fast(positions, "bits: a sequence of line positions");
+    if (items == NULL) {
+        return -1;
+    }
+    *n = PySequence_Fast_GET_SIZE(items);
+    *mask = 0;
+    if (*n > GPIO_LINES_MAX) {
+        PyErr_SetString(PyExc_ValueError, "a line request holds at most 64 lines");
+        goto fail;
+    }
+    for (Py_ssize_t i = 0; i < *n; i++) {
+        long bit = PyLong_AsLong(PySequence_Fast_GET_ITEM(items, i));
+        if (bit == -1 && PyErr_Occurred()) {
+            goto fail;
+        }
+        if (bit < 0 || bit >= GPIO_LINES_MAX) {
+            PyErr_SetString(PyExc_ValueError, "a line's bit is 0..63");
+            goto fail;
+        }
+        bits[i] = (unsigned char)bit;
+        *mask |= (uint64_t)1 << bit;
+    }
+    Py_DECREF(items);
+    return 0;
+fail:
+    Py_DECREF(items);
+    *n = 0;
+    return -1;
+}
+
+/* GpioLines(out_fd, set_request, out_bits, in_fd, get_request, in_bits, estop_fd) */
+static int GpioLines_init(GpioLines *self, PyObject *args, PyObject *kwargs) {
+    PyObject *out_bits, *in_bits;
+    if (!PyArg_ParseTuple(args, "ikOikOi", &self->out_fd, &self->set_request, &out_bits, &self->in_fd,
+                          &self->get_request, &in_bits, &self->estop_fd)) {
+        return -1;
+    }
+    if (gpio_bits(out_bits, self->out_bits, &self->n_out, &self->out_mask) < 0 ||
+        gpio_bits(in_bits, self->in_bits, &self->n_in, &self->in_mask) < 0) {
+        self->out_fd = self->in_fd = self->estop_fd = -1; /* a half-built object does nothing */
+        return -1;
+    }
+    return 0;
+}
+
+/* write(u): output i active when u[i] >= 0.5 (NaN is not: inactive), all in one SET_VALUES. */
+static PyObject *GpioLines_write(GpioLines *self, PyObject *u_object) {
+    if (self->out_fd < 0 || self->n_out == 0) { /* as the reference: u is not even looked at */
+        Py_RETURN_NONE;
+    }
+    Py_buffer view;
+    if (get_vector(u_object, &view, 0, "u") < 0) {
+        return NULL;
+    }
+    if (view.len / 8 < self->n_out) {
+        PyBuffer_Release(&view);
+        PyErr_SetString(PyExc_IndexError, "u: fewer values than output lines");
+        return NULL;
+    }
+    const double *u = view.buf;
+    struct gpio_values values = {0, self->out_mask};
+    for (Py_ssize_t i = 0; i < self->n_out; i++) {
+        if (u[i] >= 0.5) {
+            values.bits |= (uint64_t)1 << self->out_bits[i];
+        }
+    }
+    PyBuffer_Release(&view);
+    if (ioctl(self->out_fd, self->set_request, &values) < 0) {
+        return PyErr_SetFromErrno(PyExc_OSError); /* what fcntl.ioctl raises */
+    }
+    Py_RETURN_NONE;
+}
+
+/* read(y) -> True when an E-stop edge is waiting (nothing read then: the caller stops on it),
+ * else False with input i in y[i] as 1.0 (active) or 0.0, all from one GET_VALUES. */
+static PyObject *GpioLines_read(GpioLines *self, PyObject *y_object) {
+    if (self->estop_fd >= 0) {
+        struct pollfd edge = {.fd = self->estop_fd, .events = POLLIN};
+        int ready;
+        while ((ready = poll(&edge, 1, 0)) < 0) {
+            if (errno != EINTR) {
+                return PyErr_SetFromErrno(PyExc_OSError);
+            }
+            if (PyErr_CheckSignals() < 0) { /* as select.poll: a handler's exception, else try again */
+                return NULL;
+            }
+        }
+        if (ready > 0) {
+            Py_RETURN_TRUE;
+        }
+    }
+    if (self->in_fd < 0) {
+        Py_RETURN_FALSE;
+    }
+    Py_buffer view;
+    if (get_vector(y_object, &view, 1, "y") < 0) {
+        return NULL;
+    }
+    if (view.len / 8 < self->n_in) {
+        PyBuffer_Release(&view);
+        PyErr_SetString(PyExc_IndexError, "y: fewer places than input lines");
+        return NULL;
+    }
+    struct gpio_values values = {0, self->in_mask};
+    if (ioctl(self->in_fd, self->get_request, &values) < 0) {
+        PyBuffer_Release(&view);
+        return PyErr_SetFromErrno(PyExc_OSError);
+    }
+    double *y = view.buf;
+    for (Py_ssize_t i = 0; i < self->n_in; i++) {
+        y[i] = values.bits >> self->in_bits[i] & 1 ? 1.0 : 0.0;
+    }
+    PyBuffer_Release(&view);
+    Py_RETURN_FALSE;
+}
+
+static PyObject *GpioLines_release(GpioLines *self, PyObject *Py_UNUSED(ignored)) {
+    self->out_fd = self->in_fd = self->estop_fd = -1; /* the fds are the requests' own: closed by them */
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef GpioLines_methods[] = {
+    {"write", (PyCFunction)GpioLines_write, METH_O, "write(u): the outputs, u[i] >= 0.5 active."},
+    {"read", (PyCFunction)GpioLines_read, METH_O, "read(y) -> True when an E-stop edge waits, else the inputs."},
+    {"release", (PyCFunction)GpioLines_release, METH_NOARGS, "Forget the fds (before the requests close them)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject GpioLinesType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "rtloop.io._devio.GpioLines",
+    .tp_basicsize = sizeof(GpioLines),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)GpioLines_init,
+    .tp_methods = GpioLines_methods,
+    .tp_doc = "GpioLines(out_fd, set_request, out_bits, in_fd, get_request, in_bits, estop_fd): a GPIO "
+              "device's cycle.",
+};
+
+/* ------------------------------------------------------------------------------------------ */
+/* SpiFrame: one full-duplex SPI transfer per cycle of a frame with a sequence counter and a    */
+/* CRC (io/spiframe.py): the signals packed, counter and CRC sealed, one SPI_IOC_MESSAGE(1) on  */
+/* a transfer built once, the answer's CRC and counter checked, its signals unpacked. The        */
+/* compiled twin of io/spi.py SpiDevice._exchange/write/read with io/spiframe.py FrameCheck.     */
+/* The GIL is kept across the ioctl, as for GPIO above: the transfer of a frame of a few bytes   */
+/* takes microseconds, and taking the GIL back could wait behind another thread.                 */
+
+/* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, not reflected, no final xor), what
+ * binascii.crc_hqx(data, 0xFFFF) computes: a byte at a time through a table built at import. */
+static uint16_t crc16_table[256];
+
+static void crc16_table_build(void) {
+    for (int byte = 0; byte < 256; byte++) {
+        uint16_t crc = (uint16_t)(byte << 8);
+        for (int bit = 0; bit < 8; bit++) {
+            crc = crc & 0x8000 ? (uint16_t)(crc << 1 ^ 0x1021) : (uint16_t)(crc << 1);
+        }
+        crc16_table[byte] = crc;
+    }
+}
+
+static uint16_t crc16_ccitt(const unsigned char *data, Py_ssize_t n) {
+    uint16_t crc = 0xFFFF;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        crc = (uint16_t)(crc << 8 ^ crc16_table[(crc >> 8 ^ data[i]) & 0xFF]);
+    }
+    return crc;
+}
+
+enum { SPI_NO_ERROR, SPI_BAD_CRC, SPI_BAD_COUNTER };
+
+typedef struct {
+    PyObject_HEAD
+    int fd;
+    unsigned long request;        /* SPI_IOC_MESSAGE(1), from io/kernel.py */
+    Py_buffer transfer, tx, rx;   /* held for the object's life: the addresses in ``transfer`` stay valid */
+    int held;                     /* how many of the three are held (for a partial failure) */
+    Layout *send, *receive;       /* owned */
+    int echo;                     /* the answer carries this transfer's counter (a MOSI-MISO loop), else the one before */
+    int counter;                  /* of the next frame sent, 0..255 */
+    int expected;                 /* the counter the answer must carry; -1: none (the first answer of "previous") */
+    int answered, fresh;          /* the last answer was good; a transfer came since the last read */
+    unsigned long long bad_crc, bad_counter;
+    int last_error, last_seen, last_expected; /* the last refusal, made into words only when asked */
+} SpiFrame;
+
+static void SpiFrame_release(SpiFrame *self) {
+    Py_buffer *buffers[3] = {&self->transfer, &self->tx, &self->rx};
+    for (int i = 0; i < self->held; i++) {
+        PyBuffer_Release(buffers[i]);
+    }
+    self->held = 0;
+    Py_CLEAR(self->send);
+    Py_CLEAR(self->receive);
+    self->fd = -1;
+}
+
+static void SpiFrame_dealloc(SpiFrame *self) {
+    SpiFrame_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* SpiFrame(fd, request, transfer, tx, rx, send, receive, echo): ``transfer`` a struct
+ * spi_ioc_transfer whose tx_buf, rx_buf and len are tx's and rx's (checked here), ``send`` and
+ * ``receive`` the compiled Layouts of the signals. */
+static int SpiFrame_init(SpiFrame *self, PyObject *args, PyObject *kwargs) {
+    PyObject *objects[3];
+    PyObject *send, *receive;
+    int fd, echo;
+    unsigned long request;
+    if (!PyArg_ParseTuple(args, "ikOOOO!O!p", &fd, &request, &objects[0], &objects[1], &objects[2], &LayoutType,
+                          &send, &LayoutType, &receive, &echo)) {
+        return -1;
+    }
+    SpiFrame_release(self);
+    Py_buffer *buffers[3] = {&self->transfer, &self->tx, &self->rx};
+    for (int i = 0; i < 3; i++) {
+        if (PyObject_GetBuffer(objects[i], buffers[i], PyBUF_WRITABLE) < 0) {
+            goto fail;
+        }
+        self->held = i + 1;
+    }
+    Py_ssize_t n = self->tx.len;
+    uint64_t tx_address, rx_address;
+    uint32_t length;
+    if (self->transfer.len < 20) {
+        PyErr_SetString(PyExc_ValueError, "transfer: not a struct spi_ioc_transfer");
+        goto fail;
+    }
+    memcpy(&tx_address, self->transfer.buf, 8); /* tx_buf, rx_buf, len: the first fields */
+    memcpy(&rx_address, (char *)self->transfer.buf + 8, 8);
+    memcpy(&length, (char *)self->transfer.buf + 16, 4);
+    if (tx_address != (uint64_t)(uintptr_t)self->tx.buf || rx_address != (uint64_t)(uintptr_t)self->rx.buf ||
+        length != (uint32_t)n || self->rx.len != n) {
+        PyErr_SetString(PyExc_ValueError, "transfer: not pointing at tx and rx of its length");
+        goto fail;
+    }
+    Py_INCREF(send);
+    self->send = (Layout *)send;
+    Py_INCREF(receive);
+    self->receive = (Layout *)receive;
+    if (n < 3 || self->send->end > n - 2 || self->receive->end > n - 2) {
+        PyErr_SetString(PyExc_ValueError, "the signals leave no room for the counter and the CRC");
+        goto fail;
+    }
+    self->fd = fd;
+    self->request = request;
+    self->echo = echo;
+    self->counter = 0;
+    self->expected = -1;
+    self->answered = self->fresh = 0;
+    self->bad_crc = self->bad_counter = 0;
+    self->last_error = SPI_NO_ERROR;
+    return 0;
+fail:
+    SpiFrame_release(self);
+    return -1;
+}
+
+/* The counter into byte 0 and the CRC of bytes 0..n-3 into the last two (big-endian); what the
+ * answer to this frame must carry (spiframe.seal, FrameCheck.sent). */
+static void spi_seal(SpiFrame *self) {
+    unsigned char *tx = self->tx.buf;
+    Py_ssize_t n = self->tx.len;
+    tx[0] = (unsigned char)self->counter;
+    uint16_t crc = crc16_ccitt(tx, n - 2);
+    tx[n - 2] = (unsigned char)(crc >> 8);
+    tx[n - 1] = (unsigned char)(crc & 0xFF);
+    if (self->echo) {
+        self->expected = self->counter;
+    }
+}
+
+/* The answer in rx checked (FrameCheck.accept, then .after), the counter moved on. */
+static void spi_check(SpiFrame *self) {
+    const unsigned char *rx = self->rx.buf;
+    Py_ssize_t n = self->rx.len;
+    if (crc16_ccitt(rx, n - 2) != (rx[n - 2] << 8 | rx[n - 1])) {
+        self->bad_crc++;
+        self->last_error = SPI_BAD_CRC;
+        self->answered = 0;
+    } else if (self->expected >= 0 && rx[0] != self->expected) {
+        self->bad_counter++;
+        self->last_error = SPI_BAD_COUNTER;
+        self->last_seen = rx[0];
+        self->last_expected = self->expected;
+        self->answered = 0;
+    } else {
+        self->answered = 1;
+    }
+    if (!self->echo) {
+        self->expected = self->counter;
+    }
+    self->counter = (self->counter + 1) & 0xFF;
+    self->fresh = 1;
+}
+
+/* One transfer (SpiDevice._exchange): seal, SPI_IOC_MESSAGE(1), check. -1 with OSError set when
+ * the kernel refuses it (then, as in the reference, the counter stays and nothing is fresh). */
+static int spi_exchange(SpiFrame *self) {
+    spi_seal(self);
+    if (ioctl(self->fd, self->request, self->transfer.buf) < 0) {
+        PyErr_SetFromErrno(PyExc_OSError); /* what fcntl.ioctl raises */
+        return -1;
+    }
+    spi_check(self);
+    return 0;
+}
+
+static int spi_held(SpiFrame *self) {
+    if (self->held != 3) {
+        PyErr_SetString(PyExc_ValueError, "the SPI frame is released");
+        return 0;
+    }
+    return 1;
+}
+
+/* write(u) -> -1 once the signals went out and the answer came back (checked), or the index of
+ * the first signal that cannot be sent (not finite): then nothing was transferred. */
+static PyObject *SpiFrame_write(SpiFrame *self, PyObject *u_object) {
+    if (!spi_held(self)) {
+        return NULL;
+    }
+    Py_buffer view;
+    if (get_vector(u_object, &view, 0, "u") < 0) {
+        return NULL;
+    }
+    if (view.len / 8 < self->send->n) {
+        PyBuffer_Release(&view);
+        PyErr_SetString(PyExc_IndexError, "values: fewer than the layout's fields");
+        return NULL;
+    }
+    long bad = layout_pack(self->send, self->tx.buf, view.buf);
+    PyBuffer_Release(&view);
+    if (bad >= 0) {
+        return PyLong_FromLong(bad);
+    }
+    if (spi_exchange(self) < 0) {
+        return NULL;
+    }
+    return PyLong_FromLong(-1);
+}
+
+/* read(y) -> True with the answer's signals in y, or False when the answer is not valid (y
+ * untouched; the caller counts it stale or faults). A transfer is made first when none came
+ * since the last read. y may be None: the check only (the caller unpacks). */
+static PyObject *SpiFrame_read(SpiFrame *self, PyObject *y_object) {
+    if (!spi_held(self)) {
+        return NULL;
+    }
+    Py_buffer view;
+    int unpack = y_object != Py_None;
+    if (unpack) {
+        if (get_vector(y_object, &view, 1, "y") < 0) {
+            return NULL;
+        }
+        if (view.len / 8 < self->receive->n) {
+            PyBuffer_Release(&view);
+            PyErr_SetString(PyExc_IndexError, "out: fewer than the layout's fields");
+            return NULL;
+        }
+    }
+    if (!self->fresh && spi_exchange(self) < 0) {
+        goto fail;
+    }
+    self->fresh = 0;
+    if (unpack) {
+        if (self->answered) {
+            layout_unpack(self->receive, self->rx.buf, view.buf);
+        }
+        PyBuffer_Release(&view);
+    }
+    return PyBool_FromLong(self->answered);
+fail:
+    if (unpack) {
+        PyBuffer_Release(&view);
+    }
+    return NULL;
+}
+
+/* exchange(): one transfer of what tx holds (after the Python layout packed it). */
+static PyObject *SpiFrame_exchange(SpiFrame *self, PyObject *Py_UNUSED(ignored)) {
+    if (!spi_held(self) || spi_exchange(self) < 0) {
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
+/* seal() and check(): the transfer's two halves without the ioctl, so the tests compare them with
+ * the reference on buffers on a machine with no SPI controller. */
+static PyObject *SpiFrame_seal(SpiFrame *self, PyObject *Py_UNUSED(ignored)) {
+    if (!spi_held(self)) {
+        return NULL;
+    }
+    spi_seal(self);
+    Py_RETURN_NONE;
+}
+
+static PyObject *SpiFrame_check(SpiFrame *self, PyObject *Py_UNUSED(ignored)) {
+    if (!spi_held(self)) {
+        return NULL;
+    }
+    spi_check(self);
+    return PyBool_FromLong(self->answered);
+}
+
+static PyObject *SpiFrame_release_method(SpiFrame *self, PyObject *Py_UNUSED(ignored)) {
+    SpiFrame_release(self);
+    Py_RETURN_NONE;
+}
+
+static PyObject *SpiFrame_get_bad_crc(SpiFrame *self, void *closure) {
+    return PyLong_FromUnsignedLongLong(self->bad_crc);
+}
+
+static PyObject *SpiFrame_get_bad_counter(SpiFrame *self, void *closure) {
+    return PyLong_FromUnsignedLongLong(self->bad_counter);
+}
+
+static PyObject *SpiFrame_get_counter(SpiFrame *self, void *closure) {
+    return PyLong_FromLong(self->counter);
+}
+
+static PyObject *SpiFrame_get_expected(SpiFrame *self, void *closure) {
+    return PyLong_FromLong(self->expected);
+}
+
+/* The words of FrameCheck.last_error, made when asked (a refusal in the loop builds no string). */
+static PyObject *SpiFrame_get_last_error(SpiFrame *self, void *closure) {
+    switch (self->last_error) {
+    case SPI_BAD_CRC:
+        return PyUnicode_FromString("bad CRC");
+    case SPI_BAD_COUNTER:
+        return PyUnicode_FromFormat("counter %d where %d was expected", self->last_seen, self->last_expected);
+    default:
+        return PyUnicode_FromString("");
+    }
+}
+
+static PyMethodDef SpiFrame_methods[] = {
+    {"write", (PyCFunction)SpiFrame_write, METH_O, "write(u) -> -1 when transferred, or a non-finite signal's index."},
+    {"read", (PyCFunction)SpiFrame_read, METH_O, "read(y or None) -> whether the answer was valid (then in y)."},
+    {"exchange", (PyCFunction)SpiFrame_exchange, METH_NOARGS, "One transfer of what tx holds, checked."},
+    {"seal", (PyCFunction)SpiFrame_seal, METH_NOARGS, "Counter and CRC into tx (a transfer's first half)."},
+    {"check", (PyCFunction)SpiFrame_check, METH_NOARGS, "Check rx, move the counter on (its second half)."},
+    {"release", (PyCFunction)SpiFrame_release_method, METH_NOARGS, "Let go of the buffers and layouts."},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef SpiFrame_getset[] = {
+    {"bad_crc", (getter)SpiFrame_get_bad_crc, NULL, "Answers refused for their CRC.", NULL},
+    {"bad_counter", (getter)SpiFrame_get_bad_counter, NULL, "Answers refused for their counter.", NULL},
+    {"counter", (getter)SpiFrame_get_counter, NULL, "The counter of the next frame sent.", NULL},
+    {"expected", (getter)SpiFrame_get_expected, NULL, "The counter the next answer must carry (-1: any).", NULL},
+    {"last_error", (getter)SpiFrame_get_last_error, NULL, "Why the last refused answer was refused.", NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+static PyTypeObject SpiFrameType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "rtloop.io._devio.SpiFrame",
+    .tp_basicsize = sizeof(SpiFrame),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SpiFrame_init,
+    .tp_dealloc = (destructor)SpiFrame_dealloc,
+    .tp_methods = SpiFrame_methods,
+    .tp_getset = SpiFrame_getset,
+    .tp_doc = "SpiFrame(fd, request, transfer, tx, rx, send, receive, echo): an SPI device's cycle.",
+};
+
+/* crc16_ccitt(data) -> the frame's CRC (for the tests: the same as binascii.crc_hqx(data, 0xFFFF)). */
+static PyObject *devio_crc16_ccitt(PyObject *module, PyObject *data) {
+    Py_buffer view;
+    if (PyObject_GetBuffer(data, &view, PyBUF_SIMPLE) < 0) {
+        return NULL;
+    }
+    uint16_t crc = crc16_ccitt(view.buf, view.len);
+    PyBuffer_Release(&view);
+    return PyLong_FromLong(crc);
+}
+
+static PyMethodDef devio_functions[] = {
+    {"crc16_ccitt", (PyCFunction)devio_crc16_ccitt, METH_O, "CRC-16/CCITT-FALSE of a buffer."},
+    {NULL, NULL, 0, NULL},
+};
+
+/* ------------------------------------------------------------------------------------------ */
 
 static struct PyModuleDef devio_module = {
-    PyModuleDef_HEAD_INIT, "rtloop.io._devio", "The devices' per-cycle work in C (see io/compiled.py).", -1, NULL,
+    PyModuleDef_HEAD_INIT, "rtloop.io._devio", "The devices' per-cycle work in C (see io/compiled.py).", -1, devio_functions,
 };
 
 PyMODINIT_FUNC PyInit__devio(void) {
-    PyTypeObject *types[] = {&GuardType, &CopiesType, &LayoutType, &CanReceiverType};
-    const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver"};
+    PyTypeObject *types[] = {&GuardType, &CopiesType, &LayoutType, &CanReceiverType, &GpioLinesType, &SpiFrameType};
+    const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "GpioLines", "SpiFrame"};
+    crc16_table_build();
     PyObject *module = PyModule_Create(&devio_module);
     if (module == NULL) {
         return NULL;
     }
-    for (int i = 0; i < 4; i++) {
+    for (int i = 0; i < 6; i++) {
         if (PyType_Ready(types[i]) < 0) {
             Py_DECREF(module);
             return NULL;
