@@ -11,10 +11,12 @@
     estop_edge = "falling"              # "rising" | "falling" | "both" (the button's contact)
 
 ``gpiod`` requests the lines (by name or offset, with the kernel's own "line busy" answer);
-every cycle then costs one ``ioctl`` on the request's file descriptor with a buffer
-allocated once: ``GPIO_V2_LINE_SET_VALUES_IOCTL`` for all outputs together,
-``GPIO_V2_LINE_GET_VALUES_IOCTL`` for all inputs together (gpiod's ``set_value`` builds
-dictionaries on every call).
+every cycle then costs one ``ioctl`` on the request's file descriptor:
+``GPIO_V2_LINE_SET_VALUES_IOCTL`` for all outputs together, ``GPIO_V2_LINE_GET_VALUES_IOCTL``
+for all inputs together (gpiod's ``set_value`` builds dictionaries on every call). Where
+``io/_devio.c`` was built (``io/compiled.py``), a cycle's write and read are one C call each
+(``GpioLines``: the bits packed, the ioctl, the bits unpacked, the E-stop's pending edge);
+``write`` and ``read`` below are their Python reference, the same bits either way.
 
 A command ≥ 0.5 drives its line active; a reading is 0.0 or 1.0. The safe value of every
 output is 0 (inactive) unless the app says otherwise.
@@ -36,6 +38,7 @@ from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError, StopRequested
 from rtloop.io.bytelayout import FloatView
+from rtloop.io.compiled import devio
 from rtloop.io.device import CommandLimit, Device, FloatVector, Setting
 from rtloop.io.kernel import (
     GPIO_V2_LINE_EVENT,
@@ -124,10 +127,11 @@ class GpioDevice(Device):
         self.input_names = tuple(str(line) for line in self.outputs)
         self.output_names = tuple(str(line) for line in self.inputs)
         self._requests: list[Any] = []
+        self._lines: Any = None  # the cycle in C (io/_devio.c GpioLines), once configured
         self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_requests": []}
+        return {**self.__dict__, "_requests": [], "_lines": None}
 
     def default_limits(self) -> dict[str, CommandLimit]:
         return {name: CommandLimit(min=0.0, max=1.0, safe=0.0) for name in self.command_names()}
@@ -226,6 +230,11 @@ class GpioDevice(Device):
                 self.close()
                 raise DeviceError(self.name, "", "estop", f"the E-stop line {self.estop!r} is engaged: release it "
                                   "before starting")
+        compiled = devio()  # the same cycle in C (io/_devio.c), where it was built
+        if compiled is not None:
+            self._lines = compiled.GpioLines(self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._out_bits, self._in_fd,
+                                             GPIO_V2_LINE_GET_VALUES_IOCTL, self._in_bits,
+                                             self._estop.fd if self._estop is not None else -1)
 
     def _request(self, chip: Any, lines: list[Any], key: str, consumer: str, settings: Any) -> tuple[Any, list[int]]:
         """One kernel line request for ``lines`` (None without lines) and their chip offsets."""
@@ -243,6 +252,13 @@ class GpioDevice(Device):
         return request, offsets
 
     def write(self, u: FloatVector) -> None:
+        """Output i active when u[i] >= 0.5 (a NaN never is: the guard faults on it before), one ioctl."""
+        if self._lines is not None:
+            try:
+                self._lines.write(u)
+                return
+            except TypeError:  # not a float64 vector (a list): the Python way below
+                pass
         if self._out_fd < 0 or not self._out_bits:
             return
         bits, u = 0, self._u.of(u)
@@ -253,6 +269,14 @@ class GpioDevice(Device):
         fcntl.ioctl(self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._values, True)
 
     def read(self, y: FloatVector) -> None:
+        """Stop on a pending E-stop edge; else input i into y[i] as 1.0 (active) or 0.0, one ioctl."""
+        if self._lines is not None:
+            try:
+                if self._lines.read(y):  # an E-stop edge is waiting
+                    self._stop_on_edge()
+                return
+            except TypeError:  # not a float64 vector: the Python way below
+                pass
         if self._poller is not None and self._poller.poll(0):
             self._stop_on_edge()
         if self._in_fd < 0:
@@ -305,6 +329,9 @@ class GpioDevice(Device):
         return self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._scope_bit, SCOPE_MODES.index(self.scope_mode) + 1
 
     def close(self) -> None:
+        if self._lines is not None:
+            self._lines.release()  # before the requests close the fds it uses (and their numbers are reused)
+            self._lines = None
         for request in self._requests:
             try:
                 request.release()

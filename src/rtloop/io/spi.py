@@ -14,7 +14,10 @@
 The frame is described in ``io/spiframe.py`` (sequence counter, signals, CRC). Each cycle is
 one ``SPI_IOC_MESSAGE(1)`` ioctl with a ``struct spi_ioc_transfer`` built once, pointing at
 transmit and receive buffers allocated once (py-spidev's ``xfer2`` allocates and converts
-lists on every call).
+lists on every call). Where ``io/_devio.c`` was built (``io/compiled.py``), ``write`` and
+``read`` are one C call each (``SpiFrame``: the layout packed, counter and CRC sealed, the
+ioctl, the answer's CRC and counter checked, its signals unpacked); the Python below is their
+reference, with the same bytes, counts and errors (``tests/test_io_compiled.py``).
 
 ``write`` does the transfer: it sends the commands and takes the device's answer, which the
 next ``read`` checks and unpacks. A ``read`` with no transfer since the previous one (the
@@ -30,6 +33,7 @@ from typing import Any, ClassVar
 
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.bytelayout import FloatView, LayoutError, field_from_table
+from rtloop.io.compiled import devio
 from rtloop.io.device import Device, FloatVector, Setting
 from rtloop.io.kernel import (
     SPI_IOC_MESSAGE_1,
@@ -96,6 +100,7 @@ class SpiDevice(Device):
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         self.fd = -1
         self.stale_reads = 0
+        self._frame: Any = None  # the cycle in C (io/_devio.c SpiFrame), once configured
         self._u, self._y = FloatView(), FloatView()
 
     # --- supervisor ---------------------------------------------------------------------------
@@ -130,6 +135,11 @@ class SpiDevice(Device):
         except BaseException:
             self.close()
             raise
+        self._build_frames()
+
+    def _build_frames(self) -> None:
+        """The frames, the transfer pointing at them and their checks, built once (no device needed:
+        the tests compare the C cycle with its reference on these buffers anywhere)."""
         n = self.length
         self._tx, self._rx = bytearray(n), bytearray(n)
         self._tx_crc_view, self._rx_crc_view = memoryview(self._tx)[:n - 2], memoryview(self._rx)[:n - 2]
@@ -141,43 +151,88 @@ class SpiDevice(Device):
         self._counter = 0
         self._answered = self._fresh = False
         seal(self._tx, self._tx_crc_view, 0)
+        compiled, send, receive = devio(), self.tx_layout._compiled, self.rx_layout._compiled
+        if compiled is not None and send is not None and receive is not None:
+            self._frame = compiled.SpiFrame(self.fd, SPI_IOC_MESSAGE_1, self._transfer, self._tx, self._rx, send,
+                                            receive, self.counter_check == "echo")
 
-    def _exchange(self) -> None:
-        """One full-duplex transfer of the transmit frame, with the next counter."""
-        counter = self._counter
-        seal(self._tx, self._tx_crc_view, counter)
-        self._check.sent(counter)
-        fcntl.ioctl(self.fd, SPI_IOC_MESSAGE_1, self._transfer, True)
-        self._answered = self._check.accept(self._rx, self._rx_crc_view)
-        self._check.after(counter)
-        self._counter = (counter + 1) & 0xFF
-        self._fresh = True
-
+    # --- the cycle: in C where built, else the Python reference ---------------------------------
     def write(self, u: FloatVector) -> None:
-        self.tx_layout.pack_into(self._tx, 0, self._u.of(u))
-        self._exchange()
+        frame = self._frame
+        if frame is None:
+            self.tx_layout.pack_into(self._tx, 0, self._u.of(u))
+            self._exchange()
+            return
+        try:
+            bad = frame.write(u)
+        except TypeError:  # not a float64 vector (a list): packed the Python way, transferred in C
+            self.tx_layout.pack_into(self._tx, 0, self._u.of(u))
+            frame.exchange()
+            return
+        if bad >= 0:  # a signal that cannot be sent, nothing transferred: the reference names it
+            self.tx_layout.pack_into(self._tx, 0, self._u.of(u))  # raises the ValueError for the same field
 
     def read(self, y: FloatVector) -> None:
-        if not self._fresh:
-            self._exchange()
-        self._fresh = False
-        if self._answered:
-            self.rx_layout.unpack_from(self._rx, 0, self._y.of(y))
-        elif self.on_error == "stale":
+        frame = self._frame
+        if frame is None:
+            if not self._fresh:
+                self._exchange()
+            self._fresh = False
+            if self._answered:
+                self.rx_layout.unpack_from(self._rx, 0, self._y.of(y))
+            else:
+                self._not_valid(self._check.last_error)
+            return
+        try:
+            valid = frame.read(y)
+        except TypeError:  # not a float64 vector: checked in C, unpacked the Python way
+            valid = frame.read(None)
+            if valid:
+                self.rx_layout.unpack_from(self._rx, 0, self._y.of(y))
+        if not valid:
+            self._not_valid(frame.last_error)
+
+    def _not_valid(self, why: str) -> None:
+        """The answer failed its CRC or counter check: counted as a stale read, or a fault, as declared."""
+        if self.on_error == "stale":
             self.stale_reads += 1
         else:
             raise DeviceFault(f"devices.{self.name}: the answer from {self.path} is not valid: "
-                              f"{self._check.last_error} (on_error = \"fault\")")
+                              f"{why} (on_error = \"fault\")")
+
+    def _exchange(self) -> None:
+        """One full-duplex transfer of the transmit frame, with the next counter (the reference of
+        ``SpiFrame``'s: seal, ioctl, check)."""
+        self._seal_frame()
+        fcntl.ioctl(self.fd, SPI_IOC_MESSAGE_1, self._transfer, True)
+        self._check_answer()
+
+    def _seal_frame(self) -> None:
+        """The counter and the CRC into the transmit frame; what the answer must carry."""
+        seal(self._tx, self._tx_crc_view, self._counter)
+        self._check.sent(self._counter)
+
+    def _check_answer(self) -> bool:
+        """Check the answer in the receive frame; the counter moves on. Whether it was valid."""
+        self._answered = self._check.accept(self._rx, self._rx_crc_view)
+        self._check.after(self._counter)
+        self._counter = (self._counter + 1) & 0xFF
+        self._fresh = True
+        return self._answered
 
     def may_read_stale(self) -> bool:
         return self.on_error == "stale"
 
     @property
     def transfers_rejected(self) -> int:
-        check = getattr(self, "_check", None)
+        check = self._frame if self._frame is not None else getattr(self, "_check", None)
         return 0 if check is None else check.bad_crc + check.bad_counter
 
     def close(self) -> None:
+        if self._frame is not None:
+            self._check.bad_crc, self._check.bad_counter = self._frame.bad_crc, self._frame.bad_counter  # kept after
+            self._frame.release()  # lets go of the buffers, before the descriptor it uses is closed
+            self._frame = None
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1
