@@ -1,12 +1,17 @@
 """The devices' per-cycle work in C (``io/_devio.c``) gives the Python references' numbers bit for bit:
 the guard (copies, non-finite check, clamp, rate limit), frame layouts (rounding, saturation, byte
-orders, every type), and the CAN drain (newest copy of each id, strays counted)."""
+orders, every type), the CAN drain (newest copy of each id, strays counted), GPIO's lines (bits
+packed and unpacked, the E-stop's edge) and SPI's frame (counter, CRC, checks, counts, errors)."""
 
 from __future__ import annotations
 
+import binascii
+import fcntl
 import math
+import os
 import socket
 import struct
+import termios
 
 import numpy as np
 import pytest
@@ -190,3 +195,296 @@ def test_a_build_that_fails_halfway_lets_go_of_every_buffer_it_held():
     first.extend(b"x")  # resizable: no buffer of it is still exported
     with pytest.raises(ValueError, match="unknown field code"):
         devio.Layout([("h", 0, 1.0, 0.0, False), ("z", 2, 1.0, 0.0, False)])
+
+
+
+# --- GPIO: GpioLines against GpioDevice's Python write/read ----------------------------------------
+# No GPIO chip here: the cycle is built on stand-in fds (GpioDevice._build_cycle takes any). A pty's
+# window size is 8 bytes, as the 64 value bits of struct gpio_v2_line_values: TIOCSWINSZ in place of
+# SET_VALUES keeps the bits a write packed, TIOCGWINSZ in place of GET_VALUES hands a read the bits
+# set before. Both paths make that same ioctl; tests/test_io_gpio.py runs them on gpio-sim lines
+# in the guest.
+def gpio_pair(monkeypatch, out_bits, in_bits, estop_fd=-1):
+    """The same GPIO device twice on one pty: with the C cycle, and the Python reference."""
+    from rtloop.io import gpio as gpio_module
+    from rtloop.io.device import build_device
+
+    monkeypatch.setattr(gpio_module, "GPIO_V2_LINE_SET_VALUES_IOCTL", termios.TIOCSWINSZ)
+    monkeypatch.setattr(gpio_module, "GPIO_V2_LINE_GET_VALUES_IOCTL", termios.TIOCGWINSZ)
+    master, slave = os.openpty()
+    os.close(slave)
+    pair = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+        settings = {"chip": "gpiochip0", "outputs": [f"o{i}" for i in range(len(out_bits))],
+                    "inputs": [f"i{i}" for i in range(len(in_bits))], **({"estop": "stop"} if estop_fd >= 0 else {})}
+        device = build_device("gpio", "panel", settings, "app.toml")
+        device._build_cycle(master, list(out_bits), master, list(in_bits), estop_fd)
+        monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)
+        assert (device._lines is not None) == compiled
+        pair.append(device)
+    return pair, master
+
+
+def line_bits(fd: int) -> int:
+    """The 64 bits the last write left on the stand-in."""
+    return struct.unpack("=Q", fcntl.ioctl(fd, termios.TIOCGWINSZ, bytes(8)))[0]
+
+
+def set_line_bits(fd: int, bits: int) -> None:
+    fcntl.ioctl(fd, termios.TIOCSWINSZ, struct.pack("=Q", bits))
+
+
+GPIO_COMMANDS = [0.0, -0.0, 0.5, 0.49999999999999994, 1.0, -1.0, math.nan, -math.nan, math.inf, -math.inf, 1e308,
+                 5e-324, 0.75, 0.25]
+
+
+def test_gpio_writes_and_reads_the_references_bits(monkeypatch):
+    out_bits, in_bits = [5, 0, 63, 17, 32], [63, 0, 31, 32, 7]
+    (ours, theirs), fd = gpio_pair(monkeypatch, out_bits, in_bits)
+    try:
+        rng = np.random.default_rng(21)
+        for _ in range(300):
+            u = rng.choice(GPIO_COMMANDS, len(out_bits))
+            written = []
+            for device in (ours, theirs):
+                set_line_bits(fd, 0)
+                device.write(u)
+                written.append(line_bits(fd))
+            assert written[0] == written[1], u
+            assert written[0] == sum(1 << bit for bit, value in zip(out_bits, u, strict=True) if value >= 0.5), u
+            pattern = int(rng.integers(0, 2**62)) << 2 | int(rng.integers(0, 4))
+            read = []
+            for device in (ours, theirs):
+                set_line_bits(fd, pattern)
+                y = np.full(len(in_bits), 7.0)
+                device.read(y)
+                read.append(y.tobytes())
+            assert read[0] == read[1]
+            assert np.frombuffer(read[0]).tolist() == [float(pattern >> bit & 1) for bit in in_bits]
+        set_line_bits(fd, 0)
+        ours.write([1, 0, 1, 0, 1])  # not a float64 vector: the Python way, the same bits
+        assert line_bits(fd) == 1 << 5 | 1 << 63 | 1 << 32
+    finally:
+        for device in (ours, theirs):
+            device.close()
+        os.close(fd)
+
+
+def test_gpio_errors_are_the_references(monkeypatch):
+    (ours, theirs), fd = gpio_pair(monkeypatch, [1, 2], [3])
+    try:
+        for call, vector in (("write", np.zeros(1)), ("read", np.zeros(0))):  # shorter than the lines
+            for device in (ours, theirs):
+                with pytest.raises(IndexError):
+                    getattr(device, call)(vector)
+        null = os.open("/dev/null", os.O_RDWR)  # a file that is no line request: the kernel refuses the ioctl
+        try:
+            for device in (ours, theirs):
+                device._build_cycle(null, [1, 2], null, [3], -1)
+            errors = []
+            for device in (ours, theirs):
+                for call in (device.write, device.read):
+                    with pytest.raises(OSError) as caught:
+                        call(np.zeros(2))
+                    errors.append((type(caught.value), caught.value.errno, caught.value.strerror))
+            assert errors[:2] == errors[2:] and errors[0][1] == 25  # ENOTTY, as fcntl.ioctl reports it
+        finally:
+            for device in (ours, theirs):
+                device.close()
+            os.close(null)
+    finally:
+        os.close(fd)
+
+
+def test_a_pending_estop_edge_stops_both_before_the_inputs_are_read(monkeypatch):
+    from rtloop.io.gpio import EmergencyStop
+    from rtloop.io.kernel import GPIO_V2_LINE_EVENT, GPIO_V2_LINE_EVENT_FALLING_EDGE
+
+    edges, edge_in = os.pipe()  # the E-stop request's fd: readable when the kernel queued an edge
+    (ours, theirs), fd = gpio_pair(monkeypatch, [0], [0], estop_fd=edges)
+    try:
+        stops = []
+        for device in (ours, theirs):
+            set_line_bits(fd, 1)
+            y = np.zeros(1)
+            device.read(y)  # nothing queued: the inputs are read
+            assert y[0] == 1.0
+            os.write(edge_in, GPIO_V2_LINE_EVENT.pack(123_456_789, GPIO_V2_LINE_EVENT_FALLING_EDGE, 4, 1, 1))
+            y[0] = 7.0
+            with pytest.raises(EmergencyStop) as stop:
+                device.read(y)
+            assert y[0] == 7.0  # stopped before reading
+            stops.append((str(stop.value), stop.value.to_json()))
+        assert stops[0] == stops[1]
+        assert stops[0][1] == {"device": "panel", "line": "stop", "edge": "falling", "edge_ns": 123_456_789}
+    finally:
+        for device in (ours, theirs):
+            device.close()
+        os.close(fd)
+        os.close(edges)
+        os.close(edge_in)
+
+
+# --- SPI: SpiFrame against SpiDevice's Python cycle and io/spiframe.py ------------------------------
+# No spidev here: the frames are built without a device (SpiDevice._build_frames), and a transfer is
+# played in its two halves around the ioctl: seal (counter, CRC), the device's answer put in the
+# receive frame by the test, check (CRC, counter, counts). The guest's tests/test_io_spi.py runs the
+# whole cycle on the loopback controller.
+SPI_SIGNALS = [{"name": "pwm", "start_byte": 1, "type": "i16", "scale": 0.001},
+               {"name": "on", "start_byte": 3, "type": "u8"},
+               {"name": "speed", "start_byte": 4, "type": "f32", "byte_order": "big", "offset": -2.5}]
+
+
+def spi_pair(monkeypatch, counter="previous", on_error="fault", fd=-1):
+    """The same SPI device twice, frames built: with the C cycle, and the Python reference."""
+    from rtloop.io.device import build_device
+
+    pair = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+        device = build_device("spi", "fpga", {"device": "/dev/spidev0.0", "length": 10, "send": SPI_SIGNALS,
+                                              "receive": SPI_SIGNALS, "counter": counter, "on_error": on_error},
+                              "app.toml")
+        device.fd = fd
+        device._build_frames()
+        monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)
+        assert (device._frame is not None) == compiled
+        pair.append(device)
+    return pair
+
+
+def spi_state(device):
+    """What the frame check knows, from either path."""
+    frame, check = device._frame, device._check
+    if frame is not None:
+        return frame.counter, frame.expected, frame.bad_crc, frame.bad_counter, frame.last_error
+    return device._counter, check.expected, check.bad_crc, check.bad_counter, check.last_error
+
+
+def answer_from(rng, sent: bytes, previous: int, counter: str) -> bytes:
+    """A device's answer: good (this frame's counter, or the one before), or spoiled in one of the ways
+    a bus spoils it."""
+    from rtloop.io.spiframe import crc16_ccitt
+
+    frame = bytearray(rng.integers(0, 256, len(sent), dtype=np.uint8).tobytes())
+    frame[0] = sent[0] if counter == "echo" else previous & 0xFF
+    way = rng.integers(0, 6)
+    if way == 1:  # a counter off by some
+        frame[0] = (frame[0] + int(rng.integers(1, 256))) & 0xFF
+    crc = crc16_ccitt(frame[:-2])
+    frame[-2:] = crc.to_bytes(2, "big")
+    if way == 2:  # a bit flipped on the wire
+        bit = int(rng.integers(0, 8 * len(frame)))
+        frame[bit // 8] ^= 1 << bit % 8
+    elif way == 3:  # nobody listening: the line floats high
+        frame = bytearray(b"\xff" * len(frame))
+    elif way == 4:
+        frame = bytearray(len(frame))
+    return bytes(frame)
+
+
+@pytest.mark.parametrize("counter", ["previous", "echo"])
+@pytest.mark.parametrize("on_error", ["fault", "stale"])
+def test_spi_frames_checks_counts_and_errors_are_the_references(counter, on_error, monkeypatch):
+    from rtloop.errors import DeviceFault
+
+    ours, theirs = spi_pair(monkeypatch, counter, on_error)
+    rng = np.random.default_rng(5)
+    answers = np.random.default_rng(6)
+    valid_seen = set()
+    for cycle in range(600):  # the counter wraps at 256
+        u = np.array([rng.normal(0, 40), rng.integers(0, 300), rng.normal(0, 1e3)])
+        answer = None
+        results = []
+        for device in (ours, theirs):
+            device.tx_layout.pack_into(device._tx, 0, memoryview(u))
+            if device._frame is not None:
+                device._frame.seal()
+            else:
+                device._seal_frame()
+            sent = bytes(device._tx)
+            if answer is None:
+                answer = answer_from(answers, sent, cycle - 1, counter)
+            device._rx[:] = answer
+            valid = device._frame.check() if device._frame is not None else device._check_answer()
+            y = np.full(3, 7.0)
+            try:
+                device.read(y)  # fresh after the transfer: checks and unpacks, no second transfer
+                error = None
+            except DeviceFault as fault:
+                error = str(fault)
+            results.append((sent, valid, spi_state(device), y.tobytes(), error, device.stale_reads,
+                            device.transfers_rejected))
+        assert results[0] == results[1], (cycle, results)
+        valid_seen.add(results[0][1])
+        assert struct.unpack(">H", results[0][0][-2:])[0] == binascii.crc_hqx(results[0][0][:-2], 0xFFFF)
+    assert valid_seen == {True, False}
+    assert ours._frame.bad_crc > 50 and ours._frame.bad_counter > 50
+
+
+def test_spi_a_non_finite_command_is_the_same_error_and_nothing_goes_out(monkeypatch):
+    null = os.open("/dev/null", os.O_RDWR)  # any transfer would fail on it: none may be tried
+    try:
+        ours, theirs = spi_pair(monkeypatch, fd=null)
+        messages = []
+        for device in (ours, theirs):
+            before = bytes(device._tx)
+            with pytest.raises(ValueError) as caught:
+                device.write(np.array([1.0, math.nan, 2.0]))
+            messages.append(str(caught.value))
+            assert bytes(device._tx)[3:] == before[3:] and spi_state(device)[0] == 0
+        assert messages[0] == messages[1] and "'on' is nan" in messages[0]
+    finally:
+        os.close(null)
+
+
+def test_spi_a_refused_transfer_is_the_same_oserror_and_moves_nothing(monkeypatch):
+    null = os.open("/dev/null", os.O_RDWR)  # not an SPI device: the kernel refuses SPI_IOC_MESSAGE
+    try:
+        ours, theirs = spi_pair(monkeypatch, counter="echo", fd=null)
+        outcomes = []
+        for device in (ours, theirs):
+            errors = []
+            for call, vector in ((device.write, np.array([0.5, 1.0, 2.0])), (device.read, np.zeros(3)),
+                                 (device.write, [0.5, 1, 2])):  # a list: packed in Python, transferred the same way
+                with pytest.raises(OSError) as caught:
+                    call(vector)
+                errors.append((type(caught.value), caught.value.errno, caught.value.strerror))
+            outcomes.append((errors, bytes(device._tx), spi_state(device)))
+        assert outcomes[0] == outcomes[1]
+        assert outcomes[0][0][0][1] == 25 and outcomes[0][2][0] == 0  # ENOTTY; the counter did not move
+    finally:
+        os.close(null)
+
+
+def test_the_crc_in_c_is_crc16_ccitt_false():
+    from rtloop.io.spiframe import crc16_ccitt
+
+    assert devio.crc16_ccitt(b"123456789") == 0x29B1 == crc16_ccitt(b"123456789")
+    rng = np.random.default_rng(3)
+    for size in (0, 1, 2, 7, 64, 4094):
+        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
+        assert devio.crc16_ccitt(data) == binascii.crc_hqx(data, 0xFFFF)
+
+
+def test_an_spi_frame_refuses_a_transfer_that_does_not_point_at_its_frames():
+    from rtloop.io.kernel import SPI_IOC_MESSAGE_1, SPI_IOC_TRANSFER, address_of
+
+    tx, rx, elsewhere = bytearray(8), bytearray(8), bytearray(8)
+    layout = devio.Layout([("h", 1, 1.0, 0.0, False)])
+    pins = [address_of(buffer) for buffer in (tx, rx, elsewhere)]
+    for tx_address, rx_address, length in ((pins[0][0], pins[2][0], 8), (pins[0][0], pins[1][0], 6)):
+        transfer = bytearray(SPI_IOC_TRANSFER.pack(tx_address, rx_address, length, 1000, 0, 8, 0, 0, 0, 0, 0))
+        with pytest.raises(ValueError, match="not pointing at tx and rx"):
+            devio.SpiFrame(-1, SPI_IOC_MESSAGE_1, transfer, tx, rx, layout, layout, True)
+    transfer = bytearray(SPI_IOC_TRANSFER.pack(pins[0][0], pins[1][0], 8, 1000, 0, 8, 0, 0, 0, 0, 0))
+    with pytest.raises(ValueError, match="no room for the counter and the CRC"):
+        devio.SpiFrame(-1, SPI_IOC_MESSAGE_1, transfer, tx, rx, devio.Layout([("i", 4, 1.0, 0.0, False)]), layout,
+                       True)
+    frame = devio.SpiFrame(-1, SPI_IOC_MESSAGE_1, transfer, tx, rx, layout, layout, False)
+    frame.release()
+    with pytest.raises(ValueError, match="released"):
+        frame.write(np.zeros(1))

@@ -207,21 +207,13 @@ class GpioDevice(Device):
             raise
         finally:
             chip.close()
-        self._out_fd = self._out.fd if self._out is not None else -1
-        self._in_fd = self._in.fd if self._in is not None else -1
-        self._out_bits = [_bit(self._out, offset) for offset in out_offsets[:len(self.outputs)]]
-        self._out_mask = sum(1 << bit for bit in self._out_bits)
         self._scope_bit = _bit(self._out, out_offsets[-1]) if self.scope_pin is not None else -1
-        self._in_bits = [_bit(self._in, offset) for offset in in_offsets]
-        self._values = bytearray(GPIO_V2_LINE_VALUES.size)
-        self._in_values = bytearray(GPIO_V2_LINE_VALUES.size)
-        GPIO_V2_LINE_VALUES.pack_into(self._in_values, 0, 0, sum(1 << bit for bit in self._in_bits))
-        self._in_mask = sum(1 << bit for bit in self._in_bits)
-        self._events = bytearray(GPIO_V2_LINE_EVENT.size * 16)
-        self._poller = None
+        self._build_cycle(self._out.fd if self._out is not None else -1,
+                          [_bit(self._out, offset) for offset in out_offsets[:len(self.outputs)]],
+                          self._in.fd if self._in is not None else -1,
+                          [_bit(self._in, offset) for offset in in_offsets],
+                          self._estop.fd if self._estop is not None else -1)
         if self._estop is not None:
-            self._poller = select.poll()
-            self._poller.register(self._estop.fd, select.POLLIN)
             # pressed already (its active level, after the edge that would stop): refuse to start
             level = self._estop.get_value(self._estop.offsets[0])
             engaged = (level == Value.ACTIVE) if self.estop_edge == "rising" else (
@@ -230,11 +222,27 @@ class GpioDevice(Device):
                 self.close()
                 raise DeviceError(self.name, "", "estop", f"the E-stop line {self.estop!r} is engaged: release it "
                                   "before starting")
+
+    def _build_cycle(self, out_fd: int, out_bits: list[int], in_fd: int, in_bits: list[int], estop_fd: int) -> None:
+        """What every cycle uses, built once: the line requests' fds, each line's bit in its request's
+        values, the buffers; the C cycle where it was built (any fds will do: the tests build it on
+        stand-ins to compare it with the reference)."""
+        self._out_fd, self._in_fd, self._estop_fd = out_fd, in_fd, estop_fd
+        self._out_bits, self._in_bits = out_bits, in_bits
+        self._out_mask = sum(1 << bit for bit in out_bits)
+        self._in_mask = sum(1 << bit for bit in in_bits)
+        self._values = bytearray(GPIO_V2_LINE_VALUES.size)
+        self._in_values = bytearray(GPIO_V2_LINE_VALUES.size)
+        GPIO_V2_LINE_VALUES.pack_into(self._in_values, 0, 0, self._in_mask)
+        self._events = bytearray(GPIO_V2_LINE_EVENT.size * 16)
+        self._poller = None
+        if estop_fd >= 0:
+            self._poller = select.poll()
+            self._poller.register(estop_fd, select.POLLIN)
         compiled = devio()  # the same cycle in C (io/_devio.c), where it was built
         if compiled is not None:
-            self._lines = compiled.GpioLines(self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._out_bits, self._in_fd,
-                                             GPIO_V2_LINE_GET_VALUES_IOCTL, self._in_bits,
-                                             self._estop.fd if self._estop is not None else -1)
+            self._lines = compiled.GpioLines(out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, out_bits, in_fd,
+                                             GPIO_V2_LINE_GET_VALUES_IOCTL, in_bits, estop_fd)
 
     def _request(self, chip: Any, lines: list[Any], key: str, consumer: str, settings: Any) -> tuple[Any, list[int]]:
         """One kernel line request for ``lines`` (None without lines) and their chip offsets."""
@@ -291,7 +299,7 @@ class GpioDevice(Device):
 
     def _stop_on_edge(self) -> None:
         """Read the E-stop's first queued edge (its kernel timestamp) and stop the app with it."""
-        size = os.readv(self._estop.fd, [self._events])
+        size = os.readv(self._estop_fd, [self._events])
         timestamp_ns, event_id, _offset, _seqno, _line_seqno = GPIO_V2_LINE_EVENT.unpack_from(self._events, 0)
         assert size >= GPIO_V2_LINE_EVENT.size
         edge = "rising" if event_id == GPIO_V2_LINE_EVENT_RISING_EDGE else "falling"
@@ -339,7 +347,7 @@ class GpioDevice(Device):
                 pass  # already released; the fd closes with the process anyway
         self._requests = []
         self._out = self._in = self._estop = None
-        self._out_fd = self._in_fd = -1
+        self._out_fd = self._in_fd = self._estop_fd = -1
 
 
 def _bit(request: Any, offset: int) -> int:
