@@ -48,14 +48,14 @@ def test_frames_carry_length_sequence_flags_and_crc() -> None:
 class Driver:
     """serial_motor.py in its own process, on a pty linked from ``link``."""
 
-    def __init__(self, folder: Path, heartbeat_ms: float = 500.0) -> None:
+    def __init__(self, folder: Path, heartbeat_ms: float = 500.0, *extra: str) -> None:
         self.link = folder / "motor.tty"
         self.log = folder / "driver.log"
         priority = ["--priority", "70"] if ROOT else []
         with open(self.log, "w") as log:
             self.process = subprocess.Popen(
                 [sys.executable, str(EXAMPLE / "serial_motor.py"), "--link", str(self.link),
-                 "--heartbeat-ms", str(heartbeat_ms), *priority], stdout=log, stderr=subprocess.STDOUT)
+                 "--heartbeat-ms", str(heartbeat_ms), *priority, *extra], stdout=log, stderr=subprocess.STDOUT)
         self.wait_for("listening on")
 
     def lines(self) -> list[str]:
@@ -84,12 +84,13 @@ def driver(tmp_path: Path):
     started.stop()
 
 
-def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_000) -> Path:
+def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_000, timeout_ms: float = 1000.0) -> Path:
     """The example's app file with the test's pty, a unique name and a 1 s timeout: a pty moves bytes through a
     kernel worker of normal priority, which a loaded shared machine can starve for tens of ms."""
     text = (EXAMPLE / "dcmotor_serial.toml").read_text()
     text = text.replace('name = "dcmotor_serial"', f'name = "{name}"')
-    text = text.replace('"runs/dcmotor-serial.tty"', f'"{port}"').replace("timeout_ms = 0.8 ", "timeout_ms = 1000.0")
+    text = text.replace('"runs/dcmotor-serial.tty"', f'"{port}"')
+    text = text.replace("timeout_ms = 0.8 ", f"timeout_ms = {timeout_ms} ")
     text = text.replace("period_ns = 1_000_000", f"period_ns = {period_ns}")
     profile = EXAMPLE.parent / "dcmotor" / "profiles" / "speed_steps.csv"
     text = text.replace('"../dcmotor/profiles/speed_steps.csv"', f'"{profile}"')
@@ -118,6 +119,35 @@ def test_the_pi_closes_the_loop_over_a_pty_and_equals_its_simulation(tmp_path: P
     from rtloop.runtime.replay import replay
 
     replayed = replay(tmp_path / "run", tmp_path / "replay")  # the driver is gone: its readings play back
+    assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
+
+
+def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path) -> None:
+    """The example as written (``on_missing = "stale"``) against a driver that answers every 25th
+    request 2.5 ms late: each late answer is one cycle on the last reading (its answer passed over
+    at the next exchange, never taken for a later request's), counted in summary.json; the run goes
+    on, equals its simulation up to the first stale cycle and replays bit for bit."""
+    import json
+
+    from rtloop.runtime.replay import replay
+
+    late = Driver(tmp_path, 500.0, "--late-every", "25", "--late-ms", "2.5")
+    try:
+        app_file = example_file(tmp_path, late.link, f"dcm_serial_late_{os.getpid()}", timeout_ms=1.0)
+        rtloop.run(load_app(app_file), 0.5, tmp_path / "run")
+    finally:
+        late.stop()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    motor = summary["devices"]["motor"]
+    cycles = summary["tasks"]["pi"]["cycles"]
+    assert motor["stale_reads"] >= cycles // 25 - 1, motor
+    assert set(motor["stale_reads_by_source"]) == {"no answer within timeout_ms"}, motor
+    miss_s = first_miss_s(tmp_path / "run")
+    assert miss_s is not None and miss_s <= 25 * 0.002
+    rtloop.simulate(load_app(app_file), 0.5, tmp_path / "sim")
+    _compared, difference = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", miss_s)
+    assert difference is None, f"run and simulation differ at t = {difference} s before the first stale cycle"
+    replayed = replay(tmp_path / "run", tmp_path / "replay")
     assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 

@@ -70,8 +70,10 @@ class MotorDriverTwin(Runnable):
         self.model.exchange(float(u[0]), y)
 
 
-def serve(master: int, heartbeat_ms: float, log: object = sys.stdout) -> None:
-    """Answer requests on ``master`` until SIGTERM/SIGINT; go safe when they stop."""
+def serve(master: int, heartbeat_ms: float, log: object = sys.stdout, late_every: int = 0,
+          late_ms: float = 0.0) -> None:
+    """Answer requests on ``master`` until SIGTERM/SIGINT; go safe when they stop. With ``late_every``
+    N > 0, every Nth answer goes out ``late_ms`` late (to see what the app's ``on_missing`` does)."""
     model = DriverModel()
     request, response = Frame(REQUEST_SYNC, len(COMMANDS)), Frame(RESPONSE_SYNC, len(READINGS))
     poller = select.poll()
@@ -104,6 +106,8 @@ def serve(master: int, heartbeat_ms: float, log: object = sys.stdout) -> None:
         requests += 1
         response.values[:] = readings
         response.seal(request.sequence, 0 if safe else ENABLED)
+        if late_every and requests % late_every == 0:
+            time.sleep(late_ms / 1e3)
         os.write(master, response.buffer)
         if voltage == 0.0 and previous_V != 0.0:  # the host's safe value, or a controller asking for nothing
             print(f"motor driver: output 0 V at request {requests}", file=log, flush=True)
@@ -115,6 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--link", required=True, type=Path, help="symlink to create to the pty (the app's port)")
     parser.add_argument("--heartbeat-ms", type=float, default=50.0, help="go safe after this long without a request")
     parser.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (a board answers at once)")
+    parser.add_argument("--late-every", type=int, default=0, metavar="N",
+                        help="answer every Nth request late (to see what the app's on_missing does)")
+    parser.add_argument("--late-ms", type=float, default=2.5, help="how late, with --late-every (ms)")
     args = parser.parse_args(argv)
     if args.priority:
         try:
@@ -132,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"motor driver: listening on {slave_path} ({args.link} links to it), heartbeat {args.heartbeat_ms:g} ms",
           flush=True)
     try:
-        serve(master, args.heartbeat_ms)
+        serve(master, args.heartbeat_ms, late_every=args.late_every, late_ms=args.late_ms)
     except KeyboardInterrupt:
         pass
     finally:

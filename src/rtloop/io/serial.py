@@ -16,7 +16,12 @@ by itself (the host cannot, once its process is killed), and say so in its respo
 host then stops the app with a fault rather than command a device that is not listening.
 
 The exchange happens in ``write`` (the time a LET device's commands are due: the release);
-``read`` hands over the readings of the last exchange. pyserial opens and sets up the port
+``read`` hands over the readings of the last exchange. An answer that does not come whole and
+good within ``timeout_ms`` is a fault (``on_missing = "fault"``), or (``"stale"``) the cycle
+keeps the last readings and counts a stale read: the next exchange drops what is left in the
+input and passes over late answers to earlier requests (their sequence numbers tell), and
+``max_stale_in_a_row`` exchanges in a row without an answer are a fault all the same (a device
+that stopped answering is not a device to keep commanding). pyserial opens and sets up the port
 (raw mode, baud rate, exclusive lock); each cycle then costs one ``os.write`` and a
 ``poll`` + ``os.readv`` or two on its file descriptor into buffers allocated once.
 """
@@ -44,6 +49,11 @@ HEADER_BYTES = 4
 ENABLED = 0x01
 """Flags bit: outputs enabled (request), output on (response)."""
 CRC_BYTES = 2
+ON_MISSING = ("fault", "stale")
+SAFE_EXCHANGE_MIN_NS = 100_000_000
+"""The safe exchange (before T0 and on the way out, not in the loop) waits at least 100 ms for
+its answer: a line that is merely slow must not turn a safe state that went out into a failure."""
+STALE_SOURCES = ("no answer within timeout_ms", "bad frame (sync, length or CRC)")
 MAX_VALUES = 31
 """At most 31 float64 values each way (248 payload bytes: the length fits one byte)."""
 
@@ -112,8 +122,12 @@ def read_frame(fd: int, frame: Frame, poller: Any, timeout_ns: int) -> bool:
     return True
 
 
-def _count(limit: int) -> Any:
-    return lambda value: None if 0 <= value <= limit else f"must be 0..{limit}"
+def _at_least_one(value: int) -> str | None:
+    return None if value >= 1 else f"must be at least 1, got {value!r}"
+
+
+def _on_missing(value: str) -> str | None:
+    return None if value in ON_MISSING else f"expected one of {', '.join(ON_MISSING)}, got {value!r}"
 
 
 def _positive(value: float) -> str | None:
@@ -161,6 +175,10 @@ class SerialDevice(Device):
         "commands": Setting(list, doc="names of the values sent each cycle (its u), e.g. [\"voltage_V\"]",
                             check=_names),
         "readings": Setting(list, doc="names of the values received each cycle (its y)", check=_names),
+        "on_missing": Setting(str, "fault", "an answer not whole and good within timeout_ms: \"fault\" (stop, "
+                              "safe values) or \"stale\" (keep the last readings, count)", check=_on_missing),
+        "max_stale_in_a_row": Setting(int, 10, "with on_missing = \"stale\": this many exchanges in a row "
+                                      "without a good answer are a fault", check=_at_least_one),
     }
 
     def __init__(self, name: str, **settings: Any) -> None:
@@ -172,6 +190,10 @@ class SerialDevice(Device):
         self.n_inputs, self.n_outputs = len(commands), len(readings)
         self.input_names, self.output_names = tuple(commands), tuple(readings)
         self.timeout_ns = round(settings["timeout_ms"] * 1e6)
+        self.on_missing: str = settings["on_missing"]
+        self.max_stale_in_a_row: int = settings["max_stale_in_a_row"]
+        self.stale_in_a_row = 0
+        self.stale_by_source = [0] * len(STALE_SOURCES)
         self._line: Any = None
 
     def __getstate__(self) -> dict[str, Any]:
@@ -235,11 +257,42 @@ class SerialDevice(Device):
 
     def write(self, u: FloatVector) -> None:
         """One exchange: send the commands, wait for the readings (at most ``timeout_ms``)."""
+        if self.stale_in_a_row:  # the last exchange went unanswered: its answer, or part of it, may be here
+            termios.tcflush(self.fd, termios.TCIFLUSH)
         sequence = self._send(u)
-        if not read_frame(self.fd, self.response, self.poller, self.timeout_ns):
-            raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
-                              f"on {self.config['port']} (request {sequence})")
-        self._take_response(sequence)
+        if self.on_missing == "fault":
+            if not read_frame(self.fd, self.response, self.poller, self.timeout_ns):
+                raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
+                                  f"on {self.config['port']} (request {sequence}); on_missing = \"stale\" "
+                                  "keeps the last readings instead (a slow line, or a loaded machine)")
+            self._take_response(sequence)
+            return
+        missing = self._await_answer(sequence, self.timeout_ns)
+        if missing < 0:
+            self._take_response(sequence)
+            self.stale_in_a_row = 0
+            return
+        self.stale_reads += 1  # the readings of the last good answer stay
+        self.stale_by_source[missing] += 1
+        self.stale_in_a_row += 1
+        if self.stale_in_a_row >= self.max_stale_in_a_row:
+            raise DeviceFault(f"device {self.name!r}: no good answer to {self.stale_in_a_row} requests in a row "
+                              f"on {self.config['port']} (the last: {STALE_SOURCES[missing]}, request {sequence}; "
+                              f"max_stale_in_a_row = {self.max_stale_in_a_row})")
+
+    def _await_answer(self, sequence: int, timeout_ns: int) -> int:
+        """Wait for the answer to request ``sequence``, passing over whole answers to earlier
+        requests: -1 when it came, else why not (an index of ``STALE_SOURCES``)."""
+        response = self.response
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        while True:
+            left_ns = deadline_ns - time.monotonic_ns()
+            if left_ns <= 0 or not read_frame(self.fd, response, self.poller, left_ns):
+                return 0
+            if response.problem() is not None:
+                return 1  # garbled or cut: the next exchange flushes the rest
+            if response.sequence == sequence:
+                return -1
 
     def write_safe(self, u: FloatVector) -> None:
         """The safe values, with outputs no longer enabled: the device may stop watching its heartbeat.
@@ -247,21 +300,25 @@ class SerialDevice(Device):
         Often called after an exchange failed: the late answer to that request may be in the
         input buffer or still on the way. It is not this exchange's answer: the input is
         flushed first, and whole answers to earlier requests are passed over until this
-        request's own answer (or the timeout), so the safe state is reported as it went.
+        request's own answer (or the timeout: ``timeout_ms``, at least 100 ms, as this is not
+        the loop), so the safe state is reported as it went.
         """
         self.flags = 0
         termios.tcflush(self.fd, termios.TCIFLUSH)
         sequence = self._send(u)
-        deadline_ns = time.monotonic_ns() + self.timeout_ns
-        while True:
-            left_ns = deadline_ns - time.monotonic_ns()
-            if left_ns <= 0 or not read_frame(self.fd, self.response, self.poller, left_ns):
-                raise DeviceFault(f"device {self.name!r}: no answer to the safe values within "
-                                  f"{self.timeout_ns / 1e6:g} ms on {self.config['port']} (request {sequence})")
-            if self.response.problem() is None and self.response.sequence != sequence:
-                continue  # a whole, late answer to an earlier request
-            self._take_response(sequence)
-            return
+        timeout_ns = max(self.timeout_ns, SAFE_EXCHANGE_MIN_NS)
+        missing = self._await_answer(sequence, timeout_ns)
+        if missing == 0:
+            raise DeviceFault(f"device {self.name!r}: no answer to the safe values within "
+                              f"{timeout_ns / 1e6:g} ms on {self.config['port']} (request {sequence})")
+        self.stale_in_a_row = 0
+        self._take_response(sequence)
+
+    def may_read_stale(self) -> bool:
+        return self.on_missing == "stale"
+
+    def stale_sources(self) -> dict[str, int]:
+        return {source: count for source, count in zip(STALE_SOURCES, self.stale_by_source, strict=True) if count}
 
     def _send(self, u: FloatVector) -> int:
         request = self.request
