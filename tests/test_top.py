@@ -113,11 +113,20 @@ def test_top_forgets_an_app_that_ended(running_app, capsys: pytest.CaptureFixtur
     assert f"no running app named '{name}'" in capsys.readouterr().err
 
 
-def test_top_of_an_app_that_does_not_run_names_it_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("once", [["--once"], []], ids=["once", "live"])
+def test_top_of_an_app_that_does_not_run_names_it_exit_2(once: list[str], rtloop_env: dict[str, str]) -> None:
+    # The live view too: it once waited, empty, for ever, for an app whose name was mistyped.
     name = f"top_nope_{os.getpid()}"
-    assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 2
-    err = capsys.readouterr().err.strip()
+    command = [sys.executable, "-m", "rtloop.cli", "top", name, *once, "--interval", "0.1"]
+    try:
+        result = subprocess.run(command, env=rtloop_env, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                                timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"rtloop top {name} {' '.join(once)} went on for 60 s instead of refusing the name")
+    err = result.stderr.strip()
+    assert result.returncode == 2, err
     assert err.startswith(f"rtloop top: no running app named '{name}'; running: ") and len(err.splitlines()) == 1, err
+    assert result.stdout == ""
 
 
 def test_registry_of_a_dead_supervisor_is_ignored(tmp_path: Path) -> None:

@@ -11,29 +11,33 @@ HELP = "live view of running apps: cycles, latency, misses, CPU, page faults"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("app", nargs="?", help="app name (default: every running app)")
+    parser.add_argument("app", nargs="?", help="app name (default: every running app; exit status 2 when the APP "
+                                               "named is not running)")
     parser.add_argument("--once", action="store_true",
-                        help="print one frame and exit (for scripts; exit status 1 when no app is running, "
-                             "2 when the APP named is not)")
+                        help="print one frame and exit (for scripts; exit status 1 when no app is running)")
     parser.add_argument("--interval", type=positive_seconds, default=1.0, metavar="S",
                         help="seconds between refreshes (default 1)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Refresh until Ctrl-C; with ``--once``, one frame and 1 when no app is running."""
+    """Refresh until Ctrl-C; with ``--once``, one frame and 1 when no app is running.
+    An APP named that is not running is bad input (exit 2) either way: a live view that
+    waited for it would wait for ever on a typo."""
+    from rtloop.runtime.monitor import Monitor
+
+    monitor = Monitor(args.app)
+    if args.app is not None and not monitor.refresh_apps():
+        refuse_unknown_app(args.app)
+
     from rich.console import Console
     from rich.live import Live
 
     from rtloop.cli.top_view import frames, render
-    from rtloop.runtime.monitor import Monitor
 
     console = Console()
     if not console.is_terminal:
         console = Console(width=max(console.width, 200))
-    monitor = Monitor(args.app)
     if args.once:
-        if args.app is not None and not monitor.refresh_apps():
-            refuse_unknown_app(args.app)  # the live view instead waits for it to start
         monitor.snapshot()  # first look: starts the %CPU, cycles/s and maximum measurements
         monitor.poll_for(min(args.interval, 0.5))
         views = monitor.snapshot()
