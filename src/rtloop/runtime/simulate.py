@@ -27,7 +27,7 @@ from rtloop.linux import rt
 from rtloop.record.summary import RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout
-from rtloop.runtime.session import RunSession
+from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
 
@@ -126,8 +126,11 @@ class LetTimeline:
 
 def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
              port_writes: PortWrites | None = None, keep_s: float | None = None,
-             timeline: LetTimeline | None = None, force: bool = False, protect: tuple[Path, ...] = ()) -> RunSummary:
-    """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`.
+             timeline: LetTimeline | None = None, force: bool = False, protect: tuple[Path, ...] = (),
+             limits: Limits = DEFAULT_LIMITS) -> RunSummary:
+    """Run ``app`` lock-step in this process, as fast as possible; same artifacts as :func:`rtloop.run`,
+    and as a run does, ``summary.json`` rewritten every ``limits.summary_interval_s`` of wall time
+    while it goes on (``"running": true``), so a long simulation shows its progress.
 
     ``port_writes`` replays what entered a real run from outside: each value is written
     to its port just before the task's release that took it in the run. ``timeline`` says
@@ -140,12 +143,12 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     for name in app.tasks:  # every device needs a twin: found before anything is written
         app.device_wiring(name, twins=True)
     session = RunSession(app, out, mode="simulate", duration_s=duration_s, keep_s=keep_s, trim=trim, force=force,
-                         protect=protect, registry=False)
+                         protect=protect, registry=False, limits=limits)
     announce_once()
     tasks: dict[str, _SimTask] = {}
     outcome = _Outcome()
     with session:
-        session.summarise = lambda _running: _summary(app, session, duration_s, outcome, tasks)
+        session.summarise = lambda running: _summary(app, session, duration_s, outcome, tasks, running=running)
         session.before_close.append(lambda: _let_go(tasks))
         _simulate(session, duration_s, port_writes or {}, timeline or LetTimeline(), tasks, outcome)
     if outcome.failure is not None:
@@ -160,6 +163,8 @@ class _Outcome:
     def __init__(self) -> None:
         self.failure: TaskFailed | None = None
         self.stopped_by = "duration"
+        self.started_ns = time.time_ns()
+        """Wall time the simulation started (``started`` in summary.json: its logical T0)."""
 
 
 def _let_go(tasks: dict[str, _SimTask]) -> None:
@@ -200,6 +205,8 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
                     for name, first in firsts.items() if first is not None]
         heapq.heapify(releases)
         steps = 0
+        summary_interval_s = session.limits.summary_interval_s
+        summary_due_s = time.monotonic() + summary_interval_s
         while releases and releases[0][0] < end_ns:
             release_ns, rank, cycle, current = heapq.heappop(releases)
             for port, values in port_writes.get((current, cycle), ()):
@@ -213,8 +220,12 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
             if following is not None:
                 heapq.heappush(releases, (t0_ns + following * tasks[current].period_ns, rank, following, current))
             steps += 1
-            if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0:
+            now_s = time.monotonic()  # checked every step: one step may take seconds
+            if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0 or now_s >= summary_due_s:
                 _drain(tasks, session)
+            if now_s >= summary_due_s:  # the progress summary.json, as a run writes one
+                session.write_summary_if_due()
+                summary_due_s = now_s + summary_interval_s
         phase = "postrun"
         for task in tasks.values():  # safe values first, as in a real run
             task.devices.stop()
@@ -245,7 +256,7 @@ def _drain(tasks: dict[str, _SimTask], session: RunSession) -> None:
 
 
 def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome,
-             sim_tasks: dict[str, _SimTask]) -> RunSummary:
+             sim_tasks: dict[str, _SimTask], *, running: bool) -> RunSummary:
     layout, recorder = session.layout, session.recorder
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
@@ -264,10 +275,10 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
     notes = [*slow_step_notes(summaries), *session.notes()]
     return RunSummary(
         app=app.name, mode="simulate", hot_path=hot_path(),
-        started=dt.datetime.now(tz=dt.UTC).isoformat(timespec="milliseconds"),
+        started=dt.datetime.fromtimestamp(outcome.started_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds"),
         duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
-        ports=port_summaries(layout, recorder.latest_ns), stopped_by=outcome.stopped_by,
+        ports=port_summaries(layout, recorder.latest_ns), stopped_by="running" if running else outcome.stopped_by,
         failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
-        notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9,
+        notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9, running=running,
         recording={**recorder.to_json(), **session.losses.to_json()},
     )
