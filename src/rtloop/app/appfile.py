@@ -74,6 +74,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from rtloop.app import sources
 from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, parse_signal
 from rtloop.app.modules import ModuleRefused, check_model_files, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
@@ -138,6 +139,13 @@ class CodeRefused(AppFileError):
 
 def load_app(path: str | Path) -> App:
     """Read and validate an app file; builds the runnables (in this process)."""
+    with sources.collecting() as made_of:
+        app = _load_app(path)
+    app.sources = made_of
+    return app
+
+
+def _load_app(path: str | Path) -> App:
     file = Path(path)
     shown = clip(str(path), 200)
     try:
@@ -156,6 +164,7 @@ def load_app(path: str | Path) -> App:
         raise AppFileError(shown, "", f"not UTF-8 text (byte {error.start}); an app file is TOML") from None
     except tomllib.TOMLDecodeError as error:
         raise AppFileError(shown, "", f"not valid TOML: {clip(str(error), 160)}") from None
+    sources.note({str(file.resolve()): sources.digest_of_bytes(raw)})
     _check_keys(shown, "", data, TOP_KEYS)
     if "name" not in data:
         raise AppFileError(shown, "name", "missing; every app needs a name")

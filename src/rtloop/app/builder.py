@@ -272,6 +272,8 @@ class App:
     """(task, side, index) → unit, declared by the app (``app.set_units``) over the runnable's own."""
     source: str = "<python>"
     """Where the app was described (an app file's path, for messages)."""
+    sources: dict[str, str] = field(default_factory=dict)
+    """The files it was made of (app file, modules, models), path → digest (``app/sources.py``)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not NAME_PATTERN.match(self.name):

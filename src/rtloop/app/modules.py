@@ -12,6 +12,9 @@ inherit it) would let any file in it shadow an installed or standard module: a
   swap the file between the check and the import;
 - it is compiled from that checked source every time: bytecode in ``__pycache__`` is never read
   (another user may have written it) nor written (root's would litter a sudo user's folder);
+- it is loaded once per process, until the file (or a module it loaded) is edited: the next app
+  that names it then loads it anew, as a task process would (``app/sources.py`` keeps what each
+  module was made of), so a notebook never runs yesterday's controller beside today's;
 - task processes receive instances of its classes with a note to load that same file
   first (:func:`_reduce_by_file`), so unpickling works without touching ``sys.path``.
 
@@ -37,9 +40,13 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, ClassVar
 
+from rtloop.app import sources
 from rtloop.errors import AppError
 from rtloop.owners import untrusted_writer
 from rtloop.sudo import trusted_uids
+
+SOURCES_ATTRIBUTE = "__rtloop_sources__"
+"""On a module loaded by file: the files it was made of (its own, and the modules it loaded), path → digest."""
 
 
 class ModuleRefused(AppError):
@@ -111,6 +118,9 @@ def check_model_files(path: Path) -> None:
         writer = untrusted_writer(facts, trusted, _whom(), file)
         if writer and not (stat.S_ISDIR(facts.st_mode) and facts.st_mode & stat.S_ISVTX):
             raise ModuleRefused(f"{file} is {writer}; rtloop will not run it (chmod go-w {file})")
+    digest = sources.file_digest(path)
+    if digest is not None:
+        sources.note({str(path): digest})
 
 
 _TRUST_OVERRIDES: list[tuple[set[int], str]] = []
@@ -159,7 +169,11 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
     path = Path(path)
     loaded = sys.modules.get(module_name)
     if loaded is not None and getattr(loaded, "__file__", None) == str(path):
-        return loaded
+        made_of = getattr(loaded, SOURCES_ATTRIBUTE, {})
+        if not _changed(made_of):
+            sources.note(made_of)  # what it was made of, for the app loading it now
+            return loaded
+        _forget_changed_modules()  # edited since: load today's file (a task process would), not the old code
     check_owner(path)
     check_folders(path.parent)
     SiblingFinder.serve(path.parent)  # before it runs: its own imports may name its neighbours
@@ -174,6 +188,30 @@ def load_module_file(module_name: str, path: str | Path) -> ModuleType:
         del sys.modules[module_name]
         raise
     return module
+
+
+def _changed(made_of: dict[str, str]) -> bool:
+    return any(sources.file_digest(file) != digest for file, digest in made_of.items())
+
+
+def _forget_changed_modules() -> None:
+    """Drop from ``sys.modules`` every module loaded by file that was edited since, or that loaded
+    one that was: the next import loads the file as it is now."""
+    for name, module in list(sys.modules.items()):
+        made_of = getattr(module, SOURCES_ATTRIBUTE, None)
+        if made_of and _changed(made_of):
+            del sys.modules[name]
+
+
+def _forget_other_folders_siblings(folder: Path) -> None:
+    """Before a module of ``folder`` runs: drop the modules loaded by file from another folder under
+    a name that ``folder`` has a file of (``helper.py`` in two apps' folders): its ``import helper``
+    must get its own neighbour, not the other app's from ``sys.modules``."""
+    for name, module in list(sys.modules.items()):
+        if getattr(module, SOURCES_ATTRIBUTE, None) is None:
+            continue
+        if Path(module.__file__ or "").resolve().parent != folder and module_beside(folder, name) is not None:
+            del sys.modules[name]
 
 
 def _send_classes_by_file(module: ModuleType) -> None:
@@ -203,7 +241,8 @@ class SiblingFinder(importlib.abc.MetaPathFinder):
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> importlib.machinery.ModuleSpec | None:
         if path is not None or "." in fullname:
             return None  # submodules of packages are their package's business
-        for folder in self.folders:
+        importing = _EXECUTING_FOLDERS[-1:]  # a module's own neighbours first (two apps may both have helper.py)
+        for folder in importing + [f for f in self.folders if f not in importing]:
             candidate = module_beside(folder, fullname)
             if candidate is not None:
                 candidate = candidate.resolve()  # a link to a module elsewhere: that file, in its folder
@@ -215,15 +254,31 @@ class SiblingFinder(importlib.abc.MetaPathFinder):
         return None
 
 
+_EXECUTING_FOLDERS: list[Path] = []
+"""The folders of the modules loaded by file that are running their top level now, innermost last."""
+
+
 class _SourceOnlyLoader(importlib.machinery.SourceFileLoader):
     """Compiles the checked source every time, never touching ``__pycache__``: a user module is a
     few kB, compiled in a few milliseconds, and bytecode there could come from another user."""
 
     def get_code(self, fullname: str) -> Any:
-        return self.source_to_code(read_checked_source(Path(self.path)), self.path)
+        source = read_checked_source(Path(self.path))
+        self.digest = sources.digest_of_bytes(source)  # of the very bytes compiled
+        return self.source_to_code(source, self.path)
 
     def exec_module(self, module: ModuleType) -> None:
-        super().exec_module(module)
+        folder = Path(self.path).parent.resolve()
+        _forget_other_folders_siblings(folder)
+        _EXECUTING_FOLDERS.append(folder)
+        try:
+            with sources.collecting() as loaded_by_it:  # the modules it loads in turn
+                super().exec_module(module)
+        finally:
+            _EXECUTING_FOLDERS.pop()
+        made_of = {self.path: self.digest, **loaded_by_it}
+        setattr(module, SOURCES_ATTRIBUTE, made_of)
+        sources.note(made_of)
         _send_classes_by_file(module)  # its classes travel to task processes, to be loaded by file there
 
 

@@ -190,6 +190,8 @@ class SerialDevice(Device):
         self.n_inputs, self.n_outputs = len(commands), len(readings)
         self.input_names, self.output_names = tuple(commands), tuple(readings)
         self.timeout_ns = round(settings["timeout_ms"] * 1e6)
+        defaults = {key: setting.default for key, setting in self.settings.items() if not setting.required}
+        settings = {**defaults, **settings}  # built directly in Python, not through an app file
         self.on_missing: str = settings["on_missing"]
         self.max_stale_in_a_row: int = settings["max_stale_in_a_row"]
         self.stale_in_a_row = 0

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.app.builder import App
+from rtloop.app.sources import file_digest
 from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
@@ -107,6 +108,8 @@ class Recorder:
             "app": self.app.name, "source": source, "duration_s": duration_s,
             "feeds": {name: str(Path(p.feed).resolve()) for name, p in self.app.ports.items() if p.feed is not None},
         }
+        feeds = {path: file_digest(path) for path in info["feeds"].values()}
+        info["files"] = {**self.app.sources, **{path: digest for path, digest in feeds.items() if digest}}
         self._guard((self.out / "replay.json").write_text, json.dumps(info, indent=1) + "\n")
 
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import dataclasses
 import json
 import shutil
 from collections.abc import Iterable, Iterator
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.app.builder import App
+from rtloop.app.sources import changes_since
 from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
 from rtloop.runtime.session import UNFINISHED_FOLDER, check_out_dir
@@ -71,15 +73,21 @@ class Divergence:
     """The task's ``u`` as the replay read it at that cycle (None: not captured)."""
     run_log: tuple[str, ...] = ()
     """What the run's logs say of that cycle: stale reads, port values taken, skips, lateness."""
+    changed_files: tuple[str, ...] = ()
+    """Files of the app that changed since the run (the replay ran today's)."""
 
     def describe(self) -> str:
         lines = [f"first difference at t = {self.t_s!r} s: task {self.task!r}, cycle {self.cycle}"]
         lines += [f"  {name}: run {run} != replay {replayed}" for name, run, replayed in self.signals]
         if self.inputs is not None:
             lines.append(f"  inputs of that cycle in the replay: u = {list(self.inputs)!r}")
-        lines += [f"  run log: {entry}" for entry in self.run_log] or [
-            "  the run logged no fault at that cycle: a model that is not deterministic (the clock, "
-            "tick.start_ns, random numbers) or an input that entered unlogged"]
+        lines += [f"  run log: {entry}" for entry in self.run_log]
+        if self.changed_files:
+            lines.append(f"  the replay ran today's files, and {'; '.join(self.changed_files)}: "
+                         "the difference may well come from that change")
+        elif not self.run_log:
+            lines.append("  the run logged no fault at that cycle: a model that is not deterministic (the clock, "
+                         "tick.start_ns, random numbers) or an input that entered unlogged")
         return "\n".join(lines)
 
 
@@ -542,6 +550,7 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     """
     run_dir, out = Path(run_dir), Path(out)
     check_out_dir(out, protect=[run_dir])  # before reading anything: refusals come first
+    changed = changed_files(run_dir)
     never_finished = unfinished(run_dir)  # a run killed early may not even have a summary.json
     if never_finished:
         raise AppError(never_finished)
@@ -566,8 +575,9 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         reads = read_reads_csv(run_dir / "reads.csv") if (run_dir / "reads.csv").exists() else []
     except ValueError as error:
         raise AppError(str(error)) from None
-    notes = [_stale_device_note(name, device) for name, device in (summary.get("devices") or {}).items()
-             if device.get("stale_reads")]
+    notes = [f"{change}: the replay runs it as it is now" for change in changed]
+    notes += [_stale_device_note(name, device) for name, device in (summary.get("devices") or {}).items()
+              if device.get("stale_reads")]
     if app.connections and not (run_dir / "reads.csv").exists():
         notes.append("the run has no reads.csv (recorded by an older rtloop): stale reads are not followed")
     resume: dict[str, TaskSnapshot] = {}
@@ -627,7 +637,19 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     if divergence is not None and divergence.task:
         again = RunTimeline(pristine, cycles, reads, resume)
         divergence = _explain(divergence, again, out, writes, records, periods)
+    if divergence is not None and changed:
+        divergence = dataclasses.replace(divergence, changed_files=tuple(changed))
     return ReplayResult(rows, equal_rows, divergence, **common)
+
+
+def changed_files(run_dir: Path) -> list[str]:
+    """The files of the run's app (replay.json's ``files``) whose content is not what the run loaded."""
+    try:
+        recorded = json.loads((run_dir / "replay.json").read_text()).get("files") or {}
+    except (OSError, ValueError, AttributeError):
+        return []  # no replay.json, or one from before files were recorded: the loading says what is wrong
+    return changes_since({str(path): str(digest) for path, digest in recorded.items()}) if isinstance(
+        recorded, dict) else []
 
 
 def _stale_device_note(name: str, device: dict[str, Any]) -> str:
