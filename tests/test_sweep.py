@@ -79,6 +79,14 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
     assert cli_main(again) == 2 and "holds a sweep already" in capsys.readouterr().err  # never overwritten
     assert cli_main([*again, "--force"]) == 0
     capsys.readouterr()
+    bare = ["sweep", str(DCMOTOR), "--param", "pi.kp=0.02:0.1:2", "--duration", "0.3", "--processes", "1"]
+    assert cli_main([*bare, "--signal", "plant.current_A", "--out", str(tmp_path / "no_sp")]) == 0
+    out = capsys.readouterr().out  # no setpoint pair: the header says what step was measured
+    assert "step of plant.current_A, with no setpoint: from its first value to its last" in out, out
+    assert cli_main([*bare, "--signal", "plant.speed_rad_s", "--setpoint", "pi.nothing",
+                     "--out", str(tmp_path / "bad_sp")]) == 1  # every point failed
+    out = capsys.readouterr().out
+    assert "no signal measured" in out and "no signal 'pi.nothing' recorded (--setpoint)" in out, out
     for argv, words in (
         (["--param", "pi.kp=0.1:1"], "START:STOP:COUNT"),
         (["--param", "pi.kp=0:1:100000"], "COUNT must be 1 to 10000, got 100000"),

@@ -149,6 +149,17 @@ def test_the_examples_declare_units_and_pair_setpoints(tmp_path: Path) -> None:
     assert np.isfinite(run.signals["plant.speed_rad_s"]).all()
 
 
+def test_a_setpoint_beside_a_device_reading_is_paired(tmp_path: Path) -> None:
+    """The serial DC motor: the speed comes from a device, not a task; the setpoint port is drawn
+    over the reading as the PI takes it in (a task input, recorded), and a sweep finds the pair."""
+    app = load_app(EXAMPLES / "dcmotor_serial" / "dcmotor_serial.toml")
+    rtloop.simulate(app, 0.3, tmp_path / "dc")
+    run = rtloop.load(tmp_path / "dc")
+    assert [(p.signals, p.setpoint) for p in run.signals.plots] == [
+        (("pi.speed_rad_s", "pi.setpoint_rad_s"), "pi.setpoint_rad_s")]
+    assert run.signals.units["pi.speed_rad_s"] == "rad/s"
+
+
 def test_fmu_units_are_the_model_descriptions(tmp_path: Path) -> None:
     pytest.importorskip("fmpy", reason="FMUs need the fmu extra")
     from rtloop.models.fmu import FmuModel

@@ -4,8 +4,9 @@ Units come from the runnable (``input_units``/``output_units``, one line in a Py
 runnable; an FMU's ``unit`` attributes), overridden by the app (``app.set_units`` or
 ``units = { ... }`` in a task's table). Plots are declared (``app.plot(...)``, ``[[plot]]``)
 or inferred: an input port whose name says it is a setpoint (``setpoint``, ``reference``,
-``target``, ...) next to a connection of the same size into the same task is drawn over
-what that connection carries, element by element: setpoint and measured on one axis.
+``target``, ...) next to a connection of the same size into the same task (from another task
+or from a device's readings) is drawn over what that connection carries, element by element:
+setpoint and measured on one axis.
 """
 
 from __future__ import annotations
@@ -83,13 +84,19 @@ def inferred_plots(app: App) -> list[PlotSpec]:
         names_say_so = any(names) and all(SETPOINT_WORDS.search(n) for n in names)
         if not (SETPOINT_WORDS.search(port.name) or names_say_so):
             continue
-        same_size = [c for c in app.connections if c.target.task == target.task and c.target.size == target.size]
-        if len(same_size) != 1:
+        # what is measured comes from another task, or from a device (a reading the task takes in)
+        links = [c for c in [*app.connections, *app.device_links]
+                 if c.target.task == target.task and c.target.size == target.size]
+        if len(links) != 1:
             continue  # none, or ambiguous: leave it to a declared [[plot]]
-        measured = same_size[0]
+        measured = links[0]
+        from_device = measured.source.task not in app.tasks
         for i in range(target.size):
             setpoint = app.tasks[target.task].u[target.start + i]
-            source = app.tasks[measured.source.task].y[measured.source.start + i]
+            if from_device:  # recorded as the task's input it feeds
+                source = app.tasks[target.task].u[measured.target.start + i]
+            else:
+                source = app.tasks[measured.source.task].y[measured.source.start + i]
             unit_sp, unit_m = units.get(elements(setpoint)[0], ""), units.get(elements(source)[0], "")
             if unit_sp and unit_m and unit_sp != unit_m:
                 continue

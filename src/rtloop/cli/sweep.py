@@ -37,7 +37,13 @@ def run(args: argparse.Namespace) -> int:
     parameters = dict(parse_parameter(text) for text in args.param)
     result = sweep(args.app, parameters, duration_s=args.duration, out=args.out, signal=args.signal,
                    setpoint=args.setpoint, processes=args.processes, feeds=dict(args.feed), force=args.force)
-    print(f"step of {result.signal}" + (f" (setpoint {result.setpoint})" if result.setpoint else ""))
+    if not result.signal:
+        print("no signal measured (see each point's error)")
+    elif result.setpoint:
+        print(f"step of {result.signal} (setpoint {result.setpoint}): its first step")
+    else:
+        print(f"step of {result.signal}, with no setpoint: from its first value to its last, over the whole run "
+              "(give --setpoint NAME to measure the step a setpoint makes)")
     print(format_table(result))
     simulated_s = args.duration * len(result.rows)
     print(f"{len(result.rows)} simulations of {args.duration:g} s in {result.elapsed_s:.1f} s on "

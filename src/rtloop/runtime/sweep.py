@@ -171,7 +171,7 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
         with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
             rows = list(pool.map(_simulate_point, *zip(*jobs, strict=True)))
     elapsed = time.perf_counter() - started
-    measured = next((r["signal"] for r in rows if r.get("signal")), signal or "")
+    measured = next((r["signal"] for r in rows if r.get("signal")), "")  # '': no point measured one
     paired = next((r["setpoint"] for r in rows if r.get("setpoint")), setpoint)
     unit = next((r["unit"] for r in rows if r.get("unit")), "")
     for row in rows:
@@ -280,6 +280,9 @@ def _simulate_point(source: _AppSource, values: dict[str, float], duration_s: fl
     if signals is None:
         row["error"] = "the app records no signal"
         return row
+    if setpoint is not None and setpoint not in signals:
+        row["error"] = f"no signal {setpoint!r} recorded (--setpoint)"
+        return row
     measured, paired = _measured_signal(signals, signal, setpoint)
     if measured is None:
         row["error"] = f"no signal {signal!r} recorded" if signal else "no setpoint pair in signals.json: give --signal"
@@ -305,7 +308,7 @@ def _measured_signal(signals: Any, signal: str | None, setpoint: str | None) -> 
 
 def format_table(result: SweepResult) -> str:
     """The sweep's table as aligned text."""
-    error = f"ss error [{result.unit}]" if result.unit else "ss error [signal's unit]"
+    error = f"ss error [{result.unit}]" if result.unit else "ss error"
     header = [*result.parameters, "rise [s]", "overshoot [%]", "settling [s]", error, "run"]
     lines = [header]
     for row in result.rows:
