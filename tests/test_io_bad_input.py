@@ -53,3 +53,57 @@ def test_a_bad_frame_declaration_is_one_line_exit_2_nothing_started(case, tmp_pa
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and str(app) in lines[0], run.stderr
     assert not out.exists()
+
+
+TWO_DEVICES = APP + """[tasks.other]
+runnable = "rt_test_runnables:Gain"
+period_ns = 10_000_000
+[devices.drive2]
+kind = "can"
+task = "other"
+interface = "{interface2}"
+{settings2}
+"""
+
+
+def _run_two_devices(tmp_path, settings: str, settings2: str, interface2: str = "vcan0") -> subprocess.CompletedProcess:
+    app = tmp_path / "app.toml"
+    app.write_text(TWO_DEVICES.format(name=f"two_writers_{os.getpid()}", settings=settings, settings2=settings2,
+                                      interface2=interface2))
+    tests = Path(__file__).resolve().parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "rtloop", "run", str(app), "--duration", "0.1",
+                           "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=60, env=env)
+
+
+@pytest.mark.parametrize(("settings2", "message"), [
+    ("send = [{ id = 0x200 }]", "devices.drive2.send[0].id: frame id clash: 0x200 on vcan0 is also sent by "
+                                "devices.drive.send[0]"),
+    ("heartbeat = { id = 0x700 }", "devices.drive2.heartbeat.id: frame id clash: 0x700 on vcan0 is also sent by "
+                                   "devices.drive.heartbeat"),
+    ("send = [{ id = 0x700 }]", "devices.drive2.send[0].id: frame id clash: 0x700 on vcan0 is also sent by "
+                                "devices.drive.heartbeat"),
+])
+def test_two_devices_sending_one_id_on_one_bus_are_refused_at_load(tmp_path, settings2, message):
+    run = _run_two_devices(tmp_path, "heartbeat = { id = 0x700 }\nsend = [{ id = 0x200 }]", settings2)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and str(tmp_path / "app.toml") in lines[0], run.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_one_id_sent_on_two_buses_or_received_twice_loads():
+    from rt_test_runnables import Noop
+    from rtloop.app.builder import App
+    from rtloop.io.can import CanDevice
+    from rtloop.io.device import build_device
+
+    app = App(f"can_apart_{os.getpid()}")
+    for task in ("a", "b", "c"):
+        app.add_task(task, Noop(), period_ns=10_000_000)
+    frames = {"send": [{"id": 0x200}], "receive": [{"id": 0x180, "timeout_ms": 2}]}
+    app.add_device("on_can0", build_device(CanDevice, "on_can0", {"interface": "can0", **frames}, ""), task="a")
+    app.add_device("on_can1", build_device(CanDevice, "on_can1", {"interface": "can1", **frames}, ""), task="b")
+    listener = build_device(CanDevice, "listener", {"interface": "can0", "receive": frames["receive"]}, "")
+    app.add_device("listener", listener, task="c")  # receives 0x180 as on_can0 does: allowed
+    assert sorted(app.devices) == ["listener", "on_can0", "on_can1"]

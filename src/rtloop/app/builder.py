@@ -26,7 +26,7 @@ from typing import Literal
 from rtloop.app.byvalue import dumps_runnable
 from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
-from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device
+from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device, check_claims
 from rtloop.io.host import DeviceWiring
 from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
@@ -384,6 +384,7 @@ class App:
         if twin is not None:
             _check_twin(name, source, device, twin)
         spec = DeviceSpec(device, task, io, _resolve_limits(name, source, device, limits or {}), twin)
+        check_claims([*(other.device for other in self.devices.values()), device], source)
         self.devices[name] = spec
         return spec
 

@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.bytelayout import FloatView, LayoutError
 from rtloop.io.canframes import DATA_AT, CanFrame, HeartbeatCounter, check_ids, frame_from_table, heartbeat_from_table
-from rtloop.io.device import Device, FloatVector, Setting
+from rtloop.io.device import Claim, Device, FloatVector, Setting
 
 __all__ = ["CanDevice"]
 
@@ -89,6 +89,14 @@ class CanDevice(Device):
             check_interface(self.interface, self.fd, "interface")
         except CanInterfaceError as error:
             raise DeviceError(self.name, "", "interface", str(error).partition(": ")[2]) from None
+
+    def claims(self) -> tuple[Claim, ...]:
+        """Every id this device sends (heartbeat included) on its interface: a second sender of one id
+        on one bus would interleave its commands with ours. Receiving one id in two devices is fine."""
+        sent = [*self.sent, *([self.heartbeat_frame] if self.heartbeat_frame else [])]
+        return tuple(Claim(("can send", self.interface, frame.wire_id), f"{frame.where}.id",
+                           f"frame id clash: 0x{frame.can_id:X} on {self.interface} is also sent by")
+                     for frame in sent)
 
     # --- task process ---------------------------------------------------------------------------
     def configure(self) -> None:

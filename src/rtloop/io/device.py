@@ -54,7 +54,8 @@ import numpy.typing as npt
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.text import shorten
 
-__all__ = ["KINDS", "CommandLimit", "Device", "DeviceError", "DeviceFault", "Setting", "device_class"]
+__all__ = ["KINDS", "Claim", "CommandLimit", "Device", "DeviceError", "DeviceFault", "Setting", "check_claims",
+           "device_class"]
 
 FloatVector = npt.NDArray[np.float64]
 
@@ -122,6 +123,21 @@ class CommandLimit:
         return None
 
 
+@dataclass(frozen=True, slots=True)
+class Claim:
+    """Something only one device of an app may hold: two holders are refused when the app loads.
+
+    Two devices sending one CAN id on one bus would interleave their commands to one drive
+    (each overwriting the other every half period); no single device can see that."""
+
+    resource: tuple[Any, ...]
+    """Equal resources clash, e.g. ``("can send", "vcan0", 0x200)``."""
+    key: str
+    """The device's setting that claims it, as errors name it: ``send[0].id``."""
+    clash: str
+    """The problem, followed in the error by the other holder: ``frame id clash: 0x200 on vcan0 is also sent by``."""
+
+
 class Device(ABC):
     """Base class of drivers (and of the twin stand-in). See the module's docstring."""
 
@@ -154,6 +170,10 @@ class Device(ABC):
 
     def check(self) -> None:
         """Before any process starts: the interface exists and this user may open it."""
+
+    def claims(self) -> tuple[Claim, ...]:
+        """What no other device of the app may hold too (a CAN id this device sends on its bus)."""
+        return ()
 
     # --- lifecycle (owner task's process) -------------------------------------------------------
     def configure(self) -> None:
@@ -254,6 +274,18 @@ def build_device(kind: str | type[Device], name: str, settings: Mapping[str, Any
             raise DeviceError(name, source, "", f"{type(device).__name__}.{side} must be an integer 0..65536, "
                               f"got {count!r}")
     return device
+
+
+def check_claims(devices: list[Device], source: str) -> None:
+    """Refuse two devices holding one :class:`Claim` (the later one is named, with the earlier's key)."""
+    holders: dict[tuple[Any, ...], tuple[Device, Claim]] = {}
+    for device in devices:
+        for claim in device.claims():
+            held = holders.get(claim.resource)
+            if held is not None and held[0] is not device:
+                other, first = held
+                raise DeviceError(device.name, source, claim.key, f"{claim.clash} devices.{other.name}.{first.key}")
+            holders.setdefault(claim.resource, (device, claim))
 
 
 def check_device(device: Device, source: str) -> None:
