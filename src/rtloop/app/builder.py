@@ -25,6 +25,7 @@ from typing import Literal
 
 from rtloop.app.byvalue import dumps_runnable
 from rtloop.app.plots import PlotSpec, check_unit
+from rtloop.app.profiles import check_profile_file
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device, check_claims
 from rtloop.io.host import DeviceWiring
@@ -528,6 +529,8 @@ class App:
                                        f"value {index} must lie in [{low!r}, {high!r}]")
             if nudge is not None and nudge not in NUDGE_MODES:
                 raise AppError(f"{what}: nudge {shorten(nudge)}; expected one of {list(NUDGE_MODES)}")
+            if feed is not None:
+                check_profile_file(feed, what)
             spec = PortSpec(name, "in", ref, initial_values, allow_nonfinite, capacity,
                             Path(feed) if feed is not None else None, checked_range, nudge)
         else:
@@ -553,6 +556,7 @@ class App:
         if port not in self.ports or self.ports[port].direction != "in":
             inputs = sorted(n for n, p in self.ports.items() if p.direction == "in")
             raise AppError(f"feed {port}={csv_path}: no input port {port!r}; input ports are {inputs}")
+        check_profile_file(csv_path, f"port {port!r}")
         self.ports[port] = dataclasses.replace(self.ports[port], feed=Path(csv_path))
 
     def ros_publish(self, topic: str, *, source: SignalRef | SignalVector | None = None, port: str | None = None,

@@ -10,8 +10,10 @@ change, not to a model that is not deterministic.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
+import stat
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -45,7 +47,10 @@ def file_digest(path: str | Path) -> str | None:
 
 def _hash_file(path: Path) -> Any:
     digest = hashlib.sha256()
-    with open(path, "rb") as stream:
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO put in a file's place: no wait
+    with open(fd, "rb") as stream:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # /dev/zero would be read forever
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
         while chunk := stream.read(CHUNK_BYTES):
             digest.update(chunk)
     return digest
