@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -199,3 +200,28 @@ def hot_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) ->
     else:
         monkeypatch.setenv(hotpath.PURE_PYTHON_ENV, "1")
     return request.param
+
+
+
+@pytest.fixture(autouse=True)
+def _apps_run_under_names_of_their_own(request: pytest.FixtureRequest,
+                                       monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Fails a test that runs an app in real time, in this process, under a name without this run's
+    pid (``unique_name``): a live app holds its name, and the same test of another run of the suite
+    on this machine would be refused, or would refuse ours. (Apps a test starts with ``rtloop run``
+    in a subprocess are named the same way; this check sees the runs of this process.)"""
+    from rtloop.runtime import layout
+
+    refuse = layout.refuse_if_running
+    fixed: list[str] = []
+
+    def checked(name: str, this_pid: int | None = None) -> None:
+        if str(os.getpid()) not in name and name not in fixed:
+            fixed.append(name)
+        refuse(name, this_pid)
+
+    monkeypatch.setattr(layout, "refuse_if_running", checked)
+    yield
+    if fixed:
+        pytest.fail(f"{request.node.nodeid} ran app {fixed[0]!r} under a fixed name: use unique_name() "
+                    "(tests/conftest.py), apps here hold their name while they run", pytrace=False)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import rtloop
+from conftest import unique_name
 from rtloop.app.appfile import load_app
 from rtloop.errors import DeviceError
 from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, crc16
@@ -88,7 +89,7 @@ def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_0
     """The example's app file with the test's pty, a unique name and a 1 s timeout: a pty moves bytes through a
     kernel worker of normal priority, which a loaded shared machine can starve for tens of ms."""
     text = (EXAMPLE / "dcmotor_serial.toml").read_text()
-    text = text.replace('name = "dcmotor_serial"', f'name = "{name}"')
+    text = text.replace('name = "dcmotor_serial"', f'name = "{unique_name(name)}"')
     text = text.replace('"runs/dcmotor-serial.tty"', f'"{port}"')
     text = text.replace("timeout_ms = 0.8 ", f"timeout_ms = {timeout_ms} ")
     text = text.replace("period_ns = 1_000_000", f"period_ns = {period_ns}")
@@ -133,7 +134,7 @@ def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path
 
     late = Driver(tmp_path, 500.0, "--late-every", "25", "--late-ms", "2.5")
     try:
-        app_file = example_file(tmp_path, late.link, f"dcm_serial_late_{os.getpid()}", timeout_ms=1.0)
+        app_file = example_file(tmp_path, late.link, "dcm_serial_late", timeout_ms=1.0)
         rtloop.run(load_app(app_file), 0.5, tmp_path / "run")
     finally:
         late.stop()

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
+from conftest import unique_name
 from device_test_drivers import Echo, MirrorTwin, read_log
 from rt_test_runnables import RaiseAt
 from rtloop import App
@@ -27,8 +28,9 @@ TESTS = Path(__file__).parent
 
 def echo_app(tmp_path: Path, name: str, *, io: str = "let", echo: Echo | None = None, gain: float = 1.0,
              **task_options) -> App:
-    """Task ``ctl`` computes y = u + 1; device ``dev`` writes it and reads back gain × it."""
-    app = App(name)
+    """Task ``ctl`` computes y = u + 1; device ``dev`` writes it and reads back gain × it; the app is
+    named ``name`` and this test run's pid (apps here hold their name while they run)."""
+    app = App(unique_name(name))
     ctl = app.add_task("ctl", echo or Echo(), period_ns=PERIOD_NS, **task_options)
     dev = app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", io=io, log=str(tmp_path / "dev.log"),
                          gain=gain, twin=MirrorTwin(1, gain), limits={"c0": LIMIT})
@@ -120,7 +122,7 @@ def test_a_non_finite_command_in_simulation_too(tmp_path: Path) -> None:
 
 
 def test_an_e_stop_stops_the_app_in_order_safe_values_first(tmp_path: Path) -> None:
-    app = App("dev_stop_estop")
+    app = App(unique_name("dev_stop_estop"))
     ctl = app.add_task("ctl", Echo(), period_ns=PERIOD_NS)
     app.add_task("other", Echo(), period_ns=PERIOD_NS)
     dev = app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log=str(tmp_path / "dev.log"),
@@ -162,7 +164,7 @@ def test_the_watchdog_breaks_a_stuck_step_and_the_device_gets_its_safe_value(tmp
 def _cli_run(tmp_path: Path, name: str) -> subprocess.Popen[str]:
     app_file = tmp_path / "app.toml"
     app_file.write_text(f"""
-name = "{name}"
+name = "{unique_name(name)}"
 [tasks.ctl]
 runnable = "device_test_drivers:Echo"
 period_ns = {PERIOD_NS}
@@ -235,7 +237,7 @@ def test_kill_9_of_the_task_the_supervisor_writes_the_safe_values(tmp_path: Path
 # --- a device that cannot be used: exit 2, nothing started ---------------------------------------------
 
 def test_a_device_that_fails_its_configure_is_bad_input_and_nothing_runs(tmp_path: Path) -> None:
-    app = App("dev_configure_fails")
+    app = App(unique_name("dev_configure_fails"))
     ctl = app.add_task("ctl", Echo(), period_ns=PERIOD_NS)
     app.add_task("other", Echo(), period_ns=PERIOD_NS)
     dev = app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log=str(tmp_path / "dev.log"),
@@ -248,7 +250,7 @@ def test_a_device_that_fails_its_configure_is_bad_input_and_nothing_runs(tmp_pat
 
 
 def test_a_device_that_fails_its_check_stops_everything_before_it_starts(tmp_path: Path) -> None:
-    app = App("dev_check_fails")
+    app = App(unique_name("dev_check_fails"))
     app.add_task("ctl", Echo(), period_ns=PERIOD_NS)
     app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log=str(tmp_path / "no" / "dev.log"),
                    limits={"c0": LIMIT})
@@ -258,7 +260,7 @@ def test_a_device_that_fails_its_check_stops_everything_before_it_starts(tmp_pat
 
 
 def test_simulate_needs_a_twin_for_every_device(tmp_path: Path) -> None:
-    app = App("dev_no_twin")
+    app = App(unique_name("dev_no_twin"))
     app.add_task("ctl", Echo(), period_ns=PERIOD_NS)
     app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log="x", limits={"c0": LIMIT})
     with pytest.raises(DeviceError, match=r"devices\.dev\.twin: missing"):

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import unique_name
 from rtloop.app.builder import App
 from rtloop.errors import AppError
 
@@ -90,7 +91,7 @@ def url_from(stderr_lines: queue.Queue[str], timeout_s: float) -> str:
 def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path: Path, rtloop_env,
                                                                        subprotocol: str) -> None:
     app_file = tmp_path / "fox.toml"
-    app_file.write_text(APP.format(suffix=f"{time.monotonic_ns() % 10**9}"))
+    app_file.write_text(APP.format(suffix=unique_name("live")))
     out = tmp_path / "out"
     run = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "12", "--out",
                             str(out), "--quiet"], env=rtloop_env, stderr=subprocess.PIPE, text=True)
@@ -177,7 +178,7 @@ def test_foxglove_settings_are_checked() -> None:
 
 def test_missing_foxglove_sdk_is_one_line(tmp_path: Path, rtloop_env) -> None:
     app_file = tmp_path / "fox.toml"
-    app_file.write_text(APP.format(suffix="missing"))
+    app_file.write_text(APP.format(suffix=unique_name("missing")))
     blocker = tmp_path / "blocker"
     blocker.mkdir()
     (blocker / "foxglove.py").write_text("raise ImportError('hidden for this test')\n")

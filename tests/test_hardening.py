@@ -29,7 +29,7 @@ GOOD_TASK = '[tasks.t]\nrunnable = "rt_test_runnables:Gain"\nargs = { n = 2 }\np
 
 
 def _unique(prefix: str) -> str:
-    return f"{prefix}_{secrets.token_hex(3)}"
+    return f"{prefix}_{os.getpid()}_{secrets.token_hex(2)}"  # this test run's, and this call's
 
 
 def _cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:

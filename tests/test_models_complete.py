@@ -8,7 +8,6 @@ import dataclasses
 import shutil
 import subprocess
 import sys
-import time
 import zipfile
 from pathlib import Path
 
@@ -270,7 +269,7 @@ def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path,
     from conftest import other_cpu, scaled_ns, scaled_s, wait_for_app, wait_for_cycles
 
     cli = [sys.executable, "-m", "rtloop.cli"]
-    name = f"replay_t_{int(time.time() * 1000) % 100000}"
+    name = unique_name("replay_t")
     app_file = tmp_path / f"{name}.toml"
     app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu(), period_ns=scaled_ns(1_000_000)))
     run_dir = tmp_path / "run"

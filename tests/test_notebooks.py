@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -33,3 +34,6 @@ def test_notebook_runs(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     assert (tmp_path / "runs" / "sweep" / "sweep.csv").is_file()
     if os.geteuid() == 0:
         assert (tmp_path / "runs" / "run" / "summary.json").is_file(), "as root the notebook runs for real"
+        # under a name of its kernel's own: 'dcmotor' may be running here (a live app holds its name)
+        ran_as = json.loads((tmp_path / "runs" / "run" / "summary.json").read_text())["app"]
+        assert ran_as.startswith("dcmotor_nb_") and f"running as {ran_as}" in text, ran_as

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
+from conftest import unique_name
 from rtloop import App
 
 P = 1_000_000
@@ -157,7 +158,7 @@ def test_unlogged_port_values_dropped_reads_and_a_stopped_recording_are_named(tm
 
 def test_the_cli_says_what_was_lost_and_exits_1_a_garbled_count_is_bad_input(tmp_path: Path, rtloop_env) -> None:
     app_file = tmp_path / "lost_cli.toml"
-    app_file.write_text('name = "lost_cli"\n[tasks.a]\nrunnable = "rt_test_runnables:Integrator"\n'
+    app_file.write_text(f'name = "{unique_name("lost_cli")}"\n[tasks.a]\nrunnable = "rt_test_runnables:Integrator"\n'
                         'period_ns = 1_000_000\n[record]\nsignals = ["a.y"]\n')
     env = rtloop_env
     cli = [sys.executable, "-m", "rtloop.cli"]

@@ -193,7 +193,7 @@ def test_killed_task_process_is_reported_and_the_rest_is_kept(tmp_path: Path, rt
 @pytest.mark.rt
 @pytest.mark.skipif(shutil.which("setpriv") is None, reason="setpriv (util-linux) is needed to drop privileges")
 def test_without_rt_privileges_it_runs_under_sched_other_and_says_why(tmp_path: Path, rtloop_env) -> None:
-    app_file = _app_file(tmp_path, "unprivileged")
+    app_file = _app_file(tmp_path, unique_name("unprivileged"))
     command = [
         "setpriv", "--inh-caps=-all", "--bounding-set=-all", "--",
         "prlimit", "--rtprio=0", "--memlock=65536", "--",
@@ -241,7 +241,7 @@ def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: 
 
 @pytest.mark.rt
 def test_cli_cpu_option_pins_every_task(tmp_path: Path, rtloop_env) -> None:
-    app_file = _app_file(tmp_path, "pinned")
+    app_file = _app_file(tmp_path, unique_name("pinned"))
     duration = str(scaled_s(0.2))
     result = subprocess.run(
         [sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", duration, "--out", str(tmp_path / "o"),

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
+from conftest import unique_name
 from rt_test_runnables import Counter
 from rtloop import App
 from rtloop.runtime.session import RunDirectoryError
@@ -27,7 +28,7 @@ signals = ["count.y"]
 
 
 def counter_app(name: str) -> App:
-    app = App(name)
+    app = App(unique_name(name))  # a live app holds its name: this test run's own
     task = app.add_task("count", Counter(), period_ns=P)
     app.record(task.y)
     return app
