@@ -177,3 +177,14 @@ def test_the_description_knows_nothing_of_running() -> None:
     graph = import_graph()
     for module in (m for m in graph if layer_of(m) == "app"):
         assert not {dep for dep in graph[module] if layer_of(dep) in ("runtime", "ipc", "record", "cli")}, module
+
+
+def test_the_task_process_imports_everything_before_its_loop() -> None:
+    """runtime/task.py imports at its top only: an import inside one of its functions could run
+    inside the real-time loop (a file read, the import lock) the first time the loop calls it.
+    What it imports lazily on purpose would have to be imported before the loop starts instead."""
+    tree = ast.parse((PACKAGE / "runtime" / "task.py").read_text())
+    inside = [f"line {node.lineno}: {ast.unparse(node)}" for function in ast.walk(tree)
+              if isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef)
+              for node in ast.walk(function) if isinstance(node, ast.Import | ast.ImportFrom)]
+    assert inside == []

@@ -30,6 +30,7 @@ from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
 from rtloop.linux.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
+from rtloop.runtime.snapshot import take  # here, not at the first snapshot: no import inside the loop
 
 T0_POLL_S = 0.001
 
@@ -194,8 +195,6 @@ def task_process_main(
     task = RealtimeTask(config, runnable, control, status, timing)
 
     def send_snapshot(next_cycle: int, t0_ns: int) -> None:
-        from rtloop.runtime.snapshot import take
-
         at_ns = control[ControlWord.SNAPSHOT_NS] - t0_ns
         why_not = "its devices' state is not saved" if task.devices else ""
         if task.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
