@@ -13,7 +13,16 @@ import pytest
 
 from rtloop.cli import top_view
 from rtloop.cli.main import main as cli_main
-from rtloop.runtime.monitor import SCHED_NAMES, AppView, Monitor, TaskView, find_apps, read_proc
+from rtloop.runtime.monitor import (
+    MAX_SUMMARY_BYTES,
+    SCHED_NAMES,
+    AppView,
+    Monitor,
+    TaskView,
+    find_apps,
+    live_summary_line,
+    read_proc,
+)
 
 NOOP = '''
 from rtloop import Runnable
@@ -167,3 +176,32 @@ def test_narrow_terminal_keeps_the_timing_columns() -> None:
         assert max(len(line) for line in text.splitlines()) <= width
         assert "123,456" in text and "180.0" in text and "lat max µs" in text
         assert ("│ GC" in text or " GC │" in text) is expect_gc
+
+
+def _summary_text(padding: int = 0) -> str:
+    return json.dumps({"tasks": {"ctl": {"latency_ns": {"p99": 12_000, "max": 30_000}}},
+                       "recording": {"stopped": None, "keep_s": None}, "pad": "x" * padding})
+
+
+def test_the_live_summary_line_reads_a_regular_summary_json(tmp_path: Path) -> None:
+    path = tmp_path / "summary.json"
+    path.write_text(_summary_text())
+    line = live_summary_line(str(path))
+    assert line.startswith("summary.json (") and "ctl p99 12.0 max 30.0 µs; recording: everything kept" in line
+
+
+def test_a_registry_naming_a_fifo_or_a_huge_file_as_its_summary_gives_no_line(tmp_path: Path) -> None:
+    # The summary path comes from a registry another user wrote, when root runs rtloop top.
+    import threading
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    huge = tmp_path / "huge.json"
+    huge.write_text(_summary_text(padding=MAX_SUMMARY_BYTES))
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(live_summary_line(str(p)) for p in (fifo, huge)),
+                              daemon=True)
+    reader.start()
+    reader.join(timeout=30)
+    assert not reader.is_alive(), "rtloop top waited on a FIFO named as a summary.json"
+    assert lines == ["", ""]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -250,14 +251,21 @@ class Monitor:
             self.poll()
 
 
+MAX_SUMMARY_BYTES = 1 << 22
+"""A live summary.json larger than this is not read (a run's is a few kB per task)."""
+
+
 def live_summary_line(path: str | None) -> str:
-    """One line from a running app's summary.json: per task p99/max latency, and the recording."""
-    if not path:
+    """One line from a running app's summary.json: per task p99/max latency, and the recording.
+
+    The path comes from the app's registry, which another user wrote when root runs ``rtloop
+    top``: only a regular file of bounded size is read (a FIFO would block top, /dev/zero
+    would fill its memory); anything else gives no line."""
+    if not path or not isinstance(path, str):
         return ""
     try:
-        file = Path(path)
-        summary = json.loads(file.read_text())
-        age_s = time.time() - file.stat().st_mtime
+        summary, modified_s = _read_bounded_regular_file(path)
+        age_s = time.time() - modified_s
         parts = []
         for name, task in summary["tasks"].items():
             latency = task["latency_ns"]
@@ -271,3 +279,20 @@ def live_summary_line(path: str | None) -> str:
         return f"summary.json ({age_s:.0f} s old): " + "; ".join(parts)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return ""
+
+
+def _read_bounded_regular_file(path: str) -> tuple[object, float]:
+    """The JSON in ``path`` and its modification time; ValueError unless a regular file of at most
+    MAX_SUMMARY_BYTES (opened without blocking: a FIFO never holds top up)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_SUMMARY_BYTES:
+            raise ValueError(f"{path}: not a summary.json")
+        with os.fdopen(fd, "rb", closefd=False) as file:
+            data = file.read(MAX_SUMMARY_BYTES + 1)
+    finally:
+        os.close(fd)
+    if len(data) > MAX_SUMMARY_BYTES:
+        raise ValueError(f"{path}: not a summary.json")
+    return json.loads(data), info.st_mtime
