@@ -22,6 +22,7 @@ from typing import Any
 
 from rtloop.errors import AppError
 from rtloop.io.compiled import devio
+from rtloop.io.device import MAX_SETTING_MAGNITUDE, number_problem
 
 # type name -> (struct code, is integer)
 FIELD_TYPES: dict[str, tuple[str, bool]] = {
@@ -93,9 +94,15 @@ def field_from_table(table: Mapping[str, Any], where: str) -> Field:
         value = table.get(key, default)
         if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
             raise LayoutError(f"{where}.{key}: expected a finite number, got {value!r}")
+        problem = number_problem(value)
+        if problem:
+            raise LayoutError(f"{where}.{key}: {problem}")
         numbers[key] = float(value)
     if numbers["scale"] == 0.0:
         raise LayoutError(f"{where}.scale: must not be 0 (value = raw * scale + offset)")
+    if abs(numbers["scale"]) < 1 / MAX_SETTING_MAGNITUDE:  # a command divided by it would overflow to inf
+        raise LayoutError(f"{where}.scale: must be at least {1 / MAX_SETTING_MAGNITUDE:g} in size, "
+                          f"got {numbers['scale']!r}")
     return Field(name, start, kind, numbers["scale"], numbers["offset"], order)
 
 

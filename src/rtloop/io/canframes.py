@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rtloop.io.bytelayout import ByteLayout, LayoutError, field_from_table
+from rtloop.io.device import HOUR_MS
 
 CAN_EFF_FLAG = 0x80000000  # the id is a 29-bit (extended) one
 CAN_SFF_MASK = 0x7FF
@@ -114,6 +115,8 @@ def frame_from_table(table: Mapping[str, Any], where: str, fd_bus: bool, receive
         if (isinstance(timeout_ms, bool) or not isinstance(timeout_ms, int | float) or not math.isfinite(timeout_ms)
                 or timeout_ms <= 0):
             raise LayoutError(f"{where}.timeout_ms: expected a positive number of milliseconds, got {timeout_ms!r}")
+        if timeout_ms > HOUR_MS:
+            raise LayoutError(f"{where}.timeout_ms: must be at most {HOUR_MS} (an hour), got {timeout_ms!r}")
         timeout_ns = round(timeout_ms * 1_000_000)
         on_missing = table.get("on_missing", "fault")
         if on_missing not in ON_MISSING:

@@ -74,6 +74,12 @@ IO_MODES = ("let", "immediate")
 """``let``: the commands of the job released at t are written at t + P (default);
 ``immediate``: right after ``step``."""
 
+MAX_SETTING_MAGNITUDE = 1e12
+"""No number in a device's settings is larger (a GHz clock is 1e9 Hz): beyond it is a typo
+(``1e308``), and it would overflow where a driver turns it into nanoseconds or a C integer."""
+HOUR_MS = 3_600_000
+"""The longest wait a device setting may ask for, in ms: more than an hour is a typo."""
+
 _REQUIRED = object()
 _TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", bool: "true or false",
                list: "an array", dict: "a table"}
@@ -91,6 +97,9 @@ class Setting:
     """What the setting means, with its unit (shown by errors)."""
     check: Callable[[Any], str | None] | None = None
     """Returns what is wrong with a value (one phrase), or None when it is fine."""
+    at_most: float = MAX_SETTING_MAGNITUDE
+    """A number's largest value (its unit makes one obvious: ``HOUR_MS`` for a timeout in ms);
+    every number is finite and at least ``-MAX_SETTING_MAGNITUDE`` too."""
 
     @property
     def required(self) -> bool:
@@ -115,6 +124,10 @@ class CommandLimit:
         values = (self.min, self.max, self.safe)
         if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in values):
             return f"min, max and safe must be finite numbers, got {self.min!r}, {self.max!r}, {self.safe!r}"
+        for key, value in (("min", self.min), ("max", self.max), ("safe", self.safe)):
+            problem = number_problem(value)
+            if problem:
+                return f"{key} {problem}"
         if not self.min <= self.safe <= self.max:
             return f"need min ≤ safe ≤ max, got min {self.min!r}, safe {self.safe!r}, max {self.max!r}"
         rate = self.rate_per_s
@@ -306,13 +319,31 @@ def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -
     if not ok:
         raise DeviceError(device, source, key, f"expected {_TYPE_NAMES.get(expected, expected.__name__)}, "
                           f"got {shorten(value, 60)}")
-    if expected is float and not math.isfinite(value):
-        raise DeviceError(device, source, key, f"must be finite, got {value!r}")
+    if expected in (int, float):
+        problem = number_problem(value, setting.at_most)
+        if problem:
+            raise DeviceError(device, source, key, problem)
     if setting.check is not None:
         problem = setting.check(value)
         if problem:
             raise DeviceError(device, source, key, problem)
     return value
+
+
+def number_problem(value: float, at_most: float = MAX_SETTING_MAGNITUDE) -> str | None:
+    """What is wrong with a number of a device's settings (one phrase), or None: not finite, or absurd."""
+    if not math.isfinite(value):
+        return f"must be finite, got {value!r}"
+    if value > at_most:
+        return f"must be at most {_plain(at_most)}, got {shorten(value, 30)}"
+    if value < -MAX_SETTING_MAGNITUDE:
+        return f"must be at least {_plain(-MAX_SETTING_MAGNITUDE)}, got {shorten(value, 30)}"
+    return None
+
+
+def _plain(number: float) -> str:
+    """3600000 as 3600000, 1e12 as 1e+12: as a person would type it in the app file."""
+    return str(int(number)) if float(number).is_integer() and abs(number) < 1e7 else f"{number:g}"
 
 
 def fault(task: str, cycle: int, where: str, problem: str) -> DeviceFault:

@@ -70,6 +70,8 @@ def _lines(value: list[Any]) -> str | None:
     for line in value:
         if isinstance(line, bool) or not isinstance(line, str | int) or line == "":
             return f"expected line names or offsets, got {line!r}"
+        if isinstance(line, int) and not 0 <= line <= 0xFFFFFFFF:  # the kernel's offsets are u32
+            return f"a line offset is 0..4294967295, got {line!r}"
     if len({str(line) for line in value}) != len(value):
         return "a line is named twice"
     return None

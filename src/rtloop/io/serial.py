@@ -40,7 +40,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
-from rtloop.io.device import Device, FloatVector, Setting
+from rtloop.io.device import HOUR_MS, Device, FloatVector, Setting
 from rtloop.sudo import trusted_uids
 
 REQUEST_SYNC = 0xA5
@@ -169,9 +169,10 @@ class SerialDevice(Device):
     kind = "serial"
     settings: ClassVar[dict[str, Setting]] = {
         "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0"),
-        "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0"),
+        "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0",
+                            at_most=100_000_000),
         "timeout_ms": Setting(float, 5.0, "how long to wait for the response, in ms (a late one is a fault)",
-                              check=_positive),
+                              check=_positive, at_most=HOUR_MS),
         "commands": Setting(list, doc="names of the values sent each cycle (its u), e.g. [\"voltage_V\"]",
                             check=_names),
         "readings": Setting(list, doc="names of the values received each cycle (its y)", check=_names),
