@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import unique_name  # type: ignore[import-not-found]
@@ -69,3 +70,36 @@ def test_a_registry_of_the_wrong_shape_is_listed_without_what_is_wrong(info: obj
 def test_what_a_registry_says_is_made_printable() -> None:
     line, = describe_port("\x1b[2Jport", _port(size=1, signal="c.u[0]", units=["\x1b]0;owned\x07"]))
     assert "\x1b" not in line and "\x07" not in line and "?[2Jport" in line
+
+
+class _FakeReader:
+    period_ns = 1_000_000
+
+    def __enter__(self) -> _FakeReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def skip_to_newest(self) -> None:
+        pass
+
+    def read(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.arange(count), np.zeros((count, 2))
+
+
+@pytest.mark.parametrize("signal", ["\x1b]0;owned\x07.y[0:2]", 42])
+def test_port_read_prints_a_registrys_signal_made_printable(signal: object, monkeypatch: pytest.MonkeyPatch,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    from rtloop.ipc import ports
+
+    class App:
+        ports = {"out": {"signal": signal}}  # noqa: RUF012
+
+        def reader(self, _port: str) -> _FakeReader:
+            return _FakeReader()
+
+    monkeypatch.setattr(ports, "connect_app", lambda name, owner_uid=None: App())
+    assert main(["port", "read", "app", "out", "--count", "2"]) == 0
+    header, *rows = capsys.readouterr().out.splitlines()
+    assert "\x1b" not in header and "\x07" not in header and header.lstrip().startswith("t_s") and len(rows) == 2

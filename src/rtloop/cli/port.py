@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     with app.reader(args.port) as reader:
         if not args.queued:
             reader.skip_to_newest()  # what the app sends now, not what queued up before anyone read
-        names = element_names(app.ports[args.port]["signal"])
+        names = element_names(_printable(app.ports[args.port].get("signal"), limit=200))
         print("t_s".rjust(TIME_WIDTH) + "".join(name.rjust(VALUE_WIDTH) for name in names), flush=True)
         while printed < args.count:
             ticks, rows = reader.read(args.count - printed)
@@ -139,7 +139,7 @@ def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _printable(value: object) -> str:
-    """At most 40 characters, control characters (a terminal's escape sequences) as '?'."""
+def _printable(value: object, limit: int = 40) -> str:
+    """At most ``limit`` characters, control characters (a terminal's escape sequences) as '?'."""
     text = value if isinstance(value, str) else "?"
-    return clip("".join(c if c.isprintable() else "?" for c in text), 40)
+    return clip("".join(c if c.isprintable() else "?" for c in text), limit)
