@@ -44,6 +44,50 @@ _ACL_USER, _ACL_GROUP, _ACL_MASK = 0x02, 0x08, 0x10  # tags of the kernel's posi
 _ACL_WRITE = 0x02
 
 
+def folder_problem(folder: Path, trusted: set[int], whom: str, *,
+                   sticky_is_enough: bool) -> tuple[Path, str, bool] | None:
+    """Why a user not trusted could change what ``folder`` holds (None: none can), as (the folder,
+    what it is, whether ``chmod go-w`` is the fix): it or a folder
+    above it is theirs, or one they may write to. Above it a sticky folder such as /tmp is fine
+    (nobody renames or removes there what they do not own); for ``folder`` itself only when
+    ``sticky_is_enough`` (code read from it), not where rtloop writes: in a sticky folder another
+    user may still add a name, a link rtloop would write through."""
+    for path in (folder, *folder.parents):
+        facts = os.stat(path)
+        if facts.st_uid not in trusted:
+            return path, f"owned by uid {facts.st_uid}, not by {whom}", False
+        writer = untrusted_writer(facts, trusted, whom, path)
+        sticky = facts.st_mode & stat.S_ISVTX and (path != folder or sticky_is_enough)
+        if writer and not sticky:
+            return path, writer, True
+    return None
+
+
+def output_folder_problem(out: Path) -> str | None:
+    """Why rtloop must not write into ``out`` (None: it may): another user could plant a link there
+    (or swap the folder) for a write of this process to follow — as root, onto any file. ``out``
+    need not exist yet: then the folders above it are checked (made here, it is this user's)."""
+    from rtloop.sudo import trusted_uids
+
+    trusted = trusted_uids()
+    whom = "you, root or the user who ran sudo" if len(trusted) > 2 else "you or root"
+    absolute = Path(os.path.abspath(out))
+    for path in (*reversed(absolute.parents), absolute):  # a link on the way: whose is it?
+        try:
+            facts = os.lstat(path)
+        except FileNotFoundError:
+            break
+        if stat.S_ISLNK(facts.st_mode) and facts.st_uid not in trusted:
+            return f"{path} is a symbolic link owned by uid {facts.st_uid}, not by {whom}"
+    existing = next(p for p in (absolute, *absolute.parents) if p.exists())
+    problem = folder_problem(existing.resolve(), trusted, whom, sticky_is_enough=existing != absolute)
+    if problem is None:
+        return None
+    path, what, chmod_fixes = problem
+    return (f"{path} is {what}: another user could put a link there for rtloop to write through"
+            + (f" (chmod go-w {path})" if chmod_fixes else ""))
+
+
 def _acl_writers(target: Path | int) -> set[int]:
     """The uids an access ACL lets write ``target`` (named users, members of named groups); none without one."""
     try:

@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 
 from rtloop.app import sources
 from rtloop.errors import AppError
-from rtloop.owners import untrusted_writer
+from rtloop.owners import folder_problem, untrusted_writer
 from rtloop.sudo import trusted_uids
 
 SOURCES_ATTRIBUTE = "__rtloop_sources__"
@@ -86,16 +86,11 @@ def check_folders(folder: Path, trusted: set[int] | None = None, whom: str | Non
     write to (mode, or a group with them in it), or below such a folder (they could rename it
     away and put their own in its place). A sticky folder such as /tmp is fine: there nobody
     renames or removes what they do not own."""
-    trusted = trusted or _trusted_uids()
-    for path in (folder, *folder.parents):
-        facts = os.stat(path)
-        if facts.st_uid not in trusted:
-            raise ModuleRefused(f"{path} is owned by uid {facts.st_uid}, not by {whom or _whom()}; "
-                                "rtloop will not run code from below it")
-        writer = untrusted_writer(facts, trusted, whom or _whom(), path)
-        if writer and not facts.st_mode & stat.S_ISVTX:
-            raise ModuleRefused(f"{path} is {writer}; rtloop will not run code from below it "
-                                f"(chmod go-w {path})")
+    problem = folder_problem(folder, trusted or _trusted_uids(), whom or _whom(), sticky_is_enough=True)
+    if problem is not None:
+        path, what, chmod_fixes = problem
+        raise ModuleRefused(f"{path} is {what}; rtloop will not run code from below it"
+                            + (f" (chmod go-w {path})" if chmod_fixes else ""))
 
 
 def check_model_files(path: Path) -> None:

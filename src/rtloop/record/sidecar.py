@@ -22,6 +22,7 @@ from typing import Any
 
 from rtloop.app.builder import App
 from rtloop.app.plots import Element, element_units, elements, inferred_plots
+from rtloop.newfile import write_new
 from rtloop.record.csvfiles import column_names
 
 SIDECAR = "signals.json"
@@ -81,7 +82,7 @@ def write_sidecar(out: Path, content: dict[str, Any]) -> None:
     """Write ``signals.json`` whole or not at all (a temporary name, then a rename)."""
     temporary = out / f".{SIDECAR}.tmp"
     try:
-        temporary.write_text(json.dumps(content, indent=1) + "\n")
+        write_new(temporary, (json.dumps(content, indent=1) + "\n").encode())
         os.replace(temporary, out / SIDECAR)
     except OSError:
         with contextlib.suppress(OSError):

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rtloop.newfile import open_new, write_new
 from rtloop.stats.timing import TaskTiming
 
 
@@ -252,7 +253,7 @@ class SummaryFile:
         self.problem = ""
         """Why the last write failed ('' if it worked)."""
         try:
-            fd = os.open(self.reserve, os.O_CREAT | os.O_WRONLY | os.O_TRUNC, 0o600)
+            fd = open_new(self.reserve, 0o600)
             try:
                 os.posix_fallocate(fd, 0, SUMMARY_RESERVE_BYTES)
             finally:
@@ -291,7 +292,7 @@ class SummaryFile:
         """
         data = text.encode()
         try:
-            fd = os.open(self.path, os.O_WRONLY)
+            fd = os.open(self.path, os.O_WRONLY | os.O_NOFOLLOW)
         except OSError:
             return False
         try:
@@ -309,10 +310,7 @@ class SummaryFile:
     def _replace(self, text: str) -> None:
         temporary = self.path.with_name(".summary.json.tmp")
         try:
-            with open(temporary, "w") as file:
-                file.write(text)
-                file.flush()
-                os.fsync(file.fileno())
+            write_new(temporary, text.encode(), sync=True)
             os.replace(temporary, self.path)
         except OSError:
             with contextlib.suppress(OSError):

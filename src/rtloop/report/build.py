@@ -8,6 +8,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rtloop.newfile import write_new
+from rtloop.owners import output_folder_problem
 from rtloop.report import figures, html
 from rtloop.report import signals as signal_figures
 from rtloop.report.data import Histogram, ReportError, Run, load_run, run_labels, task_series
@@ -45,6 +47,9 @@ def build_report(paths: list[Path], out: Path | None = None, *, write_html: bool
         raise ReportError("no run directory given")
     runs = [load_run(p, label) for p, label in zip(paths, run_labels(paths), strict=True)]
     out = Path(out) if out is not None else Path(paths[0])
+    problem = output_folder_problem(out)
+    if problem is not None:
+        raise ReportError(f"cannot write the report into {out}/: {problem}; write it elsewhere with --out DIR")
     try:
         return _draw(runs, out, write_html)
     except OSError as error:
@@ -61,6 +66,8 @@ def _remove_earlier_figures(fig_dir: Path) -> None:
 
 def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
     fig_dir = out / FIGURES_DIR
+    if fig_dir.is_symlink():  # the figures go into a folder of the report's own, not where a link leads
+        fig_dir.unlink()
     _remove_earlier_figures(fig_dir)
     report = Report(runs)
     run_figures: dict[str, list[html.FigureRef]] = {}
@@ -108,7 +115,7 @@ def _write_whole(path: Path, text: str) -> None:
     """Write ``path`` whole or not at all (a temporary name, then a rename)."""
     temporary = path.with_name(f".{path.name}.tmp")
     try:
-        temporary.write_text(text)
+        write_new(temporary, text.encode())
         os.replace(temporary, path)
     except OSError:
         with contextlib.suppress(OSError):

@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from rtloop.newfile import open_new
 from rtloop.report.data import Histogram, Run, TaskSeries, histogram
 from rtloop.stats.timing import THESIS_JITTER_FRACTION
 
@@ -233,7 +234,8 @@ def save(fig: Figure, path: Path) -> Path:
     """Write ``fig`` as a PNG and return the path."""
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        fig.savefig(path, dpi=100, format="png")
+        with open(open_new(path), "wb") as file:  # a new file: never through a link that has the name
+            fig.savefig(file, dpi=100, format="png")
     except BaseException:
         with contextlib.suppress(OSError):
             path.unlink()  # a full disk leaves no empty or half figure behind

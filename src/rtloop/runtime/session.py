@@ -40,6 +40,7 @@ from pathlib import Path
 from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
+from rtloop.owners import output_folder_problem
 from rtloop.record.recorder import Recorder, give_to_invoking_user
 from rtloop.record.summary import SUMMARY_RESERVE_BYTES, RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout, TaskHandles
@@ -95,6 +96,7 @@ def _prepare_out_dir(out: Path, *, force: bool, protect: Iterable[Path]) -> Path
         missing = [folder for folder in (out, *out.parents) if not folder.exists()]
         out.mkdir(parents=True)
         for folder in reversed(missing):  # under sudo, `runs/` stays the user's to write in
+            folder.chmod(folder.stat().st_mode & ~0o022)  # whatever the umask: nobody else writes in it
             give_to_invoking_user(folder)
         return out
     for name in LEFTOVERS:
@@ -126,6 +128,9 @@ def _check_out_dir(out: Path, protect: Iterable[Path]) -> None:
                                     "overwrite what it compares with: choose another folder")
     if out.exists() and not out.is_dir():
         raise RunDirectoryError(f"--out {out} exists and is not a folder")
+    problem = output_folder_problem(out)
+    if problem is not None:
+        raise RunDirectoryError(f"--out {out}: {problem}; nothing was run: choose a folder of yours")
     if os.path.lexists(out / UNFINISHED_FOLDER):
         raise RunDirectoryError(f"{out}/{UNFINISHED_FOLDER}/ holds the recording of a run that did not finish; "
                                 "nothing was written: move it away (or choose another --out); --force "

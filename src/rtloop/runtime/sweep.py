@@ -36,6 +36,7 @@ import numpy as np
 
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import AppError, RtloopError
+from rtloop.owners import output_folder_problem
 from rtloop.record.recorder import give_to_invoking_user
 from rtloop.text import shorten
 
@@ -196,10 +197,14 @@ def _prepare_out(out: Path, run_dirs: list[Path], force: bool) -> None:
     if table.exists() and not force:
         raise AppError(f"--out {out} holds a sweep already (sweep.csv): choose another folder, "
                        "or --force to replace it (force=True in Python)")
+    problem = output_folder_problem(out)
+    if problem is not None:
+        raise AppError(f"--out {out}: {problem}; nothing was run: choose a folder of yours")
     with _out_errors(out, "nothing was run"):
         missing = [folder for folder in (out, *out.parents) if not folder.exists()]
         out.mkdir(parents=True, exist_ok=True)
         for folder in reversed(missing):
+            folder.chmod(folder.stat().st_mode & ~0o022)  # whatever the umask: nobody else writes in it
             give_to_invoking_user(folder)
         for path in (out, table, *run_dirs):
             if os.path.lexists(path) and not os.access(path, os.W_OK, follow_symlinks=False):
