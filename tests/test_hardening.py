@@ -81,6 +81,12 @@ CASES = {
                        "ports.p: port 'p': range [1.0, -1.0] must be finite with lo ≤ hi"),
     "long name": (f'name = "{"n" * 100}"\n' + GOOD_TASK, "at most 32"),
     "tasks not a table": ('name = "x"\ntasks = 3\n', "tasks: expected a table"),
+    "nested arrays": ('name = "x"\nx = ' + "[" * 5000 + "]" * 5000 + "\n", "not valid TOML: nested too deeply"),
+    "nested dotted keys": ('name = "x"\n[tasks.t]\nrunnable = "rt_test_runnables:Gain"\nperiod_ns = 1000000\n'
+                           "parameters = { " + ".".join(["a"] * 5000) + " = 1 }\n",
+                           "tasks: nested too deeply (more than 32 levels"),
+    "nested inline tables": ('name = "x"\n[tasks.t]\nrunnable = "rt_test_runnables:Gain"\nperiod_ns = 1000000\n'
+                             "args = " + "{ a = " * 40 + "1" + " }" * 40 + "\n", "tasks: nested too deeply"),
     "lock_blas_buffer not a bool": ('name = "x"\n' + GOOD_TASK + 'lock_blas_buffer = "yes"\n',
                                     "tasks.t.lock_blas_buffer: expected true or false"),
 }

@@ -83,6 +83,8 @@ from rtloop.runnable import Runnable
 from rtloop.text import clip, shorten
 
 MAX_APP_FILE_BYTES = 1 << 20
+MAX_NESTING_LEVELS = 32
+"""Tables and arrays inside one another: an app file needs about 6 (devices.drive.send[0].signals[0])."""
 
 TOP_KEYS = {
     "name": str, "description": str, "tasks": dict, "connect": list, "ports": dict, "record": dict, "ros": dict,
@@ -127,6 +129,20 @@ def _check_keys(path: str, where: str, table: dict[str, Any], allowed: dict[str,
             raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {shorten(value)}")
 
 
+def _deeper_than(data: dict[str, Any], levels: int) -> str | None:
+    """The top-level key under which tables and arrays nest more than ``levels`` deep, or None
+    (walked with a stack, not by recursion: the point is not to recurse 5000 times)."""
+    for key, value in data.items():
+        stack = [(value, 1)]
+        while stack:
+            item, depth = stack.pop()
+            if depth > levels:
+                return key
+            children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+            stack.extend((child, depth + 1) for child in children if isinstance(child, dict | list))
+    return None
+
+
 def _similar(a: str, b: str) -> bool:
     import difflib
 
@@ -164,6 +180,12 @@ def _load_app(path: str | Path) -> App:
         raise AppFileError(shown, "", f"not UTF-8 text (byte {error.start}); an app file is TOML") from None
     except tomllib.TOMLDecodeError as error:
         raise AppFileError(shown, "", f"not valid TOML: {clip(str(error), 160)}") from None
+    except RecursionError:  # tomllib parses nested arrays and tables by recursion: 10 kB of [[[[ is enough
+        raise AppFileError(shown, "", "not valid TOML: nested too deeply") from None
+    deep = _deeper_than(data, MAX_NESTING_LEVELS)
+    if deep is not None:  # code below (parameters, args, repr, pickle) walks tables by recursion too
+        raise AppFileError(shown, clip(deep, 40), f"nested too deeply (more than "
+                           f"{MAX_NESTING_LEVELS} levels of tables and arrays)")
     sources.note({str(file.resolve()): sources.digest_of_bytes(raw)})
     _check_keys(shown, "", data, TOP_KEYS)
     if "name" not in data:

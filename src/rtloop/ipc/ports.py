@@ -194,7 +194,10 @@ def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp
         text = file.read(REGISTRY_MAX_BYTES + 1)
     if len(text) > REGISTRY_MAX_BYTES:
         raise ValueError(f"{path.name}: larger than {REGISTRY_MAX_BYTES} bytes; not a registry")
-    registry = json.loads(text)
+    try:
+        registry = json.loads(text)
+    except RecursionError:  # anyone may plant a file in /dev/shm: 100 kB of [[[[ must not stop rtloop port
+        raise ValueError(f"{path.name}: nested too deeply; not a registry") from None
     if not isinstance(registry, dict) or not isinstance(registry.get("ports"), dict) \
             or not isinstance(registry.get("tasks"), dict):
         raise ValueError(f"{path.name}: not an rtloop registry")
@@ -286,7 +289,7 @@ def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = No
         try:
             found = tomllib.loads(Path(name).read_text()).get("name", name)
             name = found if isinstance(found, str) else name
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             pass
     me = os.geteuid()
     wanted_uid = me if owner_uid is None else owner_uid

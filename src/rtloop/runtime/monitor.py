@@ -295,4 +295,7 @@ def _read_bounded_regular_file(path: str) -> tuple[object, float]:
         os.close(fd)
     if len(data) > MAX_SUMMARY_BYTES:
         raise ValueError(f"{path}: not a summary.json")
-    return json.loads(data), info.st_mtime
+    try:
+        return json.loads(data), info.st_mtime
+    except RecursionError:
+        raise ValueError(f"{path}: nested too deeply; not a summary.json") from None
