@@ -340,25 +340,7 @@ def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
     domain = random_domain()
     run = start_app(JIWY, tmp_path / "out", domain, duration_s=12)
     try:
-        output = ""
-        for _attempt in range(3):  # the CLI gives up if the bridge's writer is not up yet: ask again
-            # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
-            cli = subprocess.Popen(
-                [CYCLONEDDS_CLI, "subscribe", "rt/jiwy/angles", "--id", str(domain), "--type", "scan-random",
-                 "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
-                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "COLUMNS": "200"},
-            )
-            try:
-                output, _ = cli.communicate(timeout=3)
-            except subprocess.TimeoutExpired:
-                cli.send_signal(signal.SIGINT)
-                try:
-                    output, _ = cli.communicate(timeout=3)
-                except subprocess.TimeoutExpired:
-                    cli.kill()
-                    output, _ = cli.communicate()
-            if "JointState_(" in output:
-                break
+        output = _cyclonedds_subscribe(domain, "rt/jiwy/angles", samples=5, within_s=10.0)
     finally:
         if run.poll() is None:  # seen (or given up): Ctrl-C ends the run, no need to wait out its 12 s
             run.send_signal(signal.SIGINT)
@@ -367,6 +349,42 @@ def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
     assert output.count("JointState_(") >= 5, output[-2000:]
     assert "name=['pan', 'tilt']" in output
     assert "position=[" in output and "stamp=Time_(sec=" in output
+
+
+def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: float) -> str:
+    """What the cyclonedds CLI prints for ``topic`` until ``samples`` came or ``within_s`` passed.
+    The CLI (Python) can take seconds to start on a loaded machine, and gives up when the writer
+    is not up yet: it is asked again until the time is up, its lines read as they come."""
+    import selectors
+
+    deadline = time.monotonic() + within_s
+    output = ""
+    while time.monotonic() < deadline and output.count("JointState_(") < samples:
+        # The CLI takes its domain from --id, not ROS_DOMAIN_ID.
+        cli = subprocess.Popen(
+            [CYCLONEDDS_CLI, "subscribe", topic, "--id", str(domain), "--type", "scan-random",
+             "--qos", "scan-random", "--suppress-progress-bar", "--color", "none"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env={**os.environ, "COLUMNS": "200"},
+        )
+        assert cli.stdout is not None
+        with cli, selectors.DefaultSelector() as selector:
+            fd = cli.stdout.fileno()
+            selector.register(fd, selectors.EVENT_READ)
+            while output.count("JointState_(") < samples and time.monotonic() < deadline:
+                if not selector.select(timeout=max(0.0, deadline - time.monotonic())):
+                    break
+                chunk = os.read(fd, 65536)
+                if not chunk:
+                    break  # the CLI ended (gave up): ask again
+                output += chunk.decode(errors="replace")
+            if cli.poll() is None:
+                cli.send_signal(signal.SIGINT)
+                try:
+                    cli.wait(timeout=3)
+                except subprocess.TimeoutExpired:
+                    cli.kill()
+            output += cli.stdout.read().decode(errors="replace")
+    return output
 
 
 # --- 5. a killed bridge does not stop the real-time tasks ------------------------------------------------
