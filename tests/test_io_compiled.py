@@ -488,3 +488,44 @@ def test_an_spi_frame_refuses_a_transfer_that_does_not_point_at_its_frames():
     frame.release()
     with pytest.raises(ValueError, match="released"):
         frame.write(np.zeros(1))
+
+
+def test_the_gpio_and_spi_cycles_in_c_keep_nothing_allocated(monkeypatch):
+    """10,000 cycles of each C cycle under tracemalloc, on the stand-ins above (the guest's
+    tests/test_io_gpio.py and test_io_spi.py do the same on the devices)."""
+    import tracemalloc
+
+    (lines, _reference), fd = gpio_pair(monkeypatch, [0, 9], [9, 3])
+    frame_device, _ = spi_pair(monkeypatch, counter="echo", on_error="stale")
+    frame = frame_device._frame
+    u, y = np.array([1.0, 0.0]), np.zeros(2)
+    signals, readings = np.array([0.25, 1.0, -3.0]), np.zeros(3)
+    good, spoiled = [False], bytes(frame_device.length)
+
+    def cycle() -> None:
+        u[0] = 1.0 - u[0]
+        lines.write(u)
+        lines.read(y)
+        frame_device.tx_layout.pack_into(frame_device._tx, 0, signals)
+        frame.seal()
+        good[0] = not good[0]
+        frame_device._rx[:] = frame_device._tx if good[0] else spoiled  # good and bad answers by turns
+        frame.check()
+        frame_device.read(readings)
+
+    try:
+        tracemalloc.start()
+        for _ in range(2_000):  # free lists and caches filled first
+            cycle()
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(10_000):
+            cycle()
+        kept = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+        lines.close()
+        _reference.close()
+        os.close(fd)
+    assert frame_device.stale_reads == 6_000 and frame.bad_crc == 6_000
+    assert list(readings) == [0.25, 1.0, -3.0]  # the good answers were unpacked
+    assert kept <= 256, kept
