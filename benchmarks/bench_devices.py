@@ -6,7 +6,9 @@ timed around the device's part only:
 - ``driver``  ``device.write(u)`` then ``device.read(y)``, as the task's loop calls them
               (values packed and unpacked through the declared layout, checks included);
 - ``bare``    the same transfer with the same system calls on bytes prepared beforehand
-              (no layout, no check): the floor any driver pays.
+              (no layout, no check): the floor any driver pays;
+- ``reference`` (GPIO and SPI, where ``io/_devio.c`` was built) the same device with its C cycle
+              set aside for the batch: the Python reference, in the same interleaving.
 
 Where it runs:
 
@@ -41,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rtloop.io.compiled import devio
 from rtloop.io.device import build_device
 
 Pair = tuple[Callable[[], None], Callable[[], None]]  # (setup-free per-cycle peer work, cleanup)
@@ -59,19 +62,41 @@ def timed(work: Callable[[], None], peer: Callable[[], None], cycles: int) -> in
 
 
 def compare(driver: Callable[[], None], bare: Callable[[], None], peer: Callable[[], None],
-            cycles: int, rounds: int) -> dict[str, float]:
+            cycles: int, rounds: int, reference: Callable[[bool], None] | None = None) -> dict[str, float]:
+    """``reference(True)`` switches the driver to its Python reference, ``reference(False)`` back:
+    then its batches run interleaved with the others too (``reference_*`` in the result)."""
     for _ in range(200):  # warm-up: caches, free lists, branch predictors
         driver(); peer(); bare(); peer()  # noqa: E702
-    driver_ns, bare_ns = [], []
+    driver_ns, bare_ns, reference_ns = [], [], []
     for _ in range(rounds):
         driver_ns.append(timed(driver, peer, cycles) / cycles)
         bare_ns.append(timed(bare, peer, cycles) / cycles)
+        if reference is not None:
+            reference(True)
+            try:
+                reference_ns.append(timed(driver, peer, cycles) / cycles)
+            finally:
+                reference(False)
     # the fastest batch of each: what the code costs when nothing else takes the CPU (as timeit
     # reports), then the medians, which a busy machine moves
     d, b = min(driver_ns), min(bare_ns)
-    return {"driver_us": d / 1000, "bare_us": b / 1000, "ratio": d / b, "target_us": (1.3 * b + 1000) / 1000,
-            "within_target": d <= 1.3 * b + 1000, "driver_median_us": float(np.median(driver_ns)) / 1000,
-            "bare_median_us": float(np.median(bare_ns)) / 1000}
+    result = {"driver_us": d / 1000, "bare_us": b / 1000, "ratio": d / b, "target_us": (1.3 * b + 1000) / 1000,
+              "within_target": d <= 1.3 * b + 1000, "driver_median_us": float(np.median(driver_ns)) / 1000,
+              "bare_median_us": float(np.median(bare_ns)) / 1000}
+    if reference_ns:
+        r = min(reference_ns)
+        result.update({"reference_us": r / 1000, "reference_ratio": r / b, "reference_within_target":
+                       r <= 1.3 * b + 1000, "reference_median_us": float(np.median(reference_ns)) / 1000})
+    return result
+
+
+def set_aside(device: object, attribute: str) -> Callable[[bool], None] | None:
+    """Switch ``device`` between its C cycle (held in ``attribute``) and its Python reference (the
+    attribute None); None when the C cycle is not there (not built, or RTLOOP_PURE_PYTHON=1)."""
+    compiled = getattr(device, attribute)
+    if compiled is None:
+        return None
+    return lambda python: setattr(device, attribute, None if python else compiled)
 
 
 # --- CAN -------------------------------------------------------------------------------------------
@@ -161,7 +186,7 @@ def gpio(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
         fcntl.ioctl(in_fd, GPIO_V2_LINE_GET_VALUES_IOCTL, get_values, True)
 
     try:
-        return compare(driver, bare, lambda: None, cycles, rounds)
+        return compare(driver, bare, lambda: None, cycles, rounds, set_aside(device, "_lines"))
     finally:
         device.close()
 
@@ -185,7 +210,9 @@ def spi(entry: dict, cycles: int, rounds: int) -> dict[str, float]:
         fcntl.ioctl(device.fd, SPI_IOC_MESSAGE_1, transfer, True)
 
     try:
-        return compare(driver, bare, lambda: None, cycles, rounds)
+        result = compare(driver, bare, lambda: None, cycles, rounds, set_aside(device, "_frame"))
+        assert device.transfers_rejected == 0 and list(y) == [0.25, -0.5], (device.transfers_rejected, y)
+        return result
     finally:
         device.close()
 
@@ -237,17 +264,24 @@ def main() -> int:
             results["can (vcan0)"] = can_on_vcan(devices["vcan"]["interface"], args.cycles, args.rounds)
     where = ("PREEMPT_RT test guest under TCG emulation: µs mean nothing, compare the ratio" if in_guest
              else f"{platform.node()}: {platform.release()}")
+    path = "C (io/_devio.c)" if devio() is not None else "Python reference (RTLOOP_PURE_PYTHON=1 or not built)"
     load = os.getloadavg()[0]
-    print(f"# bench_devices: {where}; {args.rounds} batches x {args.cycles} cycles each, interleaved; "
-          f"1-min load average {load:.1f}\n")
-    print("| device | driver write+read µs | bare calls µs | ratio | 1.3 x bare + 1 µs | within | medians µs |")
-    print("|---|---:|---:|---:|---:|---|---|")
+    print(f"# bench_devices: {where}; drivers' per-cycle work: {path}; {args.rounds} batches x {args.cycles} "
+          f"cycles each, interleaved; 1-min load average {load:.1f}\n")
+    print("| device | path | driver write+read µs | bare calls µs | ratio | 1.3 x bare + 1 µs | within | medians µs |")
+    print("|---|---|---:|---:|---:|---:|---|---|")
+    driver_path = "C" if devio() is not None else "Python"
     for name, r in results.items():
-        print(f"| {name} | {r['driver_us']:.2f} | {r['bare_us']:.2f} | {r['ratio']:.2f} | {r['target_us']:.2f} | "
-              f"{'yes' if r['within_target'] else 'no'} | {r['driver_median_us']:.2f} / {r['bare_median_us']:.2f} |")
+        print(f"| {name} | {driver_path} | {r['driver_us']:.2f} | {r['bare_us']:.2f} | {r['ratio']:.2f} | "
+              f"{r['target_us']:.2f} | {'yes' if r['within_target'] else 'no'} | "
+              f"{r['driver_median_us']:.2f} / {r['bare_median_us']:.2f} |")
+        if "reference_us" in r:  # the same device, its C cycle set aside, in the same batches
+            print(f"| {name} | Python | {r['reference_us']:.2f} | {r['bare_us']:.2f} | {r['reference_ratio']:.2f} | "
+                  f"{r['target_us']:.2f} | {'yes' if r['reference_within_target'] else 'no'} | "
+                  f"{r['reference_median_us']:.2f} / {r['bare_median_us']:.2f} |")
     if args.json:
-        args.json.write_text(json.dumps({"where": where, "python": sys.version.split()[0], "results": results},
-                                        indent=1))
+        args.json.write_text(json.dumps({"where": where, "path": path, "python": sys.version.split()[0],
+                                         "load_average_1min": load, "results": results}, indent=1))
     return 0
 
 
