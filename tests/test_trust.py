@@ -474,6 +474,51 @@ def test_a_user_writing_to_roots_app_is_told_to_run_as_root(second_user, rtloop_
         registry.unlink(missing_ok=True)
 
 
+def test_top_as_a_user_says_an_app_runs_as_root_not_that_none_runs(second_user, rtloop_env) -> None:
+    name = f"toproot{os.getpid()}"
+    sleeper = subprocess.Popen(["sleep", "60"])  # a live root process: the supervisor the registry names
+    registry = _live_registry(name, sleeper.pid)
+    try:
+        for args in (["top", name, "--once"], ["top", name], ["top", "--once"]):
+            code = f"import sys; from rtloop.cli.main import main; sys.exit(main({args!r}))"
+            done = _as(second_user, code, rtloop_env)
+            assert done.returncode == 2, (args, done.stderr)
+            assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+            assert f"app {name!r} runs as root: run rtloop top as root too" in done.stderr, (args, done.stderr)
+            assert "tools/as-root .venv/bin/rtloop top" in done.stderr, done.stderr
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+        registry.unlink(missing_ok=True)
+
+
+def test_a_root_registry_left_by_a_dead_supervisor_is_not_an_app_that_runs(second_user, rtloop_env) -> None:
+    name = f"topgone{os.getpid()}"
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # its pid names no process now
+    registry = _live_registry(name, gone.pid)
+    try:
+        for args in (["top", name, "--once"], ["port", "write", name, "gains", "1"]):
+            code = f"import sys; from rtloop.cli.main import main; sys.exit(main({args!r}))"
+            done = _as(second_user, code, rtloop_env)
+            assert done.returncode == 2 and f"no running app named {name!r}" in done.stderr, (args, done.stderr)
+    finally:
+        registry.unlink(missing_ok=True)
+
+
+def test_top_draws_a_line_for_each_app_of_another_user() -> None:
+    from rich.console import Console
+
+    from rtloop.cli.top_view import render
+
+    line = "app 'x' runs as root: run rtloop top as root too (tools/as-root .venv/bin/rtloop top ...)"
+    console = Console(width=200, record=True)
+    console.print(render([], 200, [line]))
+    assert line in console.export_text()
+    console.print(render([], 200, []))
+    assert "no running rtloop app found" in console.export_text()
+
+
 def _live_registry(name: str, pid: int) -> Path:
     path = SHM / f"rtloop-{name}-{pid}-{new_run_token()}-registry.json"
     fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)

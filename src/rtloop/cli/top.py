@@ -23,10 +23,14 @@ def run(args: argparse.Namespace) -> int:
     """Refresh until Ctrl-C; with ``--once``, one frame and 1 when no app is running.
     An APP named that is not running is bad input (exit 2) either way: a live view that
     waited for it would wait for ever on a typo."""
-    from rtloop.runtime.monitor import Monitor
+    from rtloop.ipc.ports import AppNotReachable, unreachable_app
+    from rtloop.runtime.monitor import Monitor, unreachable_notes
 
     monitor = Monitor(args.app)
     if args.app is not None and not monitor.refresh_apps():
+        unreachable = unreachable_app(args.app, monitor.refused, "top")  # another user's: say whose, as port does
+        if unreachable is not None:
+            raise unreachable
         refuse_unknown_app(args.app)
 
     from rich.console import Console
@@ -41,10 +45,15 @@ def run(args: argparse.Namespace) -> int:
         monitor.snapshot()  # first look: starts the %CPU, cycles/s and maximum measurements
         monitor.poll_for(min(args.interval, 0.5))
         views = monitor.snapshot()
-        console.print(render(views, console.width))
+        notes = unreachable_notes(monitor.refused)
+        if not views and notes:  # apps run, as another user: not "no running app"
+            raise AppNotReachable("; ".join(notes))
+        console.print(render(views, console.width, notes))
         return 0 if views else 1
     try:
-        with Live(render(monitor.snapshot(), console.width), console=console, auto_refresh=False) as live:
+        views = monitor.snapshot()
+        with Live(render(views, console.width, unreachable_notes(monitor.refused)), console=console,
+                  auto_refresh=False) as live:
             for frame in frames(monitor, args.interval, console):
                 live.update(frame, refresh=True)
     except KeyboardInterrupt:

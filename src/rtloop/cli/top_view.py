@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 from rich import box
 from rich.console import Console, Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
-from rtloop.runtime.monitor import LATENCY_MAX_NOTE, AppView, Monitor, TaskView
+from rtloop.runtime.monitor import LATENCY_MAX_NOTE, AppView, Monitor, TaskView, unreachable_notes
 
 COLUMNS = ("task", "state", "PID", "CPU", "sched", "cycle", "cyc/s", "overruns", "misses", "stale",
            "lat now µs", "lat max µs", "exec µs", "%CPU", "invol cs", "minflt", "majflt", "GC")
@@ -53,10 +53,13 @@ def _fitting_columns(rows: list[dict[str, str | Text]], width: int) -> list[str]
     return columns
 
 
-def render(views: list[AppView], width: int = 250) -> RenderableType:
-    """The frame: one table per app (columns that fit in ``width``) and the notes."""
+def render(views: list[AppView], width: int = 250, unreachable: Sequence[str] = ()) -> RenderableType:
+    """The frame: one table per app (columns that fit in ``width``) and the notes; ``unreachable``:
+    a line per app that runs as another user (whom to run top as)."""
+    others = [Text(line, style="yellow") for line in unreachable]
     if not views:
-        return Text("no running rtloop app found (looked for registries in /dev/shm)", style="yellow")
+        return Group(*others) if others else Text("no running rtloop app found (looked for registries in /dev/shm)",
+                                                  style="yellow")
     tables: list[RenderableType] = []
     for view in views:
         rows = [_row_cells(t) for t in view.tasks]
@@ -70,6 +73,7 @@ def render(views: list[AppView], width: int = 250) -> RenderableType:
         tables.append(table)
         if view.summary_line:
             tables.append(Text(view.summary_line))
+    tables.extend(others)
     tables.append(Text(LATENCY_MAX_NOTE + ".\nGC: not readable from outside a task process (rtloop disables "
                        "collection in the loop). cycle: release index (skipped releases included).", style="dim"))
     return Group(*tables)
@@ -78,5 +82,6 @@ def render(views: list[AppView], width: int = 250) -> RenderableType:
 def frames(monitor: Monitor, interval_s: float, console: Console) -> Iterator[RenderableType]:
     """Endless frames, ``interval_s`` apart, polling in between; fitted to the console's current width."""
     while True:
-        yield render(monitor.snapshot(), console.width)
+        views = monitor.snapshot()
+        yield render(views, console.width, unreachable_notes(monitor.refused))
         monitor.poll_for(interval_s)

@@ -240,9 +240,13 @@ def scan_registries(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> tu
             app = app_from_registry(path)
         except (FileNotFoundError, AppNotRunning):
             continue  # removed right now, or its supervisor has ended: stale, not refused
+        except SegmentDenied as error:
+            if match is not None and not pid_alive(int(match.group(2))):
+                continue  # another user's registry left by a supervisor that is gone (its pid is in the name)
+            refused.append(Refusal(path, claimed, str(error), error.owner_uid))
+            continue
         except (OSError, ValueError, KeyError, TypeError, RtloopError) as error:
-            refused.append(Refusal(path, claimed, str(error),
-                                   error.owner_uid if isinstance(error, SegmentDenied) else None))
+            refused.append(Refusal(path, claimed, str(error)))
             continue
         if owner_uid is not None and app.uid != owner_uid:
             refused.append(Refusal(path, app.name, f"app {app.name!r} runs as uid {app.uid}, not uid {owner_uid}"))
@@ -275,6 +279,23 @@ def _registered_at(app: RunningApp) -> tuple[int, int]:
 def running_apps(shm_dir: Path = SHM_DIR, owner_uid: int | None = None) -> list[RunningApp]:
     """Every app whose supervisor is alive and whose registry is believed, newest first."""
     return scan_registries(shm_dir, owner_uid)[0]
+
+
+def unreachable_app(name: str, refused: list[Refusal], command: str) -> AppNotReachable | None:
+    """Why app ``name`` runs but is not for this caller (its registry refused), or None when no
+    registry of that name was refused. A permission problem is never reported as "no running
+    app": the error says which user to run ``rtloop COMMAND`` as (``port``, ``top``)."""
+    why = [r for r in refused if r.app == name]
+    if not why:
+        return None
+    owner, reason = why[0].denied_by_owner, why[0].reason
+    if owner == 0:
+        return AppNotReachable(f"app {name!r} runs as root: run rtloop {command} as root too (tools/as-root "
+                               f".venv/bin/rtloop {command} ...); its registry: {reason}")
+    if owner is not None:
+        return AppNotReachable(f"app {name!r} runs as uid {owner}: run rtloop {command} as that user; "
+                               f"its registry: {reason}")
+    return AppNotReachable(f"app {name!r}: registry refused: {reason}")
 
 
 def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = None) -> RunningApp:
@@ -313,15 +334,8 @@ def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = No
     if others:
         hint = " (as root: rtloop port --user UID)" if me == 0 else " (run as that user, or as root with --user)"
         raise AppNotReachable(f"app {name!r} runs as uid {others[0].uid}, not as uid {wanted_uid}{hint}")
-    why = [r for r in refused if r.app == name]
-    if why:
-        owner = why[0].denied_by_owner
-        if owner == 0:
-            raise AppNotReachable(f"app {name!r} runs as root: run rtloop port as root too (tools/as-root "
-                                  f".venv/bin/rtloop port ...); its registry: {why[0].reason}")
-        if owner is not None:
-            raise AppNotReachable(f"app {name!r} runs as uid {owner}: run rtloop port as that user; "
-                                  f"its registry: {why[0].reason}")
-        raise AppNotReachable(f"app {name!r}: registry refused: {why[0].reason}")
+    unreachable = unreachable_app(name, refused, "port")
+    if unreachable is not None:
+        raise unreachable
     running = sorted({app.name for app in apps if app.uid == wanted_uid})
     raise AppNotRunning(f"no running app named {shorten(name)}; running: {running or 'none'}")

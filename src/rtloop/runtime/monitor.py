@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rtloop.ipc.ports import running_apps
+from rtloop.ipc.ports import Refusal, scan_registries, unreachable_app
 from rtloop.ipc.segments import SHM_DIR, Segment
 from rtloop.ipc.status import STATUS_WORDS, StatusWord, TaskState, WordBlock
 
@@ -49,12 +49,26 @@ class Registry:
 
 def find_apps(app: str | None = None, shm_dir: Path = SHM_DIR) -> list[Registry]:
     """Running apps (supervisor alive), optionally only those named ``app``."""
-    return sorted(
+    return find_apps_and_refusals(app, shm_dir)[0]
+
+
+def find_apps_and_refusals(app: str | None = None, shm_dir: Path = SHM_DIR) -> tuple[list[Registry], list[Refusal]]:
+    """Running apps as :func:`find_apps`, and the registries (of ``app``) refused: another user's
+    app among them is not "no running app" (``rtloop port`` says the same, :func:`unreachable_app`)."""
+    found, refused = scan_registries(shm_dir)
+    registries = sorted(
         (Registry(entry.name, entry.pid, dict(entry.registry.get("tasks", {})), entry.path, entry.uid,
                   entry.registry.get("summary"))
-         for entry in running_apps(shm_dir) if app is None or entry.name == app),
+         for entry in found if app is None or entry.name == app),
         key=lambda registry: registry.path,
     )
+    return registries, [refusal for refusal in refused if app is None or refusal.app == app]
+
+
+def unreachable_notes(refused: list[Refusal]) -> list[str]:
+    """One line per app that runs as another user (its registry not readable): run top as that user."""
+    names = sorted({refusal.app for refusal in refused if refusal.denied_by_owner is not None})
+    return [str(unreachable_app(name, refused, "top")) for name in names]
 
 
 # --- /proc ----------------------------------------------------------------------------
@@ -160,6 +174,8 @@ class Monitor:
         self.shm_dir = shm_dir
         self.tracked: dict[str, _Tracked] = {}
         self.registries: list[Registry] = []
+        self.refused: list[Refusal] = []
+        """Registries (of ``app``) found but refused at the last refresh: another user's among them."""
 
     def _attach(self, segment_name: str, uid: int = -1) -> _Tracked | None:
         tracked = self.tracked.get(segment_name)
@@ -173,7 +189,7 @@ class Monitor:
         return tracked
 
     def refresh_apps(self) -> list[Registry]:
-        self.registries = find_apps(self.app, self.shm_dir)
+        self.registries, self.refused = find_apps_and_refusals(self.app, self.shm_dir)
         alive = {seg for registry in self.registries for seg in registry.tasks.values()}
         for name in [n for n in self.tracked if n not in alive]:
             del self.tracked[name]  # the mapping is released with the objects
