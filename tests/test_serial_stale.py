@@ -145,3 +145,17 @@ def test_bad_choices_name_the_key(key: str, value: object, problem: str) -> None
         build_device("serial", "motor", {"port": "/dev/null", "commands": ["v"], "readings": ["s"], key: value},
                      "app.toml")
     assert key in str(caught.value) and problem in str(caught.value)
+
+
+def test_a_line_that_hangs_up_is_a_fault_naming_the_device_and_the_port(line: tuple[str, Board]) -> None:
+    """The board reset, the adapter pulled, the pty's other end closed: one DeviceFault that says so."""
+    port, board = line
+    device = _device(port, on_missing="stale")
+    assert _exchange(device, board, 5.0)[0] == 5.0
+    os.close(board.master)
+    board.master = os.open("/dev/null", os.O_RDWR)  # the fixture closes something
+    with pytest.raises(DeviceFault, match=rf"device 'motor': {port} hung up at request \d+ \(.*unplugged\)"):
+        device.write(np.array([1.0]))
+    with pytest.raises(DeviceFault, match="hung up"):
+        device.write_safe(np.array([0.0]))
+    device.close()

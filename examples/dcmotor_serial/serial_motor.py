@@ -33,7 +33,17 @@ from rtloop import Runnable
 from rtloop.app.modules import load_module_file
 from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, read_frame
 
-_dcmotor = load_module_file("dcmotor", Path(__file__).resolve().parent.parent / "dcmotor" / "dcmotor.py")
+def _dcmotor_file() -> Path:
+    """examples/dcmotor/dcmotor.py, or a copy beside this file (an app of your own started from this one)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "dcmotor.py", here.parent / "dcmotor" / "dcmotor.py"):
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(f"serial_motor.py needs dcmotor.py (the motor and the PI) beside it in {here}: "
+                            "copy examples/dcmotor/dcmotor.py there")
+
+
+_dcmotor = load_module_file("dcmotor", _dcmotor_file())
 DcMotor = _dcmotor.DcMotor
 PiSpeed = _dcmotor.PiSpeed
 

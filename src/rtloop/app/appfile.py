@@ -78,7 +78,7 @@ from rtloop.app import sources
 from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, parse_signal
 from rtloop.app.modules import ModuleRefused, check_model_files, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
-from rtloop.io.device import build_device
+from rtloop.io.device import build_device, device_class
 from rtloop.runnable import Runnable
 from rtloop.text import clip, shorten
 
@@ -310,6 +310,8 @@ def _load_devices(shown: str, devices: dict[str, Any], app: App, base_dir: Path)
                                    base_dir, key="twin")
         settings = {key: value for key, value in table.items() if key not in DEVICE_KEYS}
         try:
+            if isinstance(table["kind"], str):  # else build_device says what is wrong with it
+                settings = _paths_from(base_dir, device_class(table["kind"], name, shown), settings)
             device = build_device(table["kind"], name, settings, shown)
             app.add_device(name, device, task=table["task"], io=table.get("io", "let"), twin=twin,
                            limits=table.get("limits", {}))
@@ -317,6 +319,14 @@ def _load_devices(shown: str, devices: dict[str, Any], app: App, base_dir: Path)
             raise
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None
+
+
+def _paths_from(base_dir: Path, driver: Any, settings: dict[str, Any]) -> dict[str, Any]:
+    """A device's relative paths (a serial port's link, say) taken from the app file's folder, as
+    its feeds and modules are: the app runs the same from whichever folder it is started."""
+    paths = {key for key, setting in getattr(driver, "settings", {}).items() if getattr(setting, "is_path", False)}
+    return {key: str(base_dir / value) if key in paths and isinstance(value, str) and value and
+            not value.startswith("/") and "://" not in value else value for key, value in settings.items()}
 
 
 def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:

@@ -100,6 +100,9 @@ class Setting:
     at_most: float = MAX_SETTING_MAGNITUDE
     """A number's largest value (its unit makes one obvious: ``HOUR_MS`` for a timeout in ms);
     every number is finite and at least ``-MAX_SETTING_MAGNITUDE`` too."""
+    is_path: bool = False
+    """A file's path: in an app file a relative one is taken from the app file's folder, as
+    every path there is (a feed, a module); in Python, from the current folder."""
 
     @property
     def required(self) -> bool:

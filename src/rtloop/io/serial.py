@@ -108,7 +108,8 @@ class Frame:
 
 
 def read_frame(fd: int, frame: Frame, poller: Any, timeout_ns: int) -> bool:
-    """Fill ``frame`` from ``fd`` within ``timeout_ns``; False on timeout (nothing allocated that stays)."""
+    """Fill ``frame`` from ``fd`` within ``timeout_ns``; False on timeout (nothing allocated that stays),
+    EOFError when the other end closed the line."""
     deadline_ns = time.monotonic_ns() + timeout_ns
     view, size, got = frame.view, len(frame.buffer), 0
     while got < size:
@@ -117,7 +118,7 @@ def read_frame(fd: int, frame: Frame, poller: Any, timeout_ns: int) -> bool:
             return False
         received = os.readv(fd, (view[got:],))
         if received == 0:
-            raise OSError("the other end closed the line")
+            raise EOFError("end of file")
         got += received
     return True
 
@@ -168,7 +169,7 @@ class SerialDevice(Device):
 
     kind = "serial"
     settings: ClassVar[dict[str, Setting]] = {
-        "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0"),
+        "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0", is_path=True),
         "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0",
                             at_most=100_000_000),
         "timeout_ms": Setting(float, 5.0, "how long to wait for the response, in ms (a late one is a fault)",
@@ -260,6 +261,20 @@ class SerialDevice(Device):
 
     def write(self, u: FloatVector) -> None:
         """One exchange: send the commands, wait for the readings (at most ``timeout_ms``)."""
+        try:
+            self._exchange(u)
+        except (OSError, EOFError, termios.error) as error:
+            raise self._line_gone(error) from None
+
+    def _line_gone(self, error: BaseException) -> DeviceFault:
+        """The fault for a line that failed under the exchange: the board reset, the cable or the
+        USB adapter pulled, the other end of a pty closed."""
+        code = error.args[0] if error.args and isinstance(error.args[0], int) else None
+        reason = os.strerror(code) if code else str(error)
+        return DeviceFault(f"device {self.name!r}: {self.config['port']} hung up at request {self.sequence} "
+                           f"({reason}: the other end closed, or the adapter was unplugged)")
+
+    def _exchange(self, u: FloatVector) -> None:
         if self.stale_in_a_row:  # the last exchange went unanswered: its answer, or part of it, may be here
             termios.tcflush(self.fd, termios.TCIFLUSH)
         sequence = self._send(u)
@@ -307,10 +322,13 @@ class SerialDevice(Device):
         the loop), so the safe state is reported as it went.
         """
         self.flags = 0
-        termios.tcflush(self.fd, termios.TCIFLUSH)
-        sequence = self._send(u)
-        timeout_ns = max(self.timeout_ns, SAFE_EXCHANGE_MIN_NS)
-        missing = self._await_answer(sequence, timeout_ns)
+        try:
+            termios.tcflush(self.fd, termios.TCIFLUSH)
+            sequence = self._send(u)
+            timeout_ns = max(self.timeout_ns, SAFE_EXCHANGE_MIN_NS)
+            missing = self._await_answer(sequence, timeout_ns)
+        except (OSError, EOFError, termios.error) as error:
+            raise self._line_gone(error) from None
         if missing == 0:
             raise DeviceFault(f"device {self.name!r}: no answer to the safe values within "
                               f"{timeout_ns / 1e6:g} ms on {self.config['port']} (request {sequence})")

@@ -67,7 +67,7 @@ class SpiDevice(Device):
 
     kind: ClassVar[str] = "spi"
     settings: ClassVar[dict[str, Setting]] = {
-        "device": Setting(str, doc="the spidev node (/dev/spidevB.C)"),
+        "device": Setting(str, doc="the spidev node (/dev/spidevB.C)", is_path=True),
         "speed_hz": Setting(int, 1_000_000, "clock rate in Hz", _within(1, 200_000_000)),
         "mode": Setting(int, 0, "SPI mode 0..3 (clock polarity and phase)", _within(0, 3)),
         "length": Setting(int, doc="bytes of the frame, each way (counter + signals + 2 CRC bytes)",
