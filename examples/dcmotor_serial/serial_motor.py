@@ -33,6 +33,7 @@ from rtloop import Runnable
 from rtloop.app.modules import load_module_file
 from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, read_frame
 
+
 def _dcmotor_file() -> Path:
     """examples/dcmotor/dcmotor.py, or a copy beside this file (an app of your own started from this one)."""
     here = Path(__file__).resolve().parent
