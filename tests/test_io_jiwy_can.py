@@ -66,8 +66,12 @@ def _start_drive(interface: str, late_log: Path, env: dict[str, str]) -> subproc
                              "--late-log", str(late_log)], env=env, stderr=subprocess.PIPE, text=True)
     ready = node.stderr.readline()
     if "waiting for steering frames" not in ready:
-        node.kill()
-        pytest.fail(ready + node.stderr.read())
+        try:
+            rest = node.communicate(timeout=scaled_s(5))[1]  # all it says on its way out
+        except subprocess.TimeoutExpired:
+            node.kill()
+            rest = node.communicate()[1]
+        pytest.fail(f"the plant node did not start: {ready}{rest}")
     return node
 
 

@@ -22,7 +22,7 @@ Even so it can be starved: a machine so busy that the node gets no CPU (an emula
 whose host stalls it for hundreds of ms) answers late, and the controller's read times out —
 a fault of the stand-in, not of the loop. So the node measures itself: for each answer, the
 time from the arrival of the steering frame that completed it (the kernel's receive time of
-that frame on the node's socket, ``SO_TIMESTAMPNS``) to the answer sent. With ``--late-log
+that frame on the node's socket, ``SO_TIMESTAMPNS_NEW``) to the answer sent. With ``--late-log
 PATH`` every answer later than ``--late-ms`` is appended to PATH as one JSON line: which
 exchange it was (0 for the first pair of steering frames, one a cycle), the heartbeat counter
 last seen before it, and how late it was.
@@ -48,7 +48,10 @@ STEERING_PAN, STEERING_TILT, HEARTBEAT = 0x201, 0x202, 0x701
 ANGLE_PAN, ANGLE_TILT = 0x181, 0x182
 FRAME = struct.Struct("=IB3x8s")  # struct can_frame
 VALUE = struct.Struct("<d")
-TIMESPEC = struct.Struct("=qq")  # the kernel's receive time of a frame (SO_TIMESTAMPNS), CLOCK_REALTIME
+# The kernel's receive time of each frame: SO_TIMESTAMPNS_NEW (Linux 5.1+; Python has no name for it)
+# gives a 64-bit struct __kernel_timespec on every architecture, CLOCK_REALTIME.
+SO_TIMESTAMPNS_NEW = 64
+TIMESPEC = struct.Struct("=qq")
 ANCILLARY_SIZE = socket.CMSG_SPACE(TIMESPEC.size)
 
 
@@ -57,7 +60,7 @@ def open_bus(interface: str) -> socket.socket:
     filters = b"".join(struct.pack("=II", can_id, 0x7FF | 0x80000000)
                        for can_id in (STEERING_PAN, STEERING_TILT, HEARTBEAT))
     sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, filters)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)  # when each frame arrived, for Lateness
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS_NEW, 1)  # when each frame arrived, for Lateness
     sock.bind((interface,))
     return sock
 
@@ -66,7 +69,7 @@ def receive(sock: socket.socket) -> tuple[bytes, int]:
     """One frame and when it arrived on this socket (ns, CLOCK_REALTIME; now if the kernel gave no time)."""
     frame, ancillary, _flags, _address = sock.recvmsg(FRAME.size, ANCILLARY_SIZE)
     for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == socket.SO_TIMESTAMPNS and len(data) >= TIMESPEC.size:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS_NEW and len(data) >= TIMESPEC.size:
             seconds, nanoseconds = TIMESPEC.unpack_from(data)
             return frame, seconds * 1_000_000_000 + nanoseconds
     return frame, time.time_ns()  # an answer then looks punctual: never an excuse it did not earn
