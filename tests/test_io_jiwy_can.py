@@ -75,13 +75,14 @@ def _start_drive(interface: str, late_log: Path, env: dict[str, str]) -> subproc
     return node
 
 
-def _stop_drive(node: subprocess.Popen) -> None:
-    """The heartbeat stopped with the run: the node's watchdog trips after 300 ms and it goes safe by itself."""
+def _stop_drive(node: subprocess.Popen, said_before: str = "") -> None:
+    """The heartbeat stopped with the run: the node's watchdog trips after 300 ms and it goes safe by itself
+    (``said_before``: what the test already read of the node's stderr)."""
     try:
         time.sleep(scaled_s(0.05) + 0.3)
     finally:
         node.terminate()
-        _, said = node.communicate(timeout=60)
+        said = said_before + node.communicate(timeout=60)[1]
     said_lines = said.strip().splitlines()
     assert "heartbeat seen: enabled" in said  # the drive enabled itself on the first heartbeat
     assert said_lines[-1] == "plant_node: heartbeat lost: steering zero (safe)", said  # and went safe at the end
@@ -197,7 +198,7 @@ def test_a_drive_stopped_past_the_read_timeout_faults_the_run_and_its_own_record
     app, env = _jiwy_can_app(tmp_path, entry["interface"], period_ns)
     timeout_ms = _receive_timeout_ms(app)
     late_log, out = tmp_path / "node-late.jsonl", tmp_path / "run"
-    node = _start_drive(entry["interface"], late_log, env)
+    node, enabled = _start_drive(entry["interface"], late_log, env), ""
     try:
         duration_s = CYCLES * period_ns / 1e9
         run = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app), "--out", str(out), "-q",
@@ -212,7 +213,7 @@ def test_a_drive_stopped_past_the_read_timeout_faults_the_run_and_its_own_record
             node.send_signal(signal.SIGCONT)
         _, run_said = run.communicate(timeout=scaled_s(60))
     finally:
-        _stop_drive(node)
+        _stop_drive(node, enabled)
     assert run.returncode != 0 and "no frame within" in run_said, run_said
     excuse = starved_drive_excuse(out, late_log, timeout_ms)
     assert excuse is not None, f"the node's record: {late_log.read_text()!r}; the run: {run_said}"
