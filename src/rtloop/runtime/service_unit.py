@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtloop.errors import RtloopError
+from rtloop.runtime.run_history import MAX_RUNS_KEPT, history_prefix
 from rtloop.version import __version__
 
 if TYPE_CHECKING:  # annotations only: the command line imports this module to parse (no numpy)
@@ -77,7 +78,6 @@ def render_unit(app: App, options: ServiceOptions) -> str:
     """The unit file's text."""
     name = unit_name(app)
     out = options.out
-    previous = out.with_name("previous" if out.name == "latest" else f"{out.name}.previous")
     exec_start = [*rtloop_command(), "run", str(options.app_file), "--out", str(out), "--keep", f"{options.keep_s:g}"]
     regenerate = f"rtloop service {options.app_file} --install --force"
     lines = [
@@ -103,7 +103,7 @@ def render_unit(app: App, options: ServiceOptions) -> str:
         "[Service]",
         "# exec: `systemctl start` fails at once if the rtloop executable cannot be started.",
         "Type=exec",
-        *_recording_lines(app, options, previous),
+        *_recording_lines(app, options),
         f"# No --duration: the run lasts until it is stopped. --keep {options.keep_s:g}: the recording holds the",
         "# last seconds of the run plus the cycles around every deadline miss, stale read or fault.",
         "ExecStart=" + " ".join(quote_exec_argument(a) for a in exec_start),
@@ -121,7 +121,7 @@ def render_unit(app: App, options: ServiceOptions) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _recording_lines(app: App, options: ServiceOptions, previous: Path) -> list[str]:
+def _recording_lines(app: App, options: ServiceOptions) -> list[str]:
     lines: list[str] = []
     state_dir = STATE_ROOT / app.name
     if options.out.parent == state_dir:
@@ -131,11 +131,14 @@ def _recording_lines(app: App, options: ServiceOptions, previous: Path) -> list[
         ]
     else:
         lines.append(f"# Recordings go to {options.out}: its folder must exist and be writable by the service's user.")
+    prefix = history_prefix(options.out)
+    set_aside = [str(Path(sys.executable).absolute()), "-m", "rtloop.runtime.run_history", str(options.out)]
     lines += [
-        f"# Each start records into {options.out.name}/; the run before is kept as {previous.name}/ (after a",
-        "# restart: the run that failed). Two runs at most on disk. '-': nothing to move at the first start.",
-        f"ExecStartPre=-/bin/rm -rf {quote_exec_argument(str(previous))}",
-        f"ExecStartPre=-/bin/mv -T {quote_exec_argument(str(options.out))} {quote_exec_argument(str(previous))}",
+        f"# Each start records into {options.out.name}/; the run before is set aside as {prefix}NNNN-clean/,",
+        "# -failed/ or -first-failure/ (the first failure after a clean run: in a restart burst, usually the",
+        f"# informative one). At most {MAX_RUNS_KEPT} are kept: the oldest clean runs are removed first, then the",
+        "# later failures of a burst, the first failures last; the newest two always stay.",
+        "ExecStartPre=" + " ".join(quote_exec_argument(a) for a in set_aside),
     ]
     return lines
 
