@@ -29,6 +29,7 @@ class LogDevice(Device):
         "n_readings": Setting(int, 1, "readings it reads", check=_positive),
         "gain": Setting(float, 1.0, "reading = gain × last command"),
         "fail_in": Setting(str, "", "lifecycle call that raises (configure, activate, read, write)"),
+        "nan_reading_at": Setting(float, -1.0, "its reading is NaN once the command has reached this (-1: never)"),
     }
 
     def __init__(self, name: str, **settings: Any) -> None:
@@ -69,6 +70,8 @@ class LogDevice(Device):
             raise EmergencyStop(self.name, "estop", "falling", time.monotonic_ns())
         n = min(len(y), len(self.last))
         y[:n] = self.last[:n] * self.config["gain"]
+        if 0 <= self.config.get("nan_reading_at", -1.0) <= self.last[0]:  # an ADC glitch, a f32 frame of NaN bits
+            y[0] = math.nan
 
     def write(self, u: np.ndarray) -> None:
         if self.config["fail_in"] == "write":
@@ -105,6 +108,17 @@ class MirrorTwin(Runnable):
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
         np.multiply(u, self.gain, out=y)
+
+
+class NanTwin(MirrorTwin):
+    """The LogDevice's twin with ``nan_reading_at``: reading NaN once the command has reached ``nan_at``."""
+
+    def __init__(self, nan_at: float) -> None:
+        super().__init__(1, 1.0)
+        self.nan_at = nan_at
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        y[0] = math.nan if u[0] >= self.nan_at else u[0]
 
 
 def read_log(path: str | os.PathLike[str]) -> list[str]:

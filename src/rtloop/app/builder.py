@@ -405,8 +405,10 @@ class App:
                 device = TwinDevice(spec.name, spec.twin, spec.device, [limit.safe for limit in spec.limits])
             links = [c for c in self.device_links if spec.name in (c.source.task, c.target.task)]
             commands = tuple((c.source.slice, c.target.slice) for c in links if c.target.task == spec.name)
-            readings = tuple((c.source.slice, c.target.slice) for c in links if c.source.task == spec.name)
-            wirings.append(DeviceWiring(device, spec.io, spec.limits, commands, readings, self.source))
+            out_of_it = [c for c in links if c.source.task == spec.name]
+            readings = tuple((c.source.slice, c.target.slice) for c in out_of_it)
+            wirings.append(DeviceWiring(device, spec.io, spec.limits, commands, readings, self.source,
+                                        tuple(c.allow_nonfinite for c in out_of_it)))
         return tuple(wirings)
 
     def block(self, name: str) -> TaskSpec | DeviceSpec | None:

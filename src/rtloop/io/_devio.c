@@ -235,9 +235,23 @@ static int Copies_init(Copies *self, PyObject *args, PyObject *kwargs) {
     return CopyPairs_get(&self->copies, copies);
 }
 
+/* run() -> -1 when every value copied is finite, else the index of the first that is not,
+ * counted over the pairs in order: a NaN reading must not reach a step unnoticed (the caller
+ * raises the fault naming it; readings allowed to be non-finite go through another Copies). */
 static PyObject *Copies_run(Copies *self, PyObject *Py_UNUSED(ignored)) {
     CopyPairs_run(&self->copies);
-    Py_RETURN_NONE;
+    Py_ssize_t at = 0;
+    for (Py_ssize_t i = 0; i < self->copies.n; i++) {
+        const double *values = self->copies.targets[i].buf;
+        Py_ssize_t n = self->copies.targets[i].len / (Py_ssize_t)sizeof(double);
+        for (Py_ssize_t j = 0; j < n; j++) {
+            if (!isfinite(values[j])) {
+                return PyLong_FromSsize_t(at + j);
+            }
+        }
+        at += n;
+    }
+    return PyLong_FromLong(-1);
 }
 
 static PyObject *Copies_release_method(Copies *self, PyObject *Py_UNUSED(ignored)) {
@@ -246,7 +260,7 @@ static PyObject *Copies_release_method(Copies *self, PyObject *Py_UNUSED(ignored
 }
 
 static PyMethodDef Copies_methods[] = {
-    {"run", (PyCFunction)Copies_run, METH_NOARGS, "Copy every source into its target."},
+    {"run", (PyCFunction)Copies_run, METH_NOARGS, "Copy every source into its target: -1, or a non-finite index."},
     {"release", (PyCFunction)Copies_release_method, METH_NOARGS, "Let go of the vectors."},
     {NULL, NULL, 0, NULL},
 };

@@ -22,7 +22,7 @@ import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.compiled import devio
-from rtloop.io.device import CommandLimit, Device, FloatVector
+from rtloop.io.device import CommandLimit, Device, FloatVector, fault
 from rtloop.io.limits import CommandGuard
 
 
@@ -40,6 +40,8 @@ class DeviceWiring:
     """(device ``y`` slice → task ``u`` slice) for each connection out of it."""
     source: str = "<python>"
     """The app file (for errors)."""
+    readings_allow_nonfinite: tuple[bool, ...] = ()
+    """Per reading connection: ``allow_nonfinite`` (default: none does, a NaN reading is a fault)."""
 
 
 STALE_CYCLES_KEPT = 100
@@ -49,8 +51,9 @@ STALE_CYCLES_KEPT = 100
 class _Slot:
     """One device with its vectors, its guard and its copies from and to the task's vectors."""
 
-    __slots__ = ("command_copies", "compiled_guard", "compiled_readings", "device", "guard", "reading_copies",
-                 "stale_cycles", "stale_first", "stale_last", "stale_longest", "stale_run", "stale_seen", "u", "y")
+    __slots__ = ("checked_readings", "command_copies", "compiled_guard", "compiled_readings", "compiled_unchecked",
+                 "device", "guard", "reading_copies", "reading_labels", "stale_cycles", "stale_first", "stale_last",
+                 "stale_longest", "stale_run", "stale_seen", "u", "y")
 
     def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector) -> None:
         device = self.device = wiring.device
@@ -61,18 +64,27 @@ class _Slot:
         self.y = np.zeros(device.n_outputs)
         self.command_copies = [(task_y[source], self.u[target]) for source, target in wiring.commands]
         self.reading_copies = [(self.y[source], task_u[target]) for source, target in wiring.readings]
+        # A reading crosses into the task finite, as a task's output does, unless its connection
+        # allows NaN and ±inf: a NaN speed through a controller's min/max clamp is full voltage.
+        allowed = wiring.readings_allow_nonfinite or (False,) * len(wiring.readings)
+        checked = [copy for copy, allow in zip(self.reading_copies, allowed, strict=True) if not allow]
+        unchecked = [copy for copy, allow in zip(self.reading_copies, allowed, strict=True) if allow]
+        self.checked_readings = [(source.start or 0, self.y[source], np.zeros(self.y[source].size, dtype=bool))
+                                 for (source, _), allow in zip(wiring.readings, allowed, strict=True) if not allow]
+        self.reading_labels = [f"{name}.y[{i}] ({reading})" for i, reading in enumerate(device.reading_names())]
         # The copies and the guard in one C call each (io/_devio.c), where it was built and the
         # vectors are contiguous; the numpy code stays the reference (same numbers, bit for bit).
-        self.compiled_guard = self.compiled_readings = None
+        self.compiled_guard = self.compiled_readings = self.compiled_unchecked = None
         compiled = devio()
         if compiled is not None:
             guard = self.guard
             try:
                 self.compiled_guard = compiled.Guard(self.u, guard.low, guard.high, guard.step_max, guard.last,
                                                      guard.out, self.command_copies, guard.rate_limited)
-                self.compiled_readings = compiled.Copies(self.reading_copies)
+                self.compiled_readings = compiled.Copies(checked)  # returns where a value is not finite
+                self.compiled_unchecked = compiled.Copies(unchecked) if unchecked else None
             except (TypeError, ValueError, BufferError):  # a strided slice: the numpy way
-                self.compiled_guard = self.compiled_readings = None
+                self.compiled_guard = self.compiled_readings = self.compiled_unchecked = None
         # cycles whose read kept old values (a frame that came late): counted, the first ones kept
         self.stale_seen = self.stale_cycles = self.stale_run = self.stale_longest = 0
         self.stale_last = -2
@@ -89,13 +101,28 @@ class _Slot:
             np.copyto(target, source)
         self.device.write(self.guard.apply(self.u, task, cycle))
 
-    def receive(self) -> None:
+    def receive(self, task: str, cycle: int) -> None:
         self.device.read(self.y)
-        if self.compiled_readings is not None:
-            self.compiled_readings.run()
+        compiled = self.compiled_readings
+        if compiled is not None:
+            if compiled.run() >= 0:  # a non-finite reading: the reference names it in the fault it raises
+                self.check_readings(task, cycle)
+            if self.compiled_unchecked is not None:
+                self.compiled_unchecked.run()
             return
         for source, target in self.reading_copies:
             np.copyto(target, source)
+        self.check_readings(task, cycle)
+
+    def check_readings(self, task: str, cycle: int) -> None:
+        """A fault naming the first reading that is not finite (and crosses a connection that does not allow it)."""
+        for start, values, finite in self.checked_readings:
+            np.isfinite(values, out=finite)
+            if np.count_nonzero(finite) != len(finite):
+                index = int(np.argmin(finite))
+                raise fault(task, cycle, self.reading_labels[start + index],
+                            f"reading {float(values[index])!r} is not finite; the task did not step with it "
+                            "(allow_nonfinite = true on the connection lets it through)")
 
     def note_stale(self, cycle: int) -> None:
         """This cycle's read kept old values: count the cycle, keep it among the first, and the run
@@ -178,7 +205,7 @@ class TaskDevices:
         for slot in self.let:  # the commands that hold from this release (computed by the job before)
             slot.send(self.task, cycle)
         for slot in self.slots:
-            slot.receive()
+            slot.receive(self.task, cycle)
         for slot in self.may_be_stale:  # devices that keep old values (on_missing = "stale") rather than fail
             if slot.device.stale_reads != slot.stale_seen:
                 slot.note_stale(cycle)
