@@ -124,3 +124,25 @@ def test_a_driver_of_ones_own_gets_the_general_bound_and_may_set_its_own():
     with pytest.raises(AppError, match=r"devices\.probe\.rate_hz: must be at least -1e\+12"):
         build_device(Probe, "probe", {"rate_hz": -MAX_SETTING_MAGNITUDE * 2}, "app.toml")
     assert build_device(Probe, "probe", {"serial": 2**63 - 1}, "app.toml").config["serial"] == 2**63 - 1
+
+
+def test_an_i2c_bus_given_as_a_path_says_it_is_the_number(tmp_path):
+    with pytest.raises(AppError) as refused:
+        build_device("i2c", "imu", {"bus": "/dev/i2c-1", "address": 0x68}, "app.toml")
+    assert "devices.imu.bus: expected an integer (the I2C bus number N of /dev/i2c-N: bus = 1), got '/dev/i2c-1'" \
+        in str(refused.value)
+
+
+def test_one_i2c_register_written_twice_a_cycle_is_refused_read_back_is_allowed():
+    twice = [{"name": "a", "register": 0x10}, {"name": "b", "register": 0x10}]
+    with pytest.raises(AppError, match=r"devices\.dac\.writes\[1\]\.register: 0x10 is also written by writes\[0\] "
+                                       r"\('a'\); a register is written once a cycle"):
+        build_device("i2c", "dac", {"bus": 1, "address": 0x48, "writes": twice}, "app.toml")
+    device = build_device("i2c", "dac", {"bus": 1, "address": 0x48, "writes": twice[:1],
+                                         "reads": [{"name": "a_back", "register": 0x10}]}, "app.toml")
+    assert (device.n_inputs, device.n_outputs) == (1, 1)
+
+
+def test_a_negative_can_id_is_shown_as_it_was_written():
+    with pytest.raises(AppError, match=r"devices\.drive\.send\[0\]\.id: -1 is outside the 11-bit range 0\.\.0x7FF"):
+        build_device("can", "drive", {"interface": "vcan0", "send": [{"id": -1}]}, "app.toml")

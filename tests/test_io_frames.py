@@ -158,13 +158,28 @@ def test_crc16_ccitt_false_check_value():
 
 
 def test_spi_frame_reserves_counter_and_crc_bytes():
-    with pytest.raises(LayoutError, match="byte 0 is also used by 'sequence counter'"):
+    with pytest.raises(LayoutError, match=r"send\[0\] \('a'\): byte 0 is also used by the sequence counter"):
         frame_layout([Field("a", 0, "u8")], 8, "devices.fpga.send")
-    with pytest.raises(LayoutError, match="byte 6 is also used by 'CRC'"):
+    with pytest.raises(LayoutError, match=r"byte 6 is also used by the CRC \(bytes 6 and 7\)"):
         frame_layout([Field("a", 5, "i16")], 8, "devices.fpga.send")
     with pytest.raises(LayoutError, match="no room for the counter and the CRC"):
         frame_layout([], 2, "devices.fpga.send")
     assert frame_layout([Field("a", 1, "i16")], 8, "x").names == ["a"]
+
+
+def test_spi_layout_errors_name_the_index_in_the_app_file_and_the_length_needed():
+    """The counter and CRC are not counted among the file's fields: receive[0] is the file's first."""
+    fields = [Field("speed", 1, "f32"), Field("cur", 5, "f32")]
+    with pytest.raises(LayoutError) as short:
+        frame_layout(fields, 6, "receive")
+    assert str(short.value) == ("receive[0] ('speed'): byte 4 is also used by the CRC (bytes 4 and 5); the frame's 6 "
+                                "bytes hold the counter, the signals and the CRC from length 11")
+    with pytest.raises(LayoutError, match=r"^receive\[1\] \('cur'\): a f32 at byte 5 ends at byte 9, past"):
+        frame_layout([Field("speed", 1, "f32"), Field("cur", 5, "f32")], 8, "receive")
+    with pytest.raises(LayoutError, match=r"^send\[1\] \('b'\): byte 0 is also used by the sequence counter "
+                                          r"\(byte 0\); signals start at byte 1$"):
+        frame_layout([Field("a", 1, "u8"), Field("b", 0, "u8")], 8, "send")
+    assert frame_layout(fields, 11, "receive").names == ["speed", "cur"]
 
 
 def test_spi_frame_check_counter_and_crc():

@@ -85,7 +85,8 @@ def frame_from_table(table: Mapping[str, Any], where: str, fd_bus: bool, receive
         raise LayoutError(f"{where}.extended: expected true or false, got {extended!r}")
     largest = CAN_EFF_MASK if extended else CAN_SFF_MASK
     if not 0 <= can_id <= largest:
-        raise LayoutError(f"{where}.id: 0x{can_id:X} is outside the {'29' if extended else '11'}-bit range "
+        shown = f"0x{can_id:X}" if can_id >= 0 else str(can_id)  # not 0x-1
+        raise LayoutError(f"{where}.id: {shown} is outside the {'29' if extended else '11'}-bit range "
                           f"0..0x{largest:X}" + ("" if extended else " (set extended = true for 29-bit ids)"))
     fd = table.get("fd", fd_bus)
     if not isinstance(fd, bool):

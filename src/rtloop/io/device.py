@@ -320,7 +320,8 @@ def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -
     if expected is float and isinstance(value, int) and not isinstance(value, bool):
         value, ok = float(value), True
     if not ok:
-        raise DeviceError(device, source, key, f"expected {_TYPE_NAMES.get(expected, expected.__name__)}, "
+        what = f" ({setting.doc})" if setting.doc else ""  # bus = "/dev/i2c-1": "the I2C bus number (/dev/i2c-N)"
+        raise DeviceError(device, source, key, f"expected {_TYPE_NAMES.get(expected, expected.__name__)}{what}, "
                           f"got {shorten(value, 60)}")
     if expected in (int, float):
         problem = number_problem(value, setting.at_most)

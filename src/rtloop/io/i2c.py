@@ -62,12 +62,24 @@ def register_from_table(table: dict[str, Any], where: str) -> tuple[int, Field]:
     return register, field_from_table({**rest, "start_byte": 0, "type": kind}, where)
 
 
+def _check_one_write_each(writes: list[tuple[int, Field]]) -> None:
+    """Two writes of one register each cycle: the second would undo the first, every cycle. (Reading
+    back a register written is allowed: a chip's readback is a check.)"""
+    first: dict[int, int] = {}
+    for index, (register, _) in enumerate(writes):
+        if register in first:
+            earlier = first[register]
+            raise LayoutError(f"writes[{index}].register: 0x{register:02X} is also written by writes[{earlier}] "
+                              f"({writes[earlier][1].name!r}); a register is written once a cycle")
+        first[register] = index
+
+
 class I2cDevice(Device):
     """Registers of one I2C chip, read and written with SMBus transfers every cycle."""
 
     kind: ClassVar[str] = "i2c"
     settings: ClassVar[dict[str, Setting]] = {
-        "bus": Setting(int, doc="the I2C bus number (/dev/i2c-N)",
+        "bus": Setting(int, doc="the I2C bus number N of /dev/i2c-N: bus = 1",
                        check=lambda v: None if 0 <= v < 1 << 20 else f"expected a bus number, got {v!r}"),
         "address": Setting(int, doc="the chip's 7-bit address",
                            check=lambda v: None if 0x03 <= v <= 0x77 else f"expected 0x03..0x77, got {v!r}"),
@@ -82,6 +94,7 @@ class I2cDevice(Device):
         try:
             self.reads = [register_from_table(t, f"reads[{i}]") for i, t in enumerate(settings["reads"])]
             self.writes = [register_from_table(t, f"writes[{i}]") for i, t in enumerate(settings["writes"])]
+            _check_one_write_each(self.writes)
         except LayoutError as error:
             key, _, problem = str(error).partition(": ")
             raise DeviceError(name, "", key, problem) from None

@@ -38,9 +38,19 @@ def frame_layout(fields: Sequence[Field], length_bytes: int, where: str) -> Byte
     if length_bytes < 3:
         raise LayoutError(f"{where}: a frame of {length_bytes} bytes has no room for the counter and the CRC "
                           "(3 bytes at least)")
-    reserved = [Field(SEQUENCE_FIELD, 0, "u8"), Field(CRC_FIELD, length_bytes - 2, "u16", byte_order="big")]
-    ByteLayout([*reserved, *fields], length_bytes, where)  # the overlap and fit checks, counter and CRC included
-    return ByteLayout(fields, length_bytes, where)
+    needed = max((field.start_byte + field.size_bytes for field in fields), default=1) + 2
+    grow = f"; the frame's {length_bytes} bytes hold the counter, the signals and the CRC from length {needed}"
+    for index, field in enumerate(fields):  # named by its index in the app file (the counter and CRC are not)
+        at, end = f"{where}[{index}] ({field.name!r})", field.start_byte + field.size_bytes
+        if field.start_byte == 0:
+            raise LayoutError(f"{at}: byte 0 is also used by the {SEQUENCE_FIELD} (byte 0); signals start at byte 1")
+        if end > length_bytes:
+            raise LayoutError(f"{at}: a {field.type} at byte {field.start_byte} ends at byte {end}, past the frame's "
+                              f"{length_bytes} bytes{grow}")
+        if end > length_bytes - 2:
+            raise LayoutError(f"{at}: byte {max(field.start_byte, length_bytes - 2)} is also used by the {CRC_FIELD} "
+                              f"(bytes {length_bytes - 2} and {length_bytes - 1}){grow}")
+    return ByteLayout(fields, length_bytes, where)  # overlaps between signals
 
 
 class FrameCheck:
