@@ -144,6 +144,7 @@ def test_the_examples_declare_units_and_pair_setpoints(tmp_path: Path) -> None:
         sys.path.remove(str(EXAMPLES / "dcmotor"))
     run = rtloop.load(tmp_path / "dc")
     assert run.signals.units["plant.speed_rad_s"] == "rad/s" and run.signals.units["plant.current_A"] == "A"
+    assert run.signals.units["pi.kp"] == "V·s/rad" and run.signals.units["pi.ki"] == "V/rad"  # the live gains
     assert [(p.signals, p.setpoint) for p in run.signals.plots] == [
         (("plant.speed_rad_s", "pi.setpoint_rad_s"), "pi.setpoint_rad_s")]
     assert np.isfinite(run.signals["plant.speed_rad_s"]).all()

@@ -83,7 +83,7 @@ class PiSpeed(Runnable):
     n_inputs, n_outputs = 2, 1
     input_names = ("speed_rad_s", "setpoint_rad_s")
     output_names = ("voltage_V",)
-    input_units = ("rad/s", "rad/s")
+    input_units = ("rad/s", "rad/s", "V·s/rad", "V/rad")  # and of the parameters' inputs kp, ki
     output_units = ("V",)
     parameters = {"kp": 0.05, "ki": 3.0}  # noqa: RUF012 — live: the app file or `rtloop port write` changes them
 

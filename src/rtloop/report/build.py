@@ -74,7 +74,8 @@ def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
     for run in runs:
         refs = run_figures.setdefault(run.label, [])
         prefix = _slug(run.label) if len(runs) > 1 else "run"
-        series = {name: task_series(run, name) for name in run.tasks}
+        # a simulated clock has no timing: latency and jitter are zero by construction (html says so)
+        series = {} if run.simulated else {name: task_series(run, name) for name in run.tasks}
         for name, s in series.items():
             fig, hists = figures.task_figure(name, s, run.label)
             report.histograms[(run.label, name)] = hists
@@ -92,7 +93,9 @@ def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
     comparison: list[html.FigureRef] = []
     if len(runs) > 1:
         for name in dict.fromkeys(n for run in runs for n in run.tasks):
-            having = [(run.label, task_series(run, name)) for run in runs if name in run.tasks]
+            having = [(run.label, task_series(run, name)) for run in runs if name in run.tasks and not run.simulated]
+            if not having:
+                continue
             fig, _ = figures.comparison_figure(name, having)
             path = figures.save(fig, fig_dir / f"compare-{_slug(name)}.png")
             comparison.append(html.FigureRef(path, f"Task {name} in each run, on common bins."))

@@ -79,6 +79,11 @@ class Run:
         return self.data.tasks
 
     @property
+    def simulated(self) -> bool:
+        """A run of ``rtloop simulate``: its clock is simulated, so it has no timing to show."""
+        return self.summary.get("mode") == "simulate"
+
+    @property
     def non_rt_tasks(self) -> list[str]:
         """Tasks that ran without a real-time policy (their numbers are not RT numbers)."""
         if self.summary.get("mode") == "simulate":

@@ -29,6 +29,12 @@ CRITERION_COLOR = "tab:orange"
 RUN_COLORS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
 
 
+def literal(text: str) -> str:
+    """``text`` drawn as written: matplotlib takes a pair of ``$`` for mathtext (a title
+    "cost in $ per $m$" would fail to parse), an escaped ``\\$`` is a plain dollar sign."""
+    return text.replace("$", r"\$")
+
+
 def fmt_us(value_ns: float) -> str:
     """A duration in nanoseconds as readable microseconds (``1,234.5 µs``)."""
     if value_ns != value_ns:  # NaN
@@ -134,7 +140,7 @@ def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, 
                    xlabel="jitter [µs]", period_ns=series.period_ns, criterion=True, mark_min=True)
     draw_histogram(axes[2], hists["exec"], title=f"execution time (end − start), n = {hists['exec'].n}",
                    xlabel="execution time [µs]")
-    fig.suptitle(f"{run_label} — task {task}, {period_text(series.period_ns)}, "
+    fig.suptitle(f"{literal(run_label)} — task {task}, {period_text(series.period_ns)}, "
                  f"first and last {series.trim} cycles left out", fontsize=12)
     return fig, hists
 
@@ -166,7 +172,7 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
     axes[-1].set_xlabel("time since first release [s]")
-    fig.suptitle(f"{run.label} — wake-up latency over time", fontsize=12)
+    fig.suptitle(f"{literal(run.label)} — wake-up latency over time", fontsize=12)
     return fig
 
 
@@ -200,7 +206,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
             if hist.n == 0:
                 continue
             color = RUN_COLORS[i % len(RUN_COLORS)]
-            _bars(ax, hist, color, label=f"{label}: max {fmt_us(hist.max_ns)}", step=True)
+            _bars(ax, hist, color, label=f"{literal(label)}: max {fmt_us(hist.max_ns)}", step=True)
             if not hist.above:
                 ax.axvline(hist.max_ns / US, color=color, linestyle="-.", linewidth=1)
         if key == "jitter" and limit:
@@ -209,7 +215,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
         if pooled.n == 0:
             _no_data(ax, key)
             continue
-        beyond = [f"{label}: {h.above} above" for (label, _), h in zip(runs, out[key], strict=True) if h.above]
+        beyond = [f"{literal(label)}: {h.above} above" for (label, _), h in zip(runs, out[key], strict=True) if h.above]
         ax.set_title(f"{key} — dash-dot lines: each run's max" + (f"\n({', '.join(beyond)} the axis)"
                                                                   if beyond else ""), fontsize=10)
         _headroom(ax, max(int(h.counts.max()) if h.counts.size else 0 for h in out[key]))

@@ -195,13 +195,21 @@ def banners(run: Run) -> str:
                    f"without a real-time scheduling policy ({reasons}). Their numbers show what an ordinary "
                    "Linux process gets, not what the machine can do under SCHED_FIFO (see <code>rtloop doctor"
                    "</code>).</div>")
-    if run.summary.get("mode") == "simulate":
-        out.append('<div class="banner note">Offline simulation (<code>rtloop simulate</code>): the clock is '
-                   "simulated, so latency and jitter are zero by construction; only the signals are meaningful."
-                   "</div>")
+    if run.simulated:
+        out.append('<div class="banner note"><b>simulated: no timing</b> — an offline simulation (<code>rtloop '
+                   "simulate</code>): the clock is simulated, so latency and jitter are zero by construction and "
+                   f"no timing figures are drawn; only the signals are meaningful.{_host_exec(run)}</div>")
     for problem in run.problems:
         out.append(f'<div class="banner warning">{escape(problem)}</div>')
     return "".join(out)
+
+
+def _host_exec(run: Run) -> str:
+    """What a simulation measured of time: each step's execution on the host (not real time)."""
+    parts = [f"{escape(name)} mean {_us(entry['host_exec_ns'].get('mean'))} µs, max "
+             f"{_us(entry['host_exec_ns'].get('max'))} µs"
+             for name, entry in run.tasks.items() if isinstance(entry.get("host_exec_ns"), dict)]
+    return f" Host execution time per step (not real time): {'; '.join(parts)}." if parts else ""
 
 
 def image(fig: FigureRef) -> str:

@@ -19,6 +19,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from rtloop.record.load import PortInputs, Signals
+from rtloop.report.figures import literal
 
 FIGURE_WIDTH_IN = 13.0
 """1300 px at the report's 100 dpi: the page reads at 1366 px without shrinking the figures."""
@@ -138,7 +139,7 @@ def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str
             ax.axvline(t, **style)
     if events and len(events) <= MAX_LABELLED_INPUTS:
         for t, port, values in events:
-            text = f"{port} ← {', '.join(f'{v:g}' for v in values if v == v)}"
+            text = literal(f"{port} ← {', '.join(f'{v:g}' for v in values if v == v)}")
             axes[0].annotate(text, (t, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -2),
                              textcoords="offset points", rotation=90, va="top", ha="left", fontsize=7,
                              color=style["color"])
@@ -171,7 +172,7 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
     axes[-1].set_xlabel(TIME_LABEL)
     note = f"; dotted: {marked} live port write(s)" if marked else ""
     gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
-    fig.suptitle(f"{label} — recorded signals{note}{gaps}", fontsize=12)
+    fig.suptitle(literal(f"{label} — recorded signals{note}{gaps}"), fontsize=12)
     return fig
 
 
@@ -195,24 +196,24 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
                 # the reference wide and pale beneath: where runs agree, both stay visible
                 style = {"color": RUN_COLORS[r % len(RUN_COLORS)], "linewidth": 3.0 if r == 0 else 1.1,
                          "alpha": 0.45 if r == 0 else 1.0, "linestyle": ("-", "--", ":", "-.")[s % 4]}
-                _trace(ax, signals.t_s, signals[name], signals.gaps, label=f"{label}: {name}", **style)
+                _trace(ax, signals.t_s, signals[name], signals.gaps, label=literal(f"{label}: {name}"), **style)
                 if r == 0:
                     continue
                 t_s, delta = difference(reference, signals, name)
                 worst = float(np.nanmax(np.abs(delta))) if delta.size and np.isfinite(delta).any() else float("nan")
-                _trace(diff_ax, t_s, delta, np.zeros((0, 2)), label=f"{label} − {reference_label}: {name}"
-                       f" (max |Δ| {worst:.3g})", **style)
+                _trace(diff_ax, t_s, delta, np.zeros((0, 2)), label=literal(f"{label} − {reference_label}: {name}"
+                                                      f" (max |Δ| {worst:.3g})"), **style)
         _finish(ax, group)
         diff_ax.axhline(0.0, color="black", linewidth=0.6)
-        diff_ax.set_ylabel("Δ " + group.ylabel, fontsize=9)
+        diff_ax.set_ylabel(literal("Δ " + group.ylabel), fontsize=9)
         diff_ax.grid(True, alpha=0.3)
         if diff_ax.get_legend_handles_labels()[0]:
             _legend(diff_ax)
     for r, (_, _, inputs) in enumerate(runs):
         _mark_inputs(list(axes[::2]) if r == 0 else [], inputs)
     axes[-1].set_xlabel(TIME_LABEL)
-    fig.suptitle(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the difference to "
-                 f"{reference_label} at common times", fontsize=12)
+    fig.suptitle(literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
+                         f"difference to {reference_label} at common times"), fontsize=12)
     return fig
 
 
@@ -228,11 +229,11 @@ def difference(reference: Signals, other: Signals, name: str) -> tuple[np.ndarra
 def _label(signals: Signals, name: str, group: Group) -> str:
     unit = signals.unit(name)
     role = " (setpoint)" if name == group.setpoint else ""
-    return f"{name}{role}" + (f" [{unit}]" if unit else "")
+    return literal(f"{name}{role}" + (f" [{unit}]" if unit else ""))
 
 
 def _finish(ax: Axes, group: Group) -> None:
-    ax.set_title(group.title, fontsize=10, loc="left")
-    ax.set_ylabel(group.ylabel)
+    ax.set_title(literal(group.title), fontsize=10, loc="left")
+    ax.set_ylabel(literal(group.ylabel))
     ax.grid(True, alpha=0.3)
     _legend(ax)
