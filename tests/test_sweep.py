@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -93,12 +94,32 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
         (["--param", "pi.nope=0.1:1:3"], "unknown parameter 'nope'"),
         (["--param", "ghost.kp=1,2"], "no task 'ghost'"),
         (["--param", "pi.kp=nan,1"], "finite"),
+        (["--param", "pi.kp=0.02:inf:3"], "need finite numbers"),
+        (["--param", "pi.kp=0:1:200", "--param", "pi.ki=1:5:200"], "sweep: 40000 points; at most 10000"),
+        (["--param", "pi.kp=1,2", "--processes", "100000"], "processes 100000: must be 1 to"),
         ([], "at least one parameter"),
     ):
-        code = cli_main(["sweep", str(DCMOTOR), *argv, "--duration", "0.1", "--out", str(tmp_path / "bad")])
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a numpy RuntimeWarning above the one line fails too
+            code = cli_main(["sweep", str(DCMOTOR), *argv, "--duration", "0.1", "--out", str(tmp_path / "bad")])
         err = capsys.readouterr().err
         assert code == 2 and words in err and "Traceback" not in err, err
         assert len(err.strip().splitlines()) == 1
+
+
+def test_a_grid_too_large_is_refused_before_it_is_built(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three parameters of 10,000 values are 1e12 points: counted, refused, never built (that took GBs)."""
+    from rtloop.runtime import sweep as sweep_module
+
+    def no_grid(*_: object) -> None:
+        raise AssertionError("the grid was built before its size was checked")
+
+    monkeypatch.setattr(sweep_module.itertools, "product", no_grid)
+    values = grid("0:1:10000")
+    with pytest.raises(rtloop.AppError, match=r"^sweep: 1000000000000 points; at most 10000$"):
+        rtloop.sweep(str(DCMOTOR), {"pi.kp": values, "pi.ki": values, "plant.x": values}, duration_s=0.1,
+                     out=tmp_path / "never")
+    assert not (tmp_path / "never").exists()
 
 
 def test_grid() -> None:

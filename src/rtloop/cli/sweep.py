@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="feed an input port from a CSV profile")
     parser.add_argument("--force", action="store_true", help="replace a sweep already in --out")
     parser.add_argument("--processes", type=at_least_one, default=None, metavar="N",
-                        help="worker processes (default: CPUs)")
+                        help="worker processes (default: CPUs; at most 4 per CPU)")
 
 
 def run(args: argparse.Namespace) -> int:

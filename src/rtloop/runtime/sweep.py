@@ -41,6 +41,7 @@ from rtloop.record.recorder import give_to_invoking_user
 from rtloop.text import shorten
 
 MAX_POINTS = 10_000
+PROCESSES_PER_CPU = 4
 METRICS = ("rise_time_s", "overshoot_pct", "settling_time_s", "steady_state_error")
 
 
@@ -73,7 +74,9 @@ def grid(text: str) -> list[float]:
         if ":" in text:
             start, stop, count = text.split(":")
             number = int(count)
-            values = np.linspace(float(start), float(stop), number).tolist() if 1 <= number <= MAX_POINTS else []
+            ends = (float(start), float(stop))  # checked finite below before linspace multiplies them
+            values = np.linspace(*ends, number).tolist() if 1 <= number <= MAX_POINTS and \
+                all(math.isfinite(v) for v in ends) else []
         else:
             values = [float(v) for v in text.split(",")]
     except ValueError:
@@ -150,9 +153,11 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
     if not parameters:
         raise AppError("sweep: give at least one parameter to sweep (--param TASK.NAME=START:STOP:COUNT)")
     names = list(parameters)
+    count = math.prod(len(parameters[n]) for n in names)  # counted before the grid exists: 1e12 points fit no memory
+    if count > MAX_POINTS:
+        raise AppError(f"sweep: {count} points; at most {MAX_POINTS}")
+    check_processes(processes)
     points = list(itertools.product(*(parameters[n] for n in names)))
-    if len(points) > MAX_POINTS:
-        raise AppError(f"sweep: {len(points)} points; at most {MAX_POINTS}")
     source = _AppSource.of(app, feeds or {})
     probe = source.build()  # bad parameter names fail here, once, before any process starts
     for name in names:
@@ -188,6 +193,22 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
             writer.writerows(rows)
         give_to_invoking_user(table)
     return SweepResult(rows, table, measured, paired, elapsed, workers, names, unit)
+
+
+def max_processes() -> int:
+    """Worker processes a sweep may start: a simulation keeps one CPU busy, so more than a few per
+    CPU only share them (and each holds its own Python and app in memory)."""
+    return PROCESSES_PER_CPU * len(os.sched_getaffinity(0))
+
+
+def check_processes(processes: int | None) -> None:
+    """Refuse a worker count that is not a whole number from 1 to :func:`max_processes`."""
+    if processes is None:
+        return
+    most = max_processes()
+    if isinstance(processes, bool) or not isinstance(processes, int) or not 1 <= processes <= most:
+        raise AppError(f"sweep: processes {shorten(processes, 30)}: must be 1 to {most} "
+                       f"({PROCESSES_PER_CPU} per CPU this process may use; more would only share them)")
 
 
 def _prepare_out(out: Path, run_dirs: list[Path], force: bool) -> None:
