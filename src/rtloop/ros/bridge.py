@@ -253,6 +253,7 @@ def bridge_process_main(topic: RosTopic, registry_path: str, pipe: Any = None) -
     from rtloop.linux import rt
 
     rt.die_with_parent(signal.SIGTERM)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closing terminal: the supervisor stops the bridges in order
     app = app_from_registry(Path(registry_path), owner_uid=os.geteuid())
     if os.getppid() != app.pid:  # the supervisor died before we could ask to follow it
         return

@@ -455,15 +455,37 @@ class RunSession:
         return [note for note in (recorder.mcap_note, *more, recorder.stopped, *self.losses.notes()) if note]
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a run the orderly way: Ctrl-C, ``kill``/systemd, a terminal (an SSH connection) that closes."""
+
+
+def drop_output_to_a_lost_terminal(signum: int) -> None:
+    """After SIGHUP the terminal is gone and a write to it fails (EIO) in the middle of the orderly
+    stop: console lines to a terminal go to /dev/null from now on (a file or a pipe keeps them)."""
+    if signum != signal.SIGHUP:
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY | os.O_CLOEXEC)
+    try:
+        for fd in (1, 2):
+            with contextlib.suppress(OSError):
+                if stat.S_ISCHR(os.fstat(fd).st_mode):  # a hung-up tty no longer says it is one (isatty)
+                    os.dup2(devnull, fd, inheritable=True)
+    finally:
+        os.close(devnull)
+
+
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM back while the block runs; then act on them as the handlers before would."""
+    """Hold SIGINT/SIGTERM/SIGHUP back while the block runs; then act on them as the handlers before would."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     caught: list[int] = []
-    previous = {s: signal.signal(s, lambda signum, _frame: caught.append(signum)) for s in (signal.SIGINT,
-                                                                                            signal.SIGTERM)}
+    def defer(signum: int, _frame: object) -> None:
+        drop_output_to_a_lost_terminal(signum)  # now: the block may print
+        caught.append(signum)
+
+    previous = {s: signal.signal(s, defer) for s in STOP_SIGNALS}
     try:
         yield
     finally:

@@ -47,7 +47,14 @@ from rtloop.record.summary import (
 )
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
-from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession, RunState
+from rtloop.runtime.session import (
+    DEFAULT_LIMITS,
+    STOP_SIGNALS,
+    Limits,
+    RunSession,
+    RunState,
+    drop_output_to_a_lost_terminal,
+)
 from rtloop.runtime.task import task_process_main
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
@@ -517,13 +524,14 @@ class Supervisor:
             return {}
 
         def request_stop(signum: int, _frame: object) -> None:
+            drop_output_to_a_lost_terminal(signum)
             if self.state is RunState.RUNNING:
                 self.state = RunState.SIGNAL
             # The tasks are stopped from here, not at the control loop's next turn: tasks that keep
             # the processors busy can delay that turn by seconds (the supervisor runs below them).
             self.session.stop_tasks()
 
-        return {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        return {s: signal.signal(s, request_stop) for s in STOP_SIGNALS}
 
     @staticmethod
     def _restore_signal_handlers(previous: dict[int, Any]) -> None:

@@ -154,6 +154,7 @@ def task_process_main(
     loop may run at a real-time priority without sleeping before it fails, then is killed."""
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closing terminal too: it stops the app through the supervisor
     control_segment = Segment.attach(segments.control)
     task_segment = Segment.attach(segments.task)
     control = WordBlock(control_segment, 0, CONTROL_WORDS)
