@@ -75,7 +75,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app import sources
-from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, App, parse_signal
+from rtloop.app.builder import DEFAULT_WATCHDOG_PERIODS, MAX_TASKS, App, parse_signal, too_many_tasks
 from rtloop.app.modules import ModuleRefused, check_model_files, installed_origin, load_module_file, module_beside
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
 from rtloop.io.device import build_device, device_class
@@ -200,6 +200,8 @@ def _load_app(path: str | Path) -> App:
 
     if not isinstance(data["tasks"], dict):
         raise AppFileError(shown, "tasks", "expected tables [tasks.NAME]")
+    if len(data["tasks"]) > MAX_TASKS:  # before any runnable is built
+        raise AppFileError(shown, "tasks", too_many_tasks(len(data["tasks"])))
     for task_name, table in data["tasks"].items():
         where = f"tasks.{clip(task_name, 40)}"
         if not isinstance(table, dict):

@@ -45,6 +45,9 @@ MAX_VECTOR_SIZE = 1 << 16
 """Inputs or outputs of one runnable: at most 65536 values."""
 MAX_PORT_CAPACITY = 1 << 20
 """Samples an output port may queue."""
+MAX_TASKS = 64
+"""Tasks of one app: each runs in a process of its own that locks its memory (≈ 35 MB each),
+and locked memory cannot be reclaimed: a generated app of hundreds would take the machine."""
 MAX_DURATION_S = 1e8
 """About three years: a longer run is a controller that runs until stopped."""
 DEFAULT_WATCHDOG_PERIODS = 1000
@@ -301,6 +304,8 @@ class App:
             raise AppError(f"task {shorten(name)}: a task name uses letters, digits and underscores, at most 32")
         if name in self.tasks:
             raise AppError(f"{where}: defined twice")
+        if len(self.tasks) >= MAX_TASKS:
+            raise AppError(too_many_tasks(len(self.tasks) + 1))
         if not isinstance(runnable, Runnable):
             raise AppError(f"{where}: {runnable!r} is not an rtloop.Runnable")
         if not isinstance(period_ns, int) or isinstance(period_ns, bool) \
@@ -742,6 +747,12 @@ def _resolve_limits(name: str, source: str, device: Device,
         raise DeviceError(name, source, f"limits.{missing_commands[0]}",
                           "missing; every command needs min, max and a safe value (written when the run ends)")
     return tuple(limits[c] for c in commands)
+
+
+def too_many_tasks(count: int) -> str:
+    """The refusal of an app of ``count`` tasks (more than :data:`MAX_TASKS`)."""
+    return (f"{count} tasks; an app has at most {MAX_TASKS} (each task is a process that locks its memory): "
+            "let one task step several runnables, or split the app")
 
 
 def check_duration(duration_s: float) -> float:

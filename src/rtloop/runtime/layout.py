@@ -50,6 +50,7 @@ from rtloop.ipc.wiring import (
     TaskWiringPlan,
     finite_checks_of,
 )
+from rtloop.linux import memory
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
@@ -118,6 +119,28 @@ def check_memory(app: App, shm_dir: Path = SHM_DIR, memlock_limit_bytes: int | N
     return needed
 
 
+TASK_MEMORY_SHARE_OF_AVAILABLE = 0.5
+"""The task processes of a run may take at most this share of the machine's available memory:
+they lock it (mlockall), and locked memory is never given back to other users' apps."""
+
+
+def check_task_memory(app: App, per_task_bytes: int | None = None, available: int | None = None) -> None:
+    """Refuse a run whose task processes would not fit in memory: tasks × the resident size of
+    one (this process's: a task process imports what the supervisor imported, the app's modules
+    included) against :data:`TASK_MEMORY_SHARE_OF_AVAILABLE` of ``MemAvailable``. Nothing is
+    refused where /proc cannot say."""
+    per_task_bytes = memory.resident_bytes() if per_task_bytes is None else per_task_bytes
+    available = memory.available_bytes() if available is None else available
+    if not per_task_bytes or available is None:
+        return
+    needed = len(app.tasks) * per_task_bytes
+    if needed > available * TASK_MEMORY_SHARE_OF_AVAILABLE:
+        raise AppError(f"app {app.name!r}: {len(app.tasks)} task processes of about {_mb(per_task_bytes)} each "
+                       f"would lock {_mb(needed)}; the machine has {_mb(available)} available and a run may lock at "
+                       f"most {TASK_MEMORY_SHARE_OF_AVAILABLE:.0%} of it (fewer tasks: let one task step several "
+                       "runnables)")
+
+
 def _mb(size_bytes: int) -> str:
     return f"{size_bytes / 1e6:.1f} MB"
 
@@ -157,6 +180,7 @@ class AppLayout:
         check_memory(app)
         remove_stale_segments()
         if mode == "run":
+            check_task_memory(app)
             refuse_if_running(app.name)  # early, before anything is created; _write_registry decides
         token = new_run_token()
         owner = os.getpid()
