@@ -205,3 +205,16 @@ def test_a_registry_naming_a_fifo_or_a_huge_file_as_its_summary_gives_no_line(tm
     reader.join(timeout=30)
     assert not reader.is_alive(), "rtloop top waited on a FIFO named as a summary.json"
     assert lines == ["", ""]
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root: to give a file to another uid")
+def test_a_registry_naming_another_users_file_or_a_link_as_its_summary_gives_no_line(tmp_path: Path) -> None:
+    theirs = tmp_path / "theirs.json"  # root's, or a third user's: not the app's
+    theirs.write_text(_summary_text())
+    os.chown(theirs, 65534, 65534)
+    assert live_summary_line(str(theirs), app_uid=1234) == ""
+    assert live_summary_line(str(theirs), app_uid=65534).startswith("summary.json (")
+    assert live_summary_line(str(theirs), app_uid=0).startswith("summary.json (")  # root's run, given to the sudo user
+    link = tmp_path / "link.json"
+    link.symlink_to(theirs)
+    assert live_summary_line(str(link), app_uid=65534) == ""

@@ -211,7 +211,8 @@ class Monitor:
         self.poll()
         views = []
         for registry in self.registries:
-            view = AppView(registry.app, registry.pid, summary_line=live_summary_line(registry.summary))
+            view = AppView(registry.app, registry.pid,
+                           summary_line=live_summary_line(registry.summary, registry.uid))
             for task, segment_name in registry.tasks.items():
                 tracked = self._attach(segment_name, registry.uid)
                 if tracked is not None:
@@ -271,16 +272,18 @@ MAX_SUMMARY_BYTES = 1 << 22
 """A live summary.json larger than this is not read (a run's is a few kB per task)."""
 
 
-def live_summary_line(path: str | None) -> str:
+def live_summary_line(path: str | None, app_uid: int | None = None) -> str:
     """One line from a running app's summary.json: per task p99/max latency, and the recording.
 
     The path comes from the app's registry, which another user wrote when root runs ``rtloop
     top``: only a regular file of bounded size is read (a FIFO would block top, /dev/zero
-    would fill its memory); anything else gives no line."""
+    would fill its memory), not through a link, and only one the app's user owns (``app_uid``;
+    root's runs give theirs to the user who ran sudo): never a file of root's or another user's
+    that the registry names. Anything else gives no line."""
     if not path or not isinstance(path, str):
         return ""
     try:
-        summary, modified_s = _read_bounded_regular_file(path)
+        summary, modified_s = _read_bounded_regular_file(path, app_uid)
         age_s = time.time() - modified_s
         parts = []
         for name, task in summary["tasks"].items():
@@ -297,14 +300,17 @@ def live_summary_line(path: str | None) -> str:
         return ""
 
 
-def _read_bounded_regular_file(path: str) -> tuple[object, float]:
+def _read_bounded_regular_file(path: str, owner_uid: int | None = None) -> tuple[object, float]:
     """The JSON in ``path`` and its modification time; ValueError unless a regular file of at most
-    MAX_SUMMARY_BYTES (opened without blocking: a FIFO never holds top up)."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    MAX_SUMMARY_BYTES (opened without blocking: a FIFO never holds top up, nor following a link)
+    owned by ``owner_uid`` (None, or 0: root's run may have given it to the sudo user: any owner)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_SUMMARY_BYTES:
             raise ValueError(f"{path}: not a summary.json")
+        if owner_uid not in (None, 0, info.st_uid):
+            raise ValueError(f"{path}: owned by uid {info.st_uid}, not by the app's uid {owner_uid}")
         with os.fdopen(fd, "rb", closefd=False) as file:
             data = file.read(MAX_SUMMARY_BYTES + 1)
     finally:
