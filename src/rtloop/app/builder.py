@@ -26,6 +26,7 @@ from typing import Literal
 from rtloop.app.byvalue import dumps_runnable
 from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.app.profiles import check_profile_file
+from rtloop.app.step_check import warn_about_step
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device, check_claims
 from rtloop.io.host import DeviceWiring
@@ -122,9 +123,10 @@ class SignalVector:
         kind = "input" if self.side == "u" else "output"
         if isinstance(index, int):
             if not 0 <= index < self.length:
+                hint = f" (declare n_{kind}s on its Runnable class)" if self.length == 0 else ""
                 raise AppError(
                     f"{self.task}.{self.side}[{index}]: index out of range; "
-                    f"task {self.task!r} has {self.length} {kind}s"
+                    f"task {self.task!r} has {self.length} {kind}s{hint}"
                 )
             return SignalRef(self.task, self.side, index, index + 1)
         start, stop, step = index.indices(self.length)
@@ -340,6 +342,7 @@ class App:
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
             check_period(period_ns)
+        warn_about_step(name, runnable)  # `return y` or `y = ...` in step: outputs that never leave 0
         config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, watchdog_periods,
                             max_consecutive_misses, lock_blas_buffer)
         spec = TaskSpec(config, runnable)
