@@ -50,6 +50,8 @@ class TaskSummary:
     """NaN or ±inf outputs headed across a connection (a fault unless the connection allows them)."""
     nonfinite_first: str = ""
     """The first of them: ``plant.y[1] (speed) at cycle 304`` ('' when none)."""
+    resident_bytes: dict[str, int] | None = None
+    """Run only: the task process's resident memory at the supervisor's samples (first, last, max)."""
 
     def to_json(self) -> dict[str, Any]:
         timing = self.timing.to_json()
@@ -70,6 +72,7 @@ class TaskSummary:
             "input_names": list(self.input_names) if self.input_names else None,
             "output_names": list(self.output_names) if self.output_names else None,
             **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
+            **({"resident_bytes": self.resident_bytes} if self.resident_bytes is not None else {}),
         }
 
 

@@ -47,6 +47,7 @@ from rtloop.record.summary import (
 )
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.layout import AppLayout
+from rtloop.runtime.memory_watch import MemoryWatch
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
     STOP_SIGNALS,
@@ -137,6 +138,8 @@ class Supervisor:
         self.end_ns = 0
         self.wall_t0_ns = 0
         self.runs: dict[str, _TaskRun] = {}
+        self.memory = MemoryWatch()
+        """Each task's resident size at the summary rewrites (a step leaking reference cycles)."""
         self.live: Any = None
         self.bridges: Bridges | None = None
         self.dma_latency_held = False
@@ -552,6 +555,8 @@ class Supervisor:
         tasks: dict[str, TaskSummary] = {}
         for name, spec in self.app.tasks.items():
             task_run = self.runs.get(name)
+            if running and task_run is not None:
+                self.memory.sample(name, task_run.process.pid, recorder.latest_ns)
             status = layout.tasks[name].status
             settings = task_run.settings if task_run else None
             dropped = layout.tasks[name].timing.dropped
@@ -574,6 +579,7 @@ class Supervisor:
                 timing_samples_dropped=dropped,
                 **signal_names(spec.runnable),
                 **nonfinite_fields(status, layout.tasks[name].plan),  # type: ignore[arg-type]
+                resident_bytes=self.memory.to_json(name),
             )
         bridges = self.bridges.summary() if self.bridges is not None else {}
         return RunSummary(
@@ -590,7 +596,7 @@ class Supervisor:
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
             notes=[*slow_step_notes(tasks),
                    *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
-                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads)],
+                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads), *self.memory.notes()],
             devices=self.device_reads,
             bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,
