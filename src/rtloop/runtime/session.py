@@ -41,6 +41,7 @@ from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
 from rtloop.owners import output_folder_problem
+from rtloop.record.disk_room import check_room
 from rtloop.record.recorder import Recorder, give_to_invoking_user
 from rtloop.record.summary import SUMMARY_RESERVE_BYTES, RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout, TaskHandles
@@ -309,6 +310,8 @@ class RunSession:
     # --- opening -------------------------------------------------------------------------------
     def __enter__(self) -> RunSession:
         check_out_dir(self.out, protect=self.protect)  # refusals first: nothing is written yet
+        if self.duration_s is not None and self.keep_s is None:
+            check_room(self.app, self.out, self.duration_s)  # everything kept: it must fit on the disk
         summary_path = self.out / "summary.json"
         # The layout checks memory and loads profiles: bad input is refused before the folder is touched.
         self.layout = AppLayout.create(self.app, summary_path if self.registry else None, self.mode)
