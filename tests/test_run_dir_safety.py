@@ -183,8 +183,9 @@ def test_a_disk_already_full_is_refused_before_the_run(tiny_disk: Path, tmp_path
                                                         command: str) -> None:
     fill(tiny_disk, leave_bytes=16 * 1024)  # room for a few files, not for the summary's reserve
     out = tiny_disk / "run"
+    # --keep: the recording's own estimate (test_disk_room.py) would refuse it first without it
     result = subprocess.run([*CLI, command, str(app_file(tmp_path, "safety_full")), "--duration", "0.2",
-                             "--out", str(out), "-q"], env=rtloop_env, capture_output=True, text=True)
+                             "--keep", "1", "--out", str(out), "-q"], env=rtloop_env, capture_output=True, text=True)
     assert result.returncode == 2, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert f"no space at {out}: 16384 bytes free" in result.stderr

@@ -43,6 +43,8 @@ def free_bytes(out: Path) -> int | None:
         stats = os.statvfs(folder)
     except OSError:
         return None  # the folder check that follows says what is wrong with it
+    if stats.f_blocks == 0:
+        return None  # no disk under it (/proc, /sys): making the folder fails, and says so
     return stats.f_bavail * stats.f_frsize
 
 
