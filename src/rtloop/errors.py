@@ -62,6 +62,10 @@ class LibcError(RtloopError, OSError):
         return self.message
 
 
+FAULTS_SAID_IN_FULL = ("DeviceFault", "NonFiniteOutput")
+"""Faults rtloop raises itself, naming task, cycle and signal: no traceback on the console."""
+
+
 class TaskFailed(RtloopError, RuntimeError):
     """A task stopped because its runnable raised or its process died.
 
@@ -85,6 +89,13 @@ class TaskFailed(RtloopError, RuntimeError):
 
     def __reduce__(self) -> tuple[type, tuple[str, int | None, str, str, str]]:
         return type(self), (self.task, self.cycle, self.phase, self.reason, self.traceback_text)
+
+    @property
+    def said_in_full(self) -> bool:
+        """Whether the message says all there is: a fault rtloop itself found (a device's timeout, a
+        NaN command or reading, a NaN output) names task, cycle and signal; its traceback would show
+        only rtloop's own code (summary.json keeps it; ``--debug`` prints it)."""
+        return self.reason.partition(":")[0] in FAULTS_SAID_IN_FULL
 
     def to_json(self) -> dict[str, object]:
         return {

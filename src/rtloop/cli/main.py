@@ -98,7 +98,7 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     if isinstance(error, TaskFailed):
         print(f"{prefix}: {error}", file=sys.stderr)
-        if error.traceback_text:
+        if error.traceback_text and (getattr(args, "debug", False) or not error.said_in_full):
             print(error.traceback_text.rstrip(), file=sys.stderr)
         out = getattr(args, "out", None)
         if out is not None:

@@ -170,5 +170,5 @@ def _holds_something(path: Path) -> bool:
 
 
 def _us(value_ns: float) -> str:
-    return "nan" if value_ns != value_ns else f"{value_ns / 1000:.1f}"
+    return "–" if value_ns != value_ns else f"{value_ns / 1000:.1f}"  # NaN: no cycle ran
 

@@ -40,6 +40,14 @@ INPUT_TOPIC_PREFIX = "/rtloop/ports/"
 MAX_PENDING_BATCHES = 200  # ~10 s of the supervisor's 50 ms drains
 
 
+def served_to(host: str, inputs: tuple[str, ...] | list[str]) -> str:
+    """What the console says of a live view served beyond this machine ('' for loopback only)."""
+    if host in ("127.0.0.1", "::1", "localhost"):
+        return ""
+    where = "every network interface" if host in ("0.0.0.0", "::") else host
+    writes = f" and may write port{'s' if len(inputs) > 1 else ''} {', '.join(inputs)}" if inputs else ""
+    return f"; it listens on {where}: anyone on the network who reaches it sees the signals{writes}"
+
 class LiveViewUnavailable(RtloopError, ImportError):
     """foxglove-sdk is not installed."""
 
@@ -98,6 +106,8 @@ class LiveView:
         host = "localhost" if spec.host in ("127.0.0.1", "0.0.0.0", "::", "::1") else spec.host
         self.url = f"ws://{host}:{self.front.port}"
         """Where Foxglove connects (the port the server got, if 0 was asked for)."""
+        self.reach = served_to(spec.host, spec.inputs)
+        """Who else can connect, for the console ('' on loopback only)."""
 
     def start(self, t0_ns: int, wall_t0_ns: int) -> None:
         """Begin sending: the epoch is known, so are the messages' times."""

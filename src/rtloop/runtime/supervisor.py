@@ -234,7 +234,8 @@ class Supervisor:
         assert session.layout.registry_path is not None
         self.live = LiveView(self.app, self.app.live_view, names, session.layout.registry_path)
         recorder.live = self.live
-        self.on_notice(f"Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)")
+        self.on_notice(f"Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)"
+                       f"{self.live.reach}")
 
     def _spawn(self, layout: AppLayout) -> None:
         """Start a process per task into ``self.runs`` (each one there as soon as it started,
