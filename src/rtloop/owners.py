@@ -67,10 +67,10 @@ def output_folder_problem(out: Path) -> str | None:
     """Why rtloop must not write into ``out`` (None: it may): another user could plant a link there
     (or swap the folder) for a write of this process to follow — as root, onto any file. ``out``
     need not exist yet: then the folders above it are checked (made here, it is this user's)."""
-    from rtloop.sudo import trusted_uids
+    from rtloop.sudo import trusted_uids, trusted_users_phrase
 
     trusted = trusted_uids()
-    whom = "you, root or the user who ran sudo" if len(trusted) > 2 else "you or root"
+    whom = trusted_users_phrase()
     absolute = Path(os.path.abspath(out))
     for path in (*reversed(absolute.parents), absolute):  # a link on the way: whose is it?
         try:

@@ -27,3 +27,12 @@ def trusted_uids() -> set[int]:
     if invoker is not None:
         uids.add(invoker[0])
     return uids
+
+
+def trusted_users_phrase() -> str:
+    """Who :func:`trusted_uids` trusts, in words: ``you (uid 1000) or root``; under sudo,
+    ``you (uid 1001, via sudo) or root``."""
+    invoker = invoking_user()
+    if invoker is not None:
+        return f"you (uid {invoker[0]}, via sudo) or root"
+    return f"you (uid {os.geteuid()}) or root"

@@ -43,7 +43,7 @@ from typing import Any, ClassVar
 from rtloop.app import sources
 from rtloop.errors import AppError
 from rtloop.owners import folder_problem, untrusted_writer
-from rtloop.sudo import trusted_uids
+from rtloop.sudo import trusted_uids, trusted_users_phrase
 
 SOURCES_ATTRIBUTE = "__rtloop_sources__"
 """On a module loaded by file: the files it was made of (its own, and the modules it loaded), path → digest."""
@@ -152,7 +152,7 @@ def read_checked_source(path: Path) -> bytes:
 
 
 def _whom() -> str:
-    return _TRUST_OVERRIDES[-1][1] if _TRUST_OVERRIDES else f"you (uid {os.geteuid()}) or root"
+    return _TRUST_OVERRIDES[-1][1] if _TRUST_OVERRIDES else trusted_users_phrase()
 
 
 def _trusted_uids() -> set[int]:

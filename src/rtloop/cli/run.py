@@ -89,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
         from rtloop.runtime.simulate import simulate
 
         summary = simulate(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force)
+    for warning in realtime_warnings(summary):  # a warning, on stderr: `rtloop run ... | head` still shows it
+        print(warning, file=sys.stderr)
     if not args.quiet:
         print(format_summary(summary, args.out))
     return 0
@@ -126,12 +128,15 @@ def show_progress(progress: Progress) -> None:
     sys.stderr.flush()
 
 
+def realtime_warnings(summary: RunSummary) -> list[str]:
+    """One line for each task of a run that did not run real-time, with the reason."""
+    return [f"WARNING: task {name!r} did NOT run real-time ({task.policy}): {task.rt_reason}"
+            for name, task in summary.tasks.items() if not task.rt and summary.mode == "run"]
+
+
 def format_summary(summary: RunSummary, out: Path) -> str:
-    """A short table of the run, with the non-real-time warning first."""
+    """A short table of the run (its warnings go to stderr: :func:`realtime_warnings`)."""
     lines: list[str] = []
-    for name, task in summary.tasks.items():
-        if not task.rt and summary.mode == "run":
-            lines.append(f"WARNING: task {name!r} did NOT run real-time ({task.policy}): {task.rt_reason}")
     header = (f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}"
               f"{'exec µs p50/max':<18}{'misses':>7}{'overruns':>9}{'stale':>6}")
     lines.append(f"{summary.app}: {summary.mode} for {summary.elapsed_s:.1f} s, stopped by {summary.stopped_by}")

@@ -41,7 +41,7 @@ import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import HOUR_MS, Device, FloatVector, Setting
-from rtloop.sudo import trusted_uids
+from rtloop.sudo import trusted_uids, trusted_users_phrase
 
 REQUEST_SYNC = 0xA5
 RESPONSE_SYNC = 0x5A
@@ -146,7 +146,7 @@ def foreign_owner(path: str, opened: os.stat_result | None = None) -> str | None
     way owned by another user, or a device node of theirs (a pty they hold the other end of),
     would let them read every command and answer as the device. A tty of root:dialout is fine."""
     trusted = trusted_uids()
-    whom = f"not by you (uid {os.geteuid()}) or root; rtloop will not talk to it"
+    whom = f"not by {trusted_users_phrase()}; rtloop will not talk to it"
     current = path
     try:
         for _ in range(40):  # the kernel's own limit of links followed
@@ -253,6 +253,7 @@ class SerialDevice(Device):
         self.response = Frame(RESPONSE_SYNC, self.n_outputs)
         self.readings = np.zeros(self.n_outputs)
         self.sequence = 0
+        self.requests = 0  # counted from 1, for messages; the frame carries it modulo 256 (its sequence)
         self.exchanges = 0
         self.flags = 0  # not enabled until T0
 
@@ -271,7 +272,7 @@ class SerialDevice(Device):
         USB adapter pulled, the other end of a pty closed."""
         code = error.args[0] if error.args and isinstance(error.args[0], int) else None
         reason = os.strerror(code) if code else str(error)
-        return DeviceFault(f"device {self.name!r}: {self.config['port']} hung up at request {self.sequence} "
+        return DeviceFault(f"device {self.name!r}: {self.config['port']} hung up at {self._request()} "
                            f"({reason}: the other end closed, or the adapter was unplugged)")
 
     def _exchange(self, u: FloatVector) -> None:
@@ -281,7 +282,7 @@ class SerialDevice(Device):
         if self.on_missing == "fault":
             if not read_frame(self.fd, self.response, self.poller, self.timeout_ns):
                 raise DeviceFault(f"device {self.name!r}: no response within {self.timeout_ns / 1e6:g} ms "
-                                  f"on {self.config['port']} (request {sequence}); on_missing = \"stale\" "
+                                  f"on {self.config['port']} ({self._request()}); on_missing = \"stale\" "
                                   "keeps the last readings instead (a slow line, or a loaded machine)")
             self._take_response(sequence)
             return
@@ -295,7 +296,7 @@ class SerialDevice(Device):
         self.stale_in_a_row += 1
         if self.stale_in_a_row >= self.max_stale_in_a_row:
             raise DeviceFault(f"device {self.name!r}: no good answer to {self.stale_in_a_row} requests in a row "
-                              f"on {self.config['port']} (the last: {STALE_SOURCES[missing]}, request {sequence}; "
+                              f"on {self.config['port']} (the last: {STALE_SOURCES[missing]}, {self._request()}; "
                               f"max_stale_in_a_row = {self.max_stale_in_a_row})")
 
     def _await_answer(self, sequence: int, timeout_ns: int) -> int:
@@ -331,7 +332,7 @@ class SerialDevice(Device):
             raise self._line_gone(error) from None
         if missing == 0:
             raise DeviceFault(f"device {self.name!r}: no answer to the safe values within "
-                              f"{timeout_ns / 1e6:g} ms on {self.config['port']} (request {sequence})")
+                              f"{timeout_ns / 1e6:g} ms on {self.config['port']} ({self._request()})")
         self.stale_in_a_row = 0
         self._take_response(sequence)
 
@@ -341,8 +342,12 @@ class SerialDevice(Device):
     def stale_sources(self) -> dict[str, int]:
         return {source: count for source, count in zip(STALE_SOURCES, self.stale_by_source, strict=True) if count}
 
+    def _request(self) -> str:
+        return f"request {self.requests} (sequence {self.sequence})"
+
     def _send(self, u: FloatVector) -> int:
         request = self.request
+        self.requests += 1
         self.sequence = sequence = (self.sequence + 1) & 0xFF
         request.values[:] = u
         request.seal(sequence, self.flags)

@@ -53,7 +53,7 @@ import numpy as np
 from rtloop.models.base import ModelBuildError, ModelError, StateNotCaptured
 from rtloop.owners import untrusted_writer
 from rtloop.runnable import FloatVector
-from rtloop.sudo import trusted_uids
+from rtloop.sudo import trusted_uids, trusted_users_phrase
 
 __all__ = ["TwentySimInfo", "TwentySimModel", "build_library", "default_cache_dir", "inspect"]
 
@@ -492,7 +492,7 @@ def _foreign_cache(library: Path) -> str | None:
     """Why a cached library may be another user's (None: it is not): it, or its folder, is theirs or
     writable by them (a sticky folder aside). Its name is a hash anyone can compute."""
     trusted = trusted_uids()
-    whom = f"you (uid {os.geteuid()}) or root"
+    whom = trusted_users_phrase()
     for path, facts in ((library, os.lstat(library)), (library.parent, os.stat(library.parent))):
         if facts.st_uid not in trusted:
             return f"{path} is owned by uid {facts.st_uid}, not by {whom}"
