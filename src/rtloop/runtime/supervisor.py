@@ -501,6 +501,8 @@ class Supervisor:
                                               for name, report in message["devices"].items()})
                 elif kind == "device_problems":
                     self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
+                elif kind == "note":
+                    self.device_problems.append(f"task {task_run.name}: {message['text']}")
                 elif kind == "failed":
                     task_run.failure = TaskFailed(
                         task_run.name, message["cycle"], message["phase"], message["reason"],

@@ -33,6 +33,10 @@ from rtloop.runnable import Runnable, TickInfo
 from rtloop.runtime.snapshot import take  # here, not at the first snapshot: no import inside the loop
 
 T0_POLL_S = 0.001
+SUPERVISOR_GONE = signal.SIGRTMIN + 5
+"""What the kernel sends a task when its supervisor dies (PR_SET_PDEATHSIG): a signal of rtloop's
+own, so code that takes over SIGTERM (a library, a student's "clean exit") cannot keep the loop
+running with no supervisor; it stops in order, as SIGTERM does."""
 
 
 
@@ -161,8 +165,13 @@ def task_process_main(
     # SIGTERM (from a user, or from the kernel when the supervisor dies) stops the whole
     # app the orderly way: the loop sees the stop flag and postrun still runs.
     task: RealtimeTask | None = None
-    signal.signal(signal.SIGTERM, lambda _signum, _frame: _on_sigterm(control, task))
-    rt.die_with_parent(signal.SIGTERM)
+
+    def stop_in_order(_signum: int, _frame: Any) -> None:
+        _on_sigterm(control, task)
+
+    for signum in (signal.SIGTERM, SUPERVISOR_GONE):
+        signal.signal(signum, stop_in_order)
+    rt.die_with_parent(SUPERVISOR_GONE)
     try:
         rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
     except OSError:
@@ -219,6 +228,7 @@ def task_process_main(
         gc.collect()
         gc.freeze()  # everything alive now is never scanned again
         gc.disable()  # and no collection pauses inside the loop
+        _take_back_stop_signals(stop_in_order, pipe)  # the runnable's code may have taken them over
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
         phase = "step"
@@ -262,6 +272,18 @@ def task_process_main(
     task.devices.stop()  # done already unless the stop came before T0
     _report_devices(pipe, task.devices)
     _report(pipe, kind="stopped", cycles=task.cycle + 1)
+
+
+def _take_back_stop_signals(handler: Any, pipe: Any) -> None:
+    """Put rtloop's handler back where loading or prerun replaced it (rclpy and other libraries
+    install their own SIGTERM handler; SIG_IGN would leave a loop nobody can stop), and say so."""
+    for signum in (signal.SIGTERM, SUPERVISOR_GONE):
+        if signal.getsignal(signum) is not handler:
+            signal.signal(signum, handler)
+            name = "SIGTERM" if signum == signal.SIGTERM else "the supervisor's death signal"
+            _report(pipe, kind="note", text=f"its code replaced rtloop's handler of {name} (in loading or "
+                    "prerun); rtloop put its own back, so a stop, and the supervisor's death, still stop the "
+                    "loop in order")
 
 
 def _on_sigterm(control: WordBlock, task: RealtimeTask | None) -> None:
