@@ -369,11 +369,14 @@ def _keep_run_replays_its_window(tmp_path: Path, fmu: Path, duration_s: float, k
     name = f"replay_keep_{os.getpid()}"
     done = threading.Event()
 
+    written = []
+
     def write_setpoints() -> None:  # live port writes all along, some before the window, some in it
         app = connect_app(name, timeout_s=60)
         step = 0
         while not done.wait(min(0.7, keep_s / 3)):  # several inside the window
             app.write("setpoint", [0.3 * (-1) ** step, 0.05 * (step % 4)])
+            written.append(step)
             step += 1
 
     writer = threading.Thread(target=write_setpoints, daemon=True)
@@ -391,6 +394,8 @@ def _keep_run_replays_its_window(tmp_path: Path, fmu: Path, duration_s: float, k
     assert duration_s - result.from_s >= keep_s, "the replay covers at least the kept window"
     assert result.rows_compared == result.rows_in_run > 100
     assert result.port_inputs >= 1, "setpoints written inside the window were fed back"
+    taken = (tmp_path / "run" / "inputs.csv").read_text().splitlines()[1:]
+    assert result.port_inputs <= len(taken) < len(written) - 2, "inputs.csv rotates with the window"
 
 
 @pytest.mark.rt

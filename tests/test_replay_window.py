@@ -171,6 +171,7 @@ def test_a_keep_window_with_a_20sim_plant_and_nudged_profiles_replays_from_its_s
     tilt.write_text("t_s,tilt\n0,-0.1\n1.5,0.05\n")
     name = f"replay_window_{os.getpid()}"
     done = threading.Event()
+    seen_at_write: list[int] = []  # the plant's newest cycle when each nudge was written
 
     def nudge() -> None:  # two nudges early (held through the window's start), one inside it
         app = connect_app(name, timeout_s=60)
@@ -182,6 +183,7 @@ def test_a_keep_window_with_a_20sim_plant_and_nudged_profiles_replays_from_its_s
                     newest = int(ticks[-1]) if len(ticks) else newest
                     time.sleep(0.01)
                 app.write(port, [value])
+                seen_at_write.append(newest)
 
     writer = threading.Thread(target=nudge, daemon=True)
     writer.start()
@@ -192,8 +194,12 @@ def test_a_keep_window_with_a_20sim_plant_and_nudged_profiles_replays_from_its_s
         writer.join(10)
     run = tmp_path / "run"
     taken = sorted(_input_cycles(run), key=lambda entry: entry[1])
-    assert len(taken) == 3 and {port for port, _cycle in taken[:2]} == {"pan", "tilt"} and taken[2][0] == "pan"
-    early, late_write = taken[1][1], taken[2][1]
+    # inputs.csv rotates with the window: the late nudge is in it; the early ones only if an event
+    # pinned their segment (the window's replay takes them from the snapshot)
+    assert len(seen_at_write) == 3 and len(taken) in (1, 3) and taken[-1][0] == "pan", (seen_at_write, taken)
+    assert len(taken) == 1 or {port for port, _cycle in taken[:2]} == {"pan", "tilt"}
+    early = taken[1][1] if len(taken) == 3 else seen_at_write[1]  # taken at the first release after the write
+    late_write = taken[-1][1]
     found: dict[int, dict] = {}
     for path in sorted((run / SNAPSHOTS_DIR).glob("*.pkl")):
         for snapshot in read_snapshots(path):

@@ -59,8 +59,17 @@ class InputsCsv:
     HEADER = "task,cycle,port,values\n"
 
     def __init__(self, path: Path) -> None:
-        self.file: TextIO = open(path, "w", buffering=1 << 14)  # noqa: SIM115
-        self.file.write(self.HEADER)
+        self.file: TextIO = self._open(path)
+
+    def _open(self, path: Path) -> TextIO:
+        file = open(path, "w", buffering=1 << 14)  # noqa: SIM115
+        file.write(self.HEADER)
+        return file
+
+    def switch_to(self, path: Path) -> None:
+        """Go on in a new file (a recording segment), which starts with the header."""
+        self.file.close()
+        self.file = self._open(path)
 
     def append(self, task: str, period_ns: int, ports: list[tuple[str, int]], ticks: np.ndarray,
                rows: np.ndarray) -> None:

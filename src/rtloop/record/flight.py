@@ -1,14 +1,14 @@
 """The flight recorder: a recording that keeps the last ``keep_s`` seconds and what surrounds events.
 
 A run that lasts for days cannot keep every cycle on disk. With ``--keep S`` the recorder
-writes its files (timing.csv, signals.csv, run.mcap) in *segments* of S/6 seconds of run
-time, in ``DIR/segments/``. When a segment is complete the window drops every older
-segment that holds nothing of the last S seconds, unless it is *pinned*: a deadline miss, a
-stale read or a fault pins the segment it happened in, the one before and the one after, so
-the cycles just before and just after every event are kept. At most
-``MAX_PINNED_SEGMENTS`` are pinned; later events are counted, not kept (the last S seconds
-are always kept). At the end, :meth:`FlightWindow.stitch` joins the segments left into the
-usual files and removes the folder.
+writes its files (timing.csv, signals.csv, run.mcap, inputs.csv, reads.csv, the task
+snapshots) in *segments* of S/6 seconds of run time, in ``DIR/segments/``. When a segment
+is complete the window drops every older segment that holds nothing of the last S seconds,
+unless it is *pinned*: a deadline miss, a stale read or a fault pins the segment it happened
+in, the one before and the one after, so the cycles just before and just after every event
+are kept. At most ``MAX_PINNED_SEGMENTS`` are pinned; later events are counted, not kept
+(the last S seconds are always kept). At the end, :meth:`FlightWindow.stitch` joins the
+segments left into the usual files and removes the folder.
 
 The window keeps one segment more than the last S seconds need: the tasks' state is
 saved a little after a segment starts (``runtime/snapshot.py``), so the segment before the

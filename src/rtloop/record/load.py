@@ -245,7 +245,8 @@ def load(run_dir: str | os.PathLike[str], *, memory_limit_bytes: int = MEMORY_LI
         if isinstance(counted, int) and recorded != counted and not summary.get("recording", {}).get("keep_s"):
             problems.append(f"task {name}: timing.csv has {recorded} rows but summary.json counts {counted} cycles")
     signals = _load_signals(path, summary, spill, problems)
-    inputs = InputsByPort(_load_inputs(path / "inputs.csv", summary, problems), summary.get("ports") or {})
+    inputs = InputsByPort(_load_inputs(_parts(path, "inputs.csv", problems), summary, problems),
+                          summary.get("ports") or {})
     return RunData(path, summary, signals, timing, inputs, problems)
 
 
@@ -480,13 +481,13 @@ def _read_sidecar(path: Path, names: tuple[str, ...],
     return units, tuple(p for p in plots if p.signals)
 
 
-def _load_inputs(path: Path, summary: dict[str, Any], problems: list[str]) -> dict[str, PortInputs]:
-    """``inputs.csv``: one row per value a task took from a live port (few: one per write)."""
-    if not path.is_file():
+def _load_inputs(parts: list[Path], summary: dict[str, Any], problems: list[str]) -> dict[str, PortInputs]:
+    """``inputs.csv`` (and its segments): one row per value a task took from a live port."""
+    if not parts:
         return {}
     periods = {name: t.get("period_ns", 0) for name, t in summary.get("tasks", {}).items() if isinstance(t, dict)}
     collected: dict[str, tuple[str, list[int], list[FloatArray]]] = {}
-    for where, line, block in _blocks([path], INPUTS_HEADER, problems):
+    for where, line, block in _blocks(parts, INPUTS_HEADER, problems):
         for number, text in enumerate(block.decode("utf-8", "replace").splitlines(), start=line):
             task, cycle, port, values = [*text.split(","), "", "", ""][:4]
             row = _numbers(values.strip().replace(" ", ",").encode(), np.float64)

@@ -6,8 +6,9 @@ run.mcap too when the ``mcap`` packages are installed (``pip install 'rtloop[ros
 the summary says why it is missing; beside run.mcap, metadata.yaml makes the run
 directory a ROS 2 bag (``ros2 bag info``); inputs.csv logs what entered through live
 ports (for ``rtloop replay``). ``keep_s=None`` writes everything straight into those
-files; ``keep_s=S`` writes segments that a :class:`~rtloop.record.flight.FlightWindow`
-prunes to the last S seconds plus what surrounds every event, stitched at :meth:`close`.
+files; ``keep_s=S`` writes segments (of every file that grows with the run, inputs.csv too)
+that a :class:`~rtloop.record.flight.FlightWindow` prunes to the last S seconds plus what
+surrounds every event, stitched at :meth:`close`.
 
 A recording that fails (disk full, I/O error, folder removed) stops; the run does not:
 the statistics go on, and :attr:`Recorder.stopped` says what happened.
@@ -34,7 +35,9 @@ from rtloop.stats.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.stats.timing_stream import StreamingTaskTiming
 from rtloop.sudo import invoking_user
 
-FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "run.mcap", "snapshots.pkl"]
+FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "inputs.csv", "run.mcap", "snapshots.pkl"]
+"""The files of a --keep segment: all that grows with the run (a replay of the window needs the
+inputs from its start on: the task snapshots hold the values taken before)."""
 
 
 class Recorder:
@@ -96,8 +99,8 @@ class Recorder:
                 {n: (t.runnable.input_names, t.runnable.output_names) for n, t in self.app.tasks.items()})
         if any(self._writers.values()):  # a stale read needs a connection
             self.reads = ReadsCsv(self._path("reads.csv"))
-        if self._has_live_ports:  # small (one row per value that came in): never rotated
-            self.inputs = InputsCsv(self.out / "inputs.csv")
+        if self._has_live_ports:  # a row per value that came in: 1 GB a day from a 1-kHz setpoint topic
+            self.inputs = InputsCsv(self._path("inputs.csv"))
 
     def write_replay_info(self, duration_s: float | None) -> None:
         """``replay.json``: what ``rtloop replay`` needs besides inputs.csv to rebuild the run."""
@@ -144,6 +147,8 @@ class Recorder:
             self.signals.switch_to(self._path("signals.csv"))
         if self.reads is not None:
             self.reads.switch_to(self._path("reads.csv"))
+        if self.inputs is not None:
+            self.inputs.switch_to(self._path("inputs.csv"))
         self.snapshots = []
         if not self.mcap_note:
             self._open_mcap()
