@@ -16,7 +16,7 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu, unique_name
+from conftest import other_cpu, scaled_ns, scaled_s, unique_name
 from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController, RaiseAt
 from rtloop import App
 from rtloop.ipc import hotpath
@@ -290,11 +290,12 @@ def test_failed_simulations_kept_in_reference_cycles_do_not_corrupt_memory(tmp_p
 def test_a_matrix_product_in_the_loop_does_not_map_a_new_blas_buffer(tmp_path: Path, lock_blas_buffer: bool) -> None:
     # Before: OpenBLAS mapped a second 32 MB buffer on the first product, and mlockall faulted
     # it all in inside the loop (8,192 faults). Now the one buffer exists before the loop.
+    # 100 cycles wherever it runs: at 2 ms unstretched, the emulated guest skipped half of them
     app = App(f"blas_{os.getpid()}_{int(lock_blas_buffer)}")
-    product = app.add_task("product", MatrixProduct(), period_ns=2_000_000, cpu=other_cpu(),
+    product = app.add_task("product", MatrixProduct(), period_ns=scaled_ns(2_000_000), cpu=other_cpu(),
                            lock_blas_buffer=lock_blas_buffer)
     app.record(product.y)
-    summary = rtloop.run(app, 0.2, tmp_path)
+    summary = rtloop.run(app, scaled_s(0.2), tmp_path)
     assert summary.rt_capable
     header, *rows = rows_of(tmp_path / "signals.csv")
     faults = [float(row[header.index("product.y[0]")]) for row in rows[1:]]  # row 0: initial outputs

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
-from conftest import unique_name
+from conftest import scaled_ns, scaled_s, unique_name
 from rt_test_runnables import Counter, LateFrom, LateOnce, SpinFrom
 from rtloop import App, TaskFailed
 from rtloop.app.appfile import load_app
@@ -146,8 +146,10 @@ def test_keep_bounds_the_files_and_keeps_the_cycles_around_a_miss(tmp_path: Path
     # miss comes in the third segment, before the pin budget can be spent
     from rtloop.record import flight
 
-    monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)
-    period_ns, late_from, duration_s, keep_s = 2 * MS, 250, 5.0, 0.5
+    # the same 2,500 cycles wherever it runs: at 2 ms unstretched, the emulated guest skipped most
+    # releases around the miss, and the cycles before it were not there to keep
+    monkeypatch.setattr(flight, "MIN_SEGMENT_NS", scaled_ns(250_000_000))
+    period_ns, late_from, duration_s, keep_s = scaled_ns(2 * MS), 250, scaled_s(5.0), scaled_s(0.5)
     app = App(unique_name("days_keep_bounds"))
     late = app.add_task("late", LateOnce(late_from), period_ns=period_ns, priority=50, cpu=0)
     app.record(late.y)
