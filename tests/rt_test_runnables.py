@@ -91,6 +91,22 @@ class Gain(Runnable):
         y[:] = self.gain * u + self.offset
 
 
+class SlowToStop(Runnable):
+    """Does nothing each cycle; its postrun takes ``hold_s`` (a task that keeps a run's end waiting)."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, hold_s: float) -> None:
+        self.hold_s = hold_s
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+
+    def postrun(self) -> None:
+        time.sleep(self.hold_s)
+
+
 class Integrator(Runnable):
     """Discrete plant: x += h·(u − x)·gain, y = x (per element); reacts one tick late."""
 

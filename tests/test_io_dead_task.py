@@ -5,7 +5,11 @@ summary.json says so.
 
 The GPIO output is pulled up on the simulator's side: a line the kernel frees with the dead
 process goes to its pull (gpio-sim; most SoC controllers keep the last level), so only the
-supervisor's request can bring it to its safe 0.
+supervisor's request can bring it to its safe 0. The supervisor holds the line until the run
+ends; a second task whose postrun takes a while keeps that end a second or more away, so the
+test's watch of the line (a Python thread reading it every millisecond, in an emulated guest
+that its host stalls for tens of ms) sees the safe level for certain: without it, the run's end
+came so soon after the kill that the watch once missed the held 0 altogether.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from pathlib import Path
 import pytest
 
 from io_guest_devices import SimLine, guest_device
+from rtloop.ipc.ports import connect_app
 
 COMMAND_ID, HEARTBEAT_ID = 0x2A1, 0x7A1
 
@@ -47,6 +52,12 @@ kind = "gpio"
 task = "ctl"
 chip = "{chip}"
 outputs = ["led"]
+
+[tasks.linger]
+runnable = "rt_test_runnables:SlowToStop"
+args = {{ hold_s = 1.5 }}
+period_ns = 50_000_000
+priority = 60
 
 [[connect]]
 from = "ctl.y[0]"
@@ -101,21 +112,6 @@ class LineWatch(threading.Thread):
             time.sleep(0.001)
 
 
-def task_pid(run_pid: int) -> int | None:
-    """The task process among the children of ``rtloop run`` (multiprocessing's spawned one)."""
-    try:
-        children = Path(f"/proc/{run_pid}/task/{run_pid}/children").read_text().split()
-    except OSError:
-        return None
-    for child in children:
-        try:
-            if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
-                return int(child)
-        except OSError:
-            continue
-    return None
-
-
 @pytest.mark.rtkernel
 @pytest.mark.timeout(1200)
 def test_kill_9_of_the_task_the_supervisor_sends_the_safe_frame_and_drives_the_safe_level(tmp_path):
@@ -124,7 +120,8 @@ def test_kill_9_of_the_task_the_supervisor_sends_the_safe_frame_and_drives_the_s
     led = SimLine(gpio, "led")
     led.pull(True)  # a freed line reads 1: only the supervisor's request can make it 0
     app = tmp_path / "app.toml"
-    app.write_text(APP.format(name=f"dead_task_{os.getpid()}", interface=vcan["interface"], chip=gpio["device"]))
+    name = f"dead_task_{os.getpid()}"
+    app.write_text(APP.format(name=name, interface=vcan["interface"], chip=gpio["device"]))
     tests = str(Path(__file__).resolve().parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
     listener, watch = CanListener(vcan["interface"]), LineWatch(led)
@@ -139,8 +136,8 @@ def test_kill_9_of_the_task_the_supervisor_sends_the_safe_frame_and_drives_the_s
             time.sleep(0.05)
         assert listener.commands().count(1.0) >= 3, (listener.commands(), process.poll())
         assert watch.values[-1] == 1
-        pid = task_pid(process.pid)
-        assert pid is not None, "no task process under rtloop run"
+        pid = connect_app(name, timeout_s=60).task_pids()["ctl"]
+        assert pid, "no task process for ctl"
         killed_at, line_changes_before = len(listener.frames), len(watch.values)
         os.kill(pid, signal.SIGKILL)
         _, stderr = process.communicate(timeout=300)
@@ -159,10 +156,10 @@ def test_kill_9_of_the_task_the_supervisor_sends_the_safe_frame_and_drives_the_s
             if can_id == COMMAND_ID and struct.unpack("<d", data)[0] == -0.5]
     assert safe, f"no safe frame after the kill: {after}"
     assert not any(can_id == HEARTBEAT_ID for can_id, _ in after[safe[0]:]), after  # the drive sees the loop gone
-    assert 0 in watch.values[line_changes_before:], watch.values  # the supervisor drove the line to its safe 0
     notes = json.loads((tmp_path / "run" / "summary.json").read_text())["notes"]
     said = " | ".join(notes)
     assert "task ctl was killed by SIGKILL before its device 'drive' (can) got its safe values: the supervisor " \
            "sent its frames 0x2A1 with the safe values" in said, notes
     assert "before its device 'panel' (gpio) got its safe values: the supervisor holds its output lines at " \
            "their safe levels (led=0)" in said, notes
+    assert 0 in watch.values[line_changes_before:], watch.values  # the supervisor drove the line to its safe 0
