@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import errno
+import fcntl
 import os
 import shutil
 import signal
@@ -112,6 +113,29 @@ def _prepare_out_dir(out: Path, *, force: bool, protect: Iterable[Path]) -> Path
     for name in found:
         _remove(out / name)
     return out
+
+
+def lock_out_dir(out: Path) -> int:
+    """Hold ``out`` for this run (an exclusive ``flock`` on the folder, released when the process
+    ends, however it ends): a second run into the same folder, even with ``force``, is refused
+    while this one goes on, so it can neither delete a live run's files nor mix its own in."""
+    fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise RunDirectoryError(f"--out {out} is the folder of a run still going (another rtloop holds it); "
+                                "nothing was written, --force or not: stop that run first, or choose another "
+                                "--out") from None
+    except OSError:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _locked(out: Path) -> int:
+    with _out_dir_errors(out):
+        return lock_out_dir(out)
 
 
 def check_out_dir(out: Path, *, protect: Iterable[Path] = ()) -> None:
@@ -304,6 +328,8 @@ class RunSession:
         self.losses = Losses({}, {}, {})
         self._next_task = 0  # the task the next drain serves first
         self._timing_drained: dict[str, int] = {}  # per task, timing records taken from its ring
+        self._lock_fd = -1
+        """The folder's lock (:func:`lock_out_dir`), held for the run's life."""
         self.before_close: list[Callable[[], None]] = []
         """Called before the shared memory is removed (the simulator lets go of its views)."""
 
@@ -318,7 +344,11 @@ class RunSession:
         self._opened.append("layout")
         existed = self.out.exists()
         try:
+            if existed:  # held before --force removes anything in it
+                self._lock_fd = _locked(self.out)
             prepare_out_dir(self.out, force=self.force, protect=self.protect)
+            if not existed:
+                self._lock_fd = _locked(self.out)
             self.summary_file = reserve_summary(self.out, made_here=not existed)
             self._opened.append("summary")
             self.recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
@@ -358,6 +388,9 @@ class RunSession:
             give_to_invoking_user(self.out)  # the last summary.json is a new file (written, then renamed)
 
     def _close_resources(self) -> None:
+        if self._lock_fd >= 0:  # after the last summary: the folder is another run's to take
+            os.close(self._lock_fd)
+            self._lock_fd = -1
         hooks, self.before_close = self.before_close, []
         for hook in hooks:
             with contextlib.suppress(Exception):
