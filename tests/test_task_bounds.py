@@ -62,7 +62,6 @@ def test_task_processes_that_would_not_fit_in_memory_are_refused() -> None:
     assert str(error.value) == (f"app {app.name!r}: 40 task processes of about 36.0 MB each would lock 1440.0 MB; "
                                 "the machine has 2000.0 MB available and a run may lock at most 50% of it "
                                 "(fewer tasks: let one task step several runnables)")
-    layout.check_task_memory(app, per_task_bytes=None, available=None)  # this machine: 40 small tasks fit
 
 
 def test_a_run_checks_the_memory_before_it_starts(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -75,3 +74,15 @@ def test_a_run_checks_the_memory_before_it_starts(tmp_path: Path, monkeypatch: p
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "3 task processes of about" in err and "10.0 MB available" in err, err
     assert not list(Path("/dev/shm").glob(f"rtloop-{name}-*"))  # nothing was created
+
+
+def test_the_memory_figures_come_from_proc(tmp_path: Path) -> None:
+    from rtloop.linux import memory
+
+    (tmp_path / "meminfo").write_text("MemTotal:       24000000 kB\nMemAvailable:    2000000 kB\n")
+    (tmp_path / "self").mkdir()
+    (tmp_path / "self" / "status").write_text("Name:\tpython\nVmRSS:\t   36000 kB\n")
+    assert memory.available_bytes(tmp_path) == 2_048_000_000
+    assert memory.resident_bytes(proc=tmp_path) == 36_864_000
+    assert memory.resident_bytes(4242, proc=tmp_path) is None  # no such process: nothing refused on it
+    assert memory.available_bytes() > 0 and memory.resident_bytes() > 0  # this machine's /proc
