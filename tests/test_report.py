@@ -139,6 +139,7 @@ def test_simulated_primes_report(tmp_path: Path) -> None:
     assert built.histograms == {}  # a simulated clock: latency and jitter all 0 µs, nothing to draw
     html = (out / "report.html").read_text()
     assert "simulated: no timing" in html and "Host execution time per step" in html
+    assert "<tr><td class=\"name\">latency max [µs]</td><td>–</td><td>–</td></tr>" in html  # not 0.0
     assert html.count("data:image/png;base64,") == len(built.pngs) == 1  # the signals only
     assert [p.name for p in built.pngs] == ["run-signals.png"]
 

@@ -86,6 +86,14 @@ RUN_FACTS: tuple[tuple[str, Any], ...] = (
 )
 
 
+CLOCK_METRICS = ("latency", "jitter", "exec", "cycles beyond")
+"""Metrics a simulated clock makes 0 by construction: shown as – for a simulation."""
+
+
+def _metric(run: Run, entry: dict[str, Any], label: str, read: Any) -> str:
+    return "–" if run.simulated and label.startswith(CLOCK_METRICS) else read(entry)
+
+
 def _bad(value: str, flag: bool) -> str:
     return "bad" if flag and value not in ("0", "–") else ""
 
@@ -96,7 +104,7 @@ def summary_table(run: Run) -> str:
     head = _row(["metric", *(escape(n) for n in names)], header=True)
     rows = [criterion_row(run, names)]
     for label, read, flag in METRICS:
-        values = [read(run.tasks[n]) for n in names]
+        values = [_metric(run, run.tasks[n], label, read) for n in names]
         rows.append(_row([label, *values], classes=["", *(_bad(v, flag) for v in values)]))
     return f'<div class="scroll"><table>{head}{"".join(rows)}</table></div>'
 
@@ -152,7 +160,7 @@ def comparison_table(runs: Sequence[Run]) -> str:
         rows.append('<tr><td class="name criterion">thesis criterion</td>'
                     + "".join(f'<td class="criterion {css}">{text}</td>' for text, css in verdicts) + "</tr>")
         for label, read, flag in METRICS:
-            values = [read(run.tasks[name]) if name in run.tasks else "–" for run in runs]
+            values = [_metric(run, run.tasks[name], label, read) if name in run.tasks else "–" for run in runs]
             rows.append(_row([label, *values], classes=["", *(_bad(v, flag) for v in values)]))
     return f'<div class="scroll"><table>{head}{"".join(rows)}</table></div>'
 
