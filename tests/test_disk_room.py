@@ -55,3 +55,24 @@ def test_only_a_run_that_keeps_everything_is_checked(tmp_path: Path, monkeypatch
     assert main(["simulate", str(DCMOTOR), "--duration", "0.1", "--keep", "5", "--quiet",
                  "--out", str(tmp_path / "b")]) == 0
     assert checked == [0.1]  # --keep: bounded by the flight recorder, not checked
+
+
+def test_a_replay_and_a_sweep_check_what_they_will_record(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A replay records the span it replays (a --keep run's window, not the whole run); a sweep
+    its points together: each is refused in one line with its own way out (neither has --keep)."""
+    assert main(["simulate", str(DCMOTOR), "--duration", "2", "--out", str(tmp_path / "sim"), "--quiet"]) == 0
+    monkeypatch.setattr(disk_room, "free_bytes", lambda out: 500_000)  # a disk with 0.5 MB free
+    assert main(["replay", str(tmp_path / "sim"), "--out", str(tmp_path / "replay")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err == (f"rtloop replay: the replay of 2 s would record about 984.0 kB (492.0 kB/s, an estimate that errs "
+                   f"high) and {tmp_path / 'replay'} has 500.0 kB free: replay into an --out with more room"), err
+    assert not (tmp_path / "replay").exists()
+    assert main(["sweep", str(DCMOTOR), "--param", "pi.kp=0.02,0.04", "--duration", "1", "--processes", "1",
+                 "--out", str(tmp_path / "sweep")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"rtloop sweep: 2 simulations of 1 s would record about 984.0 kB (492.0 kB/s, an estimate that "
+                   f"errs high) and {tmp_path / 'sweep'} has 500.0 kB free: sweep fewer points or give a shorter "
+                   "--duration"), err
+    assert not (tmp_path / "sweep").exists()

@@ -48,8 +48,12 @@ def free_bytes(out: Path) -> int | None:
     return stats.f_bavail * stats.f_frsize
 
 
-def check_room(app: App, out: Path, duration_s: float, free: int | None = None) -> None:
-    """Refuse a recording of ``duration_s`` that would not fit in the free space at ``out``."""
+def check_room(app: App, out: Path, duration_s: float, free: int | None = None, *, what: str = "",
+               remedy: str = "") -> None:
+    """Refuse a recording of ``duration_s`` that would not fit in the free space at ``out``.
+
+    ``what`` records (default: ``--duration S s``); ``remedy`` says what to do instead
+    (default: ``--keep S``, with the S that fits)."""
     free = free_bytes(out) if free is None else free
     if free is None:
         return
@@ -57,9 +61,10 @@ def check_room(app: App, out: Path, duration_s: float, free: int | None = None) 
     needed = per_s * duration_s
     if needed > free:
         fits_s = max(1, int(free / per_s / 4))  # --keep S holds up to ≈ 3.3·S s, and a copy of run.mcap at the end
-        raise AppError(f"--duration {duration_s:.15g} s would record about {_size(needed)} ({_size(per_s)}/s, an "
-                       f"estimate that errs high) and {out} has {_size(free)} free: keep the last S seconds only "
-                       f"with --keep S (up to --keep {fits_s} fits), or give a shorter --duration")
+        remedy = remedy or (f"keep the last S seconds only with --keep S (up to --keep {fits_s} fits), or give a "
+                            "shorter --duration")
+        raise AppError(f"{what or f'--duration {duration_s:.15g} s'} would record about {_size(needed)} "
+                       f"({_size(per_s)}/s, an estimate that errs high) and {out} has {_size(free)} free: {remedy}")
 
 
 def _size(size_bytes: float) -> str:

@@ -39,6 +39,7 @@ from rtloop.app.builder import App
 from rtloop.app.sources import changes_since
 from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
+from rtloop.record.disk_room import check_room
 from rtloop.runtime.session import UNFINISHED_FOLDER, check_out_dir
 from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
 from rtloop.runtime.snapshot import SNAPSHOTS_DIR, TaskSnapshot, read_snapshots, restore_state
@@ -598,6 +599,9 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
     last_release_ns = max((run[-1].release_ns + periods[name] for name, run in records.items() if run), default=0)
     if not last_release_ns:
         raise AppError(f"{run_dir}: timing.csv holds no cycle: nothing to replay")
+    replayed_s = (last_release_ns - from_ns) / 1e9  # a --keep window: its span, not the run's
+    check_room(app, Path(out), replayed_s, what=f"the replay of {replayed_s:.15g} s",
+               remedy="replay into an --out with more room")
     simulate(app, last_release_ns / 1e9, out, port_writes=writes, timeline=followed, force=force,
              protect=(run_dir,))
     gap = check_timeline(records, periods, dropped, starts)

@@ -304,7 +304,7 @@ class RunSession:
 
     def __init__(self, app: App, out: str | Path, *, mode: str, duration_s: float | None, keep_s: float | None,
                  trim: int, force: bool = False, protect: Iterable[Path] = (), limits: Limits = DEFAULT_LIMITS,
-                 registry: bool = True) -> None:
+                 registry: bool = True, check_disk: bool = True) -> None:
         app.validate()
         if duration_s is not None:
             check_duration(duration_s)
@@ -317,6 +317,8 @@ class RunSession:
         self.protect = tuple(Path(p) for p in protect)
         self.limits = limits
         self.registry = registry
+        self.check_disk = check_disk
+        """Refuse, before anything is written, a recording of the whole duration that would not fit."""
         self.state = RunState.RUNNING
         self.summarise: Callable[[bool], RunSummary] | None = None
         self.summary: RunSummary | None = None
@@ -336,7 +338,7 @@ class RunSession:
     # --- opening -------------------------------------------------------------------------------
     def __enter__(self) -> RunSession:
         check_out_dir(self.out, protect=self.protect)  # refusals first: nothing is written yet
-        if self.duration_s is not None and self.keep_s is None:
+        if self.check_disk and self.duration_s is not None and self.keep_s is None:
             check_room(self.app, self.out, self.duration_s)  # everything kept: it must fit on the disk
         summary_path = self.out / "summary.json"
         # The layout checks memory and loads profiles: bad input is refused before the folder is touched.

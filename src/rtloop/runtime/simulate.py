@@ -143,7 +143,8 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     for name in app.tasks:  # every device needs a twin: found before anything is written
         app.device_wiring(name, twins=True)
     session = RunSession(app, out, mode="simulate", duration_s=duration_s, keep_s=keep_s, trim=trim, force=force,
-                         protect=protect, registry=False, limits=limits)
+                         protect=protect, registry=False, limits=limits,
+                         check_disk=timeline is None)  # a replay checks the span it records itself
     announce_once()
     tasks: dict[str, _SimTask] = {}
     outcome = _Outcome()

@@ -37,6 +37,7 @@ import numpy as np
 from rtloop.app.builder import App, check_duration
 from rtloop.errors import AppError, RtloopError
 from rtloop.owners import output_folder_problem
+from rtloop.record.disk_room import check_room
 from rtloop.record.recorder import give_to_invoking_user
 from rtloop.text import shorten
 
@@ -163,6 +164,8 @@ def sweep(app: App | str | os.PathLike[str], parameters: dict[str, list[float]],
     for name in names:
         _set_parameter(probe, name, parameters[name][0])
     out = Path(out)
+    check_room(probe, out, duration_s * len(points), what=f"{len(points)} simulations of {duration_s:.15g} s",
+               remedy="sweep fewer points or give a shorter --duration")
     width = len(str(len(points) - 1))
     run_dirs = [out / f"{i:0{width}d}" for i in range(len(points))]
     _prepare_out(out, run_dirs, force)
