@@ -207,7 +207,7 @@ def test_bad_input_in_the_guest_is_one_line_exit_2_nothing_started(tmp_path):
             run = run_app(tmp_path, text, "--duration", "1")
         finally:
             holder.release()
-    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert run.returncode == 3 and len(run.stderr.strip().splitlines()) == 1, run.stderr  # a device not ready
     assert "devices.panel.outputs: line 'led'" in run.stderr and "busy" in run.stderr
     assert not (tmp_path / "run").exists()
 
@@ -216,7 +216,7 @@ def test_bad_input_in_the_guest_is_one_line_exit_2_nothing_started(tmp_path):
                'period_ns = 20_000_000\n[devices.drive]\nkind = "can"\ntask = "ctl"\ninterface = "can9"\n'
                'send = [{ id = 0x200 }]\n')
     run = run_app(tmp_path, can_app, "--duration", "1")
-    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert run.returncode == 3 and len(run.stderr.strip().splitlines()) == 1, run.stderr
     assert "devices.drive.interface: no network interface 'can9'" in run.stderr and vcan["interface"] in run.stderr
     assert not (tmp_path / "run").exists()
 
@@ -238,6 +238,6 @@ def test_bad_input_in_the_guest_is_one_line_exit_2_nothing_started(tmp_path):
     run = subprocess.run([sys.executable, "-m", "rtloop", "run", str(folder / "app.toml"), "--duration", "1",
                           "--out", str(folder / "run"), "-q"], capture_output=True, text=True, timeout=600, env=env,
                          user=nobody.pw_uid, group=nobody.pw_gid, cwd=folder)
-    assert run.returncode == 2 and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    assert run.returncode == 3 and len(run.stderr.strip().splitlines()) == 1, run.stderr
     assert f"devices.fpga.device: no permission to open {spi['devices'][0]}" in run.stderr
     assert not (folder / "run").exists()

@@ -149,6 +149,20 @@ class DeviceError(AppError):
         return type(self), (self.device, self.source, self.key, self.problem)
 
 
+class DeviceNotReady(DeviceError):
+    """A device declared right that refused at start, as found then: its interface is not there (yet),
+    it is busy or not ours to open, it did not answer at configure. ``rtloop run`` exits 3, not 2:
+    the app file is fine, and a service retries it (a USB adapter that enumerates a second late, a
+    drive powered after the computer)."""
+
+    @classmethod
+    def of(cls, error: DeviceError) -> DeviceError:
+        """``error`` as found at start: not ready, unless it is a missing driver library (bad input)."""
+        if error.key == "kind":  # `pip install smbus2`: retrying will not install it
+            return error
+        return cls(error.device, error.source, error.key, error.problem)
+
+
 class DeviceFault(RtloopError, RuntimeError):
     """A device failed while the app ran (a read timed out, a non-finite command was refused).
 

@@ -12,6 +12,8 @@ EXIT_FAILED = 1
 """A run that failed: a task's fault, a check that failed, a bug."""
 EXIT_BAD_INPUT = 2
 """What the user gave is wrong or incomplete (argparse's usage errors too, and a missing optional package)."""
+EXIT_DEVICE_NOT_READY = 3
+"""A device declared right refused at start (not there yet, busy, silent at configure): a service retries it."""
 EXIT_INTERRUPTED = 130
 """Ctrl-C, as a shell reports death by SIGINT."""
 

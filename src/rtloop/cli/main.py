@@ -16,8 +16,8 @@ from collections.abc import Callable
 from types import ModuleType
 
 from rtloop.cli import bench, bridge, devices, doctor, model, port, replay, report, run, service, sweep, top
-from rtloop.cli.arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, CommandParser
-from rtloop.errors import RtloopError, TaskFailed
+from rtloop.cli.arguments import EXIT_BAD_INPUT, EXIT_DEVICE_NOT_READY, EXIT_FAILED, EXIT_INTERRUPTED, CommandParser
+from rtloop.errors import DeviceNotReady, RtloopError, TaskFailed
 from rtloop.text import clip
 from rtloop.version import __version__
 
@@ -123,11 +123,14 @@ def _exit_code(error: BaseException, args: argparse.Namespace) -> int:
 def exit_code_for(error: BaseException) -> int:
     """The one rule: 2 for bad input (what the user gave is wrong or incomplete, a missing
     optional package or a path that cannot be used included), 1 for a run that failed (a task's
-    fault, a full disk, a bug), 130 for Ctrl-C."""
+    fault, a full disk, a bug), 3 for a device declared right that refused at start (not there
+    yet, busy, silent: a service retries it), 130 for Ctrl-C."""
     if isinstance(error, KeyboardInterrupt):
         return EXIT_INTERRUPTED
     if isinstance(error, TaskFailed):
         return EXIT_TASK_FAILED
+    if isinstance(error, DeviceNotReady):
+        return EXIT_DEVICE_NOT_READY
     if isinstance(error, ModuleNotFoundError | ValueError | LookupError | PermissionError):
         return EXIT_BAD_INPUT
     if isinstance(error, OSError) and not isinstance(error, RtloopError) and error.errno in PATH_ERRNOS:

@@ -51,7 +51,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from rtloop.errors import DeviceError, DeviceFault
+from rtloop.errors import DeviceError, DeviceFault, DeviceNotReady
 from rtloop.text import shorten
 
 __all__ = ["KINDS", "Claim", "CommandLimit", "Device", "DeviceError", "DeviceFault", "Setting", "check_claims",
@@ -309,9 +309,9 @@ def check_device(device: Device, source: str) -> None:
     try:
         device.check()
     except DeviceError as error:
-        raise DeviceError(device.name, source, error.key, error.problem) from None
+        raise DeviceNotReady.of(DeviceError(device.name, source, error.key, error.problem)) from None
     except Exception as error:
-        raise DeviceError(device.name, source, "", f"check failed: {type(error).__name__}: {error}") from None
+        raise DeviceNotReady(device.name, source, "", f"check failed: {type(error).__name__}: {error}") from None
 
 
 def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -> Any:
