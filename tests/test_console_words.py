@@ -76,3 +76,32 @@ def test_a_live_view_on_every_interface_says_who_may_see_and_write() -> None:
                                        "it sees the signals"
     assert served_to("192.168.1.5", ["setpoint", "gains"]).endswith("sees the signals and may write ports setpoint, "
                                                                      "gains")
+
+
+def test_the_watchdog_names_a_stopped_process_as_stopped() -> None:
+    import signal
+    import time
+
+    from rtloop.runtime.supervisor import _why_stuck
+
+    sleeper = subprocess.Popen(["sleep", "30"])
+    try:
+        assert _why_stuck(sleeper.pid) == "the step is stuck (a blocking call or an endless loop)"
+        sleeper.send_signal(signal.SIGSTOP)
+        deadline = time.monotonic() + 10
+        while "stopped" not in _why_stuck(sleeper.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert _why_stuck(sleeper.pid).startswith("its process is stopped (state T: SIGSTOP")
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+def test_sweep_help_says_how_its_runs_are_numbered(capsys) -> None:
+    import pytest
+
+    from rtloop.cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["sweep", "--help"])
+    assert "numbered from 0, as wide as the count needs" in " ".join(capsys.readouterr().out.split())

@@ -19,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a declared parameter and its values (START:STOP:COUNT or a,b,c); repeat for a grid")
     parser.add_argument("--duration", type=float, required=True, metavar="S", help="simulated seconds per point")
     parser.add_argument("--out", type=Path, default=Path("runs/sweep"), metavar="DIR",
-                        help="where the runs (DIR/000, ...) and sweep.csv go (default runs/sweep)")
+                        help="where the runs (DIR/0, DIR/1, ...: numbered from 0, as wide as the count needs) and "
+                             "sweep.csv go (default runs/sweep)")
     parser.add_argument("--signal", default=None, metavar="NAME",
                         help="signal whose step is measured (default: the first setpoint pair's measured signal)")
     parser.add_argument("--setpoint", default=None, metavar="NAME", help="its setpoint (default: its pair's)")

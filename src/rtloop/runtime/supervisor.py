@@ -108,6 +108,19 @@ def startup_allowance_s(default_s: float) -> float:
     return seconds
 
 
+
+def _why_stuck(pid: int) -> str:
+    """Why a task's cycles stand still, as /proc says: stopped (SIGSTOP, a debugger), or a stuck step."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            state = stat.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        state = ""
+    if state in ("T", "t"):
+        return ("its process is stopped (state T: SIGSTOP, Ctrl-Z or a debugger), not running its step" if state == "T"
+                else "its process is stopped by a debugger (state t)")
+    return "the step is stuck (a blocking call or an endless loop)"
+
 class Supervisor:
     def __init__(self, app: App, duration_s: float | None, out: Path, *, trim: int,
                  keep_s: float | None = None, force: bool = False, limits: Limits = DEFAULT_LIMITS,
@@ -377,7 +390,7 @@ class Supervisor:
             self.failure = TaskFailed(
                 task_run.name, self._cycle_after(task_run.name, recorder), "step",
                 f"watchdog: no cycle finished for {quiet_ns / 1e9:.1f} s ({config.watchdog_periods} periods); "
-                "the step is stuck (a blocking call or an endless loop)",
+                f"{_why_stuck(task_run.process.pid)}",
             )
             self.state = RunState.WATCHDOG
             layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
