@@ -32,8 +32,8 @@ def test_the_dcmotor_example_lists_its_ranges_and_units(capsys: pytest.CaptureFi
         "  setpoint         in   pi.u[1]  (1 value)  rad/s",
         "  load             in   plant.u[1]  (1 value)  range [-0.2, 0.2] N·m",
         "  gains            in   pi.u[2:4]  (2 values)",
-        "      kp  range [0, 0.5]",
-        "      ki  range [0, 20]",
+        "      kp  range [0, 0.5] V·s/rad",
+        "      ki  range [0, 20] V/rad",
         "  speed            out  plant.y[0]  (1 value)  rad/s",
     ]
 
