@@ -111,6 +111,7 @@ def test_a_non_finite_command_never_reaches_the_device(tmp_path: Path) -> None:
         rtloop.run(echo_app(tmp_path, "dev_stop_nan", echo=Echo(nan_at=4)), 1.0, tmp_path / "out")
     # the NaN of job 4 would be written at release 5 (LET)
     assert "DeviceFault: task 'ctl', cycle 5: dev.u[0] (c0): command nan is not finite" in str(caught.value)
+    assert "computed by the step of cycle 4, due at this release" in str(caught.value)
     log = read_log(tmp_path / "dev.log")
     assert writes(log) == [0.0, 1.0, 2.0, 3.0, 4.0]
     assert_ends_safe(log)

@@ -59,7 +59,7 @@ class _Slot:
         device = self.device = wiring.device
         name = device.name
         labels = [f"{name}.u[{i}] ({command})" for i, command in enumerate(device.command_names())]
-        self.guard = CommandGuard(wiring.limits, period_ns, labels)
+        self.guard = CommandGuard(wiring.limits, period_ns, labels, let=wiring.io == "let")
         self.u = self.guard.safe.copy()  # a command nothing is wired to stays at its safe value
         self.y = np.zeros(device.n_outputs)
         self.command_copies = [(task_y[source], self.u[target]) for source, target in wiring.commands]

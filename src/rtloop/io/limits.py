@@ -23,7 +23,8 @@ from rtloop.io.device import CommandLimit, FloatVector, fault
 class CommandGuard:
     """Limits for the ``n`` commands of one device, at one task period."""
 
-    def __init__(self, limits: Sequence[CommandLimit], period_ns: int, labels: Sequence[str]) -> None:
+    def __init__(self, limits: Sequence[CommandLimit], period_ns: int, labels: Sequence[str],
+                 let: bool = False) -> None:
         self.low = np.array([limit.min for limit in limits], dtype=np.float64)
         self.high = np.array([limit.max for limit in limits], dtype=np.float64)
         self.safe = np.array([limit.safe for limit in limits], dtype=np.float64)
@@ -35,6 +36,8 @@ class CommandGuard:
         self.rate_limited = bool(np.isfinite(self.step_max).any())
         self._finite = np.zeros(len(limits), dtype=bool)
         self.labels = tuple(labels)
+        self.let = let
+        """Commands written at the release after the step that computed them (``io = "let"``): a fault says so."""
 
     def apply(self, u: FloatVector, task: str, cycle: int) -> FloatVector:
         """The command to write for ``u``: checked, clamped, rate limited (in ``self.out``).
@@ -49,7 +52,8 @@ class CommandGuard:
         np.isfinite(u, out=finite)
         if np.count_nonzero(finite) != len(finite):
             index = int(np.argmin(finite))
-            raise fault(task, cycle, self.labels[index], f"command {float(u[index])!r} is not finite; "
+            when = f" (computed by the step of cycle {cycle - 1}, due at this release: io = let)" if self.let else ""
+            raise fault(task, cycle, self.labels[index], f"command {float(u[index])!r} is not finite{when}; "
                         "it was not sent (the device gets its safe value)")
         np.minimum(u, self.high, out=out)
         np.maximum(out, self.low, out=out)
