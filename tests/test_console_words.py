@@ -105,3 +105,11 @@ def test_sweep_help_says_how_its_runs_are_numbered(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["sweep", "--help"])
     assert "numbered from 0, as wide as the count needs" in " ".join(capsys.readouterr().out.split())
+
+
+def test_port_read_heads_its_columns_with_names_signals_and_units() -> None:
+    from rtloop.cli.port import column_names
+
+    info = {"signal": "plant.y[0:2]", "names": ["speed_rad_s", ""], "units": ["rad/s", ""]}
+    assert column_names(info) == ["speed_rad_s (plant.y[0]) [rad/s]", "plant.y[1]"]
+    assert column_names({"signal": "pi.u[1]", "names": "not a list"}) == ["pi.u[1]"]

@@ -53,13 +53,15 @@ def run(args: argparse.Namespace) -> int:
     with app.reader(args.port) as reader:
         if not args.queued:
             reader.skip_to_newest()  # what the app sends now, not what queued up before anyone read
-        names = element_names(_printable(app.ports[args.port].get("signal"), limit=200))
-        print("t_s".rjust(TIME_WIDTH) + "".join(name.rjust(VALUE_WIDTH) for name in names), flush=True)
+        names = column_names(app.ports[args.port])
+        widths = [max(VALUE_WIDTH, len(name) + 2) for name in names]
+        print("t_s".rjust(TIME_WIDTH) + "".join(name.rjust(width) for name, width in zip(names, widths, strict=False)),
+              flush=True)
         while printed < args.count:
             ticks, rows = reader.read(args.count - printed)
             for tick, row in zip(ticks.tolist(), rows.tolist(), strict=True):  # fixed columns: nothing jumps
                 print(f"{tick * reader.period_ns / 1e9:{TIME_WIDTH}.6f}"
-                      + "".join(f"{value:{VALUE_WIDTH}.8g}" for value in row), flush=True)
+                      + "".join(f"{value:{width}.8g}" for value, width in zip(row, widths, strict=False)), flush=True)
             printed += len(ticks)
             if not len(ticks):
                 time.sleep(0.02)
@@ -78,6 +80,15 @@ def element_names(signal: str) -> list[str]:
     task, side, start, stop = match.groups()
     stop_index = int(stop) if stop is not None else int(start) + 1
     return [f"{task}.{side}[{index}]" for index in range(int(start), stop_index)]
+
+
+def column_names(info: dict[str, Any]) -> list[str]:
+    """The columns of ``port read``: each value as the runnable names it, with the signal and unit
+    (``speed_rad_s (plant.y[0]) [rad/s]``), or the signal alone where the registry names none."""
+    signals = element_names(_printable(info.get("signal"), limit=200))
+    names, units = _strings(info.get("names"), len(signals)), _strings(info.get("units"), len(signals))
+    return [(f"{name} ({signal})" if name else signal) + (f" [{unit}]" if unit else "")
+            for signal, name, unit in zip(signals, names, units, strict=True)]
 
 
 def describe_port(name: str, info: dict[str, Any]) -> list[str]:
