@@ -15,11 +15,13 @@ if [ "${1:-}" != "--no-apt" ]; then
         echo "  $packages" >&2
         exit 2
     fi
+    echo "tools/setup.sh: installing system packages (apt-get): $packages"  # quiet below: one line per step
     tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get update -qq
     # shellcheck disable=SC2086  # one word per package
     tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null
 fi
 
+echo "tools/setup.sh: creating .venv and installing rtloop[all,test] in it (a few minutes the first time)"
 python3 -m venv .venv
 .venv/bin/pip install -q --upgrade pip 'setuptools>=77'  # setup.py build_ext (tests) reads the SPDX license string
 .venv/bin/pip install -q -e '.[all,test]'
