@@ -83,9 +83,14 @@ def _run_two_devices(tmp_path, settings: str, settings2: str, interface2: str = 
                                    "devices.drive.heartbeat"),
     ("send = [{ id = 0x700 }]", "devices.drive2.send[0].id: frame id clash: 0x700 on vcan0 is also sent by "
                                 "devices.drive.heartbeat"),
+    ("receive = [{ id = 0x200, timeout_ms = 2 }]", "devices.drive2.receive[0].id: frame id clash: 0x200 on vcan0 "
+                                                   "is also sent by devices.drive.send[0]"),
+    ("send = [{ id = 0x180 }]", "devices.drive2.send[0].id: frame id clash: 0x180 on vcan0 is also received by "
+                                "devices.drive.receive[0]"),
 ])
 def test_two_devices_sending_one_id_on_one_bus_are_refused_at_load(tmp_path, settings2, message):
-    run = _run_two_devices(tmp_path, "heartbeat = { id = 0x700 }\nsend = [{ id = 0x200 }]", settings2)
+    run = _run_two_devices(tmp_path, "heartbeat = { id = 0x700 }\nsend = [{ id = 0x200 }]\n"
+                                     "receive = [{ id = 0x180, timeout_ms = 2 }]", settings2)
     assert run.returncode == 2, run.stderr
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and str(tmp_path / "app.toml") in lines[0], run.stderr

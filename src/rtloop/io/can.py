@@ -91,12 +91,15 @@ class CanDevice(Device):
             raise DeviceError(self.name, "", "interface", str(error).partition(": ")[2]) from None
 
     def claims(self) -> tuple[Claim, ...]:
-        """Every id this device sends (heartbeat included) on its interface: a second sender of one id
-        on one bus would interleave its commands with ours. Receiving one id in two devices is fine."""
+        """Every id this device sends (heartbeat included) or receives on its interface: a second
+        sender of one id on one bus would interleave its commands with ours, and a device receiving
+        an id we send would read our commands as its readings (SocketCAN loops a frame back to the
+        host's other sockets). Receiving one id in two devices is fine."""
         sent = [*self.sent, *([self.heartbeat_frame] if self.heartbeat_frame else [])]
-        return tuple(Claim(("can send", self.interface, frame.wire_id), f"{frame.where}.id",
-                           f"frame id clash: 0x{frame.can_id:X} on {self.interface} is also sent by")
-                     for frame in sent)
+        return tuple(Claim(("can", self.interface, frame.wire_id), f"{frame.where}.id",
+                           f"frame id clash: 0x{frame.can_id:X} on {self.interface} is also",
+                           "received" if receive else "sent", shared=receive)
+                     for frames, receive in ((sent, False), (self.received, True)) for frame in frames)
 
     # --- task process ---------------------------------------------------------------------------
     def configure(self) -> None:

@@ -141,17 +141,24 @@ class CommandLimit:
 
 @dataclass(frozen=True, slots=True)
 class Claim:
-    """Something only one device of an app may hold: two holders are refused when the app loads.
+    """Something only one device of an app may hold: two holders are refused when the app loads
+    (two shared holders are fine).
 
     Two devices sending one CAN id on one bus would interleave their commands to one drive
-    (each overwriting the other every half period); no single device can see that."""
+    (each overwriting the other every half period); a device receiving an id another sends
+    would read those commands as its readings. No single device can see either."""
 
     resource: tuple[Any, ...]
-    """Equal resources clash, e.g. ``("can send", "vcan0", 0x200)``."""
+    """Claims of equal resources clash, e.g. ``("can", "vcan0", 0x200)``."""
     key: str
     """The device's setting that claims it, as errors name it: ``send[0].id``."""
     clash: str
-    """The problem, followed in the error by the other holder: ``frame id clash: 0x200 on vcan0 is also sent by``."""
+    """The problem, followed in the error by the other holder's role and key:
+    ``frame id clash: 0x200 on vcan0 is also`` (``sent by devices.drive.send[0]``)."""
+    role: str = "held"
+    """What the holder does with it, for the other's error: ``sent``, ``received``."""
+    shared: bool = False
+    """Shared claims do not clash with each other (two devices receiving one CAN id), only with another kind."""
 
 
 class Device(ABC):
@@ -294,14 +301,15 @@ def build_device(kind: str | type[Device], name: str, settings: Mapping[str, Any
 
 def check_claims(devices: list[Device], source: str) -> None:
     """Refuse two devices holding one :class:`Claim` (the later one is named, with the earlier's key)."""
-    holders: dict[tuple[Any, ...], tuple[Device, Claim]] = {}
+    holders: dict[tuple[Any, ...], list[tuple[Device, Claim]]] = {}
     for device in devices:
         for claim in device.claims():
-            held = holders.get(claim.resource)
-            if held is not None and held[0] is not device:
-                other, first = held
-                raise DeviceError(device.name, source, claim.key, f"{claim.clash} devices.{other.name}.{first.key}")
-            holders.setdefault(claim.resource, (device, claim))
+            held = holders.setdefault(claim.resource, [])
+            for other, first in held:
+                if other is not device and not (claim.shared and first.shared):
+                    raise DeviceError(device.name, source, claim.key,
+                                      f"{claim.clash} {first.role} by devices.{other.name}.{first.key}")
+            held.append((device, claim))
 
 
 def check_device(device: Device, source: str) -> None:
