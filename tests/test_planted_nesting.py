@@ -7,6 +7,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import pytest
+
 from rtloop.cli.main import main
 from rtloop.runtime.monitor import live_summary_line
 
@@ -31,3 +33,41 @@ def test_a_summary_nested_too_deeply_gives_no_line(tmp_path: Path) -> None:
     summary = tmp_path / "summary.json"
     summary.write_text(DEEP)
     assert live_summary_line(str(summary)) == ""
+
+
+@pytest.fixture(scope="module")
+def a_run(tmp_path_factory) -> Path:
+    import rtloop
+    from rt_test_runnables import Counter
+
+    app = rtloop.App(f"deeprun_{os.getpid()}")
+    task = app.add_task("c", Counter(), period_ns=1_000_000)
+    app.record(task.y)
+    out = tmp_path_factory.mktemp("deeprun") / "run"
+    rtloop.simulate(app, 0.01, out)
+    return out
+
+
+@pytest.mark.parametrize("damaged", ["summary.json", "replay.json", "signals.json"])
+def test_a_run_file_nested_too_deeply_is_one_line_for_load_report_and_replay(a_run: Path, tmp_path: Path,
+                                                                            damaged: str, capsys) -> None:
+    import shutil
+
+    import rtloop
+    from rtloop.errors import RtloopError
+    from rtloop.runtime.replay import load_replay_app
+
+    run = tmp_path / "run"
+    shutil.copytree(a_run, run)
+    (run / damaged).write_text(DEEP)
+    if damaged == "summary.json":
+        with pytest.raises(RtloopError, match=r"summary\.json: unreadable: nested too deeply"):
+            rtloop.load(run)
+        assert main(["report", str(run)]) == 2
+        assert "nested too deeply" in capsys.readouterr().err
+    elif damaged == "replay.json":
+        with pytest.raises(RtloopError, match=r"replay\.json: not readable JSON \(nested too deeply"):
+            load_replay_app(run)
+    else:
+        loaded = rtloop.load(run)  # the signals load without their units, and it says why
+        assert any("signals.json: unreadable" in problem for problem in loaded.problems)

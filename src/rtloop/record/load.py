@@ -22,7 +22,6 @@ Gaps stay gaps: an empty cell or ``nan`` is NaN, and rows that are missing altog
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import tempfile
@@ -36,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rtloop.errors import RtloopError
+from rtloop.record.jsonfile import parse_json
 from rtloop.stats.timing import TimingSamples
 from rtloop.text import shorten
 
@@ -228,8 +228,8 @@ def load(run_dir: str | os.PathLike[str], *, memory_limit_bytes: int = MEMORY_LI
     if not summary_path.is_file():
         raise LoadError(f"{path}: no summary.json (is this the --out directory of `rtloop run`?)")
     try:
-        summary = json.loads(summary_path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        summary = parse_json(summary_path.read_text())
+    except (OSError, ValueError) as error:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         raise LoadError(f"{summary_path}: unreadable: {error}") from None
     if not isinstance(summary, dict) or not isinstance(summary.get("tasks"), dict):
         raise LoadError(f"{summary_path}: no 'tasks' object; not an rtloop summary")
@@ -467,7 +467,7 @@ def _read_sidecar(path: Path, names: tuple[str, ...],
     if not file.is_file():
         return {}, ()
     try:
-        data = json.loads(file.read_text())
+        data = parse_json(file.read_text())
         columns = data.get("columns", {})
         units = {name: str(columns[name]["unit"]) for name in names
                  if isinstance(columns.get(name), dict) and columns[name].get("unit")}

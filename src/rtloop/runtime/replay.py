@@ -25,7 +25,6 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
-import json
 import shutil
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ from rtloop.app.sources import changes_since
 from rtloop.errors import AppError
 from rtloop.record.csvfiles import column_names, read_inputs_csv, read_reads_csv
 from rtloop.record.disk_room import check_room
+from rtloop.record.jsonfile import parse_json
 from rtloop.runtime.session import UNFINISHED_FOLDER, check_out_dir
 from rtloop.runtime.simulate import LetTimeline, PortWrites, simulate
 from rtloop.runtime.snapshot import SNAPSHOTS_DIR, TaskSnapshot, read_snapshots, restore_state
@@ -137,7 +137,7 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
     if not path.is_file():
         raise AppError(f"{run_dir}: no summary.json; is it the output folder of `rtloop run`?")
     try:
-        return json.loads(path.read_text())
+        return parse_json(path.read_text())
     except ValueError as error:
         raise AppError(f"{path}: not JSON ({error})") from None
 
@@ -149,7 +149,12 @@ def load_replay_app(run_dir: Path) -> tuple[App, float | None]:
     info_path = run_dir / "replay.json"
     if not info_path.is_file():
         raise AppError(f"{run_dir}: no replay.json; is it the output folder of `rtloop run`?")
-    info = json.loads(info_path.read_text())
+    try:
+        info = parse_json(info_path.read_text())
+    except (OSError, ValueError) as error:
+        raise AppError(f"{info_path}: not readable JSON ({error})") from None
+    if not isinstance(info, dict):
+        raise AppError(f"{info_path}: not a replay.json (expected a JSON object)")
     if info.get("source", "<python>") == "<python>":
         raise AppError(f"{run_dir}: the app was built in Python; call rtloop.runtime.replay.replay(run_dir, out, app)")
     app = load_app(info["source"])
@@ -649,7 +654,7 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
 def changed_files(run_dir: Path) -> list[str]:
     """The files of the run's app (replay.json's ``files``) whose content is not what the run loaded."""
     try:
-        recorded = json.loads((run_dir / "replay.json").read_text()).get("files") or {}
+        recorded = parse_json((run_dir / "replay.json").read_text()).get("files") or {}
     except (OSError, ValueError, AttributeError):
         return []  # no replay.json, or one from before files were recorded: the loading says what is wrong
     return changes_since({str(path): str(digest) for path, digest in recorded.items()}) if isinstance(
