@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.bytelayout import FloatView, LayoutError
 from rtloop.io.canframes import DATA_AT, CanFrame, HeartbeatCounter, check_ids, frame_from_table, heartbeat_from_table
+from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, Device, FloatVector, Setting
 
 __all__ = ["CanDevice"]
@@ -70,13 +71,15 @@ class CanDevice(Device):
         self.output_names = tuple(n for frame in self.received for n in frame.layout.names)
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         self.socket: Any = None
+        self._cycle: Any = None  # the cycle in C (io/_devio.c CanCycle), once attached
         self.active = False
         self.stale_reads = 0
         self.stale_by_frame = [0] * len(self.received)
         self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "socket": None, "active": False}  # travels to the task process unopened
+        # travels to the task process unopened
+        return {**self.__dict__, "socket": None, "_cycle": None, "active": False}
 
     # --- supervisor ---------------------------------------------------------------------------
     def check(self) -> None:
@@ -121,13 +124,54 @@ class CanDevice(Device):
         self._plan_write = [(frame.layout.pack_into, buffer, first) for frame, buffer, first in
                             zip(self.sent, self._sent_buffers, _starts(self.sent), strict=True)]
         self._send = sock.sock.send
+        self._cycle = self._compiled_cycle(sock)
+
+    def _compiled_cycle(self, sock: Any) -> Any:
+        """The whole cycle in C (io/_devio.c CanCycle) where it was built, on this socket's frames;
+        None where the Python reference runs (``RTLOOP_PURE_PYTHON=1``, no compiler)."""
+        compiled, receiver = devio(), getattr(sock, "_receiver", None)
+        layouts = [frame.layout._compiled for frame in (*self.sent, *self.received)]
+        if compiled is None or receiver is None or any(layout is None for layout in layouts):
+            return None
+        return compiled.CanCycle(receiver, self._sent_buffers, layouts[:len(self.sent)],
+                                 self._heartbeat.buffer if self._heartbeat is not None else None,
+                                 layouts[len(self.sent):], [frame.timeout_ns for frame in self.received],
+                                 [frame.on_missing == "fault" for frame in self.received])
 
     def activate(self) -> None:
         """At T0: drop what came before it (frames of an earlier run); from now on frames go out."""
         self.socket._drain()
         self.active = True
 
+    # --- the cycle: one C call each where built, else the Python reference -----------------------
     def write(self, u: FloatVector) -> None:
+        cycle = self._cycle
+        if cycle is not None:
+            try:
+                bad = cycle.write(u)
+            except TypeError:  # not a float64 vector of u's length: the reference, its heartbeat counting on
+                self._write_reference_with(cycle, u)
+                return
+            except OSError as error:
+                raise self.socket.send_failed(error) from None
+            if bad >= 0:  # the frames before it went out; the reference names the value that cannot be sent
+                pack_into, buffer, first = self._plan_write[bad]
+                pack_into(buffer, DATA_AT, self._u.of(u), first)  # raises its ValueError
+            return
+        self._write_reference(u)
+
+    def _write_reference_with(self, cycle: Any, u: FloatVector) -> None:
+        heartbeat = self._heartbeat
+        if heartbeat is None:
+            self._write_reference(u)
+            return
+        heartbeat.count = cycle.count
+        try:
+            self._write_reference(u)
+        finally:
+            cycle.count = heartbeat.count
+
+    def _write_reference(self, u: FloatVector) -> None:
         send, u = self._send, self._u.of(u)
         try:
             for pack_into, buffer, first in self._plan_write:
@@ -139,17 +183,37 @@ class CanDevice(Device):
             raise self.socket.send_failed(error) from None
 
     def read(self, y: FloatVector) -> None:
+        cycle = self._cycle
+        if cycle is not None:
+            try:
+                if cycle.read(y):
+                    return  # every frame came, all in y
+            except TypeError:  # not a float64 vector of y's length: the reference
+                self._read_reference(y)
+                return
+            # C unpacked what came up to the first missing frame that faults: count and raise as the reference
+            for index, frame in enumerate(self.received):
+                if not self.socket.fresh[index]:
+                    self._missed(index, frame)
+            return
+        self._read_reference(y)
+
+    def _missed(self, index: int, frame: CanFrame) -> None:
+        if frame.on_missing == "stale":
+            self.stale_reads += 1  # y keeps the values of the last frame that came
+            self.stale_by_frame[index] += 1
+        else:
+            raise DeviceFault(_missing(self.name, frame))
+
+    def _read_reference(self, y: FloatVector) -> None:
         sock, y = self.socket, self._y.of(y)
         sock.receive_cycle(time.monotonic_ns())
         fresh = sock.fresh
         for index, (frame, latest, first) in enumerate(self._plan_read):
             if fresh[index]:
                 frame.layout.unpack_from(latest, DATA_AT, y, first)
-            elif frame.on_missing == "stale":
-                self.stale_reads += 1  # y keeps the values of the last frame that came
-                self.stale_by_frame[index] += 1
             else:
-                raise DeviceFault(_missing(self.name, frame))
+                self._missed(index, frame)
 
     def may_read_stale(self) -> bool:
         return any(frame.on_missing == "stale" for frame in self.received)
@@ -189,6 +253,9 @@ class CanDevice(Device):
 
     def close(self) -> None:
         self.active = False
+        if self._cycle is not None:
+            self._cycle.release()  # before the socket it sends on is closed (and its number reused)
+            self._cycle = None
         if self.socket is not None:
             self.socket.close()
             self.socket = None
