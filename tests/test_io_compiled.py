@@ -1,6 +1,7 @@
 """The devices' per-cycle work in C (``io/_devio.c``) gives the Python references' numbers bit for bit:
 the guard (copies, non-finite check, clamp, rate limit), frame layouts (rounding, saturation, byte
-orders, every type), the CAN drain (newest copy of each id, strays counted), GPIO's lines (bits
+orders, every type), the CAN drain (newest copy of each id, strays counted), a CAN device's whole
+cycle (frames sent, heartbeat, readings, waits, stale counts, faults, send errors), GPIO's lines (bits
 packed and unpacked, the E-stop's edge) and SPI's frame (counter, CRC, checks, counts, errors)."""
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 import socket
 import struct
 import termios
+import threading
 
 import numpy as np
 import pytest
@@ -529,3 +531,267 @@ def test_the_gpio_and_spi_cycles_in_c_keep_nothing_allocated(monkeypatch):
     assert frame_device.stale_reads == 6_000 and frame.bad_crc == 6_000
     assert list(readings) == [0.25, 1.0, -3.0]  # the good answers were unpacked
     assert kept <= 256, kept
+
+
+# --- CAN: CanCycle against CanDevice's Python write/read -----------------------------------------
+# A UNIX socket pair stands in for the CAN socket (this kernel may have no CAN): the same send, poll
+# and recv calls; the peer plays the bus. tests/test_io_can.py runs the C cycle on vcan0 in the guest.
+CAN_SEND = [{"id": 0x200, "signals": [{"name": "torque", "start_byte": 0, "type": "i16", "scale": 0.01},
+                                      {"name": "mode", "start_byte": 2, "type": "u8"},
+                                      {"name": "gain", "start_byte": 4, "type": "f32", "byte_order": "big"}]},
+            {"id": 0x1ABCDE, "extended": True, "signals": [{"name": "speed", "start_byte": 0, "type": "i32",
+                                                            "scale": 1e-3, "offset": 2.0}]}]
+CAN_RECEIVE = [{"id": 0x180, "timeout_ms": 2, "signals": [{"name": "position", "start_byte": 0, "type": "i32",
+                                                          "scale": 1e-4}]},
+               {"id": 0x181, "timeout_ms": 1, "on_missing": "stale",
+                "signals": [{"name": "current", "start_byte": 0, "type": "i16", "scale": 0.01, "byte_order": "big"},
+                            {"name": "temp", "start_byte": 2, "type": "u8"}]},
+               {"id": 0x1ABC00, "extended": True, "timeout_ms": 1.5, "on_missing": "stale",
+                "signals": [{"name": "volts", "start_byte": 0, "type": "f64"}]}]
+
+
+def can_pair(monkeypatch, fd=False, **settings):
+    """The same CAN device twice, each on a socket pair of its own: with the C cycle, and the Python
+    reference. Returns [(device, peer), (device, peer)]."""
+    from rtloop.io.cansocket import CanSocket
+    from rtloop.io.device import build_device
+
+    pair = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+        table = {"interface": "pair", "fd": fd, "send": CAN_SEND, "receive": CAN_RECEIVE, "heartbeat": {"id": 0x700},
+                 **settings}
+        device = build_device("can", "drive", table, "app.toml")
+        ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        peer.setblocking(False)
+        device.attach(CanSocket("pair", fd, device.received, "devices.drive", sock=ours))
+        monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)
+        assert (device._cycle is not None) == compiled
+        pair.append((device, peer))
+    return pair
+
+
+def can_wire(can_id: int, data: bytes, fd: bool) -> bytes:
+    """A wire frame as the kernel hands it to a CAN_RAW socket."""
+    return struct.pack("=IB3x64s" if fd else "=IB3x8s", can_id, len(data), data)
+
+
+def taken_off(peer) -> list[bytes]:
+    """Every frame the device sent since the last call."""
+    frames = []
+    while True:
+        try:
+            frames.append(peer.recv(128))
+        except BlockingIOError:
+            return frames
+
+
+def can_state(device) -> tuple:
+    return (device.stale_reads, list(device.stale_by_frame), device.socket.unexpected, list(device.socket.fresh))
+
+
+@pytest.mark.parametrize("fd", [False, True])
+@pytest.mark.parametrize("order", [(0, 1, 2), (1, 0, 2)])  # the frame that faults first, or between stale ones
+def test_can_frames_sent_readings_stale_counts_and_faults_are_the_references(fd, order, monkeypatch):
+    from rtloop.errors import DeviceFault
+
+    pair = can_pair(monkeypatch, fd=fd, receive=[CAN_RECEIVE[i] for i in order])
+    rng, bus = np.random.default_rng(11), np.random.default_rng(12)
+    ids = [(0x180, 0x181, 0x1ABC00 | 0x80000000)[i] for i in order]
+    outcomes_seen = set()
+    try:
+        for cycle in range(300):
+            u = np.array([rng.normal(0, 200), rng.integers(0, 300), rng.normal(0, 1e3), rng.normal(0, 1e4)])
+            if cycle % 37 == 5:
+                u[int(rng.integers(0, 4))] = [math.nan, math.inf, -math.inf, 1e308][cycle % 4]
+            # what the bus brings this cycle: each id 0, 1 or 2 times (the newest wins), and strays
+            arriving = []
+            for can_id in ids:
+                for _ in range(int(bus.integers(0, 3)) if cycle % 11 else 1):
+                    arriving.append(can_wire(can_id, bus.integers(0, 256, 8).astype(np.uint8).tobytes(), fd))
+            if cycle % 7 == 3:
+                arriving.append(can_wire(0x222, bytes(8), fd))  # an id not declared
+                arriving.append(can_wire(0x181, bytes(8), not fd))  # a declared id of the other size
+            results = []
+            for device, peer in pair:
+                outcome = []
+                try:
+                    device.write(u)
+                    outcome.append(None)
+                except ValueError as error:
+                    outcome.append(str(error))
+                outcome.append(taken_off(peer))
+                for wire in arriving:
+                    peer.send(wire)
+                y = np.full(4, 7.0)
+                try:
+                    device.read(y)
+                    outcome.append(None)
+                except DeviceFault as fault:
+                    outcome.append(str(fault))
+                outcome += [y.tobytes(), can_state(device)]
+                results.append(outcome)
+            assert results[0] == results[1], (cycle, results)
+            outcomes_seen.add((results[0][0] is None, results[0][2] is None))
+        assert {(True, True), (True, False), (False, True)} <= outcomes_seen  # sent or refused, read or faulted
+        device = pair[0][0]
+        assert device.stale_reads > 50 and device.socket.unexpected > 50
+        assert all(count > 10 for count, frame in zip(device.stale_by_frame, device.received, strict=True)
+                   if frame.on_missing == "stale")
+    finally:
+        for device, peer in pair:
+            device.close()
+            peer.close()
+
+
+def test_can_a_list_goes_the_reference_way_and_the_heartbeat_counts_on(monkeypatch):
+    pair = can_pair(monkeypatch, receive=[])
+    try:
+        sent = []
+        for device, peer in pair:
+            for u in (np.array([1.0, 2.0, 3.0, 4.0]), [1, 2, 3.0, 4], np.array([0.5, 1.0, 2.0, 3.0]),
+                      np.array([0.5, 1.0, 2.0, 3.0, 9.0])):  # longer than u: the first four, the same way
+                device.write(u)
+            device.read(np.zeros(0))
+            frames = taken_off(peer)
+            assert [f[8] for f in frames if struct.unpack_from("=I", f)[0] == 0x700] == [0, 1, 2, 3]
+            sent.append(frames)
+        assert sent[0] == sent[1]
+    finally:
+        for device, peer in pair:
+            device.close()
+            peer.close()
+
+
+def test_can_a_failed_send_is_the_same_oserror(monkeypatch):
+    pair = can_pair(monkeypatch)
+    errors = []
+    for device, peer in pair:
+        writes = [0]
+        try:
+            with pytest.raises(OSError) as caught:
+                while writes[0] < 100_000:  # nobody takes the frames off: the queue fills
+                    device.write(np.array([1.0, 2.0, 3.0, 4.0]))
+                    writes[0] += 1
+            full = (type(caught.value), caught.value.errno, str(caught.value), writes[0], len(taken_off(peer)))
+            peer.close()
+            with pytest.raises(OSError) as caught:
+                device.write(np.array([1.0, 2.0, 3.0, 4.0]))
+            errors.append((full, type(caught.value), caught.value.errno, str(caught.value)))
+        finally:
+            device.close()
+            peer.close()
+    assert errors[0] == errors[1]
+    assert "the transmit queue is full" in errors[0][0][2] and "devices.drive: sending on pair" in errors[0][3]
+
+
+def test_can_a_frame_is_waited_for_within_its_timeout_counted_from_the_start_of_the_read(monkeypatch):
+    """A frame that comes while the read waits is this cycle's; one that has not come by its timeout
+    is stale or a fault, as declared, the same either way."""
+    from rtloop.errors import DeviceFault
+
+    receive = [{**CAN_RECEIVE[0], "timeout_ms": 3000}, {**CAN_RECEIVE[1], "timeout_ms": 30}]
+    pair = can_pair(monkeypatch, receive=receive)
+    outcomes = []
+    try:
+        for device, peer in pair:
+            later = threading.Timer(0.1, peer.send, (can_wire(0x180, struct.pack("<i", 12345), False),))
+            later.start()
+            y = np.full(3, 7.0)
+            device.read(y)  # waits for 0x180 (3 s allowed), 0x181 stays stale
+            later.join()
+            outcomes.append((y.tobytes(), can_state(device)))
+        assert outcomes[0] == outcomes[1]
+        assert struct.unpack("=3d", outcomes[0][0])[0] == pytest.approx(1.2345)
+        assert outcomes[0][1][:2] == (1, [0, 1])
+    finally:
+        for device, peer in pair:
+            device.close()
+            peer.close()
+    pair = can_pair(monkeypatch, receive=[{**CAN_RECEIVE[0], "timeout_ms": 20}])
+    messages = []
+    try:
+        for device, peer in pair:
+            later = threading.Timer(0.5, peer.send, (can_wire(0x180, bytes(8), False),))  # after the timeout
+            later.start()
+            with pytest.raises(DeviceFault) as caught:
+                device.read(np.zeros(1))
+            later.join()
+            messages.append(str(caught.value))
+            device.read(np.zeros(1))  # it came late: the next cycle's
+    finally:
+        for device, peer in pair:
+            device.close()
+            peer.close()
+    assert messages[0] == messages[1] == ('devices.drive.receive[0] (id 0x180): no frame within 20 ms '
+                                          '(on_missing = "fault")')
+
+
+def test_the_can_cycle_in_c_keeps_nothing_allocated(monkeypatch):
+    """10,000 cycles of the C cycle: every frame sent, answers fresh and stale by turns."""
+    import tracemalloc
+
+    receive = [{**CAN_RECEIVE[0], "timeout_ms": 5000}, {**CAN_RECEIVE[1], "timeout_ms": 0.001}]
+    (device, peer), (reference, reference_peer) = can_pair(monkeypatch, receive=receive)
+    reference.close()
+    reference_peer.close()
+    u, y = np.array([1.0, 2.0, 3.0, 4.0]), np.zeros(3)
+    answer, stale_too = can_wire(0x180, struct.pack("<i", 5), False), can_wire(0x181, bytes(8), False)
+    incoming = bytearray(128)
+    turn = [0]
+
+    def cycle() -> None:
+        turn[0] ^= 1
+        device.write(u)
+        for _ in range(3):  # two frames and the heartbeat
+            peer.recv_into(incoming)
+        peer.send(answer)
+        if turn[0]:
+            peer.send(stale_too)
+        device.read(y)
+
+    try:
+        tracemalloc.start()
+        for _ in range(2_000):
+            cycle()
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(10_000):
+            cycle()
+        kept = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+        device.close()
+        peer.close()
+    assert device.stale_reads == 6_000 and y[0] == pytest.approx(5e-4)
+    assert kept <= 256, kept
+
+
+def test_a_can_cycle_refuses_frames_that_do_not_fit_and_lets_go_when_released():
+    import sys
+
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    latest = [bytearray(16)]
+    receiver = devio.CanReceiver(ours.fileno(), [0x180], latest, [False])
+    layout, wide = devio.Layout([("h", 0, 1.0, 0.0, False)]), devio.Layout([("q", 4, 1.0, 0.0, False)])
+    sent = bytearray(16)
+    counts = [sys.getrefcount(x) for x in (receiver, layout, wide, sent)]
+    for build, message in (
+            (lambda: devio.CanCycle(receiver, [sent], [wide], None, [layout], [1], [True]), "send frame"),
+            (lambda: devio.CanCycle(receiver, [sent], [layout], None, [wide], [1], [True]), "shorter"),
+            (lambda: devio.CanCycle(receiver, [sent], [layout], None, [], [], []), "differ in length"),
+            (lambda: devio.CanCycle(receiver, [sent], [layout], bytearray(4), [layout], [1], [True]), "heartbeat")):
+        with pytest.raises(ValueError, match=message):
+            build()
+        assert [sys.getrefcount(x) for x in (receiver, layout, wide, sent)] == counts, message
+    sent.extend(b"x")  # resizable again: no buffer of it is still held
+    del sent[16:]
+    cycle = devio.CanCycle(receiver, [sent], [layout], None, [layout], [1], [True])
+    cycle.release()
+    for call, vector in ((cycle.write, np.zeros(1)), (cycle.read, np.zeros(1))):
+        with pytest.raises(ValueError, match="released"):
+            call(vector)
+    assert [sys.getrefcount(x) for x in (receiver, layout, wide)] == counts[:3]
+    receiver.release()
+    ours.close()
+    peer.close()
