@@ -13,6 +13,8 @@ Each cycle ``write`` sends every declared frame and the heartbeat; ``read`` take
 copy of each received frame, waiting at most its ``timeout_ms`` (counted from the start of
 the read) for one that has not come this cycle. A frame still missing then is a fault
 (``on_missing = "fault"``) or keeps its last values and counts a stale read (``"stale"``).
+Where ``io/_devio.c`` was built (``io/compiled.py``) ``write`` and ``read`` are one C call each
+(``CanCycle``); the Python below stays the reference, and says what went wrong in either path.
 
 The heartbeat lets a drive stop by itself: when rtloop stops sending it — the task ends,
 is killed, the machine hangs — the drive's own watchdog (CANopen heartbeat consumer, ODrive
