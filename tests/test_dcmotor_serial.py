@@ -135,6 +135,9 @@ def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path
     late = Driver(tmp_path, 500.0, "--late-every", "25", "--late-ms", "2.5")
     try:
         app_file = example_file(tmp_path, late.link, "dcm_serial_late", timeout_ms=1.0)
+        # A loaded machine (other tests' real-time tasks) starves the pty's kernel worker for tens of
+        # ms now and then: more stale answers in a row than the example allows; the bound is not tested here.
+        app_file.write_text(app_file.read_text().replace("max_stale_in_a_row = 20 ", "max_stale_in_a_row = 100000 "))
         rtloop.run(load_app(app_file), 0.5, tmp_path / "run")
     finally:
         late.stop()
