@@ -7,6 +7,7 @@ spinning or late step does not starve the machine's other real-time work.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -232,7 +233,7 @@ def test_flight_window_pins_at_most_its_budget(tmp_path: Path) -> None:
 def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env) -> None:
     disk = tmp_path / "tiny"
     disk.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)],
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)],
                              capture_output=True, text=True)
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
@@ -241,7 +242,19 @@ def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env)
         out = disk / "out"
         command = [sys.executable, "-m", "rtloop.cli", "run", str(app_file(tmp_path, name)), "--duration", "4",
                    "--out", str(out)]
-        result = subprocess.run(command, env=rtloop_env, capture_output=True, text=True, timeout=120)
+        # The run starts with room for its whole recording (it is refused otherwise), then something
+        # else fills the disk under it: the filler below, once the run has written its first summary.
+        run = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        while not (out / "summary.json").exists():
+            assert run.poll() is None and time.monotonic() < deadline, run.communicate()
+            time.sleep(0.02)
+        with open(disk / "filler", "wb") as filler, contextlib.suppress(OSError):
+            while True:
+                filler.write(bytes(64 * 1024))
+                filler.flush()
+        stdout, stderr = run.communicate(timeout=120)
+        result = subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
         assert result.returncode == 0, result.stderr
         assert "Traceback" not in result.stderr
         assert "recording stopped" in result.stderr and "ENOSPC" in result.stderr
