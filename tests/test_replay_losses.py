@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -173,7 +174,8 @@ def test_the_cli_says_what_was_lost_and_exits_1_a_garbled_count_is_bad_input(tmp
     assert done.returncode == 1, done.stdout + done.stderr
     assert "equal where it kept their values" in done.stderr and "not called equal" in done.stderr
     assert "  lost: signals.csv: 1 rows from t = " in done.stderr
-    assert "0 skipped releases, 0 stale reads and 0 port inputs followed" in done.stderr
+    # the run may skip a release when the machine stalls it (1 kHz): the replay follows it, and says so
+    assert re.search(r"\(\d+ skipped releases?, 0 stale reads and 0 port inputs followed\)", done.stderr), done.stderr
     _lose(tmp_path / "run", signal_rows={"a": "many"})
     done = subprocess.run([*cli, "replay", str(tmp_path / "run"), "--out", str(tmp_path / "again")], env=env,
                           capture_output=True, text=True, timeout=300)
