@@ -300,6 +300,9 @@ def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
     the way out), SIGKILL follows if it cannot (a loop inside C code)."""
     def fail(_signum: int, _frame: Any) -> None:
         if task.in_loop:
+            # Said before the loop's way out leaves SCHED_FIFO: the supervisor, waiting on this core,
+            # runs at once then, and must not take a task that is failing for one that is stuck.
+            task.status[StatusWord.STATE] = TaskState.FAILED
             raise WatchdogExpired(f"watchdog: ran {fail_s:g} s at a real-time priority without sleeping "
                                   "(the kernel's RLIMIT_RTTIME); the step is stuck in an endless loop")
 
