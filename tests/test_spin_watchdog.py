@@ -59,3 +59,28 @@ def test_a_spinning_real_time_step_is_ended_when_it_starves_the_supervisor(tmp_p
     assert int((tmp_path / "out.stuck").read_text()) == 5
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stopped_by"] == "watchdog" and summary["failure"]["task"] == "spinner"
+
+
+MARKS_FAILED = textwrap.dedent("""
+    import os, signal, types
+    from rtloop.errors import WatchdogExpired
+    from rtloop.ipc.status import StatusWord, TaskState
+    from rtloop.runtime import task as task_module
+
+    status = {StatusWord.STATE: TaskState.RUNNING}
+    spinning = types.SimpleNamespace(in_loop=True, status=status)
+    task_module._end_a_spin_after(30.0, 31.0, spinning)  # this process never runs at a real-time priority
+    try:
+        os.kill(os.getpid(), signal.SIGXCPU)  # what the kernel sends at RLIMIT_RTTIME's soft limit
+    except WatchdogExpired:
+        print(TaskState(status[StatusWord.STATE]).name)
+""")
+
+
+def test_the_kernels_spin_signal_marks_the_task_failed_before_its_loop_leaves_real_time(
+        rtloop_env: dict[str, str]) -> None:
+    # The loop's way out leaves SCHED_FIFO before the task reports; a supervisor waiting on that core
+    # runs at once then, and would take a task still marked RUNNING, with no cycle for the limit, as stuck.
+    result = subprocess.run([sys.executable, "-c", MARKS_FAILED], capture_output=True, text=True,
+                            env=rtloop_env, timeout=60)
+    assert result.stdout.strip() == "FAILED", (result.stdout, result.stderr)
