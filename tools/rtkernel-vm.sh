@@ -28,6 +28,9 @@
 #   RTLOOP_RTKERNEL_MEM        guest memory (default 2G)
 #   RTLOOP_RTKERNEL_SHARE      more host folders to share read-only at the same path (colon-separated)
 #   RTLOOP_RTKERNEL_VERBOSE=1  show the kernel's boot messages
+#   RTLOOP_RTKERNEL_QEMU_ARGS  more QEMU arguments, split at spaces, to look into a guest that hangs
+#                              (e.g. '-monitor unix:/tmp/guest.mon,server,nowait', then
+#                              'info registers -a' there: each CPU's RIP, against the kernel's System.map)
 #   RTLOOP_TEST_SLOWDOWN       the factor tests stretch real-time periods and durations by in the
 #                              guest (default 20 under emulation, 1 under KVM)
 set -euo pipefail
@@ -322,7 +325,7 @@ timeout --foreground -k 10 "$timeout_s" qemu-system-x86_64 \
     -chardev stdio,id=console,signal=on -serial chardev:console -serial chardev:uart \
     -kernel "$kroot/boot/vmlinuz-$kver" -initrd "$initramfs" \
     -append "console=ttyS0 edd=off loglevel=$loglevel panic=-1 mitigations=off rdinit=/init" \
-    "${shares[@]}" "${devices[@]}" &
+    "${shares[@]}" "${devices[@]}" ${RTLOOP_RTKERNEL_QEMU_ARGS:-} &
 qemu_pid=$!
 set +e
 wait "$qemu_pid"
