@@ -21,11 +21,19 @@ set -uo pipefail
 cd "$(dirname "$0")/../.."
 selection=(tests/test_rtkernel_guest.py tests/test_run.py::test_rt_settings_are_really_applied_in_the_task_process
            tests/test_io_*.py)
+# Set aside while its cause is looked for: the whole guest hung in this test in 2 of 8 runs
+# (docs/rtkernel-guest.md, "An intermittent hang of the whole guest"); a hung guest would end the
+# tier by its time limit. It runs in the whole selection by hand and on a board.
+quarantined=("tests/test_io_scope_estop.py::test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say[step-c]")
+for test in "${quarantined[@]}"; do
+    echo "guest tier: set aside (an intermittent hang of the guest, docs/rtkernel-guest.md): $test"
+done
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
 RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-2400} tools/rtkernel-vm.sh \
     .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 "${selection[@]}" \
+    "${quarantined[@]/#/--deselect=}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 wall_s=$(($(date +%s) - started_s))
@@ -34,5 +42,5 @@ if [ "$status" -eq 125 ]; then
     exit 0
 fi
 counts=$(grep -E "^=+ .* in [0-9.]+s" "$log" | tail -1 | sed 's/=//g; s/^ *//; s/ *$//')
-echo "guest tier: ${counts:-no pytest summary}; wall time ${wall_s} s, boot included; exit status $status"
+echo "guest tier: ${counts:-no pytest summary} (${#quarantined[@]} set aside, above); wall time ${wall_s} s, boot included; exit status $status"
 exit "$status"
