@@ -228,6 +228,19 @@ def test_skip_policy_skips_missed_releases_and_counts_them(tmp_path: Path) -> No
 
 
 @pytest.mark.rt
+def test_releases_skipped_by_an_overrun_into_the_runs_end_are_counted(tmp_path: Path) -> None:
+    """The last cycles overrun into the run's end: the releases they skip before it leave no gap
+    in timing.csv (no cycle follows), and still count as overruns (a CI run lacked one of 300)."""
+    app = App(unique_name("overrun_at_end"))
+    app.add_task("slow", Sleepy(scaled_s(0.0035), every=48), period_ns=P, cpu=other_cpu())
+    summary = rtloop.run(app, scaled_s(0.05), tmp_path)
+    timing = summary.tasks["slow"].timing
+    cycles = [int(r["cycle"]) for r in read_csv(tmp_path / "timing.csv") if r["task"] == "slow"]
+    assert max(cycles) >= 48, "the second sleep came at or after release 48, less than 2 periods before the end"
+    assert timing.cycles + timing.overruns == 50, (timing.cycles, timing.overruns, cycles[-3:])
+
+
+@pytest.mark.rt
 def test_sched_deadline_runs_with_a_runtime_budget_of_half_the_period(tmp_path: Path) -> None:
     app = App(unique_name("deadline"))
     app.add_task("t", ReportSettings(), period_ns=P, policy="deadline")

@@ -577,9 +577,10 @@ class Supervisor:
             settings = task_run.settings if task_run else None
             dropped = layout.tasks[name].timing.dropped
             timing = recorder.timing_of(name)
-            if dropped and spec.config.overrun == "skip":
-                # Lost records leave gaps in timing.csv's cycles as skipped releases do: the task's
-                # own count of the releases it skipped is the true one.
+            if spec.config.overrun == "skip":
+                # The task's own count of the releases it skipped is the true one: timing.csv's gaps
+                # miss those after its last cycle (an overrun running into the run's end) and count
+                # lost records as if they were skips.
                 timing = dataclasses.replace(timing, overruns=status[StatusWord.OVERRUNS])
             tasks[name] = TaskSummary(
                 period_ns=spec.config.period_ns,
