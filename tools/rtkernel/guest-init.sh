@@ -28,18 +28,7 @@ say() {
 mkdir -p /dev/pts /dev/shm
 mount -t devpts -o newinstance,ptmxmode=0666,mode=0620 devpts /dev/pts
 ln -sf pts/ptmx /dev/ptmx
-# A project cloned under /tmp or /var (as CI may) would be hidden by the tmpfs mounted there below:
-# hold it aside and put it back at its path.
-mkdir -p /run/rtloop-guest/project
-mount --bind "$PROJECT" /run/rtloop-guest/project
-mount -t tmpfs -o mode=1777,nosuid,nodev shm /dev/shm
-mount -t tmpfs -o mode=1777,nosuid,nodev tmp /tmp
-mount -t tmpfs -o mode=0755 var /var && mkdir -p -m 1777 /var/tmp && mkdir -p /var/lib /var/log /var/cache
-if [ -d "$PROJECT/tools/rtkernel" ]; then
-    umount /run/rtloop-guest/project
-else
-    mkdir -p "$PROJECT" && mount --move /run/rtloop-guest/project "$PROJECT"
-fi
+mount -t tmpfs -o mode=1777,nosuid,nodev shm /dev/shm   # /tmp and /var: the initramfs mounted them
 ln -sf /proc/self/fd /dev/fd
 ln -sf /proc/self/fd/0 /dev/stdin; ln -sf /proc/self/fd/1 /dev/stdout; ln -sf /proc/self/fd/2 /dev/stderr
 [ "$VERBOSE" = 1 ] && say "stage 2 started"
