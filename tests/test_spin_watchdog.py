@@ -15,11 +15,17 @@ import signal
 import subprocess
 import sys
 import textwrap
+import types
 from pathlib import Path
 
 import pytest
 
 from conftest import other_cpu
+from rtloop.app.builder import TaskConfig
+from rtloop.errors import StopRequested, WatchdogExpired
+from rtloop.ipc.status import StatusWord, TaskState
+from rtloop.runnable import Runnable
+from rtloop.runtime import task as task_module
 
 SCRIPT = textwrap.dedent("""
     import os, sys
@@ -61,26 +67,40 @@ def test_a_spinning_real_time_step_is_ended_when_it_starves_the_supervisor(tmp_p
     assert summary["stopped_by"] == "watchdog" and summary["failure"]["task"] == "spinner"
 
 
-MARKS_FAILED = textwrap.dedent("""
-    import os, signal, types
-    from rtloop.errors import WatchdogExpired
-    from rtloop.ipc.status import StatusWord, TaskState
-    from rtloop.runtime import task as task_module
+class RaisesInStep(Runnable):
+    n_inputs, n_outputs = 0, 1
 
-    status = {StatusWord.STATE: TaskState.RUNNING}
-    spinning = types.SimpleNamespace(in_loop=True, status=status)
-    task_module._end_a_spin_after(30.0, 31.0, spinning)  # this process never runs at a real-time priority
-    try:
-        os.kill(os.getpid(), signal.SIGXCPU)  # what the kernel sends at RLIMIT_RTTIME's soft limit
-    except WatchdogExpired:
-        print(TaskState(status[StatusWord.STATE]).name)
-""")
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
+
+    def step(self, u, y) -> None:
+        raise self.error
 
 
-def test_the_kernels_spin_signal_marks_the_task_failed_before_its_loop_leaves_real_time(
-        rtloop_env: dict[str, str]) -> None:
+class OneMoreRelease:
+    """The framework's share of a cycle reduced to "the next release is here" (no clock, no memory)."""
+
+    def start(self, *_args) -> None: ...
+    def begin(self) -> bool: return True
+    def finish(self) -> bool: return True
+    def close(self) -> None: ...
+
+
+@pytest.mark.parametrize(("error", "state_when_leaving"), [
+    (WatchdogExpired("what SIGXCPU raises (RLIMIT_RTTIME)"), "FAILED"),
+    (ZeroDivisionError("a student's step"), "FAILED"),
+    (StopRequested("the model's end"), "RUNNING"),  # an orderly end: the caller says it
+])
+def test_a_loop_ended_by_an_error_marks_the_task_failed_before_it_leaves_real_time(
+        monkeypatch, error: BaseException, state_when_leaving: str) -> None:
     # The loop's way out leaves SCHED_FIFO before the task reports; a supervisor waiting on that core
     # runs at once then, and would take a task still marked RUNNING, with no cycle for the limit, as stuck.
-    result = subprocess.run([sys.executable, "-c", MARKS_FAILED], capture_output=True, text=True,
-                            env=rtloop_env, timeout=60)
-    assert result.stdout.strip() == "FAILED", (result.stdout, result.stderr)
+    status = {StatusWord.STATE: TaskState.RUNNING}
+    task = task_module.RealtimeTask(TaskConfig("spinner", 1_000_000), RaisesInStep(error), {}, status, None)
+    task.wiring = types.SimpleNamespace(stale_reads=0)
+    monkeypatch.setattr(task_module, "cycle_work", lambda *_args, **_kwargs: OneMoreRelease())
+    seen: list[str] = []
+    monkeypatch.setattr(task_module.rt, "leave_realtime", lambda: seen.append(TaskState(status[StatusWord.STATE]).name))
+    with pytest.raises(type(error)):
+        task.run_loop(0, 1_000_000_000)
+    assert seen == [state_when_leaving]

@@ -104,6 +104,14 @@ class RealtimeTask:
                     self.on_snapshot(cycle.cycle, t0_ns)
                 elif not done:  # too many deadline misses in a row (max_consecutive_misses)
                     raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
+        except StopRequested:
+            raise  # an orderly end, said by the caller
+        except BaseException:
+            # Said before the way out leaves SCHED_FIFO: the supervisor, waiting on this core, runs
+            # at once then, and must not take a task that is failing (a spin the kernel ended) for one
+            # that is stuck.
+            self.status[StatusWord.STATE] = TaskState.FAILED
+            raise
         finally:
             self.in_loop = False
             self.devices.stop()  # safe values first, on every way out of the loop
@@ -299,10 +307,7 @@ def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
     real-time tasks on every core never leave it. SIGXCPU fails the step (safe values written on
     the way out), SIGKILL follows if it cannot (a loop inside C code)."""
     def fail(_signum: int, _frame: Any) -> None:
-        if task.in_loop:
-            # Said before the loop's way out leaves SCHED_FIFO: the supervisor, waiting on this core,
-            # runs at once then, and must not take a task that is failing for one that is stuck.
-            task.status[StatusWord.STATE] = TaskState.FAILED
+        if task.in_loop:  # the loop marks the task failed on its way out, before it leaves SCHED_FIFO
             raise WatchdogExpired(f"watchdog: ran {fail_s:g} s at a real-time priority without sleeping "
                                   "(the kernel's RLIMIT_RTTIME); the step is stuck in an endless loop")
 
