@@ -342,7 +342,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "benchmark": "channels",
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "settings": vars(args),
+        "settings": {k: v for k, v in vars(args).items() if k != "json"},  # not where it was written
         "machine": facts,
         "elapsed_s": round(time.monotonic() - started, 1),
         "hops": hops,

@@ -74,10 +74,10 @@ def main() -> None:
     rows += [("rtloop " + " ".join(command), ["-m", "rtloop.cli", *command]) for command in COMMANDS]
     for label, arguments in rows:
         cells = []
-        for src in trees.values():
+        for tree, src in trees.items():
             wall_s, modules, heavy = measure(arguments, src, args.repeat)
             cells.append(f"{wall_s * 1e3:.0f} ms, {modules}, {', '.join(heavy) or '-'}")
-            results.append({"command": label, "tree": str(src), "median_wall_s": wall_s, "modules": modules,
+            results.append({"command": label, "tree": tree, "median_wall_s": wall_s, "modules": modules,
                             "heavy": heavy})
         print(f"| `{label}` | " + " | ".join(cells) + " |", flush=True)
     if args.json is not None:

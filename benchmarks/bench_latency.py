@@ -290,7 +290,7 @@ def summarise(
     return {
         "benchmark": "latency",
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "settings": {k: v for k, v in vars(args).items() if k not in ("naive_child", "child_out", "cycles")},
+        "settings": {k: v for k, v in vars(args).items() if k not in ("naive_child", "child_out", "cycles", "json")},
         "machine": facts,
         "elapsed_s": round(elapsed_s, 1),
         "latency": latency,

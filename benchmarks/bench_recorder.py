@@ -135,8 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {what} | {r['count']} | {r['recorder_per_s']:,.0f} | {r['tofile_per_s']:,.0f} | "
               f"{r['recorder_per_s'] / r['tofile_per_s']:.3f} |")
     if args.json is not None:
-        args.json.write_text(json.dumps({"args": vars(args) | {"json": str(args.json)}, "results": results},
-                                        indent=1) + "\n")
+        settings = {k: v for k, v in vars(args).items() if k != "json"}  # not where it was written
+        args.json.write_text(json.dumps({"args": settings, "results": results}, indent=1) + "\n")
     return 0
 
 

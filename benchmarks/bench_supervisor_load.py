@@ -128,8 +128,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{r.get('misses', '')} | {r.get('run_mcap', '')} | {r.get('supervisor_vmlck_kib', '')}, "
               f"{r.get('task_vmlck_kib_max', '')} |")
     if args.json is not None:
-        args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "results": results},
-                                        indent=1) + "\n")
+        settings = {k: str(v) for k, v in vars(args).items() if k != "json"}  # not where it was written
+        args.json.write_text(json.dumps({"args": settings, "results": results}, indent=1) + "\n")
     return 0
 
 
