@@ -157,6 +157,20 @@ def wait_for_app(name: str, process: subprocess.Popen, timeout_s: float = 60.0):
     pytest.fail(f"app {name!r} did not start within {timeout_s} s")
 
 
+def wait_for_task_pids(app, process: subprocess.Popen, timeout_s: float = 60.0) -> dict[str, int]:
+    """Every task process's pid, once all have started. Never a 0: ``os.kill(0, ...)`` would signal
+    the test's own process group (pytest and whatever started it)."""
+    deadline = time.monotonic() + timeout_s
+    while not all((pids := app.task_pids()).values()):
+        if process.poll() is not None:
+            pytest.fail(f"rtloop ended (exit {process.returncode}) before its tasks started: "
+                        f"{process.communicate()[1]}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"not every task started within {timeout_s} s: {pids}")
+        time.sleep(0.05)
+    return pids
+
+
 def wait_for_cycles(app, task: str, cycles: int, process: subprocess.Popen, timeout_s: float = 60.0) -> int:
     """Until ``task`` of the running ``app`` has computed ``cycles`` cycles (however loaded the machine).
 

@@ -16,12 +16,11 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu, scaled_ns, scaled_s, unique_name
+from conftest import other_cpu, scaled_ns, scaled_s, unique_name, wait_for_app, wait_for_cycles, wait_for_task_pids
 from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiController, RaiseAt
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
-from rtloop.ipc.ports import connect_app
 from rtloop.ipc.schema import task_segment_size
 from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
@@ -175,17 +174,15 @@ def test_task_processes_run_one_thread_and_lock_less_memory(tmp_path: Path, rtlo
     app_file = tmp_path / "lean.toml"
     app_file.write_text(
         f'name = "{name}"\n[tasks.counter]\nrunnable = "rt_test_runnables:Counter"\n'
-        f"period_ns = 1_000_000\ncpu = {other_cpu()}\n[record]\nsignals = ['counter.y']\n"
+        f"period_ns = {scaled_ns(1_000_000)}\ncpu = {other_cpu()}\n[record]\nsignals = ['counter.y']\n"
     )
-    process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "3",
-                                "--out", str(tmp_path / "out")], env=rtloop_env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file),
+                                "--duration", str(scaled_s(3)), "--out", str(tmp_path / "out")],
+                               env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        app = connect_app(name, timeout_s=20)
-        deadline = time.monotonic() + 20
-        while not (pid := app.task_pids()["counter"]) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.5)  # prerun done, memory locked
+        app = wait_for_app(name, process, scaled_s(60))
+        pid = wait_for_task_pids(app, process, scaled_s(60))["counter"]
+        wait_for_cycles(app, "counter", 2, process, scaled_s(60))  # prerun done, memory locked
         status = _status_of(pid)
     finally:
         process.communicate(timeout=30)

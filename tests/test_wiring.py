@@ -17,7 +17,16 @@ import pytest
 
 import rtloop
 import shm_stress
-from conftest import other_cpu, scaled_ns, scaled_s, slowdown, unique_name, wait_for_app, wait_for_cycles
+from conftest import (
+    other_cpu,
+    scaled_ns,
+    scaled_s,
+    slowdown,
+    unique_name,
+    wait_for_app,
+    wait_for_cycles,
+    wait_for_task_pids,
+)
 from rt_test_runnables import Counter, Gain, Integrator, Noop, PiController
 from rtloop import App, AppError, ConnectionSizeError, PortValueError
 from rtloop.app.appfile import load_app
@@ -373,12 +382,8 @@ def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path
 def test_killing_supervisor_and_task_leaves_nothing_after_the_next_run(tmp_path: Path) -> None:
     name = unique_name("jiwy_killed")
     process = _jiwy_cli(tmp_path, name, 30)
-    app = wait_for_app(name, process)
-    pids = app.task_pids()
-    deadline = time.monotonic() + 20
-    while not all(pids.values()) and time.monotonic() < deadline:
-        time.sleep(0.05)
-        pids = app.task_pids()
+    app = wait_for_app(name, process, scaled_s(60))
+    pids = wait_for_task_pids(app, process, scaled_s(60))
     os.kill(pids["plant"], signal.SIGKILL)
     os.kill(process.pid, signal.SIGKILL)
     process.communicate(timeout=10)
