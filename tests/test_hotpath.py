@@ -185,7 +185,7 @@ def test_task_processes_run_one_thread_and_lock_less_memory(tmp_path: Path, rtlo
         wait_for_cycles(app, "counter", 2, process, scaled_s(60))  # prerun done, memory locked
         status = _status_of(pid)
     finally:
-        process.communicate(timeout=30)
+        process.communicate(timeout=scaled_s(30))
     assert process.returncode == 0
     assert status["Threads"] == "1", "no BLAS or OpenMP worker threads beside the loop"
     locked_mb = int(status["VmLck"].split()[0]) / 1024
