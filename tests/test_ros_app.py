@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import find_cyclonedds_cli, skip_in_rtkernel_guest, unique_name
+from conftest import find_cyclonedds_cli, skip_in_rtkernel_guest, unique_name, wait_for_task_pids
 from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
@@ -402,11 +402,7 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
         run = start_app(JIWY, out, domain, duration_s=duration_s)
         stop_on_failure = run  # killed in `finally` if an assertion fails before the run ends
         app = wait_for_app(run.pid)
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while not all(app.task_pids().values()) and time.monotonic() < deadline:
-            time.sleep(0.02)
-        tasks = set(app.task_pids().values())
-        assert 0 not in tasks
+        tasks = set(wait_for_task_pids(app, run, START_TIMEOUT_S).values())  # never a 0
         # Bridges start in the order of the app file: publish /jiwy/angles first.
         angles_bridge, setpoint_bridge = bridge_pids(run.pid, tasks, count=2)
         time.sleep(1.0)
