@@ -20,7 +20,8 @@
 # offline. See docs/rtkernel-guest.md.
 #
 # Environment:
-#   RTLOOP_RTKERNEL_TIMEOUT_S  kill the guest after this many seconds (default 3600)
+#   RTLOOP_RTKERNEL_TIMEOUT_S  kill the guest after this many seconds (default 7200: the whole
+#                              "rt or rtkernel" selection takes about an hour on a 2-core machine)
 #   RTLOOP_RTKERNEL_CACHE      the cache folder (default: PROJECT/.rtloop-cache/rtkernel)
 #   RTLOOP_RTKERNEL_PACKAGE    the kernel meta package (default linux-image-rt-amd64)
 #   RTLOOP_RTKERNEL_UPDATE=1   ask the registry again for the newest kernel of that package
@@ -50,7 +51,7 @@ if [ "$(uname -m)" != x86_64 ]; then
     say "this tool boots the amd64 kernel and needs an x86-64 host (this is $(uname -m))"
     exit 125
 fi
-timeout_s=${RTLOOP_RTKERNEL_TIMEOUT_S:-3600}
+timeout_s=${RTLOOP_RTKERNEL_TIMEOUT_S:-7200}
 case "$timeout_s" in
     '' | *[!0-9]* | 0) say "RTLOOP_RTKERNEL_TIMEOUT_S must be a positive whole number of seconds, not '$timeout_s'"; exit 2 ;;
 esac
