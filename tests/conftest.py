@@ -50,6 +50,16 @@ def in_rtkernel_guest() -> bool:
     return os.environ.get("RTLOOP_GUEST") == "1" and bool(os.environ.get("RTLOOP_GUEST_DEVICES"))
 
 
+def require_nobody_can_import_rtloop() -> None:
+    """Skip when user 'nobody' (uid 65534) cannot import rtloop here: the checkout or its .venv lies
+    under a folder only root may enter (``mktemp -d`` makes such a folder)."""
+    probe = subprocess.run(["setpriv", "--reuid", "65534", "--regid", "65534", "--clear-groups", sys.executable,
+                            "-c", "import rtloop"], capture_output=True, text=True, timeout=60)
+    if probe.returncode != 0:
+        pytest.skip("another local user cannot import rtloop here (installed under a folder only root may enter): "
+                    f"{probe.stderr.strip().splitlines()[-1:]}")
+
+
 def guest_device_map() -> dict:
     """The guest's device map (``/run/rtloop-guest/devices.json``); skips the test outside the guest."""
     if not in_rtkernel_guest():

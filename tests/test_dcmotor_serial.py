@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import rtloop
-from conftest import unique_name
+from conftest import require_nobody_can_import_rtloop, unique_name
 from rtloop.app.appfile import load_app
 from rtloop.errors import DeviceError
 from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, crc16
@@ -227,6 +227,7 @@ def test_a_port_that_is_not_a_serial_line_is_one_line(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not ROOT or shutil.which("setpriv") is None, reason="needs root and setpriv to become 'nobody'")
 def test_a_serial_port_without_permission_is_one_line_with_the_fix(driver: Driver) -> None:
+    require_nobody_can_import_rtloop()
     folder = Path(tempfile.mkdtemp(prefix="rtloop-perm-"))
     try:
         folder.chmod(0o755)

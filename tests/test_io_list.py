@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import require_nobody_can_import_rtloop
 from rtloop.cli.doctor import check_devices
 from rtloop.io.inventory import format_table, list_interfaces
 
@@ -69,6 +70,7 @@ def test_the_doctor_says_which_cannot_be_used_and_the_fix(tmp_path: Path) -> Non
 @pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
                     reason="needs root and setpriv to look as another user")
 def test_a_device_this_user_may_not_open_says_the_fix() -> None:
+    require_nobody_can_import_rtloop()
     root = Path(tempfile.mkdtemp(prefix="rtloop-io-"))
     try:
         _tree(root)
