@@ -32,7 +32,7 @@ def main() -> None:
     sys.path.insert(0, str(JIWY))
     import rtloop
     from rtloop.app.appfile import load_app
-    from rtloop.runtime.sweep import grid
+    from rtloop.toolbox.sweep import grid
 
     gains = grid(f"0.1:1.0:{args.points}")
     feeds = {"setpoint": JIWY / "setpoints" / "step.csv"}

@@ -34,8 +34,10 @@ ALLOWED: dict[str, set[str]] = {
     "record": {FLOOR, "stats", "app", "ipc", "ros", "ros.types"},
     "runtime": {FLOOR, "linux", "stats", "app", "io", "ipc", "models", "record", "ros", "ros.types"},
     "report": {FLOOR, "stats", "record"},
+    "toolbox": {FLOOR, "linux", "stats", "app", "io", "ipc", "models", "record", "ros", "ros.types", "runtime",
+                "report"},
     "cli": {FLOOR, "linux", "stats", "app", "io", "ipc", "models", "record", "ros", "ros.types", "runtime",
-            "report", "cli"},
+            "report", "toolbox", "cli"},
 }
 
 

@@ -17,7 +17,7 @@ import pytest
 from rtloop.cli.main import EXIT_BAD_INPUT
 from rtloop.cli.main import main as cli_main
 from rtloop.linux import rt
-from rtloop.runtime import bench as experiments
+from rtloop.toolbox import bench as experiments
 
 DURATION = "1"
 

@@ -18,7 +18,7 @@ from rtloop.cli.main import COMMANDS, build_parser, main
 # Engines and optional packages a command loads when it runs, never for parsing.
 HEAVY = ("rich", "matplotlib", "cyclonedds", "mcap", "mcap_ros2", "foxglove", "fmpy", "serial",
          "rtloop.report", "rtloop.ros.bridge", "rtloop.ros.dds", "rtloop.ros.live", "rtloop.runtime.supervisor",
-         "rtloop.runtime.simulate", "rtloop.runtime.replay", "rtloop.runtime.sweep", "rtloop.record.recorder",
+         "rtloop.runtime.simulate", "rtloop.runtime.replay", "rtloop.toolbox.sweep", "rtloop.record.recorder",
          "rtloop.cli.top_view", "rtloop.app.appfile")
 
 
@@ -114,7 +114,7 @@ def test_building_the_tree_imports_no_engine(rtloop_env: dict[str, str]) -> None
 def test_help_loads_no_numpy(rtloop_env: dict[str, str]) -> None:
     """``rtloop --help`` (and a usage error) answer without numpy or the app description:
     the package's top-level names are imported on first use (``rtloop/__init__.py``)."""
-    light = ("numpy", "rtloop.app", "rtloop.runnable", "rtloop.stats.timing", "rtloop.runtime.bench")
+    light = ("numpy", "rtloop.app", "rtloop.runnable", "rtloop.stats.timing", "rtloop.toolbox.bench")
     for argv in (["--help"], ["bench", "--help"], ["service", "--help"], ["top", "--interval", "0"]):
         code = f"from rtloop.cli.main import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass"
         loaded, _ = _modules_after(code, rtloop_env, light)

@@ -7,7 +7,7 @@ import shutil
 from pathlib import Path
 
 from rtloop.app.appfile import load_app
-from rtloop.linux import readiness
+from rtloop.toolbox import doctor
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
@@ -30,11 +30,11 @@ def test_the_devices_pages_first_snippet_loads_beside_the_example_it_quotes(tmp_
 
 
 def test_the_docs_say_what_rtloop_does_with_cpu_dma_latency() -> None:
-    assert readiness.RTLOOP_HOLDS_CPU_DMA_LATENCY
+    assert doctor.RTLOOP_HOLDS_CPU_DMA_LATENCY
     for page in (*DOCS.glob("*.md"), REPO / "README.md"):
         text = " ".join(page.read_text().split())
         assert "does not yet hold `/dev/cpu_dma_latency`" not in text, page.name
-    comment = (REPO / "src" / "rtloop" / "linux" / "readiness.py").read_text()
+    comment = (REPO / "src" / "rtloop" / "toolbox" / "doctor.py").read_text()
     assert "It does not yet" not in comment
 
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from rtloop.cli.main import main as cli_main
-from rtloop.linux import readiness
-from rtloop.linux.readiness import Check, format_human, run_checks, to_json, verdict
 from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE
+from rtloop.toolbox import doctor
+from rtloop.toolbox.doctor import Check, format_human, run_checks, to_json, verdict
 
 LIMITS_HEADER = "Limit                     Soft Limit           Hard Limit           Units     \n"
 
@@ -75,7 +75,7 @@ def check_named(checks: list[Check], name: str) -> Check:
 @pytest.fixture
 def holds_dma_latency(monkeypatch: pytest.MonkeyPatch) -> None:
     """Pretend rtloop already holds /dev/cpu_dma_latency at 0 while running."""
-    monkeypatch.setattr(readiness, "RTLOOP_HOLDS_CPU_DMA_LATENCY", True)
+    monkeypatch.setattr(doctor, "RTLOOP_HOLDS_CPU_DMA_LATENCY", True)
 
 
 def test_ready_pi_is_ok_everywhere(tmp_path: Path, holds_dma_latency: None) -> None:
@@ -187,7 +187,7 @@ def test_check_verdicts(
 
 
 def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(readiness, "RTLOOP_HOLDS_CPU_DMA_LATENCY", False)
+    monkeypatch.setattr(doctor, "RTLOOP_HOLDS_CPU_DMA_LATENCY", False)
     check = check_named(run_checks(make_tree(tmp_path)), "cpu_dma_latency")
     assert check.status == "warn"
     assert "does not hold it" in check.detail
@@ -197,7 +197,7 @@ def test_cpu_dma_latency_not_held_by_rtloop_is_a_warning(tmp_path: Path, monkeyp
 def test_cpu_dma_latency_not_writable(
     tmp_path: Path, holds_dma_latency: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(readiness, "_writable", lambda path: False)
+    monkeypatch.setattr(doctor, "_writable", lambda path: False)
     check = check_named(run_checks(make_tree(tmp_path)), "cpu_dma_latency")
     assert check.status == "warn"
     assert "udev" in check.fix
@@ -292,3 +292,20 @@ def test_the_command_runs_in_a_process_of_its_own() -> None:
         "preemption", "rt_throttling", "isolated_cpus", "cpu_governor", "smt", "rt_priority",
         "memlock", "realtime_group", "cpu_dma_latency", "virtualisation", "swap", "clocksource",
     }
+
+
+def test_the_engine_and_the_doctor_name_the_same_preemption_model() -> None:
+    """They used to have a detector each: on a PREEMPT_DYNAMIC kernel without debugfs the engine's
+    probe said ``PREEMPT_DYNAMIC`` where the doctor read the boot log and said ``PREEMPT_DYNAMIC (none)``.
+    Both now read :func:`rtloop.linux.machine.preemption_model`."""
+    from rtloop.linux import rt
+    engine = rt.probe().preemption_model
+    detail = check_named(run_checks(), "preemption").detail
+    assert detail.startswith(f"{engine} kernel"), (engine, detail)
+
+
+def test_the_preemption_model_under_a_tree_reads_the_boot_log(tmp_path: Path) -> None:
+    from rtloop.linux.machine import preemption_model
+    tree = make_tree(tmp_path, {"sys/kernel/realtime": None, "proc/sys/kernel/version": "#1 SMP PREEMPT_DYNAMIC @0",
+                                "dev/kmsg": "6,1,0,-;Dynamic Preempt: voluntary\n"})
+    assert preemption_model(tree) == "PREEMPT_DYNAMIC (voluntary)"

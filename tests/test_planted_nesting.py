@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from rtloop.cli.main import main
-from rtloop.runtime.monitor import live_summary_line
+from rtloop.toolbox.monitor import live_summary_line
 
 DEEP = "[" * 100_000 + "]" * 100_000
 

@@ -86,7 +86,7 @@ def test_without_duration_it_runs_until_sigint_and_exits_0(tmp_path: Path, rtloo
         from rtloop.report.data import load_run
 
         assert load_run(out).tasks["counter"]["cycles"] > 100  # `rtloop report` reads a live run
-        from rtloop.runtime.monitor import Monitor
+        from rtloop.toolbox.monitor import Monitor
 
         views = Monitor(unique_name("days_until_sigint")).snapshot()  # and `rtloop top` shows what it says
         assert len(views) == 1 and "counter p99" in views[0].summary_line

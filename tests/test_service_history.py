@@ -1,4 +1,4 @@
-"""The runs a service keeps (``runtime/run_history.py``, the unit's ExecStartPre): in a restart
+"""The runs a service keeps (``toolbox/run_history.py``, the unit's ExecStartPre): in a restart
 burst the first failure's recording survives the later ones; the history stays bounded."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from rtloop.cli.main import main as cli_main
-from rtloop.runtime.run_history import MAX_RUNS_KEPT, PastRun, past_runs, runs_to_prune, set_aside
+from rtloop.toolbox.run_history import MAX_RUNS_KEPT, PastRun, past_runs, runs_to_prune, set_aside
 
 JIWY = Path(__file__).resolve().parent.parent / "examples" / "jiwy" / "jiwy.toml"
 
@@ -41,7 +41,7 @@ def test_the_unit_sets_the_last_run_aside_with_run_history_not_rm(capsys: pytest
     assert len(pre) == 1, pre
     words = pre[0].split()
     assert Path(words[0]).is_absolute() and Path(words[0]).name.startswith("python")
-    assert words[1:] == ["-m", "rtloop.runtime.run_history", "/var/lib/rtloop/jiwy/latest"]
+    assert words[1:] == ["-m", "rtloop.toolbox.run_history", "/var/lib/rtloop/jiwy/latest"]
     assert "rm -rf" not in unit and "previous" not in unit
     assert f"At most {MAX_RUNS_KEPT} are kept" in unit and "first-failure" in unit
 
@@ -49,7 +49,7 @@ def test_the_unit_sets_the_last_run_aside_with_run_history_not_rm(capsys: pytest
 def test_the_unit_s_command_runs_and_sets_aside(tmp_path: Path) -> None:
     latest = tmp_path / "latest"
     _finish(latest, "fault")
-    done = subprocess.run([sys.executable, "-m", "rtloop.runtime.run_history", str(latest)], capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "rtloop.toolbox.run_history", str(latest)], capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert "kept latest/ as run-0001-first-failure/" in done.stdout

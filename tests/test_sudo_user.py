@@ -73,7 +73,7 @@ def test_new_folders_and_the_last_summary_belong_to_the_sudo_user(tmp_path: Path
 
 
 def test_a_sweeps_folders_and_table_belong_to_the_sudo_user(tmp_path: Path, under_sudo: None) -> None:
-    from rtloop.runtime.sweep import sweep
+    from rtloop.toolbox.sweep import sweep
 
     app_file = Path(__file__).parents[1] / "examples" / "dcmotor" / "dcmotor.toml"
     result = sweep(app_file, {"pi.kp": [0.05, 0.1]}, duration_s=0.1, out=tmp_path / "runs" / "sweep", processes=1)

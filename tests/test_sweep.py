@@ -14,7 +14,7 @@ import pytest
 import rtloop
 from rtloop.app.appfile import load_app
 from rtloop.cli.main import main as cli_main
-from rtloop.runtime.sweep import METRICS, grid, step_response
+from rtloop.toolbox.sweep import METRICS, grid, step_response
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 DCMOTOR = EXAMPLES / "dcmotor" / "dcmotor.toml"
@@ -109,7 +109,7 @@ def test_cli_table_and_bad_input(tmp_path: Path, dcmotor_path: None, capsys: pyt
 
 def test_a_grid_too_large_is_refused_before_it_is_built(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Three parameters of 10,000 values are 1e12 points: counted, refused, never built (that took GBs)."""
-    from rtloop.runtime import sweep as sweep_module
+    from rtloop.toolbox import sweep as sweep_module
 
     def no_grid(*_: object) -> None:
         raise AssertionError("the grid was built before its size was checked")

@@ -13,7 +13,7 @@ import pytest
 
 from rtloop.cli import top_view
 from rtloop.cli.main import main as cli_main
-from rtloop.runtime.monitor import (
+from rtloop.toolbox.monitor import (
     MAX_SUMMARY_BYTES,
     SCHED_NAMES,
     AppView,

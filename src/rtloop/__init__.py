@@ -32,8 +32,8 @@ if TYPE_CHECKING:
     from rtloop.runnable import TickInfo as TickInfo
     from rtloop.runtime.simulate import simulate as simulate
     from rtloop.runtime.supervisor import run as run
-    from rtloop.runtime.sweep import sweep as sweep
     from rtloop.stats.timing import TaskTiming as TaskTiming
+    from rtloop.toolbox.sweep import sweep as sweep
 
 # Every other name is imported on first use (PEP 562), not here, for two reasons:
 # - every ``rtloop`` command imports this package first: eager imports would make
@@ -55,7 +55,7 @@ _LAZY = {
     "TickInfo": "rtloop.runnable",
     "simulate": "rtloop.runtime.simulate",
     "run": "rtloop.runtime.supervisor",
-    "sweep": "rtloop.runtime.sweep",
+    "sweep": "rtloop.toolbox.sweep",
     "TaskTiming": "rtloop.stats.timing",
 }
 

@@ -26,11 +26,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtloop.cli.arguments import count, positive_seconds
-from rtloop.runtime.bench_choices import DEFAULT_STRESS, EXPERIMENTS, STRESSORS  # the runs import lazily
 from rtloop.stats import DEFAULT_TRIM
+from rtloop.toolbox.bench_choices import DEFAULT_STRESS, EXPERIMENTS, STRESSORS  # the runs import lazily
 
 if TYPE_CHECKING:
-    from rtloop.runtime.bench import Outcome, Settings
+    from rtloop.toolbox.bench import Outcome, Settings
 
 HELP = "the thesis's chapter-6 experiments on this machine, with a report"
 
@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def settings_for(args: argparse.Namespace, experiment: str, policy: str, cpus: tuple[int, int]) -> Settings:
-    from rtloop.runtime.bench import Settings
+    from rtloop.toolbox.bench import Settings
 
     if args.experiment == "all":
         out = (args.out or Path("runs/bench")) / experiment
@@ -84,7 +84,7 @@ def settings_for(args: argparse.Namespace, experiment: str, policy: str, cpus: t
 
 def run_experiments(args: argparse.Namespace) -> list[Outcome]:
     """Check the machine, then run each asked experiment in turn, with progress on stderr."""
-    from rtloop.runtime.bench import RUNNERS, RUNS_PER_EXPERIMENT, check_tools, choose_cpus, choose_policy, progress
+    from rtloop.toolbox.bench import RUNNERS, RUNS_PER_EXPERIMENT, check_tools, choose_cpus, choose_policy, progress
 
     experiments = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
     check_tools(experiments)

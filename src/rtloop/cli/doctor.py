@@ -1,6 +1,6 @@
 """``rtloop doctor [--json]``: is this machine ready for real time, and how to fix what is not?
 
-The checks are :mod:`rtloop.linux.readiness`'s, plus whether the device interfaces here
+The checks are :mod:`rtloop.toolbox.doctor`'s, plus whether the device interfaces here
 can be opened (``rtloop io list`` has the details). Exit status 1 when any check fails.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from rtloop.linux.readiness import Check
+    from rtloop.toolbox.doctor import Check
 
 HELP = "is this machine ready for real time? how to fix what is not"
 
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the checks; 1 if any check fails, else 0."""
-    from rtloop.linux.readiness import LIVE_ROOT, format_human, run_checks, to_json, verdict
+    from rtloop.toolbox.doctor import LIVE_ROOT, format_human, run_checks, to_json, verdict
 
     root = LIVE_ROOT if args.root is None else args.root
     checks = run_checks(root, more=[("devices", lambda: check_devices(root))])
@@ -41,8 +41,8 @@ def run(args: argparse.Namespace) -> int:
 def check_devices(root: Path) -> Check:
     """Interfaces devices can use (``rtloop io list`` has the details): may this user open them?"""
     from rtloop.io.inventory import list_interfaces
-    from rtloop.linux.readiness import Check
     from rtloop.text import counted
+    from rtloop.toolbox.doctor import Check
 
     interfaces = list_interfaces(root)
     if not interfaces:

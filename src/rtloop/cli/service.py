@@ -1,7 +1,7 @@
 """``rtloop service APP.toml``: a systemd unit that runs an app until it is stopped.
 
 The unit is printed (or written with ``--install``) with a comment above every setting saying
-why it is there (:mod:`rtloop.runtime.service_unit` writes it; the supervisor's module is imported only then).
+why it is there (:mod:`rtloop.toolbox.service_unit` writes it; the supervisor's module is imported only then).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.cli.arguments import EXIT_FAILED, BadInput
-from rtloop.runtime.service_unit import (
+from rtloop.toolbox.service_unit import (
     CPU_LIST_PATTERN,
     DEFAULT_KEEP_S,
     STATE_ROOT,

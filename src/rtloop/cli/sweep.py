@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """The table on stdout, the time it took on stderr; 1 when every point failed."""
-    from rtloop.runtime.sweep import format_table, parse_parameter, sweep
+    from rtloop.toolbox.sweep import format_table, parse_parameter, sweep
 
     parameters = dict(parse_parameter(text) for text in args.param)
     result = sweep(args.app, parameters, duration_s=args.duration, out=args.out, signal=args.signal,

@@ -1,4 +1,4 @@
-"""``rtloop top [APP] [--once]``: a live view of running apps (:mod:`rtloop.runtime.monitor` reads them,
+"""``rtloop top [APP] [--once]``: a live view of running apps (:mod:`rtloop.toolbox.monitor` reads them,
 :mod:`rtloop.cli.top_view` draws them)."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
     An APP named that is not running is bad input (exit 2) either way: a live view that
     waited for it would wait for ever on a typo."""
     from rtloop.ipc.ports import AppNotReachable, unreachable_app
-    from rtloop.runtime.monitor import Monitor, unreachable_notes
+    from rtloop.toolbox.monitor import Monitor, unreachable_notes
 
     monitor = Monitor(args.app)
     if args.app is not None and not monitor.refresh_apps():
@@ -64,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
 def refuse_unknown_app(name: str) -> None:
     """An app asked for by name that is not running: bad input, naming it and those that run (as ``port`` does)."""
     from rtloop.ipc.ports import AppNotRunning
-    from rtloop.runtime.monitor import find_apps
     from rtloop.text import shorten
+    from rtloop.toolbox.monitor import find_apps
 
     running = ", ".join(sorted({registry.app for registry in find_apps()})) or "none"
     raise AppNotRunning(f"no running app named {shorten(name)}; running: {running}")

@@ -1,4 +1,4 @@
-"""How ``rtloop top`` draws what :mod:`rtloop.runtime.monitor` sees: one rich table per app."""
+"""How ``rtloop top`` draws what :mod:`rtloop.toolbox.monitor` sees: one rich table per app."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from rich.console import Console, Group, RenderableType
 from rich.table import Table
 from rich.text import Text
 
-from rtloop.runtime.monitor import LATENCY_MAX_NOTE, AppView, Monitor, TaskView, unreachable_notes
+from rtloop.toolbox.monitor import LATENCY_MAX_NOTE, AppView, Monitor, TaskView, unreachable_notes
 
 COLUMNS = ("task", "state", "PID", "CPU", "sched", "cycle", "cyc/s", "overruns", "misses", "stale",
            "lat now µs", "lat max µs", "exec µs", "%CPU", "invol cs", "minflt", "majflt", "GC")

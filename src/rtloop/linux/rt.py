@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from rtloop.errors import LibcError
+from rtloop.linux.machine import effective_capabilities, preemption_model
 
 now_ns = time.monotonic_ns
 """CLOCK_MONOTONIC in nanoseconds: clock_gettime without a ctypes round-trip."""
@@ -383,36 +384,8 @@ class Capabilities:
         return asdict(self)
 
 
-def _effective_capabilities() -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("CapEff:"):
-            return int(line.split()[1], 16)
-    return 0
-
-
 CAP_IPC_LOCK = 14
 CAP_SYS_NICE = 23
-
-
-def preemption_model() -> str:
-    """``PREEMPT_RT``, ``PREEMPT_DYNAMIC (full|voluntary|none)``, ``PREEMPT`` or ``unknown``."""
-    if Path("/sys/kernel/realtime").exists() and Path("/sys/kernel/realtime").read_text().strip() == "1":
-        return "PREEMPT_RT"
-    version = platform.version()
-    if "PREEMPT_RT" in version:
-        return "PREEMPT_RT"
-    if "PREEMPT_DYNAMIC" in version:
-        for candidate in (Path("/sys/kernel/debug/sched/preempt"),):
-            try:
-                chosen = [w for w in candidate.read_text().split() if w.startswith("(")]
-                if chosen:
-                    return f"PREEMPT_DYNAMIC ({chosen[0].strip('()')})"
-            except OSError:
-                pass
-        return "PREEMPT_DYNAMIC"
-    if "PREEMPT" in version:
-        return "PREEMPT"
-    return "unknown"
 
 
 def parse_cpu_list(text: str) -> tuple[int, ...]:
@@ -431,7 +404,7 @@ def parse_cpu_list(text: str) -> tuple[int, ...]:
 
 def probe() -> Capabilities:
     """Answer: may this process use SCHED_FIFO and mlockall, and what is the kernel like?"""
-    caps = _effective_capabilities()
+    caps = effective_capabilities()
     rtprio_soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
     memlock_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     has_nice = bool(caps & (1 << CAP_SYS_NICE))
@@ -453,7 +426,7 @@ def probe() -> Capabilities:
         rt_reason=reason,
         max_rt_priority=max_prio,
         memlock_limit_bytes=memlock,
-        preemption_model=preemption_model(),
+        preemption_model=preemption_model(),  # the doctor reads the same (linux/machine.py)
         isolated_cpus=isolated,
         cpus=tuple(sorted(os.sched_getaffinity(0))),
         kernel=platform.release(),

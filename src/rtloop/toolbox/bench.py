@@ -1,6 +1,6 @@
 """The thesis's chapter-6 experiments (section 6.3) on this machine: the engine of ``rtloop bench``.
 
-Three experiments (:data:`rtloop.runtime.bench_choices.EXPERIMENTS`; :mod:`rtloop.cli.bench` describes them and is the
+Three experiments (:data:`rtloop.toolbox.bench_choices.EXPERIMENTS`; :mod:`rtloop.cli.bench` describes them and is the
 command line): two primes tasks on one core and on two, one task with and without
 ``stress-ng`` load, a no-op task beside ``cyclictest``. Each run is an ordinary run
 directory; each experiment writes ``table.md``, ``bench.json`` and, through
@@ -29,8 +29,8 @@ from rtloop.app.builder import App
 from rtloop.errors import RtloopError
 from rtloop.linux import rt
 from rtloop.runnable import Runnable
-from rtloop.runtime.bench_choices import DEFAULT_STRESS, STRESSORS
 from rtloop.stats import timing
+from rtloop.toolbox.bench_choices import DEFAULT_STRESS, STRESSORS
 
 PERIOD_NS = 1_000_000
 """1 kHz, as in the thesis."""

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rtloop.errors import RtloopError
-from rtloop.runtime.run_history import MAX_RUNS_KEPT, history_prefix
+from rtloop.toolbox.run_history import MAX_RUNS_KEPT, history_prefix
 from rtloop.version import __version__
 
 if TYPE_CHECKING:  # annotations only: the command line imports this module to parse (no numpy)
@@ -132,7 +132,7 @@ def _recording_lines(app: App, options: ServiceOptions) -> list[str]:
     else:
         lines.append(f"# Recordings go to {options.out}: its folder must exist and be writable by the service's user.")
     prefix = history_prefix(options.out)
-    set_aside = [str(Path(sys.executable).absolute()), "-m", "rtloop.runtime.run_history", str(options.out)]
+    set_aside = [str(Path(sys.executable).absolute()), "-m", "rtloop.toolbox.run_history", str(options.out)]
     lines += [
         f"# Each start records into {options.out.name}/; the run before is set aside as {prefix}NNNN-clean/,",
         "# -failed/ or -first-failure/ (the first failure after a clean run: in a restart burst, usually the",

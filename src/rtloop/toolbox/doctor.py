@@ -1,7 +1,8 @@
 """Is this Linux machine ready for real time, and how to fix what is not (the engine of ``rtloop doctor``).
 
 Each check reads files under ``/proc``, ``/sys`` and ``/etc`` below a *root*
-directory (``/`` on a live system, a fake tree in the tests) and returns a
+directory (``/`` on a live system, a fake tree in the tests) through the OS primitives of
+:mod:`rtloop.linux.machine` (the same ones the engine's probe uses) and returns a
 :class:`Check` with a verdict, what it saw and, when it is not ``ok``, the fix.
 Only the standard library is used, so the doctor runs before anything else is
 installed. ``rtloop doctor`` (:mod:`rtloop.cli.doctor`) adds the device interfaces and prints them.
@@ -10,18 +11,27 @@ installed. ``rtloop doctor`` (:mod:`rtloop.cli.doctor`) adds the device interfac
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
-from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list, preemption_model
+from rtloop.linux.machine import (
+    LIVE_ROOT,
+    Virtualisation,
+    detect_virtualisation,
+    effective_capabilities,
+    kernel_command_line,
+    preemption_model,
+    read_text,
+    running_commands,
+    soft_limits,
+)
+from rtloop.linux.rt import CAP_IPC_LOCK, CAP_SYS_NICE, parse_cpu_list
 
 Status = Literal["ok", "warn", "fail"]
 
-LIVE_ROOT = Path("/")
+__all__ = ["LIVE_ROOT", "Check", "format_human", "run_checks", "to_json", "verdict"]
 
 # Whether `rtloop run` holds /dev/cpu_dma_latency at 0 while tasks run, as cyclictest does: it
 # does (runtime/supervisor.py, `cpu_dma_latency_held` in summary.json). The check's other
@@ -66,25 +76,6 @@ class Check:
 # --------------------------------------------------------------------------- reading
 
 
-def _read(root: Path, relative: str) -> str | None:
-    """The stripped text of ``root/relative``, or None if it cannot be read."""
-    try:
-        return (root / relative).read_text(errors="replace").strip()
-    except OSError:
-        return None
-
-
-def _cmdline_params(root: Path) -> dict[str, str]:
-    """Kernel command-line parameters as ``{name: value}`` (value ``""`` for flags)."""
-    params: dict[str, str] = {}
-    for word in (_read(root, "proc/cmdline") or "").split():
-        if word == "--":  # what follows is for init, not for the kernel
-            break
-        name, _, value = word.partition("=")
-        params[name] = value
-    return params
-
-
 def _cmdline_cpus(value: str) -> str:
     """The CPU list of ``isolcpus=domain,managed_irq,2-3``-style values (``2-3``)."""
     parts = value.split(",")
@@ -93,76 +84,13 @@ def _cmdline_cpus(value: str) -> str:
     return ",".join(parts)
 
 
-def _is_live(root: Path) -> bool:
-    return root.resolve() == LIVE_ROOT
-
-
 # --------------------------------------------------------------------------- kernel
 
 
-def _preemption_model_under(root: Path) -> str:
-    """:func:`rtloop.linux.rt.preemption_model` on the live system, the same sources under a tree.
-
-    rt.preemption_model() reads fixed paths and ``platform.version()`` (= the file
-    /proc/sys/kernel/version), so for a fake tree the same three sources are read here.
-    """
-    if _is_live(root):
-        return preemption_model()
-    if _read(root, "sys/kernel/realtime") == "1":
-        return "PREEMPT_RT"
-    tokens = (_read(root, "proc/sys/kernel/version") or "").split()
-    if "PREEMPT_RT" in tokens:
-        return "PREEMPT_RT"
-    if "PREEMPT_DYNAMIC" in tokens:
-        chosen = [w for w in (_read(root, "sys/kernel/debug/sched/preempt") or "").split()
-                  if w.startswith("(")]
-        return f"PREEMPT_DYNAMIC ({chosen[0].strip('()')})" if chosen else "PREEMPT_DYNAMIC"
-    return "PREEMPT" if "PREEMPT" in tokens else "unknown"
-
-
-def _kernel_log(root: Path, max_records: int = 100_000) -> str:
-    """The kernel log ring buffer from /dev/kmsg ("" if unreadable: not root, dmesg_restrict)."""
-    try:
-        fd = os.open(root / "dev/kmsg", os.O_RDONLY | os.O_NONBLOCK)
-    except OSError:
-        return ""
-    chunks: list[bytes] = []
-    try:
-        for _ in range(max_records):  # /dev/kmsg returns one record per read
-            try:
-                chunk = os.read(fd, 8192)
-            except BlockingIOError:  # no more records
-                break
-            except BrokenPipeError:  # records overwritten while reading: go on
-                continue
-            if not chunk:
-                break
-            chunks.append(chunk)
-    finally:
-        os.close(fd)
-    return b"".join(chunks).decode(errors="replace")
-
-
-def _dynamic_preempt_mode(root: Path) -> str | None:
-    """Mode of a PREEMPT_DYNAMIC kernel when debugfs is not mounted.
-
-    The boot log says ``Dynamic Preempt: none`` (the effective mode, printed once at
-    boot); failing that, ``preempt=`` on the command line says what was asked for.
-    """
-    marker = "Dynamic Preempt: "
-    for line in reversed(_kernel_log(root).splitlines()):
-        if marker in line:
-            return line.split(marker, 1)[1].split()[0]
-    return _cmdline_params(root).get("preempt")
-
-
 def _check_preemption(root: Path) -> Check:
-    model = _preemption_model_under(root)
+    model = preemption_model(root)
     if model == "PREEMPT_RT":
         return Check("preemption", "ok", "PREEMPT_RT kernel: fully preemptible", "")
-    if model == "PREEMPT_DYNAMIC":  # rt.preemption_model() needs debugfs for the mode
-        mode = _dynamic_preempt_mode(root)
-        model = f"PREEMPT_DYNAMIC ({mode})" if mode else model
     if model in ("PREEMPT", "PREEMPT_DYNAMIC (full)", "PREEMPT_DYNAMIC (lazy)"):
         detail = (f"{model} kernel: preemptible, but spinlocks and interrupt handlers still "
                   "block an RT task, so expect wake-up latencies of 100 µs to ms, not tens of µs")
@@ -171,15 +99,15 @@ def _check_preemption(root: Path) -> Check:
         detail = ("PREEMPT_DYNAMIC kernel, mode unknown (none, voluntary or full: mount debugfs "
                   "and read /sys/kernel/debug/sched/preempt); at best full preemption")
         return Check("preemption", "warn", detail, PREEMPT_RT_FIX)
-    version = _read(root, "proc/sys/kernel/version") or "unreadable"
+    version = read_text(root, "proc/sys/kernel/version") or "unreadable"
     detail = (f"{model} kernel (uname -v: {version}): kernel code is not preempted (voluntary "
               "or no preemption), so a system call or driver can delay an RT task for ms")
     return Check("preemption", "fail", detail, PREEMPT_RT_FIX)
 
 
 def _check_rt_throttling(root: Path) -> Check:
-    runtime = _read(root, "proc/sys/kernel/sched_rt_runtime_us")
-    period = int(_read(root, "proc/sys/kernel/sched_rt_period_us") or 1_000_000)
+    runtime = read_text(root, "proc/sys/kernel/sched_rt_runtime_us")
+    period = int(read_text(root, "proc/sys/kernel/sched_rt_period_us") or 1_000_000)
     if runtime is None:
         return Check("rt_throttling", "warn", "/proc/sys/kernel/sched_rt_runtime_us is missing",
                      "check that this is a Linux kernel with real-time scheduling")
@@ -203,9 +131,9 @@ def _check_rt_throttling(root: Path) -> Check:
 
 
 def _check_isolated_cpus(root: Path) -> Check:
-    isolated = parse_cpu_list(_read(root, "sys/devices/system/cpu/isolated") or "")
-    params = _cmdline_params(root)
-    present = parse_cpu_list(_read(root, "sys/devices/system/cpu/present") or "0")
+    isolated = parse_cpu_list(read_text(root, "sys/devices/system/cpu/isolated") or "")
+    params = kernel_command_line(root)
+    present = parse_cpu_list(read_text(root, "sys/devices/system/cpu/present") or "0")
     last = max(present)
     fix = (f"add  isolcpus={last} nohz_full={last} rcu_nocbs={last}  to the kernel command line "
            "(Debian: GRUB_CMDLINE_LINUX in /etc/default/grub, then update-grub; Raspberry Pi: "
@@ -228,8 +156,8 @@ def _check_isolated_cpus(root: Path) -> Check:
 
 
 def _check_smt(root: Path) -> Check:
-    active = _read(root, "sys/devices/system/cpu/smt/active")
-    control = _read(root, "sys/devices/system/cpu/smt/control")
+    active = read_text(root, "sys/devices/system/cpu/smt/active")
+    control = read_text(root, "sys/devices/system/cpu/smt/control")
     if active == "1":
         detail = "SMT (hyper-threading) is on: a sibling thread shares the RT task's core"
         fix = ("echo off | sudo tee /sys/devices/system/cpu/smt/control   (or boot with nosmt),"
@@ -242,8 +170,8 @@ def _check_smt(root: Path) -> Check:
 
 def _check_clocksource(root: Path) -> Check:
     base = "sys/devices/system/clocksource/clocksource0/"
-    current = _read(root, base + "current_clocksource")
-    available = (_read(root, base + "available_clocksource") or "").split()
+    current = read_text(root, base + "current_clocksource")
+    available = (read_text(root, base + "available_clocksource") or "").split()
     if current in ("tsc", "arch_sys_counter"):
         return Check("clocksource", "ok", f"{current}: read in user space, in nanoseconds", "")
     if current in ("kvm-clock", "hyperv_clocksource_tsc_page", "xen"):
@@ -307,28 +235,11 @@ def _check_cpu_dma_latency(root: Path) -> Check:
 # --------------------------------------------------------------------------- limits
 
 
-def _proc_limits(root: Path) -> dict[str, str]:
-    """Soft limits from /proc/self/limits: ``{"Max realtime priority": "0", ...}``."""
-    limits: dict[str, str] = {}
-    for line in (_read(root, "proc/self/limits") or "").splitlines()[1:]:
-        name, soft = line[:26].strip(), line[26:].split()
-        if soft:
-            limits[name] = soft[0]
-    return limits
-
-
-def _effective_caps(root: Path) -> int:
-    for line in (_read(root, "proc/self/status") or "").splitlines():
-        if line.startswith("CapEff:"):
-            return int(line.split()[1], 16)
-    return 0
-
-
 def _check_rt_priority(root: Path) -> Check:
-    if _effective_caps(root) & (1 << CAP_SYS_NICE):
+    if effective_capabilities(root) & (1 << CAP_SYS_NICE):
         return Check("rt_priority", "ok", "this process has CAP_SYS_NICE (root): priorities "
                      "1-99 allowed", "")
-    soft = _proc_limits(root).get("Max realtime priority", "0")
+    soft = soft_limits(root).get("Max realtime priority", "0")
     if soft == "unlimited" or int(soft) > 0:
         limit = "99" if soft == "unlimited" else soft
         return Check("rt_priority", "ok", f"RLIMIT_RTPRIO = {soft}: priorities 1-{limit} allowed",
@@ -338,9 +249,9 @@ def _check_rt_priority(root: Path) -> Check:
 
 
 def _check_memlock(root: Path) -> Check:
-    if _effective_caps(root) & (1 << CAP_IPC_LOCK):
+    if effective_capabilities(root) & (1 << CAP_IPC_LOCK):
         return Check("memlock", "ok", "this process has CAP_IPC_LOCK (root): mlockall works", "")
-    soft = _proc_limits(root).get("Max locked memory", "0")
+    soft = soft_limits(root).get("Max locked memory", "0")
     if soft == "unlimited":
         return Check("memlock", "ok", "RLIMIT_MEMLOCK = unlimited: mlockall works", "")
     detail = (f"RLIMIT_MEMLOCK = {int(soft) // 1024} KiB: mlockall must lock the whole address "
@@ -367,7 +278,7 @@ def _limits_rules(root: Path) -> list[tuple[str, str, str]]:
 
 def _group_members(root: Path, group: str) -> list[str] | None:
     """Members of ``group`` from /etc/group, or None if there is no such group."""
-    for line in (_read(root, "etc/group") or "").splitlines():
+    for line in (read_text(root, "etc/group") or "").splitlines():
         fields = line.split(":")
         if len(fields) == 4 and fields[0] == group:
             return [member for member in fields[3].split(",") if member]
@@ -414,61 +325,7 @@ def _check_realtime_group(root: Path) -> Check:
 # --------------------------------------------------------------------------- environment
 
 
-@dataclass(frozen=True, slots=True)
-class _Virtualisation:
-    vm: str | None
-    """Hypervisor name, or None on bare metal."""
-    container: str | None
-    """Container technology, or None outside a container."""
-    evidence: str
-    """How it was detected."""
-
-
-def _detect_virt_command(kind: str) -> str | None:
-    """``systemd-detect-virt --vm|--container`` output, or None if the tool is missing."""
-    if shutil.which("systemd-detect-virt") is None:
-        return None
-    try:
-        result = subprocess.run(["systemd-detect-virt", f"--{kind}"], capture_output=True,
-                                text=True, timeout=5, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return result.stdout.strip() or "none"
-
-
-_VM_PRODUCTS = ("KVM", "QEMU", "VMware", "VirtualBox", "Virtual Machine", "Xen", "Bochs",
-                "BHYVE", "Parallels", "Standard PC", "Google Compute Engine")
-
-
-def _vm_from_files(root: Path) -> tuple[str | None, str]:
-    dmi = " ".join(filter(None, (_read(root, "sys/class/dmi/id/sys_vendor"),
-                                 _read(root, "sys/class/dmi/id/product_name"))))
-    flags = next((line for line in (_read(root, "proc/cpuinfo") or "").splitlines()
-                  if line.startswith("flags")), "").split()
-    if "hypervisor" in flags:
-        return next((p for p in _VM_PRODUCTS if p in dmi), "hypervisor"), "cpuinfo hypervisor flag"
-    hypervisor_type = _read(root, "sys/hypervisor/type")
-    if hypervisor_type:
-        return hypervisor_type, "/sys/hypervisor/type"
-    product = next((p for p in _VM_PRODUCTS if p in dmi), None)
-    return (product, f"DMI: {dmi}") if product else (None, "no hypervisor flag, no DMI hint")
-
-
-def _detect_virtualisation(root: Path) -> _Virtualisation:
-    if _is_live(root):
-        vm, container = _detect_virt_command("vm"), _detect_virt_command("container")
-        if vm is not None and container is not None:
-            return _Virtualisation(None if vm == "none" else vm,
-                                   None if container == "none" else container,
-                                   "systemd-detect-virt")
-    vm, evidence = _vm_from_files(root)
-    container = next((name for name, marker in (("docker", ".dockerenv"),
-                                                ("podman", "run/.containerenv"))
-                      if (root / marker).exists()), None)
-    return _Virtualisation(vm, container, evidence)
-
-
-def _check_virtualisation(virt: _Virtualisation) -> Check:
+def _check_virtualisation(virt: Virtualisation) -> Check:
     container = f"; inside a {virt.container} container" if virt.container else ""
     if virt.vm:
         detail = (f"VM ({virt.vm}, from {virt.evidence}){container}: the hypervisor may stall "
@@ -483,7 +340,7 @@ def _check_virtualisation(virt: _Virtualisation) -> Check:
 
 
 def _check_swap(root: Path) -> Check:
-    text = _read(root, "proc/swaps")
+    text = read_text(root, "proc/swaps")
     devices = [line.split()[0] for line in (text or "").splitlines()[1:] if line.strip()]
     if not devices:
         return Check("swap", "ok", "no swap in use", "")
@@ -493,18 +350,8 @@ def _check_swap(root: Path) -> Check:
                  "/etc/fstab to keep it off)")
 
 
-def _running_commands(root: Path) -> set[str]:
-    names = set()
-    for comm in (root / "proc").glob("[0-9]*/comm"):
-        try:
-            names.add(comm.read_text().strip())
-        except OSError:  # the process ended while we looked
-            continue
-    return names
-
-
 def _check_irqbalance(root: Path) -> Check:
-    if "irqbalance" not in _running_commands(root):
+    if "irqbalance" not in running_commands(root):
         return Check("irqbalance", "ok", "irqbalance not running: interrupts stay where the "
                      "kernel put them", "")
     return Check("irqbalance", "ok", "irqbalance running: it moves interrupts around; if an "
@@ -528,7 +375,7 @@ def run_checks(root: Path = LIVE_ROOT, more: Sequence[tuple[str, Callable[[], Ch
     """Run every readiness check against the system whose /proc, /sys and /etc are under root,
     then ``more`` (name, check) pairs, each guarded alike."""
     root = Path(root)
-    virt = _detect_virtualisation(root)
+    virt = detect_virtualisation(root)
     checks: list[tuple[str, Callable[[], Check]]] = [
         ("preemption", lambda: _check_preemption(root)),
         ("rt_throttling", lambda: _check_rt_throttling(root)),

@@ -15,7 +15,7 @@ At most ``MAX_RUNS_KEPT`` runs are kept besides ``latest/``. Over that, the olde
 go first, then the oldest later failures, then the oldest first failures; the newest
 ``ALWAYS_KEPT`` are never pruned (the run before the one starting is always there).
 
-    python -m rtloop.runtime.run_history /var/lib/rtloop/jiwy/latest
+    python -m rtloop.toolbox.run_history /var/lib/rtloop/jiwy/latest
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def set_aside(latest: Path, most: int = MAX_RUNS_KEPT) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m rtloop.runtime.run_history",
+    parser = argparse.ArgumentParser(prog="python -m rtloop.toolbox.run_history",
                                      description="Set a service's latest run aside and prune the history.")
     parser.add_argument("latest", type=Path, help="the folder the next run records into (its --out)")
     parser.add_argument("--runs-kept", type=int, default=MAX_RUNS_KEPT, metavar="N",

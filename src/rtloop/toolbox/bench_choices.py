@@ -1,6 +1,6 @@
 """What ``rtloop bench`` offers: the experiments and the stress-ng stressor groups.
 
-Names only, apart from :mod:`rtloop.runtime.bench` (the runs, with numpy and the app
+Names only, apart from :mod:`rtloop.toolbox.bench` (the runs, with numpy and the app
 description): the command line imports this module to build its arguments, and
 ``rtloop --help`` never loads an engine.
 """
