@@ -18,7 +18,9 @@ import numpy as np
 from rtloop.app.builder import App, PortSpec
 from rtloop.app.plots import element_units, elements
 from rtloop.app.profiles import load_profile
-from rtloop.errors import AppError
+from rtloop.errors import AppError, DeviceError
+from rtloop.io.host import DeviceWiring
+from rtloop.io.twin import TwinDevice
 from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
 from rtloop.ipc.ports import live_runs_named
 from rtloop.ipc.schema import (
@@ -143,6 +145,28 @@ def check_task_memory(app: App, per_task_bytes: int | None = None, available: in
 
 def _mb(size_bytes: int) -> str:
     return f"{size_bytes / 1e6:.1f} MB"
+
+
+def device_wiring(app: App, task: str, *, twins: bool = False) -> tuple[DeviceWiring, ...]:
+    """The devices ``task`` owns, with their connections to it, as its process runs them (``twins``:
+    each twin in its device's place, as ``simulate`` and ``replay`` run them)."""
+    wirings = []
+    for spec in app.devices.values():
+        if spec.task != task:
+            continue
+        device = spec.device
+        if twins:
+            if spec.twin is None:
+                raise DeviceError(spec.name, app.source, "twin", "missing: a simulation runs every device's "
+                                  'twin in its place (twin = "module:Class", a Runnable)')
+            device = TwinDevice(spec.name, spec.twin, spec.device, [limit.safe for limit in spec.limits])
+        links = [c for c in app.device_links if spec.name in (c.source.task, c.target.task)]
+        commands = tuple((c.source.slice, c.target.slice) for c in links if c.target.task == spec.name)
+        out_of_it = [c for c in links if c.source.task == spec.name]
+        readings = tuple((c.source.slice, c.target.slice) for c in out_of_it)
+        wirings.append(DeviceWiring(device, spec.io, spec.limits, commands, readings, app.source,
+                                    tuple(c.allow_nonfinite for c in out_of_it)))
+    return tuple(wirings)
 
 
 @dataclass

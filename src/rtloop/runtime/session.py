@@ -38,7 +38,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rtloop.app.builder import WATCHDOG_MIN_S, App, check_duration
+from rtloop.app.builder import App, check_duration
+from rtloop.app.specs import WATCHDOG_MIN_S
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
 from rtloop.owners import output_folder_problem

@@ -26,7 +26,7 @@ from rtloop.ipc.wiring import TaskWiring, nonfinite_fields
 from rtloop.linux import rt
 from rtloop.record.summary import RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
 from rtloop.runnable import TickInfo
-from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout
+from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout, device_wiring
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
 from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.task import initial_inputs, initial_outputs
@@ -44,7 +44,7 @@ class _SimTask:
         self.runnable.tick = self.tick
         self.handles = layout.tasks[name]
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
-        wirings = app.device_wiring(name, twins=True)  # each device's twin in its place
+        wirings = device_wiring(app, name, twins=True)  # each device's twin in its place
         for wiring in wirings:
             wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]
         self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y)
@@ -141,7 +141,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
     if duration_s is None:
         raise AppError("a simulation needs a duration (--duration S): logical time cannot be stopped by Ctrl-C")
     for name in app.tasks:  # every device needs a twin: found before anything is written
-        app.device_wiring(name, twins=True)
+        device_wiring(app, name, twins=True)
     session = RunSession(app, out, mode="simulate", duration_s=duration_s, keep_s=keep_s, trim=trim, force=force,
                          protect=protect, registry=False, limits=limits,
                          check_disk=timeline is None)  # a replay checks the span it records itself

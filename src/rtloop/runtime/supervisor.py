@@ -46,7 +46,7 @@ from rtloop.record.summary import (
     stale_device_notes,
 )
 from rtloop.runtime.bridges import Bridges
-from rtloop.runtime.layout import AppLayout
+from rtloop.runtime.layout import AppLayout, device_wiring
 from rtloop.runtime.memory_watch import MemoryWatch
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
@@ -258,7 +258,7 @@ class Supervisor:
         # Pickled here, unpickled by the task (a failure there is reported as "loading");
         # classes from a script, notebook or stdin travel by value (app/byvalue.py).
         runnables = {name: dumps_runnable(spec.runnable, name) for name, spec in self.app.tasks.items()}
-        devices = {name: dumps_runnable(self.app.device_wiring(name), name) for name in self.app.tasks}
+        devices = {name: dumps_runnable(device_wiring(self.app, name), name) for name in self.app.tasks}
         for name, spec in self.app.tasks.items():
             reader, writer = context.Pipe(duplex=False)
             handles = layout.tasks[name]
@@ -472,7 +472,7 @@ class Supervisor:
 
     def _devices_safe_after_death(self, task_run: _TaskRun) -> None:
         """Write the safe values of a killed task's devices from here, where their interface allows."""
-        wirings = self.app.device_wiring(task_run.name)
+        wirings = device_wiring(self.app, task_run.name)
         if wirings:
             why = f"was {_describe_exit(task_run.process.exitcode)}"
             self.device_problems += safe_for_dead_task(task_run.name, wirings, why)
