@@ -347,3 +347,26 @@ class StopAt(Counter):
             from rtloop import StopRequested
 
             raise StopRequested(f"cycle {self.tick.cycle} reached")
+
+
+class FailsWithSlowPostrun(Runnable):
+    """Raises in step at ``fail_cycle`` (its message says when, in CLOCK_MONOTONIC ns: ``at NNN ns``),
+    then takes ``postrun_s`` in postrun (None: hangs there until killed)."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def __init__(self, fail_cycle: int, postrun_s: float | None) -> None:
+        self.fail_cycle, self.postrun_s = fail_cycle, postrun_s
+
+    def step(self, u, y) -> None:
+        y[0] = self.tick.cycle
+        if self.tick.cycle >= self.fail_cycle:
+            raise RuntimeError(f"failed at {time.clock_gettime_ns(time.CLOCK_MONOTONIC)} ns")
+
+    def postrun(self) -> None:
+        if self.postrun_s is not None:
+            time.sleep(self.postrun_s)
+            return
+        while True:  # a postrun that never returns (a device that does not answer)
+            time.sleep(1)

@@ -465,10 +465,15 @@ class Supervisor:
                 task_run.failure = TaskFailed(
                     task_run.name, cycle, phase, f"task process died: {_describe_exit(process.exitcode)}"
                 )
-            if task_run.failure is not None and self.failure is None:
-                self.failure = task_run.failure
-                self.state = RunState.WATCHDOG if self.failure.reason.startswith("WatchdogExpired") else RunState.FAULT
-                layout.control[ControlWord.STOP] = 1
+            if task_run.failure is not None:
+                self._fail(task_run.failure)
+
+    def _fail(self, failure: TaskFailed) -> None:
+        """The run failed (the first failure is the one reported): every task stops now."""
+        if self.failure is None:
+            self.failure = failure
+            self.state = RunState.WATCHDOG if failure.reason.startswith("WatchdogExpired") else RunState.FAULT
+        self.session.stop_tasks()
 
     def _devices_safe_after_death(self, task_run: _TaskRun) -> None:
         """Write the safe values of a killed task's devices from here, where their interface allows."""
@@ -521,6 +526,7 @@ class Supervisor:
                         task_run.name, message["cycle"], message["phase"], message["reason"],
                         message["traceback"],
                     )
+                    self._fail(task_run.failure)  # now, not when its process exits (its postrun may hang)
         except (EOFError, OSError):
             pass
         if task_run.stop_request and self.state is RunState.RUNNING:

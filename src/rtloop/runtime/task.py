@@ -111,6 +111,7 @@ class RealtimeTask:
             # at once then, and must not take a task that is failing (a spin the kernel ended) for one
             # that is stuck.
             self.status[StatusWord.STATE] = TaskState.FAILED
+            self.control[ControlWord.STOP] = 1  # the other tasks stop now, not when this process has exited
             raise
         finally:
             self.in_loop = False
@@ -257,6 +258,9 @@ def task_process_main(
         status[StatusWord.STATE] = TaskState.POSTRUN
         runnable.postrun()
     except BaseException as error:
+        # A failed task stops the app at once: the others must not go on (driving their devices from
+        # this task's last outputs) while this one makes its devices safe, reports and runs postrun.
+        control[ControlWord.STOP] = 1
         task.devices.stop()  # safe values before anything else
         _report_devices(pipe, task.devices)
         status[StatusWord.STATE] = TaskState.FAILED
