@@ -370,3 +370,18 @@ class FailsWithSlowPostrun(Runnable):
             return
         while True:  # a postrun that never returns (a device that does not answer)
             time.sleep(1)
+
+
+class SpinFor(Runnable):
+    """Every step busy-waits ``spin_ns`` from its start (a step longer than its period overruns)."""
+
+    n_inputs = 0
+    n_outputs = 0
+
+    def __init__(self, spin_ns: int) -> None:
+        self.spin_ns = spin_ns
+
+    def step(self, u, y) -> None:
+        end_ns = time.monotonic_ns() + self.spin_ns
+        while time.monotonic_ns() < end_ns:
+            pass

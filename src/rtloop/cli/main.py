@@ -15,7 +15,7 @@ import sys
 from collections.abc import Callable
 from types import ModuleType
 
-from rtloop.cli import bench, bridge, devices, doctor, model, port, replay, report, run, service, sweep, top
+from rtloop.cli import bench, bridge, devices, doctor, model, port, replay, report, run, service, sweep, top, why
 from rtloop.cli.arguments import EXIT_BAD_INPUT, EXIT_DEVICE_NOT_READY, EXIT_FAILED, EXIT_INTERRUPTED, CommandParser
 from rtloop.errors import DeviceNotReady, RtloopError, TaskFailed
 from rtloop.text import clip
@@ -27,6 +27,7 @@ EXIT_TASK_FAILED = EXIT_FAILED
 COMMANDS: dict[str, ModuleType] = {
     "run": run, "simulate": run, "replay": replay, "port": port, "model": model, "report": report, "top": top,
     "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
+    "why": why,
 }
 
 # What the OS says of a path that cannot be used as given (not of a device or a disk that failed).

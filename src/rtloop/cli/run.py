@@ -160,6 +160,7 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         unread = port.direction == "out" and not port.received and port.dropped
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
         lines.append(f"port {name} ({port.direction}, {port.signal}): {port.describe()}{idle}")
+    lines += [f"misses: {line}" for line in summary.misses.get("lines", [])]  # their causes (rtloop why)
     lines += [f"note: {note}" for note in summary.notes]
     written = [name for name in ARTIFACTS if _holds_something(out / name)]
     lines.append(f"artifacts in {out}/: {', '.join(written)}")

@@ -32,6 +32,7 @@ typedef _Atomic int64_t aword; /* one 8-byte word of shared memory */
    built module agrees with it: _hotpath.SCHEMA). */
 #include "_schema.h"
 #define SNAPSHOT_DUE 2 /* finish(): the supervisor asked for the task's state before the next release */
+#define CYCLE_LATE 3 /* finish(): this cycle missed its deadline (the loop reads the thread's counters) */
 
 #define LOAD(p, order) atomic_load_explicit((p), memory_order_##order)
 #define STORE(p, v, order) atomic_store_explicit((p), (v), memory_order_##order)
@@ -784,6 +785,7 @@ static PyObject *end_cycle(Core *self, int64_t end_ns) {
     } else {
         self->misses_in_a_row = 0;
     }
+    int late = end_ns > self->release_ns + period_ns;
     self->cycle = cycle;
     self->release_ns = release_ns;
     int64_t wanted_ns = LOAD(&self->control[CONTROL_SNAPSHOT_NS], relaxed);
@@ -791,6 +793,8 @@ static PyObject *end_cycle(Core *self, int64_t end_ns) {
         self->snapshot_taken_ns = wanted_ns;
         return PyLong_FromLong(SNAPSHOT_DUE);
     }
+    if (go_on && late)
+        return PyLong_FromLong(CYCLE_LATE);
     return PyBool_FromLong(go_on); /* False: max_misses deadline misses in a row */
 }
 

@@ -42,6 +42,9 @@ SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = ScopeMode.OFF, ScopeMode.TOGGLE, ScopeMode
 _SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
 SNAPSHOT_DUE = 2
 """What ``finish()`` returns when the supervisor asked for the task's state before the next release."""
+CYCLE_LATE = 3
+"""What ``finish()`` returns after a cycle that ended past its deadline (and the task goes on): the one
+branch in which the loop reads the thread's own counters, for the miss's cause (runtime/evidence.py)."""
 _announced = False
 
 
@@ -79,9 +82,9 @@ class CycleWork(Protocol):
     def stale_reads(self) -> int: ...
     def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None: ...
     def begin(self) -> bool: ...
-    def finish(self) -> bool: ...
+    def finish(self) -> bool | int: ...
     def begin_at(self, start_ns: int) -> bool: ...
-    def finish_at(self, end_ns: int) -> bool: ...
+    def finish_at(self, end_ns: int) -> bool | int: ...
     def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None: ...
     def read_inputs(self, release_ns: int) -> None: ...
     def publish_outputs(self, cycle: int, publish_ns: int) -> None: ...
@@ -195,11 +198,12 @@ class PythonCycle:
         """Publish outputs valid from release + P, record the cycle, move to the next release.
 
         False: this was the ``max_misses``-th deadline miss in a row (the task should stop);
-        ``SNAPSHOT_DUE``: the supervisor asked for the task's state before the next release."""
+        ``SNAPSHOT_DUE``: the supervisor asked for the task's state before the next release;
+        ``CYCLE_LATE``: this cycle missed its deadline; True: it was on time."""
         self._publish()
         return self._end_cycle(now_ns())
 
-    def finish_at(self, end_ns: int) -> bool:
+    def finish_at(self, end_ns: int) -> bool | int:
         """``finish()`` on a given clock: the seam the twins' tests drive."""
         self._publish()
         return self._end_cycle(end_ns)
@@ -209,7 +213,7 @@ class PythonCycle:
             self._scope(0)
         self.wiring.publish_outputs(self.cycle, self.release_ns + self.period_ns, self.wiring.y)
 
-    def _end_cycle(self, end_ns: int) -> bool:
+    def _end_cycle(self, end_ns: int) -> bool | int:
         cycle, release_ns, start_ns, period_ns = self.cycle, self.release_ns, self.start_ns, self.period_ns
         self.last_end_ns = end_ns
         self.timing.push4(cycle, release_ns, start_ns, end_ns)
@@ -219,7 +223,7 @@ class PythonCycle:
         status[StatusWord.EXEC_LAST_NS] = end_ns - start_ns
         cycle += 1
         release_ns += period_ns
-        go_on = True
+        go_on: bool | int = True
         if end_ns > release_ns:  # overran into the next period
             status[StatusWord.DEADLINE_MISSES] += 1
             self.misses_in_a_row += 1
@@ -234,6 +238,7 @@ class PythonCycle:
             left_ns = self.end_ns - first_missed_ns  # releases at or after the run's end are no overruns
             skipped = min(skipped, max(0, -(-left_ns // period_ns)))
             status[StatusWord.OVERRUNS] += skipped
+            go_on = go_on and CYCLE_LATE
         else:
             self.misses_in_a_row = 0
         self.cycle, self.release_ns = cycle, release_ns

@@ -268,12 +268,8 @@ class ModelRunnable(Runnable):
     def postrun(self) -> None:
         """``terminate`` the model (zero inputs; the outputs it writes are not published)."""
         self.model.terminate(self._u_final, self._y_final)
-        if self.catch_up_steps:
-            import sys
-
-            print(f"rtloop: {describe(self.model)}: the task skipped releases (its step overran), so the "
-                  f"model took {self.catch_up_steps} extra steps to keep its time equal to the clock's",
-                  file=sys.stderr)
+        # The extra steps (catch_up_steps) are said by the supervisor, once per run, with the task's
+        # name and the true cause of the skipped releases (runtime/evidence.py), not guessed here.
 
 
 def apply_parameters(runnable: object, parameters: dict[str, object], where: str) -> None:

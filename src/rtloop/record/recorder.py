@@ -63,6 +63,8 @@ class Recorder:
         self.mcap = None
         self.live: Any = None
         """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
+        self.listeners: list[Any] = []
+        """Also hear every drained timing record and stale read (``add_timing``, ``add_reads``)."""
         live_ports = [p for p in app.ports.values() if p.direction == "in"]
         self.inputs: InputsCsv | None = None
         self.sidecar: dict[str, Any] = {}
@@ -183,6 +185,9 @@ class Recorder:
         """Stale reads of ``task`` (read-log records) and how many its ring dropped so far."""
         if dropped:
             self.reads_dropped[task] = dropped
+        if len(records):
+            for listener in self.listeners:
+                listener.add_reads(task, self._writers[task], records)
         if self.reads is not None and len(records):
             self._guard(self.reads.append, task, self.periods_ns[task], self._writers[task], records)
 
@@ -210,6 +215,8 @@ class Recorder:
         if not len(records):
             return
         self.statistics[task].add(records)
+        for listener in self.listeners:  # the misses' causes (runtime/evidence.py:MissWatch)
+            listener.add_timing(task, records)
         last = records[-1].tolist()
         self.last_record[task] = (last[0], last[1], last[2], last[3])
         self.latest_ns = max(self.latest_ns, last[1] - self.t0_ns)

@@ -209,6 +209,9 @@ class RunSummary:
     recording: dict[str, Any] = field(default_factory=dict)
     """The recording: ``keep_s`` (None: everything), ``stopped`` (why it stopped early, or None),
     and with ``keep_s`` the flight recorder's segment length, events and events not kept."""
+    misses: dict[str, Any] = field(default_factory=dict)
+    """Every deadline miss's kind and cause (a run only; ``stats/miss_causes.py:MissLedger.to_json``):
+    the first ones in full with their evidence, then counts per task, kind and cause."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -229,6 +232,7 @@ class RunSummary:
             "hot_path": self.hot_path,
             "devices": self.devices,
             "recording": self.recording,
+            **({"misses": self.misses} if self.mode == "run" else {}),
         }
 
     def write(self, path: Path) -> None:

@@ -46,6 +46,7 @@ from rtloop.record.summary import (
     stale_device_notes,
 )
 from rtloop.runtime.bridges import Bridges
+from rtloop.runtime.evidence import MissWatch
 from rtloop.runtime.layout import AppLayout, device_wiring
 from rtloop.runtime.memory_watch import MemoryWatch
 from rtloop.runtime.session import (
@@ -158,6 +159,8 @@ class Supervisor:
         self.dma_latency_held = False
         self.snapshots: list[Any] = []  # task snapshots received, not yet handed to the recorder
         self.snapshot_segment = 0  # the --keep segment whose start the tasks were last asked to snapshot
+        self.misses = MissWatch(app)
+        """Every miss's cause, from evidence gathered between drains (runtime/evidence.py)."""
 
     @property
     def state(self) -> RunState:
@@ -191,6 +194,7 @@ class Supervisor:
 
     def _run_tasks(self, session: RunSession, capabilities: rt.Capabilities) -> None:
         layout, recorder = session.layout, session.recorder
+        recorder.listeners.append(self.misses)
         self.bridges = Bridges(self.app)
         dma_latency = rt.CpuDmaLatency().__enter__()
         self.dma_latency_held = dma_latency.held  # read now: the summary is written after it is let go
@@ -323,6 +327,7 @@ class Supervisor:
                 self.state = RunState.SIGNAL  # a task process was sent SIGTERM: it stops the app
             behind = session.drain(self.limits.drain_budget_s)
             self._poll(layout)
+            self.misses.after_drain(rt.now_ns(), frozenset(r.process.pid for r in self.runs.values()))
             self._keep_snapshots(layout, recorder)
             self._watch(layout, recorder)
             assert self.bridges is not None
@@ -519,6 +524,8 @@ class Supervisor:
                                               for name, report in message["devices"].items()})
                 elif kind == "device_problems":
                     self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
+                elif kind in ("late", "stopped"):  # counters after a late cycle; a model's extra steps
+                    self.misses.from_task(task_run.name, message)
                 elif kind == "note":
                     self.device_problems.append(f"task {task_run.name}: {message['text']}")
                 elif kind == "failed":
@@ -625,6 +632,7 @@ class Supervisor:
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,
             recording={**recorder.to_json(), **session.losses.to_json()},
+            misses=self.misses.summary(final=not running),
         )
 
 

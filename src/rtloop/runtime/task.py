@@ -22,17 +22,21 @@ from rtloop.app.builder import TaskConfig
 from rtloop.app.byvalue import loads_runnable
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
-from rtloop.ipc.hotpath import SNAPSHOT_DUE, cycle_work
+from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE, cycle_work
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
 from rtloop.ipc.segments import Int64Ring, Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
+from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
 from rtloop.runtime.snapshot import take  # here, not at the first snapshot: no import inside the loop
 
 T0_POLL_S = 0.001
+LATE_READINGS_PER_RUN = 1000
+"""Late cycles whose thread counters a task reads and sends (a few µs each): a run that misses every
+cycle pays it for the first ones only."""
 SUPERVISOR_GONE = signal.SIGRTMIN + 5
 """What the kernel sends a task when its supervisor dies (PR_SET_PDEATHSIG): a signal of rtloop's
 own, so code that takes over SIGTERM (a library, a student's "clean exit") cannot keep the loop
@@ -67,6 +71,9 @@ class RealtimeTask:
         self.safe_ns = 0
         self.on_snapshot: Any = None
         """Called with (next cycle, T0) when the supervisor asked for this task's state."""
+        self.on_late: Any = None
+        """Called with (cycle, its counters) after a cycle that missed its deadline (runtime/evidence.py)."""
+        self.late_readings_left = LATE_READINGS_PER_RUN
 
     @property
     def cycle(self) -> int:
@@ -100,7 +107,13 @@ class RealtimeTask:
                 if devices:
                     devices.after_step(tick.cycle)  # io = "immediate" devices write at once
                 done = cycle.finish()
-                if done == SNAPSHOT_DUE:  # a --keep run wants the state here, to replay a window from it
+                if done is True:  # on time: nothing more to do
+                    continue
+                if done == CYCLE_LATE:  # late: the thread's own counters, for the miss's cause, and only here
+                    if self.late_readings_left and self.on_late is not None:
+                        self.late_readings_left -= 1
+                        self.on_late(tick.cycle, own_thread_counters(rt.now_ns()))
+                elif done == SNAPSHOT_DUE:  # a --keep run wants the state here, to replay a window from it
                     self.on_snapshot(cycle.cycle, t0_ns)
                 elif not done:  # too many deadline misses in a row (max_consecutive_misses)
                     raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
@@ -223,6 +236,9 @@ def task_process_main(
                                                      wiring.recent_outputs()))
 
     task.on_snapshot = send_snapshot
+    baseline = own_thread_counters(rt.now_ns())  # the first late cycle's counters count from here
+    task.on_late = lambda cycle, counters: _report(pipe, kind="late", cycle=cycle, counters=counters,
+                                                   baseline=baseline)
     wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
     task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y)
     phase = "configure"
@@ -283,7 +299,7 @@ def task_process_main(
     status[StatusWord.STATE] = TaskState.STOPPED
     task.devices.stop()  # done already unless the stop came before T0
     _report_devices(pipe, task.devices)
-    _report(pipe, kind="stopped", cycles=task.cycle + 1)
+    _report(pipe, kind="stopped", cycles=task.cycle + 1, catch_up_steps=getattr(runnable, "catch_up_steps", 0))
 
 
 def _take_back_stop_signals(handler: Any, pipe: Any) -> None:
