@@ -55,7 +55,7 @@ class LibcError(RtloopError, OSError):
         self.message = message
         self.hint = hint
 
-    def __reduce__(self) -> tuple[type, tuple[str, int, str]]:
+    def __reduce__(self) -> tuple[type[LibcError], tuple[str, int | None, str]]:
         return type(self), (self.call, self.errno, self.hint)
 
     def __str__(self) -> str:

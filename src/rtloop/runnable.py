@@ -81,6 +81,8 @@ class Runnable(ABC):
     """Unit of each input, for plots and recordings (``("rad/s", "V")``; '' for none)."""
     output_units: tuple[str, ...] | None = None
     """Unit of each output."""
+    input_start_values: tuple[float, ...] | None = None
+    """What each input holds until something writes it (None: zeros)."""
 
     tick: TickInfo
 
@@ -91,7 +93,8 @@ class Runnable(ABC):
             return
         if not isinstance(own, dict):
             raise TypeError(f"{cls.__name__}.parameters must be a dict such as {{'kp': 0.5}}, got {own!r}")
-        inherited = next((base.parameters for base in cls.__mro__[1:] if "parameters" in base.__dict__), {})
+        inherited: dict[str, Any] = next(
+            (base.__dict__["parameters"] for base in cls.__mro__[1:] if "parameters" in base.__dict__), {})
         merged = {**inherited, **own}  # a subclass adds to its base's parameters; the base's keep their place
         for index, (name, default) in enumerate(merged.items()):
             if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name) \
@@ -172,7 +175,7 @@ class LiveParameter:
             live[self.index] = float(value)
         base = runnable.__dict__.get("_parameter_base")
         if base is not None:  # added to an app already: the task starts from the new value
-            starts = list(runnable.input_start_values)
+            starts = list(runnable.input_start_values or ())
             starts[base + self.index] = float(value)
             runnable.input_start_values = tuple(starts)
 

@@ -71,6 +71,7 @@ from __future__ import annotations
 import importlib
 import math
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -111,13 +112,13 @@ PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
     "feed": str, "description": str, "range": list, "value_range": list, "nudge": str,
 }
-CONNECT_KEYS = {"from": str, "to": str}
-CONNECT_OPTIONAL_KEYS = {"allow_nonfinite": bool}
+CONNECT_KEYS: dict[str, type] = {"from": str, "to": str}
+CONNECT_OPTIONAL_KEYS: dict[str, type] = {"allow_nonfinite": bool}
 RECORD_KEYS = {"signals": list}
 TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an array", bool: "true or false"}
 
 
-def _check_keys(path: str, where: str, table: dict[str, Any], allowed: dict[str, type]) -> None:
+def _check_keys(path: str, where: str, table: dict[str, Any], allowed: Mapping[str, type]) -> None:
     for key, value in table.items():
         full = f"{where}.{clip(key, 40)}" if where else clip(key, 40)
         if key not in allowed:

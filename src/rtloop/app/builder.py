@@ -310,8 +310,9 @@ class App:
                 if not allow_nonfinite and not all(math.isfinite(v) for v in initial_values):
                     raise AppError(f"{what}: initial {shorten(list(initial_values))} holds NaN or inf: the task would "
                                    "read it at cycle 0 (allow_nonfinite = true on the port lets it through)")
-                for index, value in enumerate(initial_values if checked_range else ()):
-                    low, high = range_of_value(checked_range, index)  # type: ignore[arg-type]
+                bounds = [range_of_value(checked_range, i) for i, _ in enumerate(initial_values)] \
+                    if checked_range else []
+                for index, (value, (low, high)) in enumerate(zip(initial_values, bounds, strict=False)):
                     if not low <= value <= high:
                         raise AppError(f"{what}: initial {shorten(list(initial_values))} is outside its range: "
                                        f"value {index} must lie in [{low!r}, {high!r}]")
@@ -518,10 +519,14 @@ def _check_range(what: str, value_range: object, size: int | None = None) -> Val
             and all(isinstance(pair, list | tuple) for pair in value_range):
         if len(value_range) != size:
             raise AppError(f"{what}: range has {len(value_range)} [lo, hi] pairs, the port has {size} values")
-        pairs = [_check_range(f"{what}: range[{index}]", pair) for index, pair in enumerate(value_range)]
-        return tuple(pair[0] for pair in pairs), tuple(pair[1] for pair in pairs)  # type: ignore[index,return-value]
+        pairs = [_check_pair(f"{what}: range[{index}]", pair) for index, pair in enumerate(value_range)]
+        return tuple(pair[0] for pair in pairs), tuple(pair[1] for pair in pairs)
+    return _check_pair(what, value_range, " or one [lo, hi] per value" if size is not None and size > 1 else "")
+
+
+def _check_pair(what: str, value_range: object, one_per_value: str = "") -> tuple[float, float]:
+    """One ``[lo, hi]``: two finite numbers, lo ≤ hi."""
     if not isinstance(value_range, list | tuple) or len(value_range) != 2:
-        one_per_value = " or one [lo, hi] per value" if size is not None and size > 1 else ""
         raise AppError(f"{what}: range must be [lo, hi]{one_per_value}, got {shorten(value_range)}")
     low, high = (_number(what, "range", v) for v in value_range)
     if not (math.isfinite(low) and math.isfinite(high) and low <= high):
@@ -559,7 +564,7 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
     block = app.block(task)
     if block is None:
         raise AppError(f"{where}: {shorten(text)} names unknown task {shorten(task)}; tasks are {sorted(app.tasks)}")
-    vector = getattr(block, side)
+    vector = block.y if side == "y" else block.u
     if start is None:
         return vector.all
     if stop is None and ":" not in text:
@@ -577,5 +582,5 @@ def _named_signal(text: str, app: App) -> SignalRef | None:
     for side in ("y", "u"):
         names = list(getattr(named, "output_names" if side == "y" else "input_names", None) or ())
         if names.count(name) == 1:
-            return getattr(spec, side)[names.index(name)]
+            return (spec.y if side == "y" else spec.u)[names.index(name)]
     return None

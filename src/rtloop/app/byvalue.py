@@ -122,7 +122,7 @@ def _reduce_class(cls: type) -> tuple[Any, ...]:
 
 def _make_class(metaclass: type, name: str, bases: tuple[type, ...], namespace: dict[str, Any],
                 module: str) -> type:
-    cls = metaclass(name, bases, {**namespace, "__module__": module})
+    cls: type = metaclass(name, bases, {**namespace, "__module__": module})
     return cls
 
 

@@ -281,6 +281,8 @@ def _reduce_by_file(obj: Any) -> tuple[Any, ...]:
     """Pickle ``obj`` so that the receiving process loads its module by file first."""
     module = sys.modules[type(obj).__module__]
     rebuild, args, *rest = obj.__reduce_ex__(4)
+    if module.__file__ is None:  # nothing to load by file: the receiver imports it by name
+        return (rebuild, args, *rest)
     return (_rebuild, (_ModuleByFile(module.__name__, module.__file__), rebuild, args), *rest)
 
 

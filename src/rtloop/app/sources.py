@@ -16,7 +16,6 @@ import os
 import stat
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
 
 _COLLECTING: list[dict[str, str]] = []
 """The collections open now (:func:`collecting`), innermost last."""
@@ -38,14 +37,14 @@ def file_digest(path: str | Path) -> str | None:
             for child in sorted(path.rglob("*")):
                 if child.is_file() and not child.is_symlink():
                     total.update(str(child.relative_to(path)).encode() + b"\0")
-                    total.update(_hash_file(child).digest())
+                    total.update(_hash_file(child))
             return "sha256:" + total.hexdigest()
-        return "sha256:" + _hash_file(path).hexdigest()
+        return "sha256:" + _hash_file(path).hex()
     except OSError:
         return None
 
 
-def _hash_file(path: Path) -> Any:
+def _hash_file(path: Path) -> bytes:
     digest = hashlib.sha256()
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO put in a file's place: no wait
     with open(fd, "rb") as stream:
@@ -53,7 +52,7 @@ def _hash_file(path: Path) -> Any:
             raise OSError(errno.EINVAL, "not a regular file", str(path))
         while chunk := stream.read(CHUNK_BYTES):
             digest.update(chunk)
-    return digest
+    return digest.digest()
 
 
 @contextlib.contextmanager

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Literal
 
 from rtloop.ros.types import ROS_TYPES
 
@@ -37,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.ros.bridge import BridgeStats, run_bridge
 
     app = connect_app(args.app, timeout_s=10)
-    direction = "publish" if args.kind == "listener" else "subscribe"
+    direction: Literal["publish", "subscribe"] = "publish" if args.kind == "listener" else "subscribe"
     topic = RosTopic(direction, args.topic, args.port, args.type, args.qos,
                      tuple(getattr(args, "joint_names", ())), getattr(args, "every", 1), args.domain_id)
     stats = BridgeStats(topic, None)

@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
 def command_parts(module: ModuleType, name: str) -> tuple[str, Callable[[argparse.ArgumentParser], None],
                                                           Callable[[argparse.Namespace], int]]:
     """A command module's help line, argument declarations and runner; ``run`` and ``simulate`` share one."""
-    parts = getattr(module, "COMMANDS", None)
+    parts: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]] \
+        | None = getattr(module, "COMMANDS", None)
     if parts is not None:
         return parts[name]
     return module.HELP, module.add_arguments, module.run

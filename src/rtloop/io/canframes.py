@@ -162,4 +162,5 @@ class HeartbeatCounter:
 
 def frame_id_of(buffer: Any) -> int:
     """The SocketCAN id (with its flag bits) of a wire frame."""
-    return HEADER.unpack_from(buffer, 0)[0]
+    frame_id: int = HEADER.unpack_from(buffer, 0)[0]
+    return frame_id

@@ -89,7 +89,7 @@ class CanSocket:
         self._receiver = compiled.CanReceiver(self.fileno, [frame.wire_id for frame in self.receive], self.latest,
                                               self.fresh) if compiled else None
         if self._receiver is not None:
-            self._drain = self._receiver.drain  # type: ignore[method-assign]
+            self._drain = self._receiver.drain  # type: ignore[method-assign]  # the C drain, in this instance's place
 
     @property
     def unexpected(self) -> int:

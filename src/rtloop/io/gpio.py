@@ -179,7 +179,7 @@ class GpioDevice(Device):
 
     def _offset(self, chip: Any, key: str, line: str | int) -> int:
         try:
-            offset = chip.line_offset_from_id(line)
+            offset: int = chip.line_offset_from_id(line)
         except (OSError, ValueError):
             offset = -1
         if not 0 <= offset < chip.get_info().num_lines:

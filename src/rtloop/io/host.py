@@ -195,7 +195,7 @@ class TaskDevices:
         """The scope pin of the first device that has one (a GPIO device's ``scope_pin``), for the hot path."""
         for slot in self.configured:
             scope = getattr(slot.device, "scope_output", None)
-            pin = scope() if scope is not None else None
+            pin: tuple[int, int, int, int] | None = scope() if scope is not None else None
             if pin is not None:
                 return pin
         return None

@@ -135,7 +135,7 @@ class I2cDevice(Device):
                 raise DeviceError(self.name, "", "bus", f"{self.path} cannot do the SMBus transfers declared "
                                   f"(functionality mask lacks 0x{missing:08X})")
             try:
-                bus._set_address(self.address)  # I2C_SLAVE: refused (EBUSY) when a kernel driver owns the chip
+                bus._set_address(self.address)  # type: ignore[attr-defined]  # private in smbus2's stubs; I2C_SLAVE: refused (EBUSY) when a kernel driver owns the chip
             except OSError as error:
                 raise DeviceError(self.name, "", "address", f"0x{self.address:02X} on {self.path}: {error.strerror}"
                                   + (" (a kernel driver owns it)" if error.errno == 16 else "")) from None

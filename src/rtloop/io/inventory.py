@@ -105,7 +105,8 @@ def _can_details(name: str) -> dict[str, object]:
     try:
         text = subprocess.run(["ip", "-details", "-json", "link", "show", "dev", name], capture_output=True,
                               text=True, timeout=5, check=True).stdout
-        return json.loads(text)[0].get("linkinfo", {})
+        linkinfo: dict[str, object] = json.loads(text)[0].get("linkinfo", {})
+        return linkinfo
     except (OSError, subprocess.SubprocessError, ValueError, IndexError):
         return {}
 

@@ -9,6 +9,8 @@ exchange with the device: it takes the commands written last and answers the rea
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from rtloop.errors import DeviceFault
@@ -21,7 +23,7 @@ class TwinDevice(Device):
 
     kind = "twin"
 
-    def __init__(self, name: str, twin: Runnable, like: Device, safe: FloatVector) -> None:
+    def __init__(self, name: str, twin: Runnable, like: Device, safe: Sequence[float] | FloatVector) -> None:
         super().__init__(name)
         self.twin = twin
         self.n_inputs, self.n_outputs = like.n_inputs, like.n_outputs

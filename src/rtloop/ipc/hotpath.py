@@ -12,9 +12,12 @@ the tests run both and check they give the same signals (the pattern of CPython'
 from __future__ import annotations
 
 import fcntl
+import importlib
 import os
 import struct
 import sys
+from collections.abc import Callable
+from types import ModuleType
 from typing import Protocol
 
 import numpy as np
@@ -25,8 +28,9 @@ from rtloop.ipc.segments import Int64Ring
 from rtloop.ipc.wiring import TaskWiring
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
 
+_hotpath: ModuleType | None
 try:
-    from rtloop.ipc import _hotpath
+    _hotpath = importlib.import_module("rtloop.ipc._hotpath")  # by name: C, which mypy cannot read
 except ImportError as error:  # no compiler when the package was installed
     _hotpath = None
     _NOT_BUILT = f"the C hot path rtloop.ipc._hotpath is not built ({error})"
@@ -120,7 +124,7 @@ class PythonCycle:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
         self.misses_in_a_row = 0
-        self.scope_mode = SCOPE_OFF
+        self.scope_mode: int = SCOPE_OFF
         self.snapshot_taken_ns = 0
         self.sleeper = AbsoluteSleeper()
         self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = self.last_end_ns = 0
@@ -261,7 +265,8 @@ class PythonCycle:
 
 def _index_in(base: np.ndarray, view: np.ndarray) -> int:
     """Where the numpy view ``view`` starts inside ``base`` (in float64 elements)."""
-    return (view.__array_interface__["data"][0] - base.__array_interface__["data"][0]) // 8
+    start: int = view.__array_interface__["data"][0] - base.__array_interface__["data"][0]
+    return start // 8
 
 
 def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: Int64Ring,
@@ -298,11 +303,12 @@ def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words
         checks = wiring.finite_checks
         core.set_finite_check(tuple(c.index for c in checks), tuple(c.fault for c in checks),
                               tuple(c.label for c in checks), NonFiniteOutput)
-    return core
+    work: CycleWork = core
+    return work
 
 
 def cycle_work(tick: Tick, wiring: TaskWiring, control: Words, status: Words, timing: Int64Ring,
                period_ns: int, catch_up: bool, max_misses: int | None = None) -> CycleWork:
     """The per-cycle work of a task, built once before its loop: C when available, else Python."""
-    kind = compiled_cycle if hot_path() == "c" else PythonCycle
+    kind: Callable[..., CycleWork] = compiled_cycle if hot_path() == "c" else PythonCycle
     return kind(tick, wiring, control, status, timing, period_ns, catch_up, max_misses)

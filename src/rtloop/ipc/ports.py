@@ -78,7 +78,8 @@ class RunningApp:
 
     @property
     def ports(self) -> dict[str, dict[str, Any]]:
-        return self.registry["ports"]
+        ports: dict[str, dict[str, Any]] = self.registry["ports"]
+        return ports
 
     def _port(self, name: str, direction: str) -> dict[str, Any]:
         info = self.ports.get(name)
@@ -117,7 +118,7 @@ class RunningApp:
     @property
     def runs_live(self) -> bool:
         """A real-time run (``rtloop run``), not a simulation: only these hold their name."""
-        return self.registry.get("mode", "run") != "simulate"
+        return bool(self.registry.get("mode", "run") != "simulate")
 
     def alive(self) -> bool:
         """Whether the app's supervisor is still running."""
@@ -173,8 +174,9 @@ def port_range(info: dict[str, Any]) -> tuple[Any, Any] | None:
     value = info.get("range")
     if not value:
         return None
-    return tuple(tuple(float(v) for v in bound) if isinstance(bound, list | tuple) else float(bound)
-                 for bound in value[:2])  # type: ignore[return-value]
+    low, high = (tuple(float(v) for v in bound) if isinstance(bound, list | tuple) else float(bound)
+                 for bound in value[:2])
+    return low, high
 
 
 def app_from_registry(path: Path, *, owner_uid: int | None = None) -> RunningApp:

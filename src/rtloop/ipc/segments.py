@@ -27,6 +27,7 @@ import os
 import platform
 import re
 import stat
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,7 @@ SEGMENT_NAME = re.compile(r"rtloop-([A-Za-z0-9_]{1,40})-(\d{1,10})-([0-9a-f]{8})
 _SEQ_CST = 5  # __ATOMIC_SEQ_CST
 
 
-def _load_fence() -> tuple[ctypes._CFuncPtr | None, str]:  # type: ignore[name-defined]
+def _load_fence() -> tuple[Callable[[int], object] | None, str]:
     path = ctypes.util.find_library("atomic") or "libatomic.so.1"
     try:
         fence = ctypes.CDLL(path).atomic_thread_fence

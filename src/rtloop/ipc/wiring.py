@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
@@ -160,7 +161,7 @@ class _ProfileReader:
                 self.target[:] = self.values[index]
         elif self.mode == 1:  # offset: the row in force plus the latest live value, every release
             if self.index >= 0:
-                np.add(self.values[self.index], self.nudge, out=self.target)
+                np.add(self.values[self.index], self.nudge, out=self.target)  # type: ignore[arg-type]  # a nudge mode comes with its buffer
         elif fresh[self.live_port]:  # override: a live write arrived at this release
             self.target[:] = self.nudge
         elif changed:  # override: a new row starts and holds until the next write
@@ -279,22 +280,22 @@ class TaskWiring:
                     got = stamp if stamp == NO_STAMP else stamp - t0_ns
                     self.read_log.push4(release_ns - t0_ns, index, got, entitled - t0_ns)
         fresh = self.fresh
-        for position, (port, target, index) in enumerate(self.live_ports):
+        for position, (port, target, port_index) in enumerate(self.live_ports):
             seen = port.last_seq_seen
             port.read_into(target)
             fresh[position] = port.last_seq_seen != seen
             if fresh[position] and self.input_log is not None:
-                self._log_input(release_ns - t0_ns, index, target)
+                self._log_input(self.input_log, release_ns - t0_ns, port_index, target)
         for profile in self.profiles:
             profile.read(release_ns - t0_ns, fresh)
 
-    def _log_input(self, since_t0_ns: int, index: float, values: np.ndarray) -> None:
+    def _log_input(self, log: SampleQueue, since_t0_ns: int, index: float, values: np.ndarray) -> None:
         """A port delivered a new value at this release: log it so the run can be replayed."""
         row = self.input_log_row
         row[0] = index
         row[1 : 1 + len(values)] = values
         row[1 + len(values) :] = 0.0
-        self.input_log.push(since_t0_ns, row)  # type: ignore[union-attr]
+        log.push(since_t0_ns, row)
 
     def publish_outputs(self, cycle: int, publish_ns: int, y: np.ndarray) -> None:
         if self.finite_checks:
@@ -355,7 +356,14 @@ def finite_checks_of(task: str, connections: Iterable[tuple[slice, bool]], outpu
     return tuple(checks)
 
 
-def nonfinite_fields(status: WordBlock, plan: TaskWiringPlan) -> dict[str, int | str]:
+class NonfiniteFields(TypedDict):
+    """The two TaskSummary fields :func:`nonfinite_fields` gives."""
+
+    nonfinite_values: int
+    nonfinite_first: str
+
+
+def nonfinite_fields(status: WordBlock, plan: TaskWiringPlan) -> NonfiniteFields:
     """``nonfinite_values`` and ``nonfinite_first`` of a task's summary, from its status block."""
     count = status[StatusWord.NONFINITE_VALUES]
     if not count:

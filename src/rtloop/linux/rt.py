@@ -14,7 +14,7 @@ import platform
 import resource
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Set
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -143,7 +143,7 @@ def child_pids(pid: int | None = None) -> set[int]:
     return children
 
 
-def end_strays(keep: set[int] = frozenset(), rounds: int = 20,  # type: ignore[assignment]
+def end_strays(keep: Set[int] = frozenset(), rounds: int = 20,
                only: Callable[[int], bool] | None = None) -> list[int]:
     """SIGKILL every child of this process not in ``keep`` (and, given ``only``, for which it is
     true), and reap them; returns their ids.

@@ -81,7 +81,8 @@ def open_model(
         if not attribute:
             raise ModelError(f"model spec {spec!r}: expected python:package.module:Class")
         cls = getattr(importlib.import_module(module_name), attribute)
-        return cls(**options)
+        model: Model = cls(**options)
+        return model
     path = _resolve(rest, base_dir)
     if scheme == "fmu":
         from rtloop.models.fmu import FmuModel

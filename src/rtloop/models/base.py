@@ -165,7 +165,7 @@ class ModelRunnable(Runnable):
     parameters_are_inputs = False  # a model's parameters are set before the run (set_parameters)
 
     def __init__(self, model: Model | None = None) -> None:
-        self.model: Model = self if model is None else model  # type: ignore[assignment]
+        self.model: Model = self if model is None else model  # type: ignore[assignment]  # a Python model is its own model (a subclass of both)
         self.n_inputs = self.model.n_inputs
         self.n_outputs = self.model.n_outputs
         self.input_names = self.model.input_names
@@ -239,10 +239,10 @@ class ModelRunnable(Runnable):
         """
         model = self.model
         own = {key: value for key, value in vars(self).items() if key not in NOT_STATE}
-        if model is self:
+        if model is self:  # type: ignore[comparison-overlap]  # a Python model is its own model (a subclass of both)
             model_state = None
-        elif getattr(model, "save_state", None) is not None:
-            model_state = model.save_state()  # type: ignore[attr-defined]
+        elif (save := getattr(model, "save_state", None)) is not None:
+            model_state = save()
         elif model.kind == "python":
             model_state = pickle.dumps(vars(model))
         else:
@@ -260,8 +260,9 @@ class ModelRunnable(Runnable):
         model = self.model
         if state["model"] is None:
             return
-        if getattr(model, "restore_state", None) is not None:
-            model.restore_state(state["model"])  # type: ignore[attr-defined]
+        restore = getattr(model, "restore_state", None)
+        if restore is not None:
+            restore(state["model"])
         else:
             vars(model).update(pickle.loads(state["model"]))
 
@@ -279,6 +280,7 @@ def apply_parameters(runnable: object, parameters: dict[str, object], where: str
         example = ", ".join(f'"{name}": 0.0' for name in list(parameters)[:3] if isinstance(name, str))
         raise ModelError(f"{where}: {type(runnable).__name__} declares no parameters; declare them in its class "
                          f"with their defaults, in one line: parameters = {{{example}}} (then self.NAME in step)")
+    numbers: dict[str, float] = {}
     for name, value in parameters.items():
         if name not in declared:
             raise ModelError(f"{where}: unknown parameter {name!r}; parameters are {sorted(declared)}")
@@ -286,7 +288,8 @@ def apply_parameters(runnable: object, parameters: dict[str, object], where: str
             raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a number")
         if not math.isfinite(value):
             raise ModelError(f"{where}: parameter {name!r} = {value!r} is not a finite number")
+        numbers[name] = float(value)
     setter = getattr(runnable, "set_parameters", None)
     if setter is None:
         raise ModelError(f"{where}: {type(runnable).__name__} has no set_parameters method")
-    setter({name: float(value) for name, value in parameters.items()})  # type: ignore[arg-type]
+    setter(numbers)

@@ -65,9 +65,9 @@ class Element:
 
     def check(self, value: float) -> None:
         """Raise :class:`FmuError` if ``value`` does not convert exactly to this type."""
-        if self.low is None:
+        if self.low is None or self.high is None:
             return
-        if not math.isfinite(value) or value != math.floor(value) or not self.low <= value <= self.high:  # type: ignore[operator]
+        if not math.isfinite(value) or value != math.floor(value) or not self.low <= value <= self.high:
             kind = "0 or 1" if self.fmi_type == "Boolean" else f"an integer in [{self.low:g}, {self.high:g}]"
             raise FmuError(f"{self.name} is {self.fmi_type}: {value!r} is not {kind}")
 

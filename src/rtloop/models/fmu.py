@@ -83,7 +83,7 @@ class _Transfer:
             if not np.all(np.isfinite(s)) or np.any(s != np.floor(s)):
                 self._reject(s)
             for e, value in zip(self.elements, s, strict=True):
-                if not e.low <= value <= e.high:  # type: ignore[operator]
+                if e.low is not None and e.high is not None and not e.low <= value <= e.high:
                     self._reject(s)
         if self.ctype is ctypes.c_bool:
             self.view[:] = self.scratch != 0.0
@@ -398,7 +398,7 @@ class FmuModel:
                                      *transfer.tail), f"set {element.name} = {value!r}")
 
     def _start_fmi2(self, kwargs: dict[str, Any], u: FloatVector, t_s: float) -> None:
-        from fmpy import calloc, free  # type: ignore[attr-defined]
+        from fmpy import calloc, free
         from fmpy.fmi2 import (
             FMU2Slave,
             fmi2CallbackAllocateMemoryTYPE,
@@ -428,7 +428,7 @@ class FmuModel:
         self._component = fmu.component
         self._do_step = _raw(fmu.dll, "fmi2DoStep", [ctypes.c_void_p, ctypes.c_double, ctypes.c_double,
                                                      ctypes.c_int])
-        self._step_tail = (1,)  # noSetFMUStatePriorToCurrentPoint
+        self._step_tail: tuple[object, ...] = (1,)  # noSetFMUStatePriorToCurrentPoint
         self._make_transfers(fmu.dll)
 
     def _start_fmi3(self, kwargs: dict[str, Any], u: FloatVector, t_s: float) -> None:
@@ -462,23 +462,26 @@ class FmuModel:
         return _raw(dll, f"{prefix}{verb}{function_type}", args)
 
     def _make_transfers(self, dll: ctypes.CDLL) -> None:
+        self._inputs = self._transfers(dll, self._in_elements, "Set")
+        self._outputs = self._transfers(dll, self._out_elements, "Get")
+
+    def _transfers(self, dll: ctypes.CDLL, elements: list[Element], verb: str) -> list[_Transfer]:
         fmi3 = self.fmi_version == "3.0"
-        for attr, elements, verb in (("_inputs", self._in_elements, "Set"), ("_outputs", self._out_elements, "Get")):
-            groups: dict[str, tuple[list[Element], list[int]]] = {}
-            for position, e in enumerate(elements):
-                group = groups.setdefault(e.function_type, ([], []))
-                group[0].append(e)
-                group[1].append(position)
-            transfers = []
-            for function_type, (members, positions) in groups.items():
-                transfer = _Transfer(members, positions, fmi3)
-                function = self._function(dll, verb, function_type)
-                if verb == "Set":
-                    transfer.set = function
-                else:
-                    transfer.get = function
-                transfers.append(transfer)
-            setattr(self, attr, transfers)
+        groups: dict[str, tuple[list[Element], list[int]]] = {}
+        for position, e in enumerate(elements):
+            group = groups.setdefault(e.function_type, ([], []))
+            group[0].append(e)
+            group[1].append(position)
+        transfers = []
+        for function_type, (members, positions) in groups.items():
+            transfer = _Transfer(members, positions, fmi3)
+            function = self._function(dll, verb, function_type)
+            if verb == "Set":
+                transfer.set = function
+            else:
+                transfer.get = function
+            transfers.append(transfer)
+        return transfers
 
     def _bind(self, u: FloatVector, y: FloatVector) -> None:
         for name, a, n in (("u", u, self.n_inputs), ("y", y, self.n_outputs)):
@@ -508,7 +511,8 @@ class FmuModel:
             self._bind(u, y)
         c = self._component
         h = self.communication_step_s
-        t = self._t0_s + self._k * h  # type: ignore[operator]
+        assert h is not None  # check_period set it before the run
+        t = self._t0_s + self._k * h
         for transfer in self._inputs:
             if not transfer.direct:
                 transfer.load_from(u)
@@ -516,7 +520,7 @@ class FmuModel:
             if status:
                 self._check(status, f"set inputs at t = {t:.6f} s")
         # Communication points on the timeline t0 + k·h, the step between them (as FMPy's own loop does)
-        self._step(t, self._t0_s + (self._k + 1) * h - t)  # type: ignore[operator]
+        self._step(t, self._t0_s + (self._k + 1) * h - t)
         self._k += 1
         self._read_outputs(y)
 
@@ -601,15 +605,16 @@ class FmuModel:
         if skipped <= 0 or self._component is None:
             return
         h = self.communication_step_s
-        t = self._t0_s + self._k * h  # type: ignore[operator]
+        assert h is not None  # check_period set it before the run
+        t = self._t0_s + self._k * h
         k, t0 = self._k, self._t0_s
         if self.variable_step:
-            self._step(t, t0 + (k + skipped) * h - t)  # type: ignore[operator]
+            self._step(t, t0 + (k + skipped) * h - t)
             self.long_steps += 1
         else:
             for i in range(skipped):
-                start = t0 + (k + i) * h  # type: ignore[operator]
-                self._step(start, t0 + (k + i + 1) * h - start)  # type: ignore[operator]
+                start = t0 + (k + i) * h
+                self._step(start, t0 + (k + i + 1) * h - start)
             self.catch_up_steps += skipped
         self._k += skipped
 

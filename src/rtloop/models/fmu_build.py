@@ -25,7 +25,8 @@ __all__ = ["build_fmu"]
 def _platform_dir(fmi_version: str) -> str:
     from fmpy import platform, platform_tuple
 
-    return platform_tuple if fmi_version.startswith("3") else platform
+    folder: str = platform_tuple if fmi_version.startswith("3") else platform
+    return folder
 
 
 def build_fmu(src_dir: str | os.PathLike[str], out_path: str | os.PathLike[str]) -> Path:

@@ -28,7 +28,7 @@ class PythonModel(ModelRunnable):
 
     def __init__(self) -> None:
         super().__init__(model=None)
-        self.parameters = dict(type(self).parameters)
+        self.parameters = dict(type(self).parameters)  # type: ignore[misc]  # each model owns a copy: set_parameters changes one model, not its class
 
     def set_parameters(self, values: dict[str, float]) -> None:
         """Take new parameter values (before the run); names are checked by the caller."""

@@ -664,7 +664,7 @@ class TwentySimModel:
     def _unload(self) -> None:
         self._lib: ctypes.CDLL | None = None
         self._handle: int | None = None
-        self._calculate = None
+        self._calculate: Any = None  # rtloop_calculate, a ctypes function once loaded
         self._u_bound: FloatVector | None = None
         self._y_bound: FloatVector | None = None
         self._u_ptr: int | None = None
@@ -790,7 +790,7 @@ class TwentySimModel:
         """One ``Calculate(u, y)`` call (pointers are cached per array)."""
         if u is not self._u_bound or y is not self._y_bound:
             self._bind(u, y)
-        self._calculate(self._handle, self._u_ptr, self._y_ptr)  # type: ignore[misc]
+        self._calculate(self._handle, self._u_ptr, self._y_ptr)
 
     def is_finished(self) -> bool:
         """``IsFinished()``: True once the finish time has passed (outputs then hold)."""

@@ -211,7 +211,8 @@ class RunData:
     @property
     def tasks(self) -> dict[str, dict[str, Any]]:
         """Per-task entries of ``summary.json``."""
-        return self.summary.get("tasks", {})
+        tasks: dict[str, dict[str, Any]] = self.summary.get("tasks", {})
+        return tasks
 
     def __repr__(self) -> str:
         return (f"<RunData {self.path}: {self.mode}, tasks {list(self.tasks)}, "
@@ -390,8 +391,8 @@ def _load_timing(parts: list[Path], tasks: list[str], spill: _SpillPlace,
     in_order = [True] * len(tasks)
     for where, line, block in _blocks(parts, TIMING_HEADER, problems):
         coded = b"\n" + block
-        for name, code in codes:
-            coded = coded.replace(name, code)
+        for named, code in codes:
+            coded = coded.replace(named, code)
         table = _parse_block(coded[1:], 5, np.int64, where, line, problems)
         task_codes = table[:, 0]
         for i, task_rows in enumerate(rows):
@@ -401,7 +402,7 @@ def _load_timing(parts: list[Path], tasks: list[str], spill: _SpillPlace,
                 in_order[i] &= bool(cycles[0] > last_cycle[i]) and not np.any(np.diff(cycles) <= 0)
                 last_cycle[i] = int(cycles[-1])
             task_rows.add(records)
-    out = {}
+    out: dict[str, TimingSamples] = {}
     for i, (name, task_rows) in enumerate(zip(tasks, rows, strict=True)):
         records = task_rows.array()
         if not in_order[i]:  # a recording joined from segments in another order: sort (in memory)
@@ -441,8 +442,8 @@ class _Gaps:
     """
 
     def __init__(self, summary: dict[str, Any]) -> None:
-        periods = [t.get("period_ns") for t in summary.get("tasks", {}).values() if isinstance(t, dict)]
-        periods = [p for p in periods if isinstance(p, int) and p > 0]
+        declared = [t.get("period_ns") for t in summary.get("tasks", {}).values() if isinstance(t, dict)]
+        periods = [p for p in declared if isinstance(p, int) and p > 0]
         self.limit_s = min(periods) / 1e9 * 1.5 if periods else math.inf
         self.last_s = math.nan
         self.found: list[np.ndarray] = []
@@ -497,12 +498,12 @@ def _load_inputs(parts: list[Path], summary: dict[str, Any], problems: list[str]
             entry = collected.setdefault(port, (task, [], []))
             entry[1].append(int(cycle))
             entry[2].append(row)
-    out = {}
+    out: dict[str, PortInputs] = {}
     for port, (task, cycles, rows) in collected.items():
         width = max(r.size for r in rows)
-        values = np.full((len(rows), width), math.nan)
+        matrix = np.full((len(rows), width), math.nan)
         for i, r in enumerate(rows):
-            values[i, : r.size] = r
-        cycle = np.array(cycles, dtype=np.int64)
-        out[port] = PortInputs(task, cycle, cycle * (periods.get(task) or 0) / 1e9, values)
+            matrix[i, : r.size] = r
+        cycle_of_row = np.array(cycles, dtype=np.int64)
+        out[port] = PortInputs(task, cycle_of_row, cycle_of_row * (periods.get(task) or 0) / 1e9, matrix)
     return out

@@ -155,7 +155,7 @@ class McapFile:
             block["log_time"] = times
             block["publish_time"] = times
             block["data"] = payloads
-            data = memoryview(block).cast("B")
+            data: bytes | memoryview = block.data.cast("B")
             offsets = np.arange(count, dtype=np.uint64) * np.uint64(block.itemsize)
         else:
             records = [_record(MESSAGE, struct.pack("<HIQQ", channel_id, (first_sequence + i) & 0xFFFFFFFF, t, t)
@@ -191,7 +191,7 @@ class McapFile:
         self._write(compressed)
         chunk_length = self._position - chunk_offset
         index_offsets: dict[int, int] = {}
-        indexes = []
+        indexes: list[bytes] = []
         for channel_id, blocks in chunk.index.items():
             pairs = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
             index_offsets[channel_id] = self._position + sum(len(i) for i in indexes)

@@ -34,7 +34,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -91,7 +91,7 @@ class RunMcapWriter:
 
     def __init__(
         self,
-        path: str | PathLike[str] | Any,
+        path: str | PathLike[str] | BinaryIO,
         signal_names: Sequence[str],
         t0_ns: int,
         wall_t0_ns: int,
@@ -106,9 +106,12 @@ class RunMcapWriter:
         self.wall_t0_ns = int(wall_t0_ns)
         self.per_signal_topics = per_signal_topics
         self.signal_topics = self._signal_topics() if per_signal_topics else []
-        self.file_name = Path(path).name if isinstance(path, str | PathLike) else "run.mcap"
-        self._file = open(path, "wb") if isinstance(path, str | PathLike) else None  # noqa: SIM115
-        self._stream = self._file or path
+        self._file: BinaryIO | None
+        if isinstance(path, str | PathLike):
+            self.file_name, self._file = Path(path).name, open(path, "wb")  # noqa: SIM115
+            self._stream: BinaryIO = self._file
+        else:
+            self.file_name, self._file, self._stream = "run.mcap", None, path
         self._mcap = McapFile(self._stream, profile=Profile.ROS2, library="rtloop")
         info = {"t0_ns": str(self.t0_ns), "wall_t0_ns": str(self.wall_t0_ns),
                 "signals": ",".join(self.signal_names)}
@@ -202,14 +205,14 @@ class RunMcapWriter:
             if self._float64 is None:
                 return
         for t, row in zip(times.tolist(), rows.tolist(), strict=True):
-            wall_ns = self.wall_t0_ns + t
+            message_ns = self.wall_t0_ns + t
             if self._joint_state_layout is None:
-                message = {"header": {"stamp": _stamp(wall_ns), "frame_id": ""}, "name": names,
+                message = {"header": {"stamp": _stamp(message_ns), "frame_id": ""}, "name": names,
                            "position": row, "velocity": [], "effort": []}
-                self._write(SIGNALS_TOPIC, self._joint_state, message, wall_ns)
+                self._write(SIGNALS_TOPIC, self._joint_state, message, message_ns)
             if self._float64 is not None:
                 for topic, value in zip(self.signal_topics, row, strict=True):
-                    self._write(topic, self._float64, {"data": value}, wall_ns)
+                    self._write(topic, self._float64, {"data": value}, message_ns)
 
     def add_timing(self, task: str, records: np.ndarray) -> None:
         """Add timing records of ``task``: rows ``(cycle, release_ns, start_ns, end_ns)``.

@@ -20,8 +20,9 @@ import contextlib
 import errno
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from rtloop.record.sidecar import sidecar_content, units_by_column, write_sideca
 from rtloop.stats.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.stats.timing_stream import StreamingTaskTiming
 from rtloop.sudo import invoking_user
+
+if TYPE_CHECKING:  # imported when run.mcap opens: it needs the optional mcap package
+    from rtloop.record.mcap_writer import RunMcapWriter
 
 FILE_NAMES = ["timing.csv", "signals.csv", "reads.csv", "inputs.csv", "run.mcap", "snapshots.pkl"]
 """The files of a --keep segment: all that grows with the run (a replay of the window needs the
@@ -60,7 +64,7 @@ class Recorder:
         self.latest_ns = 0  # run time (since T0) of the newest release drained
         self.timing: TimingCsv | None = None
         self.signals: SignalsCsv | None = None
-        self.mcap = None
+        self.mcap: RunMcapWriter | None = None
         self.live: Any = None
         """Also gets what run.mcap gets (``add_rows``, ``add_timing``): the Foxglove live view, if any."""
         self.listeners: list[Any] = []
@@ -109,11 +113,10 @@ class Recorder:
         source = self.app.source
         if source != "<python>":
             source = str(Path(source).resolve())
-        info = {
-            "app": self.app.name, "source": source, "duration_s": duration_s,
-            "feeds": {name: str(Path(p.feed).resolve()) for name, p in self.app.ports.items() if p.feed is not None},
-        }
-        feeds = {path: file_digest(path) for path in info["feeds"].values()}
+        feed_files = {name: str(Path(p.feed).resolve()) for name, p in self.app.ports.items() if p.feed is not None}
+        info: dict[str, object] = {"app": self.app.name, "source": source, "duration_s": duration_s,
+                                   "feeds": feed_files}
+        feeds = {path: file_digest(path) for path in feed_files.values()}
         info["files"] = {**self.app.sources, **{path: digest for path, digest in feeds.items() if digest}}
         self._guard((self.out / "replay.json").write_text, json.dumps(info, indent=1) + "\n")
 
@@ -155,7 +158,7 @@ class Recorder:
         if not self.mcap_note:
             self._open_mcap()
 
-    def _guard(self, action, *args) -> None:
+    def _guard(self, action: Callable[..., object], *args: Any) -> None:
         """Run a file operation; if it fails, stop the recording (never the run)."""
         if self.stopped:
             return

@@ -8,7 +8,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 from rtloop.newfile import open_new, write_new
 from rtloop.stats.timing import TaskTiming
@@ -98,13 +98,20 @@ def stale_device_notes(devices: dict[str, dict[str, Any]]) -> list[str]:
     return notes
 
 
-def signal_names(runnable: object) -> dict[str, tuple[str, ...] | None]:
+class SignalNames(TypedDict):
+    """The two TaskSummary fields :func:`signal_names` gives."""
+
+    input_names: tuple[str, ...] | None
+    output_names: tuple[str, ...] | None
+
+
+def signal_names(runnable: object) -> SignalNames:
     """``input_names``/``output_names`` of a runnable, as TaskSummary fields (None if absent)."""
-    out: dict[str, tuple[str, ...] | None] = {}
-    for key in ("input_names", "output_names"):
+    def named(key: str) -> tuple[str, ...] | None:
         names = getattr(runnable, key, None)
-        out[key] = tuple(str(n) for n in names) if names else None
-    return out
+        return tuple(str(n) for n in names) if names else None
+
+    return SignalNames(input_names=named("input_names"), output_names=named("output_names"))
 
 
 @dataclass(frozen=True, slots=True)

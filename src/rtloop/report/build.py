@@ -102,9 +102,9 @@ def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
             report.pngs.append(path)
     with_signals = [(run.label, run.signals, run.data.inputs) for run in runs if run.signals is not None]
     if len(with_signals) > 1:
-        fig = signal_figures.comparison_figure(with_signals)
-        if fig is not None:
-            path = figures.save(fig, fig_dir / "compare-signals.png")
+        overlaid = signal_figures.comparison_figure(with_signals)
+        if overlaid is not None:
+            path = figures.save(overlaid, fig_dir / "compare-signals.png")
             comparison.insert(0, html.FigureRef(path, f"The runs' signals overlaid, and each run's difference to "
                                                       f"{with_signals[0][0]} at the times both recorded."))
             report.pngs.append(path)

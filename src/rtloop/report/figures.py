@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -54,7 +55,7 @@ def period_text(period_ns: int) -> str:
 def _bars(ax: Axes, hist: Histogram, color: str, label: str | None = None, step: bool = False) -> None:
     edges_us = hist.edges_ns / US
     centers = (edges_us[:-1] + edges_us[1:]) / 2
-    ax.hist(centers, bins=edges_us, weights=hist.counts, log=True, color=color, label=label,
+    ax.hist(centers, bins=edges_us.tolist(), weights=hist.counts, log=True, color=color, label=label,
             histtype="step" if step else "bar", linewidth=1.5 if step else None, alpha=1.0 if step else 0.85)
 
 
@@ -176,7 +177,7 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     return fig
 
 
-def names_from_summary(summary: dict) -> dict[str, str]:
+def names_from_summary(summary: dict[str, Any]) -> dict[str, str]:
     """``{"plant.y[0]": "AnglePan", ...}`` from the task entries of summary.json."""
     names: dict[str, str] = {}
     for task, entry in summary.get("tasks", {}).items():

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -30,7 +31,7 @@ MAX_LABELLED_INPUTS = 12
 MAX_SHADED_GAPS = 200
 RUN_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 SETPOINT_STYLE = {"color": "black", "linestyle": "--", "linewidth": 1.1}
-INPUT_STYLE = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
+INPUT_STYLE: dict[str, Any] = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
 TIME_LABEL = "t [s] (each value holds from t on)"
 
 
@@ -117,7 +118,7 @@ def drawable(t_s: np.ndarray, values: np.ndarray, gaps: np.ndarray) -> tuple[np.
     return np.repeat(centers, 2), np.stack([lows, highs], axis=1).ravel(), True
 
 
-def _trace(ax: Axes, t_s: np.ndarray, values: np.ndarray, gaps: np.ndarray, **style: object) -> None:
+def _trace(ax: Axes, t_s: np.ndarray, values: np.ndarray, gaps: np.ndarray, **style: Any) -> None:
     x, y, enveloped = drawable(t_s, values, gaps)
     if enveloped:
         ax.plot(x, y, **style)
@@ -133,7 +134,7 @@ def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str
     """Dotted lines where live port writes took effect; labelled on the first axis. Returns how many."""
     events = sorted((float(t), port, values) for port, entry in inputs.items()
                     for t, values in zip(entry.t_s, entry.values, strict=True))
-    style = {**INPUT_STYLE, **({"color": color} if color else {})}
+    style: dict[str, Any] = {**INPUT_STYLE, **({"color": color} if color else {})}
     for ax in axes:
         for t, _, _ in events:
             ax.axvline(t, **style)

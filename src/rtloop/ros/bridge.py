@@ -241,7 +241,7 @@ def narrowest_range(*ranges: tuple[Any, Any] | None) -> tuple[Any, Any] | None:
         return None
     low = functools.reduce(np.maximum, (np.asarray(r[0], dtype=np.float64) for r in given))
     high = functools.reduce(np.minimum, (np.asarray(r[1], dtype=np.float64) for r in given))
-    return tuple(_plain(bound) for bound in (low, high))  # type: ignore[return-value]
+    return _plain(low), _plain(high)
 
 
 def _plain(bound: np.ndarray) -> float | tuple[float, ...]:

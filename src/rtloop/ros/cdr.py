@@ -11,7 +11,7 @@ Tests compare every encoder with cyclonedds's own serialiser, byte for byte.
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 NS_PER_S = 1_000_000_000
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
@@ -114,7 +114,7 @@ def cycle_timing_cdr(cycle: int, release_ns: int, start_ns: int, end_ns: int) ->
     return writer.bytes()
 
 
-def encoder_for(msg_type: str, joint_names: Sequence[str] = ()):  # -> Callable[[list[float], int], bytes]
+def encoder_for(msg_type: str, joint_names: Sequence[str] = ()) -> Callable[[Sequence[float], int], bytes]:
     """``encode(values, stamp_ns) -> bytes`` for one of the bridged ROS 2 types (as ``bridge.message_for``)."""
     if msg_type == "sensor_msgs/msg/JointState":
         names = tuple(joint_names)

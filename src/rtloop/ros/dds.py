@@ -150,7 +150,7 @@ class RosPublisher(_Endpoint):
 
     def subscriber_count(self) -> int:
         """Return how many subscriptions currently match this publisher."""
-        return self._impl.subscriber_count()
+        return int(self._impl.subscriber_count())
 
     def wait_for_subscribers(self, count: int = 1, timeout_s: float = 5.0) -> bool:
         """Wait until at least ``count`` subscriptions match; return whether they did."""
@@ -174,15 +174,15 @@ class RosSubscriber(_Endpoint):
 
     def take(self, max_messages: int = 64) -> list[Any]:
         """Return the messages received since the last call, oldest first. Never blocks."""
-        return self._impl.take(max_messages)
+        return list(self._impl.take(max_messages))
 
     def wait(self, timeout_s: float) -> bool:
         """Block up to ``timeout_s`` until a message is available; return whether one is."""
-        return self._impl.wait(timeout_s)
+        return bool(self._impl.wait(timeout_s))
 
     def publisher_count(self) -> int:
         """Return how many publications currently match this subscriber."""
-        return self._impl.publisher_count()
+        return int(self._impl.publisher_count())
 
     def wait_for_publishers(self, count: int = 1, timeout_s: float = 5.0) -> bool:
         """Wait until at least ``count`` publications match; return whether they did."""

@@ -15,14 +15,20 @@ classes are plain dataclasses: they build and read messages but cannot serialize
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 try:
     from cyclonedds.idl import IdlStruct
-    from cyclonedds.idl.types import float64, int32, sequence, uint32
+    from cyclonedds.idl.types import float64, int32, uint32
+
+    if TYPE_CHECKING:  # cyclonedds makes sequence[T] at run time, which mypy cannot read; the field holds a list
+        sequence = list
+    else:
+        from cyclonedds.idl.types import sequence
 
     HAVE_CYCLONEDDS = True
 except ImportError:  # rclpy-only installs: same classes, as plain dataclasses
-    from rtloop.ros._plain_idl import IdlStruct, float64, int32, sequence, uint32  # type: ignore[assignment]
+    from rtloop.ros._plain_idl import IdlStruct, float64, int32, sequence, uint32  # type: ignore[assignment]  # stand-ins
 
     HAVE_CYCLONEDDS = False
 

@@ -88,7 +88,7 @@ class RclpyPublisher:
         self._pub.publish(_to_ros(msg, self._ros_class))
 
     def subscriber_count(self) -> int:
-        return self._pub.get_subscription_count()
+        return int(self._pub.get_subscription_count())
 
     def close(self) -> None:
         if self._pub is not None:
@@ -125,8 +125,8 @@ class RclpySubscriber:
         return bool(self._queue)
 
     def publisher_count(self) -> int:
-        return self._sub.get_publisher_count() if hasattr(self._sub, "get_publisher_count") \
-            else self._node.count_publishers(self._sub.topic_name)
+        return int(self._sub.get_publisher_count() if hasattr(self._sub, "get_publisher_count")
+                   else self._node.count_publishers(self._sub.topic_name))
 
     def close(self) -> None:
         if self._sub is not None:

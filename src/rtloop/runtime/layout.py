@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -224,7 +225,7 @@ class AppLayout:
             raise
 
     @classmethod
-    def _build(cls, app: App, token: str, segment, segments: list[Segment],
+    def _build(cls, app: App, token: str, segment: Callable[[str, int], Segment], segments: list[Segment],
                summary_path: Path | None, mode: str) -> AppLayout:
         control_segment = segment("control", CONTROL_WORDS * 8)
         control = WordBlock(control_segment, 0, CONTROL_WORDS)
@@ -308,7 +309,8 @@ class AppLayout:
         return layout
 
     @staticmethod
-    def _port(app: App, port: PortSpec, segment) -> tuple[Segment, InputPortLink | OutputPortLink]:
+    def _port(app: App, port: PortSpec,
+              segment: Callable[[str, int], Segment]) -> tuple[Segment, InputPortLink | OutputPortLink]:
         ref = port.signal
         if port.direction == "out":
             created = segment(f"port.{port.name}", SampleQueue.size_bytes(ref.size, port.capacity))

@@ -137,7 +137,8 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
     if not path.is_file():
         raise AppError(f"{run_dir}: no summary.json; is it the output folder of `rtloop run`?")
     try:
-        return parse_json(path.read_text())
+        summary: dict[str, Any] = parse_json(path.read_text())
+        return summary
     except ValueError as error:
         raise AppError(f"{path}: not JSON ({error})") from None
 
@@ -402,7 +403,7 @@ def check_timeline(cycles: dict[str, list[CycleRecord]], periods_ns: dict[str, i
 
 def _column_owners(app: App) -> list[tuple[str, str]]:
     """(task, side) of each signals.csv column, in order."""
-    owners = []
+    owners: list[tuple[str, str]] = []
     for ref in app.recorded:
         runnable = app.tasks[ref.task].runnable
         owners += [(ref.task, ref.side)] * len(column_names(ref, runnable.input_names, runnable.output_names))

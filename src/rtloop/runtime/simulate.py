@@ -46,7 +46,7 @@ class _SimTask:
         self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
         wirings = device_wiring(app, name, twins=True)  # each device's twin in its place
         for wiring in wirings:
-            wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]
+            wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]  # twins=True: a TwinDevice
         self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
         self.host_exec = HostExecution()
@@ -270,7 +270,7 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
             timing_samples_dropped=0,
             host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
             **signal_names(spec.runnable),
-            **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),  # type: ignore[arg-type]
+            **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),
         )
     capabilities = rt.probe()
     notes = [*slow_step_notes(summaries), *session.notes()]

@@ -406,7 +406,7 @@ class Supervisor:
 
     def _watchdog_limit_ns(self, config: Any) -> int:
         """How long a task may go without finishing a cycle: its periods, never under the minimum."""
-        return max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9))
+        return int(max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9)))
 
     def _spin_limit_s(self, config: Any) -> tuple[float, float] | None:
         """The kernel's side of the watchdog (RLIMIT_RTTIME in the task): the same limit, then the grace."""
@@ -423,8 +423,8 @@ class Supervisor:
         cycle, release_ns, _start_ns, end_ns = last
         config = self.app.tasks[name].config
         if end_ns <= release_ns + config.period_ns or config.overrun == "catch_up":
-            return cycle + 1
-        return (end_ns - self.t0_ns) // config.period_ns + 1  # skip: the next release after it ended
+            return int(cycle) + 1
+        return int(end_ns - self.t0_ns) // config.period_ns + 1  # skip: the next release after it ended
 
     def _join(self, layout: AppLayout) -> None:
         stop_grace_s, watchdog_grace_s = self.limits.stop_grace_s, self.limits.watchdog_grace_s
@@ -576,7 +576,7 @@ class Supervisor:
             return "running"
         if self.state is RunState.REQUESTED:
             return self.stop_detail
-        return (RunState.DURATION if self.state is RunState.RUNNING else self.state).value
+        return str((RunState.DURATION if self.state is RunState.RUNNING else self.state).value)
 
     def _summary(self, capabilities: rt.Capabilities, *, running: bool) -> RunSummary:
         session = self.session
@@ -608,7 +608,7 @@ class Supervisor:
                 misses_in_a_row_max=status[StatusWord.MISSES_IN_A_ROW_MAX],
                 timing_samples_dropped=dropped,
                 **signal_names(spec.runnable),
-                **nonfinite_fields(status, layout.tasks[name].plan),  # type: ignore[arg-type]
+                **nonfinite_fields(status, layout.tasks[name].plan),
                 resident_bytes=self.memory.to_json(name),
             )
         bridges = self.bridges.summary() if self.bridges is not None else {}
@@ -648,7 +648,7 @@ def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
     following = last + 1
     if config.overrun == "skip" and t0_ns and last_end_ns > t0_ns + following * period_ns:
         following = (last_end_ns - t0_ns) // period_ns + 1
-    return following
+    return int(following)
 
 
 SUPERVISOR_PRIORITY = 1

@@ -208,7 +208,7 @@ def task_process_main(
     try:  # the runnable's class and modules load here: a failure is "loading", not prerun
         runnable: Runnable = loads_runnable(runnable_bytes)
         if isinstance(devices, bytes):
-            devices = loads_runnable(devices)
+            devices = tuple(loads_runnable(devices))
     except BaseException as error:
         status[StatusWord.STATE] = TaskState.FAILED
         _report(pipe, kind="failed", phase="loading", cycle=None, reason=f"{type(error).__name__}: {error}",

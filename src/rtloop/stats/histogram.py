@@ -216,7 +216,8 @@ def _bit_length(values: npt.NDArray[np.uint64]) -> npt.NDArray[np.int64]:
     _, exponent = np.frexp(values.astype(np.float64))
     bits = exponent.astype(np.int64)
     too_long = (bits > 0) & ((values >> np.maximum(bits - 1, 0).astype(np.uint64)) == 0)
-    return bits - too_long
+    bit_length: npt.NDArray[np.int64] = bits - too_long
+    return bit_length
 
 
 def exact_sum(data: npt.NDArray[np.int64]) -> int:

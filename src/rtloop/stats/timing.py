@@ -110,7 +110,8 @@ def execution_ns(samples: TimingSamples) -> IntArray:
 
 def consecutive(samples: TimingSamples) -> npt.NDArray[np.bool_]:
     """Mask over pairs (k−1, k): True where cycle k directly follows cycle k−1."""
-    return np.diff(samples.cycle) == 1
+    follows: npt.NDArray[np.bool_] = np.diff(samples.cycle) == 1
+    return follows
 
 
 def period_jitter_ns(samples: TimingSamples, period_ns: int) -> IntArray:
@@ -198,7 +199,7 @@ class TaskTiming:
 
     def to_json(self) -> dict[str, object]:
         out: dict[str, object] = {}
-        for key in self.__slots__:  # type: ignore[attr-defined]
+        for key in self.__slots__:
             value = getattr(self, key)
             out[key] = value.to_json() if isinstance(value, Distribution) else value
         return out

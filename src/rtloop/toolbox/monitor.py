@@ -18,6 +18,7 @@ import stat
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from rtloop.ipc.ports import Refusal, scan_registries, unreachable_app
 from rtloop.ipc.segments import SHM_DIR, Segment
@@ -300,7 +301,7 @@ def live_summary_line(path: str | None, app_uid: int | None = None) -> str:
         return ""
 
 
-def _read_bounded_regular_file(path: str, owner_uid: int | None = None) -> tuple[object, float]:
+def _read_bounded_regular_file(path: str, owner_uid: int | None = None) -> tuple[Any, float]:
     """The JSON in ``path`` and its modification time; ValueError unless a regular file of at most
     MAX_SUMMARY_BYTES (opened without blocking: a FIFO never holds top up, nor following a link)
     owned by ``owner_uid`` (None, or 0: root's run may have given it to the sudo user: any owner)."""
