@@ -23,7 +23,7 @@ from rtloop.version import __version__ as __version__
 
 if TYPE_CHECKING:
     from rtloop.app.builder import App as App
-    from rtloop.app.builder import SignalRef as SignalRef
+    from rtloop.app.specs import SignalRef as SignalRef
     from rtloop.record.load import RunData as RunData
     from rtloop.record.load import load as load
     from rtloop.record.summary import RunSummary as RunSummary
@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 # step finds its module in sys.modules: a dictionary look-up, never a file read.
 _LAZY = {
     "App": "rtloop.app.builder",
-    "SignalRef": "rtloop.app.builder",
+    "SignalRef": "rtloop.app.specs",
     "RunData": "rtloop.record.load",
     "load": "rtloop.record.load",
     "RunSummary": "rtloop.record.summary",

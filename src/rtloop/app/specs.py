@@ -224,7 +224,7 @@ class RosTopic:
     """Publish every N-th tick only (a 1 kHz task need not flood rviz)."""
     domain_id: int | None = None
     """DDS domain; ``None``: ``ROS_DOMAIN_ID`` or 0."""
-    value_range: tuple[float, float] | None = None
+    value_range: ValueRange | None = None
     """``subscribe`` only: messages with a value outside ``[lo, hi]`` are rejected and counted."""
 
 

@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtloop.app.builder import RosTopic
+    from rtloop.app.specs import RosTopic
     from rtloop.ipc.ports import connect_app
     from rtloop.ros.bridge import BridgeStats, run_bridge
 

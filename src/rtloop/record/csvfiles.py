@@ -16,7 +16,7 @@ from typing import TextIO
 
 import numpy as np
 
-from rtloop.app.builder import SignalRef
+from rtloop.app.specs import SignalRef
 
 
 class TimingCsv:

@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from rtloop.app.builder import App, LiveViewSpec
+from rtloop.app.builder import App
+from rtloop.app.specs import LiveViewSpec
 from rtloop.errors import PortValueError, RtloopError
 from rtloop.ipc.ports import RunningApp, app_from_registry
 from rtloop.ros.cdr import cycle_timing_cdr, joint_state_cdr

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from rtloop.app.builder import RosTopic
+from rtloop.app.specs import RosTopic
 from rtloop.errors import PortValueError
 from rtloop.ipc.ports import RunningApp, app_from_registry, port_range
 from rtloop.ipc.status import CONTROL_WORDS, ControlWord, WordBlock

@@ -15,8 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rtloop.app.builder import App, RosTopic
+from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main
+from rtloop.app.specs import RosTopic
 
 STOP_TIMEOUT_S = 5.0
 

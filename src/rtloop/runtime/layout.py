@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from rtloop.app.builder import App, PortSpec
+from rtloop.app.builder import App
 from rtloop.app.plots import element_units, elements
 from rtloop.app.profiles import load_profile
+from rtloop.app.specs import PortSpec
 from rtloop.errors import AppError, DeviceError
 from rtloop.io.host import DeviceWiring
 from rtloop.io.twin import TwinDevice

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from rtloop.app.builder import TaskConfig
 from rtloop.app.byvalue import loads_runnable
+from rtloop.app.specs import TaskConfig
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE, cycle_work

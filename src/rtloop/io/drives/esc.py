@@ -118,7 +118,7 @@ class EmulatedSlave:
     def watchdog_ns(self) -> int:
         divider, = struct.unpack_from("<H", self.memory, REG_WD_DIVIDER)
         time_units, = struct.unpack_from("<H", self.memory, REG_WD_SM)
-        return (divider + 2) * 40 * time_units
+        return int((divider + 2) * 40 * time_units)
 
     def tick(self, now_ns: int) -> None:
         """The SM watchdog: in OP, outputs not written for longer than its time → SAFE-OP with an error."""
