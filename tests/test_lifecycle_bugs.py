@@ -52,3 +52,79 @@ def test_a_failed_task_stops_the_healthy_one_within_two_of_its_periods(tmp_path:
     failed_at_ns = _failed_at_ns(failed.value)
     late = [release for release in _releases_of(tmp_path / "out", "b") if release > failed_at_ns + 2 * PERIOD_NS]
     assert late == [], f"b ran {len(late)} cycles released more than 2 periods after a's failure"
+
+
+# --- stop requests are counted, not read from the STOP flag ----------------------------------------
+
+
+def test_a_sigterm_to_a_task_after_the_supervisors_stop_is_an_orderly_stop_not_a_fault(tmp_path: Path) -> None:
+    """A process-group SIGTERM reaches the supervisor and the task: when the supervisor's handler has
+    set STOP first, the task's own SIGTERM is still its first request (before: "a second request",
+    which broke the step of a task with devices and turned the orderly stop into a fault)."""
+    import subprocess
+    import sys
+    import time
+
+    from device_test_drivers import read_log
+
+    app_file = tmp_path / "app.toml"
+    app_file.write_text(f"""
+name = "sigterm_race_{os.getpid()}"
+[tasks.ctl]
+runnable = "device_test_drivers:Echo"
+args = {{ slow_s = 3.0 }}
+period_ns = 2_000_000
+policy = "other"
+[devices.dev]
+kind = "device_test_drivers:LogDevice"
+task = "ctl"
+log = "{tmp_path / 'dev.log'}"
+limits.c0 = {{min = -1e6, max = 1e6, safe = -7.0}}
+[[connect]]
+from = "ctl.y[0]"
+to = "dev.u[0]"
+""")
+    process = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--out", str(tmp_path / "out"),
+                                "--quiet"], cwd=Path(__file__).parent, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not any(line.startswith("write ") for line in read_log(tmp_path / "dev.log")):
+            assert process.poll() is None and time.monotonic() < deadline, process.communicate()
+            time.sleep(0.01)
+        # the first step has begun (its device was written at the release); it sleeps 3 s
+        process.send_signal(signal.SIGTERM)  # the supervisor first: it sets STOP
+        time.sleep(0.3)
+        os.kill(int((tmp_path / "dev.log.pid").read_text()), signal.SIGTERM)  # then the task, mid-step
+        _out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0, err
+    summary = (tmp_path / "out" / "summary.json").read_text()
+    assert '"stopped_by": "signal"' in summary and '"failure": null' in summary
+    assert read_log(tmp_path / "dev.log")[-3:] == ["safe -7.0", "deactivate", "close"]
+
+
+class _Task:
+    devices = True
+    in_loop = True
+
+
+def test_requests_are_counted_the_supervisors_death_once_the_watchdogs_signal_breaks_the_step() -> None:
+    from rtloop.ipc.status import ControlWord
+    from rtloop.runtime.task import STEP_STUCK, SUPERVISOR_GONE, StopRequests
+
+    control = {ControlWord.STOP: 1}  # set by someone else: no request of this process's yet
+    requests = StopRequests(control)  # type: ignore[arg-type]
+    requests.task = _Task()  # type: ignore[assignment]
+    requests(SUPERVISOR_GONE, None)
+    requests(SUPERVISOR_GONE, None)  # the kernel said it twice (once per exiting supervisor thread)
+    assert requests.count == 1
+    with pytest.raises(TimeoutError, match="a second stop request"):
+        requests(signal.SIGTERM, None)
+    watchdog = StopRequests(control)  # type: ignore[arg-type]
+    watchdog.task = _Task()  # type: ignore[assignment]
+    with pytest.raises(TimeoutError, match="the watchdog"):
+        watchdog(STEP_STUCK, None)  # its first signal: the step is stuck, break it

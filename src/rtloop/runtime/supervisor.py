@@ -57,7 +57,7 @@ from rtloop.runtime.session import (
     RunState,
     drop_output_to_a_lost_terminal,
 )
-from rtloop.runtime.task import task_process_main
+from rtloop.runtime.task import STEP_STUCK, task_process_main
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
 UNTIL_STOPPED_NS = 1 << 62  # the end time of a run without a duration: never
@@ -89,7 +89,7 @@ class _TaskRun:
     stop_request: str | None = None
     progress_cycle: int = -1  # the CYCLE status word when the watchdog last saw it change
     progress_ns: int = 0  # and when that was
-    stuck: bool = False  # the watchdog gave up on it: SIGTERM sent, SIGKILL follows
+    stuck: bool = False  # the watchdog gave up on it: its signal (STEP_STUCK) sent, SIGKILL follows
 
 
 STARTUP_ALLOWANCE_ENV = "RTLOOP_STARTUP_ALLOWANCE_S"  # more where start-up is slow: emulation, a small board
@@ -400,7 +400,7 @@ class Supervisor:
             self.state = RunState.WATCHDOG
             layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
             try:
-                os.kill(task_run.process.pid, signal.SIGTERM)
+                os.kill(task_run.process.pid, STEP_STUCK)  # breaks the step of a task with devices
             except ProcessLookupError:
                 pass
 
@@ -440,8 +440,8 @@ class Supervisor:
                 if task_run.stuck and self.failure is not None:
                     self.failure = TaskFailed(
                         task_run.name, self.failure.cycle, self.failure.phase,
-                        f"{self.failure.reason}; it ignored SIGTERM and was killed (SIGKILL) after "
-                        f"{watchdog_grace_s:g} s, so its postrun did not run")
+                        f"{self.failure.reason}; its step did not return on the watchdog's signal; it was "
+                        f"killed (SIGKILL) after {watchdog_grace_s:g} s, so its postrun did not run")
                 if self.failure is None:
                     phase, cycle = self._phase_of(layout, task_run.name)
                     self.failure = TaskFailed(

@@ -41,6 +41,39 @@ SUPERVISOR_GONE = signal.SIGRTMIN + 5
 """What the kernel sends a task when its supervisor dies (PR_SET_PDEATHSIG): a signal of rtloop's
 own, so code that takes over SIGTERM (a library, a student's "clean exit") cannot keep the loop
 running with no supervisor; it stops in order, as SIGTERM does."""
+STEP_STUCK = signal.SIGRTMIN + 6
+"""What the supervisor's watchdog sends a task whose cycles stand still: a task that owns devices
+breaks its stuck step (its devices get their safe values on the way out). A signal of its own, not a
+second SIGTERM: two SIGTERMs sent together may arrive as one."""
+STOP_SIGNALS = (signal.SIGTERM, SUPERVISOR_GONE, STEP_STUCK)
+
+
+class StopRequests:
+    """The stop requests this task process received, counted (not read from the STOP flag, which the
+    supervisor or another task may have set: a process-group SIGTERM racing the supervisor's is a
+    first request, not a second). The first stops the app in order; a second one, or the watchdog's,
+    breaks a step with devices that does not return, so the devices still get their safe values. The
+    supervisor's death is one request however often the kernel says it (once per exiting thread)."""
+
+    def __init__(self, control: WordBlock) -> None:
+        self.control = control
+        self.count = 0
+        self.supervisor_gone = False
+        self.task: RealtimeTask | None = None
+        """Set once the task exists: whether it is in its loop and owns devices."""
+
+    def __call__(self, signum: int, _frame: Any) -> None:
+        if signum == SUPERVISOR_GONE:
+            if self.supervisor_gone:
+                return
+            self.supervisor_gone = True
+        if signum != STEP_STUCK:
+            self.count += 1
+        self.control[ControlWord.STOP] = 1
+        task = self.task
+        if (signum == STEP_STUCK or self.count > 1) and task is not None and task.devices and task.in_loop:
+            who = "the watchdog" if signum == STEP_STUCK else "a second stop request"
+            raise TimeoutError(f"stopped by {who} while its step did not return (the devices were made safe)")
 
 
 
@@ -186,12 +219,8 @@ def task_process_main(
     control = WordBlock(control_segment, 0, CONTROL_WORDS)
     # SIGTERM (from a user, or from the kernel when the supervisor dies) stops the whole
     # app the orderly way: the loop sees the stop flag and postrun still runs.
-    task: RealtimeTask | None = None
-
-    def stop_in_order(_signum: int, _frame: Any) -> None:
-        _on_sigterm(control, task)
-
-    for signum in (signal.SIGTERM, SUPERVISOR_GONE):
+    stop_in_order = StopRequests(control)
+    for signum in STOP_SIGNALS:
         signal.signal(signum, stop_in_order)
     rt.die_with_parent(SUPERVISOR_GONE)
     try:
@@ -224,7 +253,7 @@ def task_process_main(
     status[StatusWord.RT] = int(settings.rt)
     _report(pipe, kind="settings", settings=settings)
 
-    task = RealtimeTask(config, runnable, control, status, timing)
+    task = stop_in_order.task = RealtimeTask(config, runnable, control, status, timing)
 
     def send_snapshot(next_cycle: int, t0_ns: int) -> None:
         at_ns = control[ControlWord.SNAPSHOT_NS] - t0_ns
@@ -305,21 +334,14 @@ def task_process_main(
 def _take_back_stop_signals(handler: Any, pipe: Any) -> None:
     """Put rtloop's handler back where loading or prerun replaced it (rclpy and other libraries
     install their own SIGTERM handler; SIG_IGN would leave a loop nobody can stop), and say so."""
-    for signum in (signal.SIGTERM, SUPERVISOR_GONE):
+    for signum in STOP_SIGNALS:
         if signal.getsignal(signum) is not handler:
             signal.signal(signum, handler)
-            name = "SIGTERM" if signum == signal.SIGTERM else "the supervisor's death signal"
+            name = {signal.SIGTERM: "SIGTERM", SUPERVISOR_GONE: "the supervisor's death signal"}.get(
+                signum, "the watchdog's signal")
             _report(pipe, kind="note", text=f"its code replaced rtloop's handler of {name} (in loading or "
                     "prerun); rtloop put its own back, so a stop, and the supervisor's death, still stop the "
                     "loop in order")
-
-
-def _on_sigterm(control: WordBlock, task: RealtimeTask | None) -> None:
-    """Stop the app in order; a second request while a step with devices is stuck breaks the step
-    (the watchdog's SIGTERM comes after the stop flag) so the devices still get their safe values."""
-    if control[ControlWord.STOP] and task is not None and task.devices and task.in_loop:
-        raise TimeoutError("stopped by SIGTERM while its step did not return (the devices were made safe)")
-    control[ControlWord.STOP] = 1
 
 
 def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
