@@ -17,10 +17,10 @@ import pytest
 
 import rtloop
 from conftest import require_nobody_can_import_rtloop, unique_name
+from replay_helpers import compare_signals, first_miss_s
 from rtloop.app.appfile import load_app
 from rtloop.errors import DeviceError
 from rtloop.io.serial import ENABLED, REQUEST_SYNC, RESPONSE_SYNC, Frame, crc16
-from rtloop.runtime.replay import compare_signals, first_miss_s
 
 pytest.importorskip("serial", reason="pyserial is not installed: pip install 'rtloop[serial]'")
 

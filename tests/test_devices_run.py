@@ -15,10 +15,10 @@ import pytest
 import rtloop
 from conftest import unique_name
 from device_test_drivers import Echo, MirrorTwin, read_log
+from replay_helpers import compare_signals, first_miss_s
 from rt_test_runnables import RaiseAt
 from rtloop import App
 from rtloop.errors import DeviceError, TaskFailed
-from rtloop.runtime.replay import compare_signals, first_miss_s
 from rtloop.runtime.session import Limits
 
 PERIOD_NS = 2_000_000

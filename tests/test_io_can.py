@@ -338,8 +338,9 @@ def test_a_run_counts_its_stale_reads_per_cycle_in_summary_json_and_replay_says_
 
     import rtloop
     from device_test_drivers import CycleAndReading, MirrorTwin
+    from replay_helpers import compare_signals, first_miss_s
     from rtloop import App
-    from rtloop.runtime.replay import compare_signals, first_miss_s, replay
+    from rtloop.runtime.replay import replay
 
     entry = guest_device("vcan")
     period_ns, lost = scaled_ns(10_000_000), [5, 6, 12]

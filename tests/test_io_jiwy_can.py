@@ -148,7 +148,7 @@ def _on_schedule(run: Path) -> str:
 @pytest.mark.timeout(scaled_s(200))  # a simulation and up to four runs of 10 s (under emulation), a node each
 def test_jiwy_over_can_equals_its_simulation_up_to_its_first_miss_and_the_drive_goes_safe(tmp_path):
     entry = guest_device("vcan")
-    from rtloop.runtime.replay import compare_signals, first_miss_s
+    from replay_helpers import compare_signals, first_miss_s
 
     period_ns = 100_000_000 if slowdown() > 1 else 10_000_000
     duration_s = CYCLES * period_ns / 1e9

@@ -1,0 +1,51 @@
+"""Test helpers about replays that no command needs: where a run stops equalling its plain
+simulation, and how far two signals.csv agree."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from rtloop.runtime.replay.logs import read_summary, read_timing
+
+
+def first_miss_s(run_dir: Path) -> float | None:
+    """Release time (since T0) of the run's first cycle that ended after its deadline or followed a skip,
+    or of the cycle before the first one whose device read stale values (a frame that came late): up
+    to there a run equals its plain simulation (the logical timeline); its replay goes further."""
+    summary = read_summary(run_dir)
+    periods = {name: task["period_ns"] for name, task in summary["tasks"].items()}
+    cut: list[str] = []
+    records, _t0_ns = read_timing(run_dir, periods, cut)
+    first: int | None = None
+    for task, run in records.items():
+        previous = -1
+        for record in run:
+            skipped = record.cycle != previous + 1
+            previous = record.cycle
+            if record.end_ns > record.release_ns + periods[task] or skipped:
+                at = record.release_ns - (periods[task] if skipped else 0)
+                first = at if first is None else min(first, at)
+    for device in (summary.get("devices") or {}).values():
+        stale = device.get("first_stale_cycles") or []
+        if stale and device.get("task") in periods:  # its readings at that release were old already
+            at = (stale[0] - 1) * periods[device["task"]]
+            first = at if first is None else min(first, at)
+    return None if first is None else first / 1e9
+
+
+def compare_signals(run_csv: Path, other_csv: Path, until_s: float | None) -> tuple[int, float | None]:
+    """(rows equal from the first, time of the first that differs or None) of two signals.csv, up to ``until_s``."""
+    with open(run_csv, newline="") as a, open(other_csv, newline="") as b:
+        run_rows, other_rows = list(csv.reader(a)), list(csv.reader(b))
+    if run_rows[:1] != other_rows[:1]:
+        return 0, 0.0
+    compared = 0
+    for run_row, other_row in zip(run_rows[1:], other_rows[1:], strict=False):
+        t = float(run_row[0])
+        if until_s is not None and t > until_s:  # values at the miss's release were computed in time
+            break
+        if run_row != other_row:
+            return compared, t
+        compared += 1
+    return compared, None
