@@ -196,6 +196,16 @@ class JiwyController(_TwoAxisEulerModel):
         self.pan = dataclasses.replace(self.pan, kp=self.parameters["kp_pan"])
         self.tilt = dataclasses.replace(self.tilt, kp=self.parameters["kp_tilt"])
 
+    def take_over(self, u: FloatVector, y_last: FloatVector) -> None:
+        """Bumpless transfer (``rtloop switch``): set the integrators so that the first output
+        equals ``y_last``, the outgoing controller's last one, on this release's inputs."""
+        s = self.states
+        values = u.tolist()
+        for axis, (c, pd, pi) in enumerate(((self.pan, 0, 1), (self.tilt, 2, 3))):
+            error = values[2 + axis] - values[axis]
+            s[pi] = float(y_last[axis]) - (s[pd] + c.kp * error / c.beta)
+        self.rates = [0.0, 0.0, 0.0, 0.0]  # the first step integrates nothing before it evaluates
+
     def _evaluate(self, u: FloatVector, y: FloatVector) -> None:
         s = self.states
         r = self.rates

@@ -82,6 +82,7 @@ from rtloop.app.specs import DEFAULT_WATCHDOG_PERIODS, MAX_TASKS
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
 from rtloop.io.device import build_device, device_class
 from rtloop.runnable import Runnable
+from rtloop.switching import Controllers
 from rtloop.text import clip, shorten
 
 MAX_APP_FILE_BYTES = 1 << 20
@@ -107,8 +108,9 @@ TASK_KEYS = {
     "runnable": str, "model": str, "args": dict, "period_ns": int, "priority": int,
     "cpu": int, "policy": str, "overrun": str, "description": str, "parameters": dict, "watchdog_periods": int,
     "max_consecutive_misses": int,
-    "lock_blas_buffer": bool, "units": dict,
+    "lock_blas_buffer": bool, "units": dict, "controllers": dict, "active": str, "blend_s": float,
 }
+CONTROLLER_KEYS = {"runnable": str, "model": str, "args": dict, "parameters": dict, "description": str}
 PORT_KEYS = {
     "to": str, "source": str, "initial": list, "allow_nonfinite": bool, "capacity": int,
     "feed": str, "description": str, "range": list, "value_range": list, "nudge": str,
@@ -116,7 +118,8 @@ PORT_KEYS = {
 CONNECT_KEYS: dict[str, type] = {"from": str, "to": str}
 CONNECT_OPTIONAL_KEYS: dict[str, type] = {"allow_nonfinite": bool}
 RECORD_KEYS = {"signals": list}
-TYPE_NAMES = {str: "a string", int: "an integer", dict: "a table", list: "an array", bool: "true or false"}
+TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", dict: "a table", list: "an array",
+              bool: "true or false"}
 
 
 def _check_keys(path: str, where: str, table: dict[str, Any], allowed: Mapping[str, type]) -> None:
@@ -127,7 +130,8 @@ def _check_keys(path: str, where: str, table: dict[str, Any], allowed: Mapping[s
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise AppFileError(path, full, f"unknown key{hint}; expected one of {sorted(allowed)}")
         expected = allowed[key]
-        if not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+        numeric = expected is float and isinstance(value, int)  # `blend_s = 1` is a number too
+        if not (isinstance(value, expected) or numeric) or (expected in (int, float) and isinstance(value, bool)):
             raise AppFileError(path, full, f"expected {TYPE_NAMES[expected]}, got {shorten(value)}")
 
 
@@ -209,7 +213,7 @@ def _load_app(path: str | Path) -> App:
         if not isinstance(table, dict):
             raise AppFileError(shown, where, "expected a table [tasks.NAME]")
         _check_keys(shown, where, table, TASK_KEYS)
-        runnable = _build_runnable(shown, where, table, base_dir)
+        runnable = _build_task_runnable(shown, where, table, base_dir)
         if "period_ns" not in table:
             raise AppFileError(shown, f"{where}.period_ns", "missing; e.g. period_ns = 1_000_000 for 1 kHz")
         try:
@@ -377,6 +381,33 @@ def _load_foxglove(shown: str, table: dict[str, Any], app: App) -> None:
         app.serve_foxglove(table.get("port", 8765), host=table.get("host", "127.0.0.1"), inputs=inputs)
     except AppError as error:
         raise AppFileError(shown, "foxglove", str(error)) from None
+
+
+def _build_task_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path) -> Runnable:
+    """A task's runnable, or its ``[tasks.NAME.controllers]`` (several, one ``active``)."""
+    if "controllers" not in table:
+        for key in ("active", "blend_s"):
+            if key in table:
+                raise AppFileError(shown, f"{where}.{key}", "applies to a task with [tasks.NAME.controllers]")
+        return _build_runnable(shown, where, table, base_dir)
+    for key in ("runnable", "model", "args", "parameters"):
+        if key in table:
+            raise AppFileError(shown, f"{where}.{key}", "a task with controllers names its runnables in "
+                               "[tasks.NAME.controllers.CONTROLLER], not here")
+    if "active" not in table:
+        raise AppFileError(shown, f"{where}.active", "missing: the controller that starts, e.g. active = \"pid\"")
+    built: dict[str, Runnable] = {}
+    for name, entry in table["controllers"].items():
+        at = f"{where}.controllers.{clip(str(name), 40)}"
+        entry_table = {"runnable": entry} if isinstance(entry, str) else entry
+        if not isinstance(entry_table, dict):
+            raise AppFileError(shown, at, 'expected "module:Class" or a table with runnable = "module:Class"')
+        _check_keys(shown, at, entry_table, CONTROLLER_KEYS)
+        built[str(name)] = _build_runnable(shown, at, entry_table, base_dir)
+    try:
+        return Controllers(built, table["active"], blend_s=table.get("blend_s", 0.5))
+    except AppError as error:
+        raise AppFileError(shown, where, str(error)) from None
 
 
 def _build_runnable(shown: str, where: str, table: dict[str, Any], base_dir: Path, key: str = "runnable") -> Runnable:

@@ -15,7 +15,22 @@ import sys
 from collections.abc import Callable
 from types import ModuleType
 
-from rtloop.cli import bench, bridge, devices, doctor, model, port, replay, report, run, service, sweep, top, why
+from rtloop.cli import (
+    bench,
+    bridge,
+    devices,
+    doctor,
+    model,
+    port,
+    replay,
+    report,
+    run,
+    service,
+    sweep,
+    switch,
+    top,
+    why,
+)
 from rtloop.cli.arguments import EXIT_BAD_INPUT, EXIT_DEVICE_NOT_READY, EXIT_FAILED, EXIT_INTERRUPTED, CommandParser
 from rtloop.errors import DeviceNotReady, RtloopError, TaskFailed
 from rtloop.text import clip
@@ -25,8 +40,8 @@ EXIT_TASK_FAILED = EXIT_FAILED
 
 # name → the module that declares and runs it, in the order `rtloop --help` lists them
 COMMANDS: dict[str, ModuleType] = {
-    "run": run, "simulate": run, "replay": replay, "port": port, "model": model, "report": report, "top": top,
-    "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
+    "run": run, "simulate": run, "replay": replay, "port": port, "switch": switch, "model": model, "report": report,
+    "top": top, "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
     "why": why,
 }
 

@@ -42,7 +42,7 @@ from rtloop.ipc.segments import (
     process_start_ticks,
     process_uid,
 )
-from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
+from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock, read_epoch
 from rtloop.ipc.values import validate_values
 from rtloop.text import shorten
 
@@ -110,6 +110,27 @@ class RunningApp:
             channel.write(array)
         finally:
             segment.close()
+
+    def peek(self, port: str) -> np.ndarray:
+        """The value an input port holds now (what its task reads at its next release)."""
+        info = self._port(port, "in")
+        segment = self.segment(info["segment"])
+        try:
+            values = LatestValue(segment).peek()
+        finally:
+            segment.close()
+        if values is None or len(values) != info["size"]:
+            raise SegmentRefused(f"port {port!r}: its value could not be read (a writer held it)")
+        return values
+
+    def epoch_ns(self) -> int:
+        """The run's T0 (CLOCK_MONOTONIC ns), 0 while the tasks have not started."""
+        segment = self.segment(self.registry["control"])
+        try:
+            t0_ns, _end_ns = read_epoch(WordBlock(segment, 0, CONTROL_WORDS))
+        finally:
+            segment.close()
+        return t0_ns
 
     def reader(self, port: str) -> PortReader:
         """The single reader of an output port (held until closed)."""

@@ -215,6 +215,11 @@ class ModelRunnable(Runnable):
         self.model.calculate(u, y)
         self._next_cycle += 1
 
+    def resume_at(self, cycle: int) -> None:
+        """Go on from ``cycle`` without catching up: the model did not run in between on purpose
+        (a controller that was not the active one, see :mod:`rtloop.switching`)."""
+        self._next_cycle = cycle
+
     def follow_timeline(self, behind: int, u: FloatVector, y: FloatVector) -> int:
         """Bring the model forward by up to ``behind`` periods (releases the task did not run).
 

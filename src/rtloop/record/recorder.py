@@ -32,6 +32,7 @@ from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
 from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
+from rtloop.record.switches import SwitchLog
 from rtloop.stats.timing import DEFAULT_TRIM, TaskTiming
 from rtloop.stats.timing_stream import StreamingTaskTiming
 from rtloop.sudo import invoking_user
@@ -86,6 +87,8 @@ class Recorder:
             name: [(link.name, link.signal.size) for link in live_ports if link.signal.task == name]
             for name in app.tasks
         }
+        self.switches = SwitchLog(app)
+        """The controller switches the recorded rows show (tasks of several controllers)."""
         self._guard(self._open_first_files)
 
     # --- files ---------------------------------------------------------------------------------
@@ -246,6 +249,7 @@ class Recorder:
 
     def add_signals(self, task: str, ticks: np.ndarray, rows: np.ndarray, lost_so_far: int = 0) -> None:
         """Record-queue rows of ``task``; ``lost_so_far``: rows its queue dropped in all (marked as gaps)."""
+        self.switches.add(task, ticks, rows)
         if self.signals is not None:
             self.signals.add(task, ticks, rows, lost_so_far)
 

@@ -216,6 +216,9 @@ class RunSummary:
     recording: dict[str, Any] = field(default_factory=dict)
     """The recording: ``keep_s`` (None: everything), ``stopped`` (why it stopped early, or None),
     and with ``keep_s`` the flight recorder's segment length, events and events not kept."""
+    switches: list[dict[str, Any]] = field(default_factory=list)
+    """Controller switches of tasks with several controllers: task, cycle (the first release the new
+    controller acted on), t_s, from, to, transfer (``take_over``, an offset decay, or ``direct``)."""
     misses: dict[str, Any] = field(default_factory=dict)
     """Every deadline miss's kind and cause (a run only; ``stats/miss_causes.py:MissLedger.to_json``):
     the first ones in full with their evidence, then counts per task, kind and cause."""
@@ -239,6 +242,7 @@ class RunSummary:
             "hot_path": self.hot_path,
             "devices": self.devices,
             "recording": self.recording,
+            "switches": self.switches,
             **({"misses": self.misses} if self.mode == "run" else {}),
         }
 

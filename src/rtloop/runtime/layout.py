@@ -13,6 +13,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -55,6 +56,7 @@ from rtloop.ipc.wiring import (
     finite_checks_of,
 )
 from rtloop.linux import memory
+from rtloop.switching import Controllers
 
 TIMING_RING_CAPACITY = 1 << 16
 RECORD_QUEUE_CAPACITY = 1 << 15
@@ -345,6 +347,7 @@ class AppLayout:
                 "names": _element_names(self.app, spec),
                 "units": [units.get(element, "") for element in elements(spec.signal)],
                 "period_ns": self.app.tasks[spec.signal.task].config.period_ns,
+                **_switch_facts(self.app, spec),
             }
             for name, spec in self.app.ports.items()
         }
@@ -384,6 +387,14 @@ class AppLayout:
         self.tasks, self.input_ports, self.output_ports = {}, {}, {}
         del self.control
         close_segments(self.segments)
+
+
+def _switch_facts(app: App, spec: PortSpec) -> dict[str, Any]:
+    """What `rtloop switch` needs of a task's switch port: its controllers' names, in index order."""
+    runnable = app.tasks[spec.signal.task].runnable
+    if not isinstance(runnable, Controllers) or spec.direction != "in" or spec.signal.slice != runnable.switch_slice:
+        return {}
+    return {"controllers": list(runnable.names), "switch_task": spec.signal.task}
 
 
 def _element_names(app: App, spec: PortSpec) -> list[str]:

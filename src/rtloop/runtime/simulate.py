@@ -282,4 +282,5 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
         failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
         notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9, running=running,
         recording={**recorder.to_json(), **session.losses.to_json()},
+        switches=recorder.switches.to_json(),
     )

@@ -632,6 +632,7 @@ class Supervisor:
             elapsed_s=recorder.latest_ns / 1e9,
             running=running,
             recording={**recorder.to_json(), **session.losses.to_json()},
+            switches=recorder.switches.to_json(),
             misses=self.misses.summary(final=not running),
         )
 

@@ -1,0 +1,298 @@
+"""Several controllers in one task, one active: switch at a release, bumpless, or run one in shadow.
+
+A :class:`Controllers` is itself a :class:`~rtloop.runnable.Runnable`: a task runs it like any
+other, so run, simulate and replay treat it alike. What changes the active controller is an
+*input* of the task (decision 22: a controller change is an input): three values after the
+controllers' common inputs, written through the task's switch port (``rtloop switch``), logged
+with the cycle at which they took effect, and replayed from that log bit for bit.
+
+The three switch inputs (the port ``<task>_switch``)::
+
+    controller        index of the controller asked to be active
+    switch_at_cycle   the release from which the request holds (0: the next release)
+    shadow            index of a controller to run in shadow, -1 for none
+
+The outputs after the common ones say what happened::
+
+    active_controller  index of the active controller (recorded: the switch cycles come from it)
+    shadow_controller  index of the shadow controller, -1 for none
+    switch_refusals    switches refused so far (the incoming controller's ``ready()`` said no)
+    shadow_<output>    the shadow controller's outputs (recorded; they actuate nothing)
+
+Bumpless transfer: before its first step the incoming controller's ``take_over(u, y_last)``
+is called (``u``: its inputs now, ``y_last``: the outgoing controller's last outputs) when it
+has one — a PI sets its integrator there so its first output equals ``y_last``. Without it,
+the framework adds the difference between ``y_last`` and the incoming controller's first
+output to its outputs and lets that offset decay to zero over ``blend_s`` (0: a plain switch,
+the outputs may jump; the limits of devices and connections still hold).
+
+Nothing in a switch imports or allocates: every controller is built and ``prerun`` before T0
+(its module imported, its arrays made), and a switch only changes which one ``step`` calls.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from rtloop.errors import AppError
+from rtloop.runnable import FloatVector, Runnable, TickInfo
+
+SWITCH_INPUTS = ("controller", "switch_at_cycle", "shadow")
+"""The task's switch inputs, in order, after the controllers' common inputs."""
+STATUS_OUTPUTS = ("active_controller", "shadow_controller", "switch_refusals")
+"""Outputs after the common ones, before the shadow controller's copies of them."""
+NO_SHADOW = -1
+MAX_AT_CYCLE = float(2**53)
+"""Largest cycle a switch may be asked for (a float holds every integer up to it exactly)."""
+
+
+class Controllers(Runnable):
+    """Alternative controllers for one task; ``active`` names the one that starts.
+
+    ``controllers`` maps a name to a runnable; all have the same inputs and outputs (their own
+    live parameters aside: each keeps its own, as inputs after the switch inputs, named
+    ``<controller>_<parameter>``). ``blend_s``: how long the offset of a switch without
+    ``take_over`` takes to decay (see the module doc)."""
+
+    def __init__(self, controllers: Mapping[str, Runnable], active: str, *, blend_s: float = 0.5) -> None:
+        if not isinstance(controllers, Mapping) or not controllers:
+            raise AppError("controllers: give at least one, as {name: runnable}")
+        for name, controller in controllers.items():
+            if not isinstance(name, str) or not name.isidentifier():
+                raise AppError(f"controllers: {name!r} is not a name (letters, digits, underscores)")
+            if not isinstance(controller, Runnable) or isinstance(controller, Controllers):
+                raise AppError(f"controllers.{name}: {controller!r} is not an rtloop.Runnable")
+        if active not in controllers:
+            raise AppError(f"controllers: active = {active!r} is not one of them; they are {sorted(controllers)}")
+        if isinstance(blend_s, bool) or not isinstance(blend_s, int | float) or not 0 <= blend_s <= 3600:
+            raise AppError(f"controllers: blend_s = {blend_s!r}; expected seconds from 0 to 3600")
+        self.names = tuple(controllers)
+        self.alternatives = tuple(controllers.values())
+        self.blend_s = float(blend_s)
+        self.start_index = self.names.index(active)
+        for controller in self.alternatives:
+            controller.add_parameter_inputs()  # each keeps its own live parameters
+        first_name, first = self.names[0], self.alternatives[0]
+        self.n_common_inputs = _declared_inputs(first)
+        self.n_common_outputs = first.n_outputs
+        for name, controller in zip(self.names[1:], self.alternatives[1:], strict=True):
+            sizes = (_declared_inputs(controller), controller.n_outputs)
+            if sizes != (self.n_common_inputs, self.n_common_outputs):
+                raise AppError(f"controllers.{name}: {sizes[0]} inputs and {sizes[1]} outputs, but "
+                               f"controllers.{first_name} has {self.n_common_inputs} and {self.n_common_outputs}: "
+                               "the controllers of a task share its inputs and outputs")
+        n_in, n_out = self.n_common_inputs, self.n_common_outputs
+        self.switch_start = n_in
+        parameter_names: list[str] = []
+        parameter_starts: list[float] = []
+        self.parameter_slices: list[slice] = []
+        at = n_in + len(SWITCH_INPUTS)
+        for name, controller in zip(self.names, self.alternatives, strict=True):
+            own = controller.n_inputs - n_in
+            self.parameter_slices.append(slice(at, at + own))
+            parameter_names += [f"{name}_{parameter}" for parameter in controller.parameters][:own]
+            starts = getattr(controller, "input_start_values", None)
+            parameter_starts += list(starts[n_in:]) if starts is not None else [0.0] * own
+            at += own
+        self.n_inputs = at
+        self.n_outputs = n_out + len(STATUS_OUTPUTS) + n_out
+        common_in = _names(first.input_names, n_in, "u")
+        common_out = _names(first.output_names, n_out, "y")
+        self.input_names = (*common_in, *SWITCH_INPUTS, *parameter_names)
+        self.output_names = (*common_out, *STATUS_OUTPUTS, *(f"shadow_{name}" for name in common_out))
+        if first.input_units is not None:
+            self.input_units = (*first.input_units[:n_in], *("",) * (self.n_inputs - n_in))
+        if first.output_units is not None:
+            units = tuple(first.output_units[:n_out])
+            self.output_units = (*units, "", "", "", *units)
+        first_starts = getattr(first, "input_start_values", None)
+        common_starts = list(first_starts[:n_in]) if first_starts is not None else [0.0] * n_in
+        self.input_start_values = (*common_starts, float(self.start_index), 0.0, float(NO_SHADOW), *parameter_starts)
+        self._tick = TickInfo()
+        self._bound = False
+
+    # --- what the app builder and `rtloop switch` need -------------------------------------
+    @property
+    def switch_slice(self) -> slice:
+        """Where the switch inputs lie in the task's ``u``."""
+        return slice(self.switch_start, self.switch_start + len(SWITCH_INPUTS))
+
+    def switch_ranges(self) -> list[list[float]]:
+        """What the switch port accepts, value by value."""
+        last = float(len(self.names) - 1)
+        return [[0.0, last], [0.0, MAX_AT_CYCLE], [float(NO_SHADOW), last]]
+
+    def has_take_over(self, name: str) -> bool:
+        return callable(getattr(self.alternatives[self.names.index(name)], "take_over", None))
+
+    # --- the task's side ------------------------------------------------------------------
+    @property  # a property: each controller sees the task's tick
+    def tick(self) -> TickInfo:
+        return self._tick
+
+    @tick.setter
+    def tick(self, tick: TickInfo) -> None:
+        self._tick = tick
+        for controller in self.alternatives:
+            controller.tick = tick
+
+    def bind_inputs(self, u: FloatVector) -> None:
+        self._bind(u)
+
+    def _bind(self, u: FloatVector) -> None:
+        """Each controller gets its own input vector (common inputs + its parameters) and its
+        own output vector, made once: the loop copies into views, it never makes arrays."""
+        n_in, n_out = self.n_common_inputs, self.n_common_outputs
+        self._u = u
+        self._own_u = [np.zeros(c.n_inputs) for c in self.alternatives]
+        self._own_y = [np.zeros(n_out) for _ in self.alternatives]
+        self._common_u = u[:n_in]
+        self._own_common_u = [own[:n_in] for own in self._own_u]
+        self._own_parameter_u = [own[n_in:] for own in self._own_u]
+        self._parameter_u = [u[part] for part in self.parameter_slices]
+        for controller, own, part in zip(self.alternatives, self._own_u, self._parameter_u, strict=True):
+            own[n_in:] = part
+            controller.bind_inputs(own)
+        self._y_last = np.zeros(n_out)
+        self._offset = np.zeros(n_out)
+        self._scaled = np.zeros(n_out)
+        self._bound = True
+
+    def prerun(self) -> None:
+        for controller in self.alternatives:
+            controller.tick = self._tick
+            controller.prerun()
+        initial = getattr(self.alternatives[self.start_index], "initial_outputs", None)
+        n_out = self.n_common_outputs
+        y0 = np.zeros(self.n_outputs)
+        if initial is not None:
+            y0[:n_out] = initial
+        y0[n_out] = self.start_index
+        y0[n_out + 1] = NO_SHADOW
+        y0[n_out + 3:] = math.nan  # no shadow yet
+        self.initial_outputs = y0
+        self.active = self.start_index
+        self.shadow = NO_SHADOW
+        self.refusals = 0
+        self.blend_left = 0
+        self.blend_cycles = 0
+        self._refused_index = self._refused_at = math.nan
+        self._y_last[:] = y0[:n_out]
+
+    def postrun(self) -> None:
+        errors: list[BaseException] = []
+        for controller in self.alternatives:  # each one's postrun, whatever another's did
+            try:
+                controller.postrun()
+            except Exception as error:
+                errors.append(error)
+        if errors:
+            raise errors[0]
+
+    def step(self, u: FloatVector, y: FloatVector) -> None:
+        if not self._bound or u is not self._u:
+            self._bind(u)  # a task that hands over another u (the simulator's, a test's)
+        n_out = self.n_common_outputs
+        requested, at_cycle, shadow = u[self.switch_start], u[self.switch_start + 1], u[self.switch_start + 2]
+        refused_before = requested == self._refused_index and at_cycle == self._refused_at
+        if requested != self.active and self.tick.cycle >= at_cycle and not refused_before:
+            self._switch_to(int(requested), at_cycle)
+        if shadow != self.shadow and NO_SHADOW <= shadow < len(self.alternatives):
+            self.shadow = int(shadow) if shadow != self.active else NO_SHADOW
+            if self.shadow != NO_SHADOW:
+                self._resume(self.shadow)
+        active = self.active
+        self._step_one(active)
+        own_y = self._own_y[active]
+        if self.blend_left:
+            self._blend(own_y)
+        y[:n_out] = own_y
+        self._y_last[:] = own_y
+        y[n_out] = active
+        y[n_out + 1] = self.shadow
+        y[n_out + 2] = self.refusals
+        if self.shadow != NO_SHADOW:  # its step runs inside the task's: the task's execution time includes it
+            self._step_one(self.shadow)
+            y[n_out + 3:] = self._own_y[self.shadow]
+        else:
+            y[n_out + 3:] = math.nan  # no shadow: a gap in its signals, never a stale copy
+
+    def _step_one(self, index: int) -> None:
+        np.copyto(self._own_common_u[index], self._common_u)
+        np.copyto(self._own_parameter_u[index], self._parameter_u[index])
+        self.alternatives[index].step(self._own_u[index], self._own_y[index])
+
+    def _switch_to(self, index: int, at_cycle: float) -> None:
+        incoming = self.alternatives[index] if 0 <= index < len(self.alternatives) else None
+        ready = getattr(incoming, "ready", None)
+        if not 0 <= index < len(self.alternatives) or (callable(ready) and not ready()):
+            self.refusals += 1
+            self._refused_index, self._refused_at = float(index), at_cycle  # retried only on a new request
+            return
+        self._refused_index = self._refused_at = math.nan
+        take_over = getattr(incoming, "take_over", None)
+        np.copyto(self._own_common_u[index], self._common_u)
+        np.copyto(self._own_parameter_u[index], self._parameter_u[index])
+        if self.shadow == index:
+            self.shadow = NO_SHADOW  # promoted: it is the active one now, its state warm
+        else:
+            self._resume(index)
+        self.active = index
+        if callable(take_over):
+            take_over(self._own_u[index], self._y_last)
+            self.blend_left = 0
+            return
+        self.blend_cycles = round(self.blend_s * 1e9 / self.tick.period_ns) if self.tick.period_ns else 0
+        self.blend_left = self.blend_cycles
+        self._blend_first = True
+
+    def _resume(self, index: int) -> None:
+        """A controller that follows the timeline (a Python model) goes on from this release
+        instead of catching up on the cycles it was not stepped."""
+        resume_at = getattr(self.alternatives[index], "resume_at", None)
+        if callable(resume_at):
+            resume_at(self.tick.cycle)
+
+    def _blend(self, own_y: FloatVector) -> None:
+        if self._blend_first:  # the offset that makes this first output equal the last one
+            np.subtract(self._y_last, own_y, out=self._offset)
+            self._blend_first = False
+        np.multiply(self._offset, self.blend_left / self.blend_cycles, out=self._scaled)
+        np.add(own_y, self._scaled, out=own_y)
+        self.blend_left -= 1
+
+
+def _declared_inputs(runnable: Runnable) -> int:
+    """A runnable's inputs without its live parameters (those come after them)."""
+    return int(runnable.__dict__.get("_parameter_base", runnable.n_inputs))
+
+
+def _names(names: tuple[str, ...] | None, count: int, side: str) -> tuple[str, ...]:
+    given = tuple(names or ())[:count]
+    return tuple(given[i] if i < len(given) and given[i] else f"{side}{i}" for i in range(count))
+
+
+def switch_events(controller: Any, names: tuple[str, ...], period_ns: int) -> list[dict[str, Any]]:
+    """The switches a recorded ``controller`` output shows: cycle, time, from and to (by name).
+
+    ``controller`` holds the output as recorded, one value per cycle from cycle 0 (NaN where the
+    recording has a gap: a gap is not a switch)."""
+    values = np.asarray(controller, dtype=np.float64)
+    events: list[dict[str, Any]] = []
+    last = math.nan
+    for cycle, value in enumerate(values.tolist()):
+        if math.isnan(value):
+            continue
+        if not math.isnan(last) and value != last:
+            events.append({"cycle": cycle, "t_s": cycle * period_ns / 1e9,
+                           "from": _name_of(last, names), "to": _name_of(value, names)})
+        last = value
+    return events
+
+
+def _name_of(index: float, names: tuple[str, ...]) -> str:
+    return names[int(index)] if 0 <= index < len(names) else f"#{index:g}"

@@ -1,0 +1,274 @@
+"""Several controllers in one task: switch at a release, bumpless, in shadow; logged and replayed."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rtloop
+from rtloop import App, Runnable
+from rtloop.app.appfile import load_app
+from rtloop.errors import AppError, AppFileError
+from rtloop.runnable import TickInfo
+from rtloop.switching import Controllers, switch_events
+
+P = 1_000_000
+
+
+class Pi(Runnable):
+    """y = kp·e + ki·∫e, e = u[1] − u[0]; ``take_over`` sets the integral so y starts at y_last."""
+
+    n_inputs, n_outputs = 2, 1
+    output_names = ("command",)
+
+    def __init__(self, kp: float, ki: float, bumpless: bool = True, ready: bool = True) -> None:
+        self.kp, self.ki, self.bumpless, self.is_ready = kp, ki, bumpless, ready
+        self.integral = 0.0
+        self.steps = 0
+        if not bumpless:
+            self.take_over = None  # type: ignore[assignment]
+
+    def ready(self) -> bool:
+        return self.is_ready
+
+    def take_over(self, u, y_last) -> None:
+        error = u[1] - u[0]
+        self.integral = (y_last[0] - self.kp * error) / self.ki
+
+    def step(self, u, y) -> None:
+        error = u[1] - u[0]
+        self.integral += error * self.tick.period_ns * 1e-9
+        y[0] = self.kp * error + self.ki * self.integral
+        self.steps += 1
+
+
+class Plant(Runnable):
+    """A first-order lag (not at rest): x' = (command − x)/τ."""
+
+    n_inputs, n_outputs = 1, 1
+    output_names = ("x",)
+
+    def __init__(self) -> None:
+        self.x = 0.3
+        self.initial_outputs = np.array([self.x])
+
+    def step(self, u, y) -> None:
+        self.x += (u[0] - self.x) * 0.02
+        y[0] = self.x
+
+
+def drive(controllers: Controllers, inputs: list[tuple[float, float, float, float, float]]) -> np.ndarray:
+    """Step ``controllers`` by hand through (measured, setpoint, controller, at_cycle, shadow) rows."""
+    tick = TickInfo(period_ns=P)
+    controllers.tick = tick
+    u = np.zeros(controllers.n_inputs)
+    u[:] = controllers.input_start_values
+    controllers.bind_inputs(u)
+    controllers.prerun()
+    y = np.zeros(controllers.n_outputs)
+    rows = []
+    for cycle, row in enumerate(inputs):
+        tick.cycle = cycle
+        u[: len(row)] = row
+        controllers.step(u, y)
+        rows.append(y.copy())
+    return np.array(rows)
+
+
+def test_a_switch_acts_from_the_requested_release_and_take_over_makes_it_bumpless() -> None:
+    controllers = Controllers({"fast": Pi(2.0, 5.0), "slow": Pi(0.5, 1.0)}, "fast")
+    rows = [(0.1 * k / 100, 1.0, 0.0, 0.0, -1.0) for k in range(50)]
+    rows += [(0.1 * k / 100, 1.0, 1.0, 60.0, -1.0) for k in range(50, 100)]  # asked at 50, from 60
+    y = drive(controllers, rows)
+    active = y[:, 1]
+    assert active[59] == 0 and active[60] == 1 and list(active[60:]) == [1.0] * 40
+    steps = np.abs(np.diff(y[:, 0]))
+    normal = steps[40:58].max()
+    assert steps[59] <= normal * 1.5 + 1e-12, "the output jumped at the switch"
+    assert switch_events(active, controllers.names, P) == [
+        {"cycle": 60, "t_s": 0.06, "from": "fast", "to": "slow"}]
+
+
+def test_without_take_over_the_offset_decays_over_blend_s_and_the_first_output_equals_the_last() -> None:
+    controllers = Controllers({"fast": Pi(2.0, 5.0), "slow": Pi(0.2, 0.1, bumpless=False)}, "fast", blend_s=0.01)
+    rows = [(0.0, 1.0, 0.0, 0.0, -1.0)] * 20 + [(0.0, 1.0, 1.0, 20.0, -1.0)] * 30
+    y = drive(controllers, rows)
+    assert y[20, 0] == y[19, 0]  # the switch's first output is the last one: no bump
+    plain = Pi(0.2, 0.1)
+    plain.tick = TickInfo(period_ns=P)
+    out = np.zeros(1)
+    expected = []
+    for _ in range(30):
+        plain.step(np.array([0.0, 1.0]), out)
+        expected.append(out[0])
+    assert y[30:, 0] == pytest.approx(expected[10:], abs=1e-12)  # after 10 cycles (10 ms) the offset is gone
+    assert abs(y[25, 0] - expected[5]) > 1e-3  # still blending half way
+
+
+def test_a_controller_that_is_not_ready_is_refused_and_the_active_one_stays() -> None:
+    controllers = Controllers({"a": Pi(1.0, 1.0), "b": Pi(1.0, 1.0, ready=False)}, "a")
+    y = drive(controllers, [(0.0, 1.0, 1.0, 5.0, -1.0)] * 20)
+    assert set(y[:, 1]) == {0.0}
+    assert y[-1, 3] == 1  # one refusal, not one per cycle
+    assert controllers.alternatives[1].steps == 0
+
+
+def test_shadow_runs_beside_actuates_nothing_and_promotion_keeps_its_warm_state() -> None:
+    active, candidate = Pi(1.0, 1.0), Pi(3.0, 2.0)
+    controllers = Controllers({"a": active, "b": candidate}, "a")
+    n_out = 1
+    rows = [(0.0, 1.0, 0.0, 0.0, -1.0)] * 10 + [(0.0, 1.0, 0.0, 0.0, 1.0)] * 10 + [(0.0, 1.0, 1.0, 20.0, 1.0)] * 10
+    y = drive(controllers, rows)
+    reference = Pi(1.0, 1.0)
+    reference.tick = TickInfo(period_ns=P)
+    out = np.zeros(1)
+    for k in range(20):
+        reference.step(np.array([0.0, 1.0]), out)
+        assert y[k, 0] == out[0]  # the actuated output is the active controller's alone
+    assert all(math.isnan(v) for v in y[:10, n_out + 3])  # no shadow yet: a gap, not zeros
+    assert not any(math.isnan(v) for v in y[10:20, n_out + 3])
+    assert list(y[10:20, n_out + 1]) == [1.0] * 10
+    assert candidate.steps == 20  # 10 in shadow, then active
+    assert list(y[20:, n_out]) == [1.0] * 10 and list(y[20:, n_out + 1]) == [-1.0] * 10
+
+
+def test_controllers_must_share_sizes_and_name_the_active_one() -> None:
+    class Wide(Pi):
+        n_outputs = 2
+
+    with pytest.raises(AppError, match="share its inputs and outputs"):
+        Controllers({"a": Pi(1, 1), "b": Wide(1, 1)}, "a")
+    with pytest.raises(AppError, match=re.escape("active = 'c'")):
+        Controllers({"a": Pi(1, 1)}, "c")
+
+
+def _app(name: str, feed: Path | None) -> App:
+    app = App(name)
+    plant = app.add_task("plant", Plant(), period_ns=P, priority=81)
+    ctl = app.add_task("ctl", Controllers({"fast": Pi(2.0, 5.0), "slow": Pi(0.5, 1.0)}, "fast"), period_ns=P)
+    app.connect(plant.y[0], ctl.u[0])
+    app.connect(ctl.y[0], plant.u[0])
+    app.port("setpoint", to=ctl.u[1], initial=[1.0])
+    if feed is not None:
+        app.feed("ctl_switch", feed)
+    return app
+
+
+def test_simulate_switches_at_the_profile_cycle_and_summary_lists_it(tmp_path: Path) -> None:
+    profile = tmp_path / "switch.csv"
+    profile.write_text("t_s,controller,switch_at_cycle,shadow\n0,0,0,-1\n0.2,1,250,-1\n")
+    run = rtloop.simulate(_app("sw_sim_test", profile), duration_s=0.5, out=tmp_path / "sim")
+    signals = rtloop.load(tmp_path / "sim").signals
+    active = np.asarray(signals["ctl.active_controller"])
+    first = int(np.argmax(active == 1))
+    # rows are labelled by the time their values hold from (LET: the job at 250 publishes at 251)
+    assert signals.t_s[first] == pytest.approx(0.251)
+    assert run.switches == [{"task": "ctl", "cycle": 250, "t_s": 0.25, "from": "fast", "to": "slow",
+                             "transfer": "take_over"}]
+
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "jiwy"
+
+
+def _jiwy_switch_file(tmp_path: Path, name: str, cpu: int | None) -> Path:
+    text = (EXAMPLES / "jiwy_switch.toml").read_text().replace('name = "jiwy_switch"', f'name = "{name}"')
+    text = text.replace("cpu = 1", f"cpu = {cpu}" if cpu is not None else "")
+    # jiwy_models is importable in the tests (examples/jiwy is on their path), as it is for the subprocesses
+    app_file = tmp_path / f"{name}.toml"
+    app_file.write_text(text)
+    return app_file
+
+
+def test_the_app_file_declares_controllers_and_bad_declarations_name_the_key(tmp_path: Path) -> None:
+    app = load_app(_jiwy_switch_file(tmp_path, "sw_file_test", None))
+    runnable = app.tasks["controller"].runnable
+    assert isinstance(runnable, Controllers) and runnable.names == ("pid", "soft")
+    assert runnable.alternatives[1].pan.kp == 0.15 and runnable.alternatives[0].pan.kp == 0.3
+    assert app.ports["controller_switch"].signal.slice == runnable.switch_slice
+    good = (tmp_path / "sw_file_test.toml").read_text()
+    cases = {
+        'active = "pid"': ('active = "lqr"', "tasks.controller: controllers: active = 'lqr'"),
+        '[tasks.controller.controllers.soft]': ('[tasks.controller.controllers.soft]\nrunable = "x:Y"',
+                                                "tasks.controller.controllers.soft.runable"),
+    }
+    for old, (new, expected) in cases.items():
+        bad = tmp_path / "bad.toml"
+        bad.write_text(good.replace(old, new))
+        with pytest.raises(AppFileError, match=re.escape(expected)):
+            load_app(bad)
+    bad.write_text(good.replace('active = "pid"\n', ""))
+    with pytest.raises(AppFileError, match=re.escape("tasks.controller.active: missing")):
+        load_app(bad)
+
+
+def _cli(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rtloop.cli", *args], env=env, capture_output=True, text=True,
+                          timeout=120)
+
+
+@pytest.mark.rt
+@pytest.mark.slow
+def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit_for_bit(
+        tmp_path: Path, rtloop_env) -> None:
+    from conftest import other_cpu, unique_name, wait_for_cycles
+    from rtloop.ipc.ports import connect_app
+
+    name = unique_name("sw_live")
+    app_file = _jiwy_switch_file(tmp_path, name, other_cpu())
+    run_dir = tmp_path / "run"
+    process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "12",
+                                "--out", str(run_dir), "-q", "--feed",
+                                f"setpoint={EXAMPLES / 'setpoints' / 'step.csv'}"],
+                               env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        app = connect_app(name, timeout_s=30)
+        wait_for_cycles(app, "controller", 600, process)  # during the step's transient
+        unknown = _cli("switch", name, "controller", "lqr", env=rtloop_env)
+        assert unknown.returncode == 2 and "its controllers are ['pid', 'soft']" in unknown.stderr
+        assert unknown.stderr.count("\n") == 1, unknown.stderr
+        shadow = _cli("switch", name, "controller", "soft", "--shadow", env=rtloop_env)
+        assert shadow.returncode == 0, shadow.stderr
+        wait_for_cycles(app, "controller", 1500, process)
+        promoted = _cli("switch", name, "controller", "--promote", env=rtloop_env)
+        assert promoted.returncode == 0 and "soft promoted at cycle" in promoted.stdout, promoted.stderr
+        wait_for_cycles(app, "controller", 3000, process)
+        back = _cli("switch", name, "controller", "pid", env=rtloop_env)
+        assert back.returncode == 0 and "pid active at cycle" in back.stdout, back.stderr
+    finally:
+        _out, err = process.communicate(timeout=120)
+    assert process.returncode == 0, err
+    summary = json.loads((run_dir / "summary.json").read_text())
+    switches = summary["switches"]
+    assert [(s["from"], s["to"], s["transfer"]) for s in switches] == [
+        ("pid", "soft", "take_over"), ("soft", "pid", "take_over")]
+    asked = [int(line.split("at cycle ")[1].split()[0]) for line in (promoted.stdout, back.stdout)]
+    assert [s["cycle"] for s in switches] == asked  # at the release the command named
+    signals = rtloop.load(run_dir).signals
+    t_ns = np.round(np.asarray(signals.t_s) * 1e9).astype(np.int64)
+    steering = np.asarray(signals["controller.SteeringPan"])
+    shadow_steering = np.asarray(signals["controller.shadow_SteeringPan"])
+    active = np.asarray(signals["controller.active_controller"])
+
+    def row(cycle: int) -> int:  # the row holding the outputs of the job of `cycle` (LET: from (cycle + 1)·P)
+        return int(np.searchsorted(t_ns, (cycle + 1) * P))
+
+    assert np.isnan(shadow_steering[: row(500)]).all()
+    assert not np.isnan(shadow_steering[row(asked[0] - 200): row(asked[0])]).any()  # in shadow until promoted
+    assert (active[: row(asked[0])] == 0).all() and (active[row(asked[0]): row(asked[1])] == 1).all()
+    for cycle in asked:
+        at = row(cycle)
+        assert t_ns[at] == (cycle + 1) * P, "the switch's own cycle ran"
+        changes = np.abs(np.diff(steering[at - 21: at + 1]))
+        assert changes[-1] <= max(2 * changes[:-1].max(), 1e-9), f"a bump at cycle {cycle}: {changes}"
+    replayed = _cli("replay", str(run_dir), "--out", str(tmp_path / "replay"), env=rtloop_env)
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    assert "bit for bit" in replayed.stdout
+    replay_summary = json.loads((tmp_path / "replay" / "summary.json").read_text())
+    assert [s["cycle"] for s in replay_summary["switches"]] == asked
