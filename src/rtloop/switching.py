@@ -266,6 +266,11 @@ class Controllers(Runnable):
         self.blend_left -= 1
 
 
+def switch_port_name(task: str) -> str:
+    """The input port through which a task of several controllers is switched."""
+    return f"{task}_switch"
+
+
 def _declared_inputs(runnable: Runnable) -> int:
     """A runnable's inputs without its live parameters (those come after them)."""
     return int(runnable.__dict__.get("_parameter_base", runnable.n_inputs))

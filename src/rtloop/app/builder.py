@@ -55,7 +55,7 @@ from rtloop.errors import AppError, ConnectionSizeError, DeviceError
 from rtloop.io.device import IO_MODES, CommandLimit, Device, build_device, check_claims
 from rtloop.ros.types import ROS_TYPES
 from rtloop.runnable import Runnable
-from rtloop.switching import Controllers
+from rtloop.switching import Controllers, switch_port_name
 from rtloop.text import shorten
 
 
@@ -148,19 +148,11 @@ class App:
                             max_consecutive_misses, lock_blas_buffer)
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
-        if isinstance(runnable, Controllers):
-            self._add_switching(spec, runnable)
+        if isinstance(runnable, Controllers):  # its switch port (what `rtloop switch` writes); all it does recorded
+            switch = runnable.switch_slice
+            self.port(switch_port_name(name), to=spec.u[switch.start:switch.stop], value_range=runnable.switch_ranges())
+            self.record(spec.y)
         return spec
-
-    def _add_switching(self, spec: TaskSpec, controllers: Controllers) -> None:
-        """A task of several controllers gets its switch port (``<task>_switch``: what `rtloop switch`
-        writes) and records which controller is active and what a shadow one would command."""
-        port_name = switch_port_name(spec.name)
-        if port_name in self.ports:
-            raise AppError(f"port {port_name!r}: the name of task {spec.name!r}'s switch port; name yours otherwise")
-        switch = controllers.switch_slice
-        self.port(port_name, to=spec.u[switch.start:switch.stop], value_range=controllers.switch_ranges())
-        self.record(spec.y)
 
     def pin_all(self, cpu: int) -> None:
         """Pin every task to ``cpu`` (e.g. the isolated core of a Raspberry Pi)."""
@@ -208,7 +200,6 @@ class App:
         spec = DeviceSpec(device, task, io, resolve_limits(name, source, device, limits or {}), twin)
         check_claims([*(other.device for other in self.devices.values()), device], source)
         self.devices[name] = spec
-        return spec
 
     def block(self, name: str) -> TaskSpec | DeviceSpec | None:
         """The task or device called ``name`` (both have ``.u`` and ``.y``)."""
@@ -497,11 +488,6 @@ class App:
             except Exception as error:
                 raise DeviceError(name, self.source, "", f"cannot be sent to task {device.task!r}'s process "
                                   f"({error}); a driver opens its interface in configure(), not __init__") from None
-
-
-def switch_port_name(task: str) -> str:
-    """The input port through which a task of several controllers is switched."""
-    return f"{task}_switch"
 
 
 def too_many_tasks(count: int) -> str:
