@@ -149,8 +149,8 @@ class App:
         spec = TaskSpec(config, runnable)
         self.tasks[name] = spec
         if isinstance(runnable, Controllers):  # its switch port (what `rtloop switch` writes); all it does recorded
-            switch = runnable.switch_slice
-            self.port(switch_port_name(name), to=spec.u[switch.start:switch.stop], value_range=runnable.switch_ranges())
+            at = runnable.switch_slice
+            self.port(switch_port_name(name), to=spec.u[at.start:at.stop], value_range=runnable.switch_ranges())
             self.record(spec.y)
         return spec
 
@@ -200,6 +200,7 @@ class App:
         spec = DeviceSpec(device, task, io, resolve_limits(name, source, device, limits or {}), twin)
         check_claims([*(other.device for other in self.devices.values()), device], source)
         self.devices[name] = spec
+        return spec
 
     def block(self, name: str) -> TaskSpec | DeviceSpec | None:
         """The task or device called ``name`` (both have ``.u`` and ``.y``)."""
