@@ -27,6 +27,10 @@ THREAD_SCAN_INTERVAL_NS = 1_000_000_000
 """How often /proc is walked for real-time threads (~15 ms of the supervisor's time on a loaded VM)."""
 THREAD_SCAN_MIN_INTERVAL_NS = 200_000_000
 """How soon a miss waiting for a walk after it may ask for one (a thread started just before it)."""
+TASK_STEPS_KEPT = 5
+"""Other tasks' steps kept as a miss's evidence: the longest overlaps."""
+DECIDED_KEPT = 4096
+"""Misses whose causes are kept for the tasks they held up (decided in release order)."""
 COUNTER_FIELDS = ("on_cpu_ns", "run_delay_ns", "involuntary_switches", "minor_faults", "major_faults")
 
 
@@ -67,6 +71,9 @@ class MissWatch:
         self.thread_ids: list[tuple[int, int]] = []
         self.scanned_ns = 0
         self.task_pids: frozenset[int] = frozenset()
+        self.decided: dict[tuple[str, int], tuple[str, str]] = {}
+        """The latest misses' causes, (task, cycle) → (class, text): a task held by another's late step
+        is late for that step's reason."""
 
     # --- what the recorder and the pipes bring ---------------------------------------------------
     def add_timing(self, task: str, records: np.ndarray) -> None:
@@ -141,15 +148,21 @@ class MissWatch:
 
     # --- deciding ----------------------------------------------------------------------------------
     def _decide(self, misses: list[tuple[Miss, int]]) -> None:
-        for miss, before in sorted(misses, key=lambda p: p[0].release_ns):
+        # in release order, a higher priority first: a step that held another is decided before it
+        for miss, before in sorted(misses, key=lambda p: (p[0].release_ns, -self.facts[p[0].task].priority)):
             evidence = self.evidence_for(miss, before)
-            self.ledger.add(miss, evidence, explain(miss, evidence))
+            cause = explain(miss, evidence)
+            self.ledger.add(miss, evidence, cause)
+            self.decided[(miss.task, miss.cycle)] = (cause.cls, cause.text)
+            if len(self.decided) > DECIDED_KEPT:
+                del self.decided[next(iter(self.decided))]
 
     def evidence_for(self, miss: Miss, cycle_before: int) -> Evidence:
         facts = self.facts[miss.task]
-        evidence = Evidence(cpu=facts.cpu)
+        evidence = Evidence(cpu=facts.cpu, realtime=facts.realtime)
         self._window(miss, facts, evidence)
         self._same_cpu_tasks(miss, facts, evidence)
+        evidence.tasks = sorted(evidence.tasks, key=lambda t: -t["overlap_ns"])[:TASK_STEPS_KEPT]
         self._simultaneous(miss, facts, evidence)
         reading = self.readings.get(miss.task, {}).pop(miss.cycle, None)
         if reading is not None:
@@ -211,9 +224,12 @@ class MissWatch:
                 starts, ends = records[:, 2], records[:, 3]
                 overlap = np.minimum(ends, miss.end_ns) - np.maximum(starts, miss.release_ns)
                 for i in np.flatnonzero(overlap > 0).tolist():
-                    evidence.tasks.append({"task": name, "cycle": int(records[i, 0]), "overlap_ns": int(overlap[i]),
-                                           "exec_ns": int(ends[i] - starts[i]), "priority": other.priority,
-                                           "relation": relation})
+                    step = {"task": name, "cycle": int(records[i, 0]), "overlap_ns": int(overlap[i]),
+                            "exec_ns": int(ends[i] - starts[i]), "priority": other.priority, "relation": relation}
+                    decided = self.decided.get((name, step["cycle"]))
+                    if decided is not None:
+                        step["cause_class"], step["cause"] = decided
+                    evidence.tasks.append(step)
 
     def _simultaneous(self, miss: Miss, facts: TaskFacts, evidence: Evidence) -> None:
         """Tasks on other CPUs that woke late at the same instant (the machine, not a step)."""

@@ -30,6 +30,8 @@ from typing import Any
 
 FIRST_IN_FULL = 50
 """Misses kept in ``summary.json`` with their evidence; the rest are counted per cause."""
+RECENT_READING_CYCLES = 20
+"""A task's counters read this few cycles before a miss still say how long it waited in it."""
 SUFFICIENT = 0.5
 """A candidate explains a miss when it took at least this share of the time the cycle lost."""
 
@@ -77,6 +79,8 @@ class Evidence:
     """What is known about the time around one miss; every field may be empty."""
 
     cpu: int | None = None
+    realtime: bool = True
+    """The task's policy is a real-time one (else SCHED_OTHER: it shares the CPU with every thread)."""
     window_ns: int = 0
     """The span of the supervisor's samples around the miss (steal, IRQ, threads are per window)."""
     steal_ns: int = 0
@@ -119,6 +123,7 @@ def explain(miss: Miss, evidence: Evidence) -> Cause:
     latency, exec_ns, period = miss.latency_ns, miss.exec_ns, miss.period_ns
     counters = evidence.counters or {}
     bracketed = bool(counters.get("bracketed")) and counters.get("on_cpu_ns", -1) >= 0
+    recent = bracketed or 0 <= miss.cycle - counters.get("since_cycle", -1) <= RECENT_READING_CYCLES
     step_cpu_ns = counters["on_cpu_ns"] if bracketed else None
     timing = f"woke {ms(latency)} late, step took {ms(exec_ns)}"
     if miss.kind == LATE_WAKE_UP:
@@ -131,7 +136,7 @@ def explain(miss: Miss, evidence: Evidence) -> Cause:
             return Cause(STEP, f"step overran: {ms(exec_ns)} of a {ms(period)} period"
                                f" ({ms(step_cpu_ns)} on the CPU)")
         lost_ns = exec_ns - step_cpu_ns if step_cpu_ns is not None else max(latency + exec_ns - period, 1)
-    found = _interference(miss, evidence, lost_ns, counters if bracketed else {})
+    found = _interference(miss, evidence, lost_ns, counters if recent else {})
     if found is not None:
         return Cause(found.cls, f"{found.text}; {timing}")
     if miss.kind == OVERRUN and exec_ns >= period:
@@ -145,11 +150,19 @@ def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, in
     """The first candidate, in ``CLASS_ORDER``, that took at least half the time the cycle lost."""
     need_ns = SUFFICIENT * lost_ns
     cpu = f"CPU {ev.cpu}" if ev.cpu is not None else "its CPU"
+    waited_ns = counters.get("run_delay_ns", -1)
+    if not ev.realtime and waited_ns >= need_ns:  # SCHED_OTHER: its own wait says more than any window
+        return Cause(RUN_QUEUE, f"waited {ms(waited_ns)} on the run queue (SCHED_OTHER: it shares {cpu} with "
+                                f"every other thread; {counters.get('involuntary_switches', 0)} involuntary switches)")
     for other in sorted(ev.tasks, key=lambda t: -t["overlap_ns"]):
         if other["overlap_ns"] >= need_ns:
             who = ("a higher-priority task" if other["relation"] == "higher" else "a task of the same priority")
-            return Cause(TASK, f"held by {who}: {other['task']}'s step (cycle {other['cycle']}, "
-                               f"{ms(other['exec_ns'])}, priority {other['priority']}) ran on {cpu} meanwhile")
+            held = (f"held by {who}: {other['task']}'s step (cycle {other['cycle']}, {ms(other['exec_ns'])}, "
+                    f"priority {other['priority']}) ran on {cpu} meanwhile")
+            if other.get("cause_class") not in (None, STEP, UNEXPLAINED):  # that step was itself held up: by whom
+                return Cause(other["cause_class"], f"{other['cause'].split('; ')[0]} (it held {other['task']}'s "
+                                                   f"step, which held this one: {held})")
+            return Cause(TASK, held)
     threads = [t for t in ev.threads if t["ran_ns"] >= need_ns]
     if threads:
         top = max(threads, key=lambda t: (t["relation"] == "higher", t["ran_ns"]))
