@@ -224,9 +224,11 @@ class MissWatch:
                 starts, ends = records[:, 2], records[:, 3]
                 overlap = np.minimum(ends, miss.end_ns) - np.maximum(starts, miss.release_ns)
                 for i in np.flatnonzero(overlap > 0).tolist():
-                    step = {"task": name, "cycle": int(records[i, 0]), "overlap_ns": int(overlap[i]),
-                            "exec_ns": int(ends[i] - starts[i]), "priority": other.priority, "relation": relation}
-                    decided = self.decided.get((name, step["cycle"]))
+                    cycle = int(records[i, 0])
+                    step: dict[str, Any] = {"task": name, "cycle": cycle, "overlap_ns": int(overlap[i]),
+                                            "exec_ns": int(ends[i] - starts[i]), "priority": other.priority,
+                                            "relation": relation}
+                    decided = self.decided.get((name, cycle))
                     if decided is not None:
                         step["cause_class"], step["cause"] = decided
                     evidence.tasks.append(step)
