@@ -661,7 +661,7 @@ def test_a_cached_20sim_library_another_user_could_have_written_is_refused(tmp_p
 
 @needs_root
 def test_a_cache_writable_by_a_private_group_is_fine(tmp_path: Path) -> None:
-    from rtloop.models.twentysim import _foreign_cache
+    from rtloop.models.twentysim.build import _foreign_cache
 
     library = tmp_path / "cache" / "m.so"  # umask 002 (user private groups) makes folders 775
     library.parent.mkdir()
