@@ -157,10 +157,16 @@ class DeviceNotReady(DeviceError):
 
     @classmethod
     def of(cls, error: DeviceError) -> DeviceError:
-        """``error`` as found at start: not ready, unless it is a missing driver library (bad input)."""
-        if error.key == "kind":  # `pip install smbus2`: retrying will not install it
+        """``error`` as found at start: not ready, unless it is a missing driver library or a device
+        that answered as another than declared (bad input)."""
+        if error.key == "kind" or isinstance(error, DeviceMismatch):  # retrying will not change them
             return error
         return cls(error.device, error.source, error.key, error.problem)
+
+
+class DeviceMismatch(DeviceError):
+    """A device that answered at configure, and is not what the app declares (a servo ID not on the
+    bus, another model, a range outside its own limits): bad input, exit 2, not retried."""
 
 
 class DeviceFault(RtloopError, RuntimeError):

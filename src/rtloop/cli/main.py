@@ -20,6 +20,7 @@ from rtloop.cli import (
     bridge,
     devices,
     doctor,
+    emulate,
     model,
     port,
     replay,
@@ -43,6 +44,7 @@ COMMANDS: dict[str, ModuleType] = {
     "run": run, "simulate": run, "replay": replay, "port": port, "switch": switch, "model": model, "report": report,
     "top": top, "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
     "why": why,
+    "emulate": emulate,
 }
 
 # What the OS says of a path that cannot be used as given (not of a device or a disk that failed).

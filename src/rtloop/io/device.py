@@ -65,6 +65,8 @@ KINDS: dict[str, str] = {
     "spi": "rtloop.io.spi:SpiDevice",
     "serial": "rtloop.io.serial:SerialDevice",
     "i2c": "rtloop.io.i2c:I2cDevice",
+    "dynamixel": "rtloop.io.servos.bus:DynamixelBus",
+    "feetech": "rtloop.io.servos.bus:FeetechBus",
 }
 """Device kinds → their driver class (``module:Class``), imported when an app uses the kind.
 A driver adds itself by living at that path; ``kind = "package.module:Class"`` names any
@@ -190,6 +192,11 @@ class Device(ABC):
     def default_limits(self) -> dict[str, CommandLimit]:
         """Limits a driver knows for its commands (a GPIO line: 0..1, safe 0); the app's override."""
         return {}
+
+    def default_twin(self) -> Any:
+        """The twin a driver brings for itself (a Runnable, like an app's ``twin``), or None: the
+        servo buses run their own code against their servo model."""
+        return None
 
     def check(self) -> None:
         """Before any process starts: the interface exists and this user may open it."""

@@ -181,7 +181,7 @@ class TaskDevices:
                         pass
                 self.stop()
                 if isinstance(error, DeviceError):
-                    raise DeviceError(device.name, self.sources[device.name], error.key, error.problem) from None
+                    raise type(error)(device.name, self.sources[device.name], error.key, error.problem) from None
                 raise DeviceError(device.name, self.sources[device.name], "",
                                   f"configure failed: {type(error).__name__}: {error}") from None
 

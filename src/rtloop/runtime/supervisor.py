@@ -28,7 +28,7 @@ from typing import Any
 
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import AppError, DeviceError, DeviceNotReady, TaskFailed
+from rtloop.errors import AppError, DeviceError, DeviceMismatch, DeviceNotReady, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once, hot_path
@@ -517,8 +517,9 @@ class Supervisor:
                             f"E-stop: edge at {edge_ns} ns (CLOCK_MONOTONIC, kernel timestamp); task {task_run.name}'s "
                             f"devices safe at {safe_ns} ns, {(safe_ns - edge_ns) / 1e3:.0f} µs after the edge")
                 elif kind == "device_error":
-                    self.refused = DeviceNotReady.of(DeviceError(message["device"], message["source"],
-                                                                 message["key"], message["problem"]))
+                    found = DeviceMismatch if message.get("mismatch") else DeviceError  # answered, not as declared
+                    self.refused = DeviceNotReady.of(found(message["device"], message["source"],
+                                                           message["key"], message["problem"]))
                 elif kind == "device_reads":
                     self.device_reads.update({name: {"task": task_run.name, **report}
                                               for name, report in message["devices"].items()})

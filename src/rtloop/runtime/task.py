@@ -20,7 +20,7 @@ import numpy as np
 
 from rtloop.app.byvalue import loads_runnable
 from rtloop.app.specs import TaskConfig
-from rtloop.errors import DeadlineMissesExceeded, DeviceError, StopRequested, WatchdogExpired
+from rtloop.errors import DeadlineMissesExceeded, DeviceError, DeviceMismatch, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE, cycle_work
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
@@ -311,7 +311,7 @@ def task_process_main(
         status[StatusWord.STATE] = TaskState.FAILED
         if isinstance(error, DeviceError) and phase == "configure":
             _report(pipe, kind="device_error", device=error.device, source=error.source, key=error.key,
-                    problem=error.problem)
+                    problem=error.problem, mismatch=isinstance(error, DeviceMismatch))
         _report(
             pipe,
             kind="failed",
