@@ -59,21 +59,9 @@ def bus_from_arguments(args: argparse.Namespace, log: Any) -> tuple[str, BusMode
 
     protocol, ids, models = args.protocol, [], []
     period_ms, baud = args.period_ms, args.baudrate
-    if args.app is not None:
-        from rtloop.app.appfile import load_app
-        from rtloop.io.servos.bus import ServoBusDevice
-
-        app = load_app(args.app)
-        buses = {name: spec for name, spec in app.devices.items() if isinstance(spec.device, ServoBusDevice)}
-        if not buses or (args.device and args.device not in buses) or (not args.device and len(buses) > 1):
-            raise ValueError(f"--device: {args.app} has the servo devices {sorted(buses)}; name one")
-        spec = buses[args.device or next(iter(buses))]
-        device: Any = spec.device
-        protocol = device.protocol_name
-        ids = [servo.servo_id for servo in device.specs]
-        models = [servo.model.name for servo in device.specs]
-        period_ms = period_ms or app.tasks[spec.task].config.period_ns / 1e6
-        baud = baud or device.config["baudrate"]
+    if args.app is not None:  # what cli/emulate.py read from the app file
+        protocol, ids, models = args.app_protocol, args.app_ids, args.app_models
+        period_ms, baud = period_ms or args.app_period_ms, baud or args.app_baudrate
     if not protocol:
         raise ValueError("name the protocol (dynamixel or feetech) or give --app")
     if args.servos:
