@@ -996,9 +996,11 @@ static int can_receive(CanCycle *self, long long start_ns) {
             return 0; /* what is still missing stays so: the device counts it or faults */
         }
         int ready;
-        /* the GIL goes while waiting, as select.poll gives it away in the reference */
+        /* ppoll, to the nanosecond: poll's whole milliseconds would wait 1 ms for a 0.2 ms timeout */
+        struct timespec wait = {.tv_sec = (time_t)(wait_ns / 1000000000LL), .tv_nsec = (long)(wait_ns % 1000000000LL)};
+        /* the GIL goes while waiting, as ctypes gives it away around ppoll in the reference */
         Py_BEGIN_ALLOW_THREADS
-        ready = poll(&waiting, 1, (int)((wait_ns + 999999) / 1000000)); /* math.ceil of the ms */
+        ready = ppoll(&waiting, 1, &wait, NULL);
         Py_END_ALLOW_THREADS
         if (ready < 0) {
             if (errno != EINTR) {
@@ -1008,7 +1010,7 @@ static int can_receive(CanCycle *self, long long start_ns) {
             if (PyErr_CheckSignals() < 0) {
                 return -1;
             }
-            continue; /* the wait is worked out again from the clock, as poll does after a signal */
+            continue; /* the wait is worked out again from the clock, as the reference does after a signal */
         }
         if (ready == 0) {
             return 0;
