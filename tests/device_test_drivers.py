@@ -4,8 +4,10 @@ after the run, what reached the "wire" and in which order. Importable by spawned
 
 from __future__ import annotations
 
+import errno
 import math
 import os
+import socket
 import time
 from typing import Any, ClassVar
 
@@ -13,6 +15,7 @@ import numpy as np
 
 from rtloop import Runnable
 from rtloop.errors import DeviceError
+from rtloop.io.can import CanDevice
 from rtloop.io.device import Device, Setting
 from rtloop.io.gpio import EmergencyStop
 
@@ -157,3 +160,44 @@ class CycleAndReading(Runnable):
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
         y[0] = self.tick.cycle + 1.0
+
+
+class _LinkThatGoesDown:
+    """A stand-in for a CAN socket (a UNIX socket pair's end, for poll and recv) whose sends fail
+    with ENETDOWN from the ``down_at``-th on, as a SocketCAN socket's do once its interface is down."""
+
+    def __init__(self, sock: Any, down_at: int) -> None:
+        self.sock, self.down_at, self.sent = sock, down_at, 0
+
+    def send(self, frame: Any) -> int:
+        self.sent += 1
+        if self.sent >= self.down_at:
+            raise OSError(errno.ENETDOWN, os.strerror(errno.ENETDOWN))
+        return len(frame)
+
+    def __getattr__(self, name: str) -> Any:  # fileno, setblocking, recv_into, close
+        return getattr(self.sock, name)
+
+
+class CanLinkGoesDown(CanDevice):
+    """A CAN device whose link goes down mid-run, where the kernel has no CAN: its socket is a
+    UNIX socket pair's end whose sends fail with ENETDOWN from the ``down_at_send``-th send on.
+    Only the Python reference runs over it (the C cycle sends on the descriptor itself)."""
+
+    kind = "test_can_link_goes_down"
+    settings: ClassVar[dict[str, Setting]] = {
+        **CanDevice.settings, "down_at_send": Setting(int, 20, "the send that fails first (ENETDOWN)")}
+
+    def check(self) -> None:
+        pass  # no CAN interface to look at: the socket pair stands in for it
+
+    def configure(self) -> None:
+        from rtloop.io.cansocket import CanSocket
+
+        ours, self._peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.attach(CanSocket(self.interface, False, self.received, f"devices.{self.name}",
+                              sock=_LinkThatGoesDown(ours, self.config["down_at_send"])))
+
+    def close(self) -> None:
+        super().close()
+        self._peer.close()

@@ -664,26 +664,29 @@ def test_can_a_list_goes_the_reference_way_and_the_heartbeat_counts_on(monkeypat
             peer.close()
 
 
-def test_can_a_failed_send_is_the_same_oserror(monkeypatch):
+def test_can_a_failed_send_is_the_same_device_fault(monkeypatch):
+    """A send the bus refuses is a field event (tests/test_can_link.py): the same DeviceFault from both."""
+    from rtloop.errors import DeviceFault
+
     pair = can_pair(monkeypatch)
     errors = []
     for device, peer in pair:
         writes = [0]
         try:
-            with pytest.raises(OSError) as caught:
+            with pytest.raises(DeviceFault) as caught:
                 while writes[0] < 100_000:  # nobody takes the frames off: the queue fills
                     device.write(np.array([1.0, 2.0, 3.0, 4.0]))
                     writes[0] += 1
-            full = (type(caught.value), caught.value.errno, str(caught.value), writes[0], len(taken_off(peer)))
+            full = (type(caught.value), str(caught.value), writes[0], len(taken_off(peer)))
             peer.close()
-            with pytest.raises(OSError) as caught:
+            with pytest.raises(DeviceFault) as caught:
                 device.write(np.array([1.0, 2.0, 3.0, 4.0]))
-            errors.append((full, type(caught.value), caught.value.errno, str(caught.value)))
+            errors.append((full, type(caught.value), str(caught.value)))
         finally:
             device.close()
             peer.close()
     assert errors[0] == errors[1]
-    assert "the transmit queue is full" in errors[0][0][2] and "devices.drive: sending on pair" in errors[0][3]
+    assert "the transmit queue is full" in errors[0][0][1] and "sending on CAN interface" in errors[0][2]
 
 
 def test_can_a_frame_is_waited_for_within_its_timeout_counted_from_the_start_of_the_read(monkeypatch):

@@ -923,7 +923,7 @@ static int can_send(int fd, const Py_buffer *frame) {
 /* write(u) -> -1 once every frame and the heartbeat went out; or the index of the send frame
  * holding a value that cannot be sent (the frames before it went out, it and the rest did not:
  * the caller packs it the Python way to raise the reference's ValueError). A failed send is the
- * OSError of socket.send (the caller words it as CanSocket.send_failed). */
+ * OSError of socket.send (the caller words it as CanDevice.link_failed). */
 static PyObject *CanCycle_write(CanCycle *self, PyObject *u_object) {
     if (!can_held(self)) {
         return NULL;

@@ -23,6 +23,8 @@ is killed, the machine hangs — the drive's own watchdog (CANopen heartbeat con
 
 from __future__ import annotations
 
+import errno
+import os
 import time
 from typing import Any, ClassVar
 
@@ -77,6 +79,7 @@ class CanDevice(Device):
         self.active = False
         self.stale_reads = 0
         self.stale_by_frame = [0] * len(self.received)
+        self.link_failure = ""  # why the bus refused a send or receive, once it has
         self._u, self._y = FloatView(), FloatView()
 
     def __getstate__(self) -> dict[str, Any]:
@@ -142,8 +145,22 @@ class CanDevice(Device):
 
     def activate(self) -> None:
         """At T0: drop what came before it (frames of an earlier run); from now on frames go out."""
-        self.socket._drain()
+        try:
+            self.socket._drain()
+        except OSError as error:
+            raise self.link_failed(error, "receiving") from None
         self.active = True
+
+    def link_failed(self, error: OSError, doing: str) -> DeviceFault:
+        """A send or receive the bus refused: the interface went down, the controller went bus-off, the
+        adapter was unplugged. A field event, as a serial line that hangs up: one line naming the device
+        and the interface (the task stops; its safe values are tried on the way out)."""
+        reason = os.strerror(error.errno) if error.errno else str(error)
+        self.link_failure = f"{reason}{LINK_HINTS.get(error.errno or 0, '')}"
+        heartbeat = ", and its heartbeat stops (a drive watching it goes safe by itself)" \
+            if self.heartbeat_frame else ""
+        return DeviceFault(f"device {self.name!r}: {doing} on CAN interface {self.interface} failed: "
+                           f"{self.link_failure}; its safe values are tried{heartbeat}")
 
     # --- the cycle: one C call each where built, else the Python reference -----------------------
     def write(self, u: FloatVector) -> None:
@@ -155,7 +172,7 @@ class CanDevice(Device):
                 self._write_reference_with(cycle, u)
                 return
             except OSError as error:
-                raise self.socket.send_failed(error) from None
+                raise self.link_failed(error, "sending") from None
             if bad >= 0:  # the frames before it went out; the reference names the value that cannot be sent
                 pack_into, buffer, first = self._plan_write[bad]
                 pack_into(buffer, DATA_AT, self._u.of(u), first)  # raises its ValueError
@@ -182,7 +199,7 @@ class CanDevice(Device):
             if self._heartbeat is not None:
                 send(self._heartbeat.next())
         except OSError as error:
-            raise self.socket.send_failed(error) from None
+            raise self.link_failed(error, "sending") from None
 
     def read(self, y: FloatVector) -> None:
         cycle = self._cycle
@@ -193,6 +210,8 @@ class CanDevice(Device):
             except TypeError:  # not a float64 vector of y's length: the reference
                 self._read_reference(y)
                 return
+            except OSError as error:
+                raise self.link_failed(error, "receiving") from None
             # C unpacked what came up to the first missing frame that faults: count and raise as the reference
             for index, frame in enumerate(self.received):
                 if not self.socket.fresh[index]:
@@ -209,7 +228,10 @@ class CanDevice(Device):
 
     def _read_reference(self, y: FloatVector) -> None:
         sock, y = self.socket, self._y.of(y)
-        sock.receive_cycle(time.monotonic_ns())
+        try:
+            sock.receive_cycle(time.monotonic_ns())
+        except OSError as error:
+            raise self.link_failed(error, "receiving") from None
         fresh = sock.fresh
         for index, (frame, latest, first) in enumerate(self._plan_read):
             if fresh[index]:
@@ -233,7 +255,11 @@ class CanDevice(Device):
         with no deadline missed). A drive that has heard no heartbeat yet is disabled by its own
         watchdog: that is its safe state until the first cycle."""
         if self.socket is not None and self.active:
-            self.write(u)
+            try:
+                self.write(u)
+            except DeviceFault:  # what became of the safe values, in the run's notes
+                raise DeviceFault(f"device {self.name!r}: its safe values could not be sent on CAN interface "
+                                  f"{self.interface}: {self.link_failure}") from None
 
     def write_safe_for_dead_task(self, u: FloatVector) -> str:
         """From the supervisor: the declared frames with the safe values, once, on a socket of its
@@ -261,6 +287,15 @@ class CanDevice(Device):
         if self.socket is not None:
             self.socket.close()
             self.socket = None
+
+
+LINK_HINTS = {
+    errno.ENETDOWN: " (the interface is down: a controller gone bus-off without restart-ms, or set down)",
+    errno.ENODEV: " (the interface is gone: a USB adapter unplugged?)",
+    errno.ENOBUFS: " (the transmit queue is full: no node acknowledges, or the controller is bus-off)",
+    errno.EAGAIN: " (the transmit queue is full: no node acknowledges, or the controller is bus-off)",
+}
+"""What a failed send or receive most likely means on the bus, by errno."""
 
 
 def _starts(frames: tuple[CanFrame, ...]) -> list[int]:
