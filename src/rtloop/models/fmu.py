@@ -35,6 +35,7 @@ import numpy as np
 
 from rtloop.errors import StopRequested
 from rtloop.models.base import FmuError, ModelError, StateNotCaptured
+from rtloop.models.fmi_transfer import raw_function, transfers
 from rtloop.models.fmi_variables import UNSUPPORTED, Element, carried, elements_of
 from rtloop.runnable import FloatVector
 
@@ -44,58 +45,6 @@ _STATUS = ("OK", "Warning", "Discard", "Error", "Fatal", "Pending")
 _FLOAT_TYPES = {"Real", "Float64"}
 WARNINGS_KEPT = 20
 EARLY_RETURN_LIMIT = 1000
-
-
-class _Transfer:
-    """One FMI type's share of ``u`` or ``y``: value references, a buffer, and where each value goes."""
-
-    def __init__(self, elements: list[Element], positions: list[int], fmi3: bool) -> None:
-        self.elements = elements
-        self.function_type = elements[0].function_type
-        self.ctype = elements[0].ctype
-        vrs: list[int] = []
-        for e in elements:
-            if not vrs or vrs[-1] != e.value_reference or e.offset == 0:
-                vrs.append(e.value_reference)
-        self.vrs = (ctypes.c_uint * len(vrs))(*vrs)
-        self.n_vrs, self.n_values = len(vrs), len(elements)
-        self.tail = (self.n_values,) if fmi3 else ()
-        self.positions = np.array(positions, dtype=np.intp)
-        contiguous = positions == list(range(positions[0], positions[0] + len(positions)))
-        self.direct = self.ctype is ctypes.c_double and contiguous  # pass u/y itself, no copy
-        self.buffer = (self.ctype * self.n_values)()
-        self.view = np.ctypeslib.as_array(self.buffer)
-        self.scratch = np.zeros(self.n_values)
-        self.checked = any(e.low is not None for e in elements)
-        self.pointer = ctypes.addressof(self.buffer)
-        self.get: Any = None
-        self.set: Any = None
-
-    def bind(self, vector: np.ndarray) -> None:
-        if self.direct:
-            self.pointer = vector.ctypes.data + int(self.positions[0]) * 8
-
-    def load_from(self, u: np.ndarray) -> None:
-        """Fill the buffer from ``u`` (not needed for direct transfers), checking exactness."""
-        np.take(u, self.positions, out=self.scratch)
-        if self.checked:
-            s = self.scratch
-            if not np.all(np.isfinite(s)) or np.any(s != np.floor(s)):
-                self._reject(s)
-            for e, value in zip(self.elements, s, strict=True):
-                if e.low is not None and e.high is not None and not e.low <= value <= e.high:
-                    self._reject(s)
-        if self.ctype is ctypes.c_bool:
-            self.view[:] = self.scratch != 0.0
-        else:
-            self.view[:] = self.scratch
-
-    def _reject(self, values: np.ndarray) -> None:
-        for e, value in zip(self.elements, values.tolist(), strict=True):
-            e.check(value)
-
-    def store_to(self, y: np.ndarray) -> None:
-        y[self.positions] = self.view
 
 
 class FmuModel:
@@ -391,8 +340,7 @@ class FmuModel:
             values.extend(zip(elements_of(self.variables[name], self.fmi_version), given, strict=True))
         values.extend(zip(self._in_elements, (float(x) for x in u), strict=True))
         for element, value in values:
-            transfer = _Transfer([element], [0], self.fmi_version == "3.0")
-            transfer.set = self._function(fmu.dll, "Set", transfer.function_type)
+            transfer = transfers(fmu.dll, [element], "Set", self.fmi_version)[0]
             transfer.load_from(np.array([value]))
             self._check(transfer.set(fmu.component, transfer.vrs, transfer.n_vrs, transfer.pointer,
                                      *transfer.tail), f"set {element.name} = {value!r}")
@@ -426,7 +374,7 @@ class FmuModel:
         fmu.enterInitializationMode()
         fmu.exitInitializationMode()
         self._component = fmu.component
-        self._do_step = _raw(fmu.dll, "fmi2DoStep", [ctypes.c_void_p, ctypes.c_double, ctypes.c_double,
+        self._do_step = raw_function(fmu.dll, "fmi2DoStep", [ctypes.c_void_p, ctypes.c_double, ctypes.c_double,
                                                      ctypes.c_int])
         self._step_tail: tuple[object, ...] = (1,)  # noSetFMUStatePriorToCurrentPoint
         self._make_transfers(fmu.dll)
@@ -444,7 +392,7 @@ class FmuModel:
             self._event_iteration(fmu, enter=False)
         self._component = fmu.component
         b = ctypes.POINTER(ctypes.c_bool)
-        self._do_step = _raw(fmu.dll, "fmi3DoStep", [
+        self._do_step = raw_function(fmu.dll, "fmi3DoStep", [
             ctypes.c_void_p, ctypes.c_double, ctypes.c_double, ctypes.c_bool, b, b, b,
             ctypes.POINTER(ctypes.c_double),
         ])  # fmt: skip
@@ -453,35 +401,9 @@ class FmuModel:
         self._step_tail = (True, *(ctypes.byref(f) for f in flags))
         self._make_transfers(fmu.dll)
 
-    def _function(self, dll: ctypes.CDLL, verb: str, function_type: str) -> Any:
-        prefix = "fmi3" if self.fmi_version == "3.0" else "fmi2"
-        vr_ptr = ctypes.POINTER(ctypes.c_uint)
-        args = [ctypes.c_void_p, vr_ptr, ctypes.c_size_t, ctypes.c_void_p]
-        if self.fmi_version == "3.0":
-            args.append(ctypes.c_size_t)  # nValues
-        return _raw(dll, f"{prefix}{verb}{function_type}", args)
-
     def _make_transfers(self, dll: ctypes.CDLL) -> None:
-        self._inputs = self._transfers(dll, self._in_elements, "Set")
-        self._outputs = self._transfers(dll, self._out_elements, "Get")
-
-    def _transfers(self, dll: ctypes.CDLL, elements: list[Element], verb: str) -> list[_Transfer]:
-        fmi3 = self.fmi_version == "3.0"
-        groups: dict[str, tuple[list[Element], list[int]]] = {}
-        for position, e in enumerate(elements):
-            group = groups.setdefault(e.function_type, ([], []))
-            group[0].append(e)
-            group[1].append(position)
-        transfers = []
-        for function_type, (members, positions) in groups.items():
-            transfer = _Transfer(members, positions, fmi3)
-            function = self._function(dll, verb, function_type)
-            if verb == "Set":
-                transfer.set = function
-            else:
-                transfer.get = function
-            transfers.append(transfer)
-        return transfers
+        self._inputs = transfers(dll, self._in_elements, "Set", self.fmi_version)
+        self._outputs = transfers(dll, self._out_elements, "Get", self.fmi_version)
 
     def _bind(self, u: FloatVector, y: FloatVector) -> None:
         for name, a, n in (("u", u, self.n_inputs), ("y", y, self.n_outputs)):
@@ -578,7 +500,7 @@ class FmuModel:
 
     def _fmi2_terminated(self) -> bool:
         value = ctypes.c_int()
-        function = _raw(self._fmu.dll, "fmi2GetBooleanStatus", [ctypes.c_void_p, ctypes.c_int, ctypes.c_void_p])
+        function = raw_function(self._fmu.dll, "fmi2GetBooleanStatus", [ctypes.c_void_p, ctypes.c_int, ctypes.c_void_p])
         status = function(self._component, 3, ctypes.byref(value))  # fmi2Terminated
         return status == 0 and bool(value.value)
 
@@ -669,12 +591,3 @@ class FmuModel:
                 last = f"; last: {self.messages[-1]}" if self.messages else ""
                 print(f"rtloop: FMU {self.model_identifier}: {self.warnings} calls answered Warning{last}",
                       file=sys.stderr)
-
-
-def _raw(dll: ctypes.CDLL, name: str, argtypes: list[Any]) -> Any:
-    """A fresh ctypes handle on an FMI function, with our own argtypes (no FMPy wrapper)."""
-    function = getattr(dll, name)
-    function = type(function)((name, dll))  # own object: FMPy's argtypes stay untouched
-    function.argtypes = argtypes
-    function.restype = ctypes.c_int
-    return function
