@@ -1,0 +1,286 @@
+"""The servo examples over a pty against the servo model (``rtloop emulate``): run == simulate, a silent
+servo and a hardware error give the declared outcome, torque off at the model on every way a run ends,
+and the bad input (an ID not on the bus, another model, two devices on one port, a range outside the
+servo's, a bus not ready) as one line with its exit code."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import rtloop
+from conftest import unique_name
+from replay_helpers import compare_signals, first_miss_s
+from rtloop.app.appfile import load_app
+
+pytest.importorskip("serial", reason="pyserial is not installed: pip install 'rtloop[servos]'")
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+JIWY = EXAMPLES / "jiwy_dynamixel" / "jiwy_dynamixel.toml"
+SO100 = EXAMPLES / "so100_feetech" / "so100_feetech.toml"
+ROOT = os.geteuid() == 0
+
+
+class Emulator:
+    """``rtloop emulate`` in its own process, its pty linked from ``folder/bus.tty``."""
+
+    def __init__(self, folder: Path, *arguments: str) -> None:
+        self.link = folder / "bus.tty"
+        self.log = folder / "emulator.log"
+        priority = ["--priority", "70"] if ROOT else []
+        with open(self.log, "w") as log:
+            self.process = subprocess.Popen([sys.executable, "-m", "rtloop", "emulate", "--link", str(self.link),
+                                             *priority, *arguments], stdout=log, stderr=subprocess.STDOUT)
+        self.wait_for("listening on")
+
+    def lines(self) -> list[str]:
+        return self.log.read_text().splitlines()
+
+    def wait_for(self, text: str, count: int = 1, timeout_s: float = 30.0) -> list[str]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            found = [line for line in self.lines() if text in line]
+            if len(found) >= count:
+                return found
+            assert self.process.poll() is None, self.lines()
+            time.sleep(0.02)
+        raise AssertionError(f"the model never said {text!r} {count} times: {self.lines()}")
+
+    def torque_off(self, *servo_ids: int) -> None:
+        for servo_id in servo_ids:
+            self.wait_for(f"servo {servo_id}: torque off")
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(10)
+
+
+def app_copy(folder: Path, example: Path, name: str, timeout_ms: float = 1000.0, **replace: str) -> Path:
+    """The example with the test's pty, a unique name and a long timeout (a loaded machine starves a pty's
+    kernel worker for tens of ms), its module found where it lives."""
+    text = example.read_text()
+    text = text.replace(f'name = "{example.stem}"', f'name = "{unique_name(name)}"')
+    port = next(line for line in text.splitlines() if line.startswith("port = "))
+    text = text.replace(port, f'port = "{folder / "bus.tty"}"')
+    timeout = next(line for line in text.splitlines() if line.startswith("timeout_ms = "))
+    text = text.replace(timeout, f"timeout_ms = {timeout_ms}")
+    text = text.replace('"../jiwy/setpoints/step.csv"', f'"{EXAMPLES / "jiwy" / "setpoints" / "step.csv"}"')
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    path = folder / example.name
+    path.write_text(text)
+    for module in example.parent.glob("*.py"):
+        (folder / module.name).symlink_to(module)
+    return path
+
+
+def equal_up_to_the_first_miss(folder: Path, app_file: Path, duration_s: float) -> int:
+    rtloop.run(load_app(app_file), duration_s, folder / "run")
+    rtloop.simulate(load_app(app_file), duration_s, folder / "sim")
+    miss_s = first_miss_s(folder / "run")
+    compared, difference = compare_signals(folder / "run" / "signals.csv", folder / "sim" / "signals.csv", miss_s)
+    assert difference is None, f"run and simulation differ at t = {difference} s (first miss at {miss_s} s)"
+    assert compared >= 1
+    return compared
+
+
+def test_jiwy_on_dynamixel_servos_equals_its_simulation(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_sim")
+    model = Emulator(tmp_path, "--app", str(app_file))
+    try:
+        equal_up_to_the_first_miss(tmp_path, app_file, 1.0)
+        model.torque_off(1, 2)  # the end of the run: torque off, confirmed by each servo
+        assert len(model.wait_for("torque on")) == 2
+    finally:
+        model.stop()
+    import numpy as np
+
+    sim = np.genfromtxt(tmp_path / "sim" / "signals.csv", delimiter=",", names=True)
+    assert abs(sim["aimpan_rad"][-1] - 0.5) < 0.01 and abs(sim["aimtilt_rad"][-1] - 0.3) < 0.01  # the step followed
+
+
+def test_the_so100_arm_on_feetech_servos_equals_its_simulation(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, SO100, "so100_sim")
+    model = Emulator(tmp_path, "--app", str(app_file))
+    try:
+        equal_up_to_the_first_miss(tmp_path, app_file, 0.8)
+        model.torque_off(1, 2, 3, 4, 5, 6)
+    finally:
+        model.stop()
+
+
+# --- a silent servo, a hardware error: the declared outcome ---------------------------------------------
+
+def test_a_servo_gone_silent_is_a_fault_with_torque_off_at_the_others(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_silent", timeout_ms=100.0,
+                        **{'on_missing = "stale"': 'on_missing = "fault"'})
+    model = Emulator(tmp_path, "--app", str(app_file), "--silent", "2@20")
+    try:
+        with pytest.raises(rtloop.TaskFailed, match=r"servo 2 \(tilt\) did not answer the sync read"):
+            rtloop.run(load_app(app_file), 5.0, tmp_path / "run")
+        model.torque_off(1)
+    finally:
+        model.stop()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert any("torque off not confirmed by servo 2 (tilt)" in note for note in summary["notes"]), summary["notes"]
+
+
+def test_a_servo_gone_silent_is_stale_until_max_stale_in_a_row(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, SO100, "so100_silent", timeout_ms=30.0,
+                        **{"max_stale_in_a_row = 25 ": "max_stale_in_a_row = 5 "})
+    model = Emulator(tmp_path, "--app", str(app_file), "--silent", "3@40")
+    try:
+        with pytest.raises(rtloop.TaskFailed, match=r"servo.* 3 \(elbow_flex\).* 5 reads in a row"):
+            rtloop.run(load_app(app_file), 10.0, tmp_path / "run")
+        model.torque_off(1, 2, 4, 5, 6)
+    finally:
+        model.stop()
+    device = json.loads((tmp_path / "run" / "summary.json").read_text())["devices"]["arm"]
+    assert device["stale_reads_by_source"].get("servo 3 (elbow_flex): no answer", 0) >= 4, device
+
+
+def test_a_hardware_error_is_a_fault_by_default(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_hw")
+    model = Emulator(tmp_path, "--app", str(app_file), "--hardware-error", "1@30")
+    try:
+        with pytest.raises(rtloop.TaskFailed, match=r"servo 1 \(pan\) reports a hardware error: 0x20 \(overload\)"):
+            rtloop.run(load_app(app_file), 5.0, tmp_path / "run")
+        model.wait_for("servo 1: hardware error 0x20 (overload) at sync read 31: torque off")
+        model.torque_off(2)
+    finally:
+        model.stop()
+
+
+def test_a_hardware_error_reported_lets_the_run_go_on(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_hw_report",
+                        **{'safe_state = "torque_off"': 'safe_state = "torque_off"\non_hardware_error = "report"'})
+    model = Emulator(tmp_path, "--app", str(app_file), "--hardware-error", "2@30")
+    try:
+        rtloop.run(load_app(app_file), 0.5, tmp_path / "run")
+        model.wait_for("servo 2: hardware error 0x20")
+        model.torque_off(1)
+    finally:
+        model.stop()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["stopped_by"].startswith("duration"), summary["stopped_by"]
+
+
+# --- torque off on every way a run ends ------------------------------------------------------------------
+
+def _start(app_file: Path, out: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_to_the_run_turns_the_torque_off(tmp_path: Path, stop: signal.Signals) -> None:
+    app_file = app_copy(tmp_path, JIWY, f"jiwy_dxl_{stop.name.lower()}")
+    model = Emulator(tmp_path, "--app", str(app_file))
+    try:
+        process = _start(app_file, tmp_path / "out")
+        model.wait_for("torque on", count=2)
+        time.sleep(0.2)
+        process.send_signal(stop)
+        process.communicate(timeout=60)
+        model.torque_off(1, 2)
+    finally:
+        model.stop()
+
+
+def test_a_nan_command_turns_the_torque_off(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_nan", **{'runnable = "pan_tilt:AimPanTilt"':
+                                                           'runnable = "nan_aim:NanAfter20"'})
+    (tmp_path / "nan_aim.py").write_text(
+        "from pan_tilt import AimPanTilt\n\n\nclass NanAfter20(AimPanTilt):\n"
+        "    def step(self, u, y):\n        super().step(u, y)\n"
+        "        if self.tick.cycle >= 20:\n            y[1] = float('nan')\n")
+    model = Emulator(tmp_path, "--app", str(app_file))
+    try:
+        with pytest.raises(rtloop.TaskFailed, match=r"gimbal\.u\[1\] \(tilt_position_rad\): command nan is not finite"):
+            rtloop.run(load_app(app_file), 5.0, tmp_path / "run")
+        model.torque_off(1, 2)
+    finally:
+        model.stop()
+
+
+def test_kill_9_of_the_task_the_supervisor_turns_the_torque_off(tmp_path: Path) -> None:
+    from test_dcmotor_serial import _task_pid
+
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_kill")
+    model = Emulator(tmp_path, "--app", str(app_file))
+    try:
+        process = _start(app_file, tmp_path / "out")
+        model.wait_for("torque on", count=2)
+        os.kill(_task_pid(process.pid), signal.SIGKILL)
+        model.torque_off(1, 2)
+        process.communicate(timeout=60)
+    finally:
+        model.stop()
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert any("turned the torque off on servos 1, 2" in note for note in summary["notes"]), summary["notes"]
+
+
+# --- bad input: one line, exit 2 (3: a bus not ready) --------------------------------------------------
+
+def _cli(app_file: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "1",
+                           "--out", str(app_file.parent / "out")], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize(("emulated", "words"), [
+    (["--servos", "1"], "devices.gimbal.servos[1].id: servo 2 (tilt) is not on the bus"),
+    (["--model", "XL430-W250,XM430-W350"], "devices.gimbal.servos[0].model: servo 1 (pan) is a XL430-W250"),
+])
+def test_servos_other_than_declared_are_one_line_exit_2(tmp_path: Path, emulated: list[str], words: str) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_mismatch")
+    model = Emulator(tmp_path, "dynamixel", "--servos", "1,2", "--model", "XM430-W350", *emulated)
+    try:
+        result = _cli(app_file)
+    finally:
+        model.stop()
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert words in result.stderr
+
+
+def test_two_devices_on_one_port_are_one_line_exit_2(tmp_path: Path) -> None:
+    text = JIWY.read_text()
+    second = text[text.index("[devices.gimbal]"):text.index("[devices.gimbal.limits")]
+    second = second.replace("[devices.gimbal]", "[devices.gimbal2]").replace("id = 1,", "id = 3,").replace(
+        "id = 2,", "id = 4,")
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_two")
+    port = next(line for line in app_file.read_text().splitlines() if line.startswith("port = "))
+    second = "\n".join(port if line.startswith("port = ") else line for line in second.splitlines())
+    app_file.write_text(app_file.read_text() + "\n" + second + "\n")
+    result = _cli(app_file)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert f"devices.gimbal2.port: serial line {tmp_path / 'bus.tty'} is also held by devices.gimbal.port" \
+        in result.stderr
+
+
+def test_a_range_outside_the_servos_is_one_line_exit_2(tmp_path: Path) -> None:
+    app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_range", **{"range_rad = [-1.6, 1.6]": "range_rad = [-3.5, 3.5]"})
+    result = _cli(app_file)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "devices.gimbal.servos[0].range_rad: [-3.5, 3.5] rad is ticks" in result.stderr
+
+
+def test_a_bus_where_nothing_answers_is_not_ready_exit_3(tmp_path: Path) -> None:
+    master, slave = os.openpty()  # a line with nothing on it: an adapter without power on the servos
+    try:
+        (tmp_path / "bus.tty").symlink_to(os.ttyname(slave))
+        app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_silent_bus", timeout_ms=5.0)
+        result = _cli(app_file)
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert result.returncode == 3 and result.stderr.count("\n") == 1, result.stderr
+    assert "devices.gimbal.port: no servo answered" in result.stderr
