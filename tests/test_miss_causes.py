@@ -24,6 +24,7 @@ from conftest import cli_env, unique_name
 from rt_test_runnables import Noop, SpinFor
 from rtloop import App
 from rtloop.cli.main import main
+from rtloop.record.summary import SUMMARY_RESERVE_BYTES
 from rtloop.runtime.evidence import MissWatch, TaskFacts
 from rtloop.stats.miss_causes import (
     MACHINE,
@@ -157,6 +158,12 @@ def test_a_2ms_step_in_a_1ms_task_is_a_step_overran_with_its_time(tmp_path: Path
     # the others have evidence of someone else (a stall, another thread) and say who
     assert all(m["cause_class"] != UNEXPLAINED for m in misses["first"] if m["exec_ns"] >= MS)
     assert any(line.startswith("slow: ") and "the step overran" in line for line in misses["lines"])
+    from rtloop.report.build import build_report
+
+    report = build_report([tmp_path / "run"], tmp_path / "report", write_html=True)
+    assert report.html is not None
+    html = report.html.read_text()
+    assert "Why cycles were late" in html and "the step overran" in html
     capsys.readouterr()
     assert main(["why", str(tmp_path / "run"), "--cycle", str(blamed[0]["cycle"]), "--task", "slow"]) == 0
     said = capsys.readouterr().out
@@ -250,7 +257,9 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path) -> None
         if hog.stdout is not None:
             hog.stdout.close()
     assert done.returncode == 0, done.stderr
-    misses = json.loads((tmp_path / "run" / "summary.json").read_text())["misses"]
+    text = (tmp_path / "run" / "summary.json").read_text()
+    assert len(text.encode()) < SUMMARY_RESERVE_BYTES  # the misses kept in full fit in the disk reserve
+    misses = json.loads(text)["misses"]
     assert misses["total"] > 0  # 3 ms above two 1 ms tasks: they cannot all be on time
     named = [m for m in misses["first"] if "rtloop-hog" in m["cause"]]
     assert named, misses["first"]

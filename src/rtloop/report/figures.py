@@ -161,6 +161,7 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
         t_s = (samples.release_ns - t0) / 1e9
         latency_us = (samples.start_ns - samples.release_ns) / US
         ax.plot(t_s, latency_us, ".", markersize=2, color="tab:blue", label="wake-up latency")
+        _mark_misses(ax, run, name, samples, t_s, latency_us, s.period_ns)
         if s.trim and len(samples) > 2 * s.trim:
             ax.axvspan(t_s[0], t_s[s.trim - 1], color="gray", alpha=0.2, label="trimmed (not in statistics)")
             ax.axvspan(t_s[-s.trim], t_s[-1], color="gray", alpha=0.2)
@@ -175,6 +176,27 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     axes[-1].set_xlabel("time since first release [s]")
     fig.suptitle(f"{literal(run.label)} — wake-up latency over time", fontsize=12)
     return fig
+
+
+MISS_COLORS = {"step": "tab:red", "task": "tab:purple", "thread": "tab:orange", "machine": "tab:brown",
+               "irq": "tab:pink", "run queue": "tab:olive", "page faults": "tab:cyan", "unexplained": "black"}
+"""One colour per cause class of a miss (stats/miss_causes.py), in the latency-over-time figure."""
+
+
+def _mark_misses(ax: Axes, run: Run, task: str, samples: Any, t_s: np.ndarray, latency_us: np.ndarray,
+                 period_ns: int) -> None:
+    """Each deadline miss as a cross, coloured by its cause where summary.json kept it in full."""
+    missed = np.flatnonzero(samples.end_ns > samples.release_ns + period_ns)
+    if not len(missed):
+        return
+    kept = {m["cycle"]: m["cause_class"] for m in (run.summary.get("misses") or {}).get("first", [])
+            if m.get("task") == task}
+    classes = [kept.get(int(samples.cycle[i]), "") for i in missed]
+    for cls in dict.fromkeys(classes):
+        at = missed[[c == cls for c in classes]]
+        label = f"miss: {cls}" if cls else "miss (cause in summary.json counts)"
+        ax.plot(t_s[at], np.maximum(latency_us[at], 1e-3), "x", markersize=6, color=MISS_COLORS.get(cls, "gray"),
+                label=label)
 
 
 def names_from_summary(summary: dict[str, Any]) -> dict[str, str]:

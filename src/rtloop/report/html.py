@@ -212,6 +212,16 @@ def banners(run: Run) -> str:
     return "".join(out)
 
 
+def misses_list(run: Run) -> str:
+    """Why cycles were late: one line per task, kind and cause (summary.json ``misses``; rtloop why)."""
+    lines = (run.summary.get("misses") or {}).get("lines", [])
+    if not lines:
+        return ""
+    items = "".join(f"<li>{escape(str(line))}</li>" for line in lines)
+    return (f"<h3>Why cycles were late</h3><ul>{items}</ul><p>The evidence for one cycle: <code>rtloop why "
+            f"{escape(str(run.path))} --cycle N</code>. The latency-over-time figure marks each miss.</p>")
+
+
 def _host_exec(run: Run) -> str:
     """What a simulation measured of time: each step's execution on the host (not real time)."""
     parts = [f"{escape(name)} mean {_us(entry['host_exec_ns'].get('mean'))} µs, max "
@@ -243,7 +253,7 @@ def page(runs: Sequence[Run], run_figures: dict[str, list[FigureRef]], compariso
     for run in runs:
         parts.append(f"<h2>Run {escape(run.label)} <small>({escape(str(run.path))})</small></h2>")
         parts.append(banners(run))
-        parts.append("<h3>Summary</h3>" + summary_table(run))
+        parts.append("<h3>Summary</h3>" + summary_table(run) + misses_list(run))
         parts.append("<h3>Machine</h3>" + machine_table(run))
         parts.extend(image(f) for f in run_figures.get(run.label, []))
     parts.append("</body></html>")

@@ -27,8 +27,6 @@ THREAD_SCAN_INTERVAL_NS = 1_000_000_000
 """How often /proc is walked for real-time threads (~15 ms of the supervisor's time on a loaded VM)."""
 THREAD_SCAN_MIN_INTERVAL_NS = 200_000_000
 """How soon a miss waiting for a walk after it may ask for one (a thread started just before it)."""
-TASK_STEPS_KEPT = 5
-"""Other tasks' steps kept as a miss's evidence: the longest overlaps."""
 DECIDED_KEPT = 4096
 """Misses whose causes are kept for the tasks they held up (decided in release order)."""
 COUNTER_FIELDS = ("on_cpu_ns", "run_delay_ns", "involuntary_switches", "minor_faults", "major_faults")
@@ -162,7 +160,6 @@ class MissWatch:
         evidence = Evidence(cpu=facts.cpu, realtime=facts.realtime)
         self._window(miss, facts, evidence)
         self._same_cpu_tasks(miss, facts, evidence)
-        evidence.tasks = sorted(evidence.tasks, key=lambda t: -t["overlap_ns"])[:TASK_STEPS_KEPT]
         self._simultaneous(miss, facts, evidence)
         reading = self.readings.get(miss.task, {}).pop(miss.cycle, None)
         if reading is not None:

@@ -28,8 +28,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-FIRST_IN_FULL = 50
-"""Misses kept in ``summary.json`` with their evidence; the rest are counted per cause."""
+FIRST_IN_FULL = 20
+"""Misses kept in ``summary.json`` with their evidence (about 1 KB each: the summary must stay within its
+64 KiB disk reserve); the rest are counted per cause."""
+EVIDENCE_ITEMS = 3
+"""Other tasks' steps, threads and late tasks kept per miss: the largest."""
 RECENT_READING_CYCLES = 20
 """A task's counters read this few cycles before a miss still say how long it waited in it."""
 SUFFICIENT = 0.5
@@ -102,9 +105,10 @@ class Evidence:
         out: dict[str, Any] = {"cpu": self.cpu}
         if self.window_ns:
             out.update(window_ns=self.window_ns, steal_ns=self.steal_ns, irq_ns=self.irq_ns)
-        for key in ("tasks", "threads", "simultaneous"):
+        largest = {"tasks": "overlap_ns", "threads": "ran_ns", "simultaneous": "latency_ns"}
+        for key, size in largest.items():
             if getattr(self, key):
-                out[key] = getattr(self, key)
+                out[key] = sorted(getattr(self, key), key=lambda item: -item[size])[:EVIDENCE_ITEMS]
         if self.counters is not None:
             out["counters"] = self.counters
         return out
