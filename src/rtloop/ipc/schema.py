@@ -43,29 +43,40 @@ class ControlWord(enum.IntEnum):
 
 
 class StatusWord(enum.IntEnum):
-    """A task's status block: task → supervisor, ``rtloop top``, fault reports."""
+    """A task's status block: task → supervisor, ``rtloop top``, fault reports.
+
+    Words 7, 9, 10, 11, 13 and 14 are retired (a maximum latency and execution time, the policy,
+    priority and real-time flag, the timing records dropped: written, never read; the pipe's
+    ``settings`` message and the timing ring's own header say them). The others keep their
+    places, so a hot path built before stays valid."""
 
     STATE = 0
+    """A :class:`TaskState`."""
     PID = 1
     CYCLE = 2
     OVERRUNS = 3
     DEADLINE_MISSES = 4
     STALE_READS = 5
     LATENCY_LAST_NS = 6
-    LATENCY_MAX_NS = 7
     EXEC_LAST_NS = 8
-    EXEC_MAX_NS = 9
-    POLICY = 10
-    PRIORITY = 11
     CPU = 12
-    RT = 13
-    TIMING_DROPPED = 14
     MISSES_IN_A_ROW_MAX = 15
     NONFINITE_VALUES = 16
     """NaN or ±inf outputs headed across a connection (each output of each cycle counts once)."""
     NONFINITE_FIRST_CYCLE = 17
     NONFINITE_FIRST_OUTPUT = 18
     """The first one: its cycle and its index in ``y``."""
+
+
+class TaskState(enum.IntEnum):
+    """The ``STATE`` word of a task's status block, in the order a task goes through them."""
+
+    STARTING = 0
+    READY = 1
+    RUNNING = 2
+    STOPPED = 3
+    FAILED = 4
+    POSTRUN = 5
 
 
 class QueueWord(enum.IntEnum):

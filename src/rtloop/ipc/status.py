@@ -9,22 +9,11 @@ words that must be seen together: :func:`publish_epoch` and :func:`read_epoch` o
 
 from __future__ import annotations
 
-import enum
-
-from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord
+from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, ControlWord, StatusWord, TaskState
 from rtloop.ipc.segments import Segment, fence
 
 __all__ = ["CONTROL_WORDS", "STATUS_WORDS", "ControlWord", "StatusWord", "TaskState", "WordBlock", "publish_epoch",
            "read_epoch"]
-
-
-class TaskState(enum.IntEnum):
-    STARTING = 0
-    READY = 1
-    RUNNING = 2
-    STOPPED = 3
-    FAILED = 4
-    POSTRUN = 5
 
 
 class WordBlock:

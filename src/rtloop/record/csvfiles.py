@@ -17,6 +17,7 @@ from typing import TextIO
 import numpy as np
 
 from rtloop.app.specs import SignalRef
+from rtloop.ipc.schema import NO_STAMP  # a read that found no sample at all
 
 
 class TimingCsv:
@@ -99,10 +100,6 @@ def read_inputs_csv(path: Path) -> list[tuple[str, int, str, list[float]]]:
                 raise ValueError(f"{path}:{number}: expected task,cycle,port,values")
             rows.append((parts[0], int(parts[1]), parts[2], [float(v) for v in parts[3].split()]))
     return rows
-
-
-NO_STAMP = -(2**62)
-"""A read that found no sample at all (the read log's word for it; as in the channels)."""
 
 
 class ReadsCsv:

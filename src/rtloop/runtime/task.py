@@ -247,10 +247,7 @@ def task_process_main(
     settings = rt.apply_realtime(config.cpu, config.policy, config.priority, config.period_ns)
     if settings.memory_locked:  # mlockall locked every mapping; keep only what the loop may touch
         unlock_what_the_loop_never_needs(config.lock_blas_buffer)
-    status[StatusWord.POLICY] = rt.POLICIES.get(settings.policy, -1)
-    status[StatusWord.PRIORITY] = settings.priority
     status[StatusWord.CPU] = config.cpu if config.cpu is not None else -1
-    status[StatusWord.RT] = int(settings.rt)
     _report(pipe, kind="settings", settings=settings)
 
     task = stop_in_order.task = RealtimeTask(config, runnable, control, status, timing)
@@ -322,9 +319,7 @@ def task_process_main(
         )
         if phase != "postrun":
             _postrun_after_failure(runnable, pipe)
-        status[StatusWord.TIMING_DROPPED] = timing.dropped
         raise SystemExit(1) from None
-    status[StatusWord.TIMING_DROPPED] = timing.dropped
     status[StatusWord.STATE] = TaskState.STOPPED
     task.devices.stop()  # done already unless the stop came before T0
     _report_devices(pipe, task.devices)

@@ -203,8 +203,7 @@ class Monitor:
                 tracked = self._attach(segment_name, registry.uid)
                 if tracked is not None:
                     latency = tracked.status[StatusWord.LATENCY_LAST_NS]
-                    kept = tracked.status[StatusWord.LATENCY_MAX_NS]  # in case a task maintains it
-                    tracked.latency_max_ns = max(tracked.latency_max_ns, latency, kept)
+                    tracked.latency_max_ns = max(tracked.latency_max_ns, latency)
 
     def snapshot(self) -> list[AppView]:
         """Every running app and its tasks, now."""
