@@ -156,6 +156,26 @@ static void *hold_buffer(Core *self, PyObject *obj, int writable, Py_ssize_t min
     return view->buf;
 }
 
+/* The Python twin's words for the sleep (linux/rt.py AbsoluteSleeper), so both raise the same error. */
+#define CLOCK_NANOSLEEP_CALL "clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)"
+
+/* Raise rtloop.errors.LibcError(call, errno_value), as the Python twin's libc checker does: the
+   error names the call (a bare OSError would not). Only on the way out of a failed call. */
+static void set_libc_error(const char *call, int errno_value) {
+    PyObject *errors = PyImport_ImportModule("rtloop.errors");
+    PyObject *libc_error = errors != NULL ? PyObject_GetAttrString(errors, "LibcError") : NULL;
+    PyObject *error = libc_error != NULL ? PyObject_CallFunction(libc_error, "si", call, errno_value) : NULL;
+    if (error != NULL)
+        PyErr_SetObject(libc_error, error);
+    else if (!PyErr_Occurred()) {
+        errno = errno_value;
+        PyErr_SetFromErrno(PyExc_OSError);
+    }
+    Py_XDECREF(error);
+    Py_XDECREF(libc_error);
+    Py_XDECREF(errors);
+}
+
 static int64_t *zeros(int64_t count) {
     int64_t *memory = PyMem_Calloc(count > 0 ? count : 1, sizeof(int64_t));
     if (memory == NULL)
@@ -258,8 +278,13 @@ static PyObject *Core_add_input(Core *self, PyObject *args) {
     input->n_spans = PyTuple_GET_SIZE(spans);
     input->scratch = zeros(width);
     input->spans = PyMem_Calloc(input->n_spans ? input->n_spans : 1, sizeof(Span));
-    if (input->scratch == NULL || input->spans == NULL)
+    if (input->scratch == NULL || input->spans == NULL) { /* not counted yet: dealloc would not free them */
+        PyMem_Free(input->scratch);
+        PyMem_Free(input->spans);
+        input->scratch = NULL;
+        input->spans = NULL;
         return PyErr_NoMemory();
+    }
     self->n_inputs++; /* from here on dealloc frees it */
     for (Py_ssize_t i = 0; i < input->n_spans; i++) {
         Span *span = &input->spans[i];
@@ -628,9 +653,11 @@ static int publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
         int64_t seq = LOAD(&slot[SLOT_SEQ], relaxed) + 1;
         STORE(&slot[SLOT_SEQ], seq, relaxed); /* odd: slot being written */
         atomic_thread_fence(memory_order_release);
-        int64_t *values = (int64_t *)self->y;
-        for (int64_t i = 0; i < self->n_y; i++)
-            STORE(&slot[SLOT_VALUES + i], values[i], relaxed);
+        for (int64_t i = 0; i < self->n_y; i++) {
+            int64_t bits; /* the double's bits, copied: read through an int64_t lvalue it would break strict aliasing */
+            memcpy(&bits, &self->y[i], sizeof bits);
+            STORE(&slot[SLOT_VALUES + i], bits, relaxed);
+        }
         STORE(&slot[SLOT_STAMP_NS], publish_ns, relaxed);
         STORE(&slot[SLOT_SEQ], seq + 1, release); /* even: slot complete */
         self->published++;
@@ -675,8 +702,7 @@ static int sleep_until_release(Core *self, int64_t release_ns) {
             if (PyErr_CheckSignals() < 0)
                 return -1;
         } else if (result != 0) {
-            errno = result;
-            PyErr_SetFromErrno(PyExc_OSError);
+            set_libc_error(CLOCK_NANOSLEEP_CALL, result);
             return -1;
         } else if (wake_ns == release_ns) {
             return 1;
@@ -998,8 +1024,8 @@ static PyObject *hotpath_sleep_until(PyObject *module, PyObject *arg) {
     result = clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &deadline, NULL);
     Py_END_ALLOW_THREADS
     if (result != 0 && result != EINTR) {
-        errno = result;
-        return PyErr_SetFromErrno(PyExc_OSError);
+        set_libc_error(CLOCK_NANOSLEEP_CALL, result);
+        return NULL;
     }
     Py_RETURN_NONE;
 }
