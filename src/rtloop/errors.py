@@ -165,8 +165,10 @@ class DeviceNotReady(DeviceError):
 
 
 class DeviceMismatch(DeviceError):
-    """A device that answered at configure, and is not what the app declares (a servo ID not on the
-    bus, another model, a range outside its own limits): bad input, exit 2, not retried."""
+    """A device that answered and is not what the app declares (a servo ID not on the bus, another
+    model, a range outside its own limits; an EtherCAT slave of another vendor, product or revision,
+    another count of slaves, a PDO mapping without an object the app needs): bad input, exit 2, not
+    retried (a service retrying it would find the same device)."""
 
 
 class DeviceFault(RtloopError, RuntimeError):

@@ -195,7 +195,7 @@ class App:
             device = kind
         else:
             device = build_device(kind, name, settings, source)
-        twin = device.default_twin() if twin is None else twin  # a servo bus brings its model
+        twin = device.default_twin() if twin is None else twin  # a servo bus brings its model, drives theirs
         if twin is not None:
             check_twin(name, source, device, twin)
         spec = DeviceSpec(device, task, io, resolve_limits(name, source, device, limits or {}), twin)

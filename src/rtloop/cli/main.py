@@ -53,7 +53,7 @@ PATH_ERRNOS = frozenset({errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.EACCES
 
 # Optional packages and the extra that installs them (the core needs numpy only).
 EXTRAS = {"mcap": "ros", "mcap_ros2": "ros", "cyclonedds": "ros", "rich": "report", "matplotlib": "report",
-          "fmpy": "fmu", "foxglove": "live", "serial": "serial"}
+          "fmpy": "fmu", "foxglove": "live", "serial": "serial", "pysoem": "ethercat"}
 
 
 def missing_extra(error: ModuleNotFoundError) -> str:

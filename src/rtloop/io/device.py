@@ -51,7 +51,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from rtloop.errors import DeviceError, DeviceFault, DeviceNotReady
+from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch, DeviceNotReady
 from rtloop.text import shorten
 
 __all__ = ["KINDS", "Claim", "CommandLimit", "Device", "DeviceError", "DeviceFault", "Setting", "check_claims",
@@ -67,6 +67,7 @@ KINDS: dict[str, str] = {
     "i2c": "rtloop.io.i2c:I2cDevice",
     "dynamixel": "rtloop.io.servos.bus:DynamixelBus",
     "feetech": "rtloop.io.servos.bus:FeetechBus",
+    "ethercat": "rtloop.io.drives.ethercat:EthercatDevice",
 }
 """Device kinds → their driver class (``module:Class``), imported when an app uses the kind.
 A driver adds itself by living at that path; ``kind = "package.module:Class"`` names any
@@ -195,7 +196,7 @@ class Device(ABC):
 
     def default_twin(self) -> Any:
         """The twin a driver brings for itself (a Runnable, like an app's ``twin``), or None: the
-        servo buses run their own code against their servo model."""
+        servo buses run their own code against their servo model, a drive device its emulated drives."""
         return None
 
     def check(self) -> None:
@@ -323,6 +324,8 @@ def check_device(device: Device, source: str) -> None:
     """``device.check()``, its failures as a :class:`DeviceError` naming the app file."""
     try:
         device.check()
+    except DeviceMismatch as error:  # the device answered, but it is not the one declared: bad input
+        raise DeviceMismatch(device.name, source, error.key, error.problem) from None
     except DeviceError as error:
         raise DeviceNotReady.of(DeviceError(device.name, source, error.key, error.problem)) from None
     except Exception as error:

@@ -75,6 +75,8 @@ class EmulatedSlave:
         self.outputs_written = False
         self.last_outputs_ns = 0
         self.exchanges_in_op = 0
+        self.exchanges_enabled = 0
+        """Process-data exchanges with the drive in operation enabled (when injected faults fall due)."""
         m = self.memory
         m[0x0000] = 0x11  # ESC type
         m[0x0001] = 0x01
@@ -224,7 +226,8 @@ class EmulatedSlave:
                 self.memory[memory_at:memory_at + count] = data[frame_at:frame_at + count]
                 if memory_at < OUTPUTS_AT + self.rx.size and memory_at + count > OUTPUTS_AT:
                     self.outputs_written = True
-                wrote = True
+                # outputs count in the working counter in OP only: a master sees a slave that left OP
+                wrote = self.al_status & 0x0F == AL_OP
         if command == LRW:
             return (1 if read else 0) + (2 if wrote else 0)
         return 1 if read or wrote else 0
@@ -237,6 +240,8 @@ class EmulatedSlave:
         if in_op:
             self.last_outputs_ns = now_ns
             self.exchanges_in_op += 1
+            if self.drive.state == cia402.Cia402State.OPERATION_ENABLED:
+                self.exchanges_enabled += 1
         values = self.rx.struct.unpack_from(self.memory, OUTPUTS_AT)
         rx = self.rx.position
         drive = self.drive

@@ -97,6 +97,9 @@ class PdoLayout:
         self.position = {index: i for i, index in enumerate(objects)}
         """Object → its place among the values :meth:`struct.unpack_from` gives."""
 
+    def __reduce__(self) -> tuple[type, tuple[tuple[int, ...]]]:
+        return PdoLayout, (self.objects,)  # a struct.Struct does not pickle; it is rebuilt from the objects
+
     def entries(self) -> tuple[PdoEntry, ...]:
         return tuple(PdoEntry(index, 0, OBJECTS[index].bits, OBJECTS[index].data_type) for index in self.objects)
 

@@ -1,0 +1,49 @@
+"""``rtloop io emulate ethercat``: emulated CiA 402 drives on a network interface (a veth end).
+
+With ``--app`` the drives are those the app file's EtherCAT device declares (identity, PDO
+mapping, drive model: the device's twin), so a real run against them equals ``rtloop simulate``;
+with ``--slaves N``, N default drives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from rtloop.io.drives.emulator import add_arguments as emulator_arguments
+
+    parser.add_argument("bus", choices=["ethercat"], help="the bus to emulate drives on")
+    parser.add_argument("--app", help="the drives the app file's EtherCAT device declares (with their drive models)")
+    parser.add_argument("--device", help="with --app: which EtherCAT device, when the app has several")
+    emulator_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rtloop.io.drives.emulator import DriveSpec, serve
+
+    interface = args.interface
+    if args.app:
+        from rtloop.app.appfile import load_app
+        from rtloop.io.drives.ethercat import EthercatDevice
+
+        app = load_app(args.app)
+        found = [spec.device for spec in app.devices.values()
+                 if isinstance(spec.device, EthercatDevice) and args.device in (None, spec.name)]
+        if not found:
+            named = f" {args.device!r}" if args.device else ""
+            print(f"rtloop io emulate: {args.app}: no EtherCAT device{named} in the app file", file=sys.stderr)
+            return 2
+        device = found[0]
+        drives = device.drive_specs()
+        interface = interface or device.emulator_interface
+    elif args.slaves > 0:
+        drives = [DriveSpec() for _ in range(args.slaves)]
+    else:
+        print("rtloop io emulate: give --app APP.toml or --slaves N", file=sys.stderr)
+        return 2
+    if not interface:
+        print("rtloop io emulate: give --interface (the veth end the drives answer on)", file=sys.stderr)
+        return 2
+    return serve(interface, drives, args.log, tuple(args.inject), args.priority)

@@ -1,0 +1,398 @@
+"""CiA 402 servo drives on EtherCAT: ``kind = "ethercat"``.
+
+    [devices.arm]
+    kind = "ethercat"
+    task = "controller"
+    interface = "eth1"                 # the port the slaves hang on (a veth end for emulated drives)
+    joints = [
+      { name = "pan", vendor = 0xA7E, product = 0x402402, revision = 0x10000, mode = "csp",
+        counts_per_rev = 4096, gear_ratio = 19.0 },
+      { name = "tilt", vendor = 0xA7E, product = 0x402402, revision = 0x10000, mode = "csp",
+        counts_per_rev = 4096, gear_ratio = 76.0, direction = -1 },
+    ]
+
+Before anything starts (``check``, in the supervisor) SOEM, through pysoem, scans the bus and
+each slave is checked against its joint: vendor, product, revision, and the PDO mapping its SII
+describes. In the task's process (``configure``) pysoem configures the slaves again, maps their
+process data (SII), and takes them INIT → PRE-OP → SAFE-OP. At T0 OP is asked for: a slave in OP
+must get process data within its SM watchdog time, and between configure and T0 a task process
+exchanges none (a thread for it would wait on the GIL behind the task's start-up work, longer than
+a watchdog allows). From T0 one LRW frame per cycle, built once and sent on rtloop's own raw
+socket (``read``), carries every drive's controlword and target out and its statusword and
+actual values back; the CiA 402 state machine (``io/drives/cia402.py``) enables the drives on the
+first exchanges, once the slaves are in OP. On every way the run ends:
+quick stop, then disable voltage, then SAFE-OP. When the task process is killed, the slaves' SM
+watchdog (``watchdog_ms``) takes them out of OP and the drives quick-stop by themselves.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
+from rtloop.io.device import CommandLimit, Device, FloatVector, Setting
+from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
+from rtloop.io.drives.drive_model import DriveModel
+from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
+from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
+from rtloop.io.drives.sii import parse_sii
+from rtloop.runnable import Runnable
+
+__all__ = ["EthercatDevice", "EthercatTwin"]
+
+LRW, BWR = 12, 8
+DATA_AT = 26  # Ethernet header 14, EtherCAT header 2, datagram header 10
+AL_SAFEOP, AL_OP, AL_ACK = 4, 8, 0x10
+SAFE_STEP_S = 0.001
+"""The pace of the exchanges of the safe transition (outside the loop)."""
+
+
+def _tables(value: list[Any]) -> str | None:
+    if not value or not all(isinstance(item, dict) for item in value):
+        return "expected one table per drive, in bus order: [{ name, vendor, product, revision, mode, ... }]"
+    return None
+
+
+def _positive(value: float) -> str | None:
+    return None if value > 0 else f"must be > 0, got {value!r}"
+
+
+def _eeprom_reader(slave: Any) -> Any:
+    return lambda word: bytes(slave.eeprom_read(word))
+
+
+class EthercatDevice(Device):
+    """CiA 402 drives on one EtherCAT segment: SOEM configures, one LRW frame per cycle exchanges."""
+
+    kind: ClassVar[str] = "ethercat"
+    settings: ClassVar[dict[str, Setting]] = {
+        "interface": Setting(str, doc="the network interface the slaves are on (eth1; a veth end for emulated drives)"),
+        "joints": Setting(list, doc="one table per drive, in bus order", check=_tables),
+        "timeout_us": Setting(float, 1000.0, "how long a cycle's frame may take to come back, µs", _positive,
+                              at_most=1e6),
+        "watchdog_ms": Setting(float, 100.0, "the slaves' SM watchdog: without process data this long, a slave "
+                               "leaves OP and its drive stops", _positive, at_most=6000.0),
+        "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
+                                        "disable) before rtloop gives up on it", _positive, at_most=60.0),
+        "emulator_interface": Setting(str, "", "the veth end `rtloop emulate ethercat --app` answers on (tests, "
+                                      "examples)"),
+        "esi_dir": Setting(str, "", "the folder relative esi paths are taken from (in an app file, \".\" is the "
+                           "app file's folder; default: the current folder)", is_path=True),
+    }
+
+    def __init__(self, name: str, **settings: Any) -> None:
+        super().__init__(name, **settings)
+        self.interface: str = settings["interface"]
+        self.timeout_s: float = settings["timeout_us"] * 1e-6
+        self.watchdog_ms: float = settings["watchdog_ms"]
+        self.quick_stop_timeout_s: float = settings["quick_stop_timeout_s"]
+        self.emulator_interface: str = settings["emulator_interface"]
+        base = Path(settings["esi_dir"]) if settings["esi_dir"] else None
+        try:
+            self.joints = tuple(joint_from_table(table, slave, base)
+                                for slave, table in enumerate(settings["joints"], start=1))
+        except JointError as error:
+            raise DeviceError(name, "", error.key, error.problem) from None
+        names = [joint.name for joint in self.joints]
+        if len(set(names)) != len(names):
+            raise DeviceError(name, "", "joints", f"two joints share a name: {names}")
+        self.input_names = tuple(n for joint in self.joints for n in command_names(joint))
+        self.output_names = tuple(n for joint in self.joints for n in reading_names(joint))
+        self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
+        total = sum(j.rx.size + j.tx.size for j in self.joints)
+        if total > MAX_DATAGRAM_DATA:
+            raise DeviceError(name, "", "joints", f"the process data ({total} bytes) does not fit in one frame "
+                              f"({MAX_DATAGRAM_DATA} bytes): fewer objects or drives per device")
+        self._reset_runtime()
+
+    def _reset_runtime(self) -> None:
+        self.socket: Any = None
+        self.cycle: DriveCycle | None = None
+        self.active = False
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for key in ("socket", "cycle", "_frame", "_reply", "_commands"):
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._reset_runtime()
+
+    # --- description ------------------------------------------------------------------------------
+    def default_limits(self) -> dict[str, CommandLimit]:
+        limits = {}
+        for joint in self.joints:
+            for command in command_names(joint):
+                if command.endswith("_target_mode"):
+                    limits[command] = CommandLimit(8, 10, joint.modes[0])
+                else:  # wide open: the app's limits say what the machine allows
+                    limits[command] = CommandLimit(-1e6, 1e6, 0.0)
+        return limits
+
+    def default_twin(self) -> Runnable:
+        return EthercatTwin(self)
+
+    def drive_specs(self) -> list[Any]:
+        """The emulated drives this device expects (for ``rtloop emulate ethercat --app``)."""
+        from rtloop.io.drives.emulator import DriveSpec
+
+        return [DriveSpec(j.identity, j.rx.objects, j.tx.objects, j.drive) for j in self.joints]
+
+    # --- supervisor: the bus is there and carries the slaves the app file declares ------------------
+    def _master(self) -> Any:
+        try:
+            import pysoem  # type: ignore[import-untyped]  # pysoem ships no type information
+        except ImportError:
+            raise DeviceError(self.name, "", "kind", "ethercat needs pysoem: pip install 'rtloop[ethercat]'") from None
+        problem = interface_problem(self.interface)
+        if problem:
+            raise DeviceError(self.name, "", "interface", problem)
+        try:
+            open_raw(self.interface).close()
+        except PermissionError:
+            raise DeviceError(self.name, "", "interface", f"{self.interface}: no permission for a raw socket (run as "
+                              "root, or give this python CAP_NET_RAW: sudo setcap cap_net_raw+ep $(realpath "
+                              "$(which python3)))") from None
+        except OSError as error:
+            raise DeviceError(self.name, "", "interface", f"{self.interface}: cannot open it raw: "
+                              f"{error.strerror}") from None
+        master = pysoem.Master()
+        try:
+            master.open(self.interface)
+        except Exception as error:
+            raise DeviceError(self.name, "", "interface", f"pysoem cannot open {self.interface}: {error}") from None
+        return master
+
+    def _scan(self, master: Any) -> None:
+        found = master.config_init()
+        if found <= 0:
+            raise DeviceError(self.name, "", "interface", f"no EtherCAT slave answered on {self.interface} (are the "
+                              "drives powered and cabled to this port? for emulated drives: is `rtloop emulate "
+                              "ethercat` running on the other veth end?)")
+        if found != len(self.joints):
+            raise DeviceMismatch(self.name, "", "joints", f"{found} slave(s) on {self.interface}, the app file "
+                                 f"declares {len(self.joints)} joints (one drive each, in bus order)")
+        for joint, slave in zip(self.joints, master.slaves, strict=True):
+            where = f"joints[{joint.slave - 1}]"
+            for key, value in (("vendor", slave.man), ("product", slave.id), ("revision", slave.rev)):
+                wanted = getattr(joint.identity, key)
+                if value != wanted:
+                    raise DeviceMismatch(self.name, "", f"{where}.{key}", f"slave {joint.slave} ({slave.name}) has "
+                                         f"{key} 0x{value:08X}, the app file says 0x{wanted:08X}")
+            info = parse_sii(_eeprom_reader(slave))
+            for key, found_entries, layout in (("rxpdo", info.rxpdo, joint.rx), ("txpdo", info.txpdo, joint.tx)):
+                found_objects = tuple(entry.index for entry in found_entries)
+                if found_objects != layout.objects:
+                    missing = [f"0x{i:04X}" for i in layout.objects if i not in found_objects]
+                    what = (f"object(s) {', '.join(missing)} missing from the slave's mapping" if missing else
+                            "the slave maps them in another order or with others")
+                    raise DeviceMismatch(self.name, "", f"{where}.{key}", f"{what}: the slave's SII maps "
+                                         f"{[f'0x{i:04X}' for i in found_objects]}, the app file "
+                                         f"{[f'0x{i:04X}' for i in layout.objects]}")
+                bits = sum(entry.bits for entry in found_entries)
+                if bits != layout.size * 8:
+                    raise DeviceMismatch(self.name, "", f"{where}.{key}", f"the PDO does not fit: the slave maps "
+                                         f"{bits} bits, the declared objects take {layout.size * 8}")
+
+    def check(self) -> None:
+        master = self._master()
+        try:
+            self._scan(master)
+        finally:
+            master.close()
+
+    # --- task process: configure, OP, keep alive until T0 -------------------------------------------
+    def configure(self) -> None:
+        import pysoem  # type: ignore[import-untyped]  # pysoem ships no type information
+
+        master = self._master()
+        try:
+            self._scan(master)
+            for slave in master.slaves:
+                slave.set_watchdog("processdata", self.watchdog_ms)
+            size = master.config_map()
+            cycle = DriveCycle(self.name, self.joints)
+            if size != cycle.output_bytes + cycle.input_bytes:
+                raise DeviceError(self.name, "", "joints", f"SOEM mapped {size} bytes of process data, the joints "
+                                  f"declare {cycle.output_bytes + cycle.input_bytes}")
+            self._expected_wkc = master.expected_wkc
+            if master.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
+                raise DeviceError(self.name, "", "", f"the slaves did not reach SAFE-OP: {self._al_problems(master)}")
+        finally:
+            master.close()
+        self._bind(cycle)
+
+    @staticmethod
+    def _al_problems(master: Any) -> str:
+        master.read_state()
+        return "; ".join(f"slave {i} ({slave.name}) in state 0x{slave.state:02X}, AL status code "
+                         f"0x{slave.al_status:04X}" for i, slave in enumerate(master.slaves, start=1)) or "no slaves"
+
+    def _bind(self, cycle: DriveCycle) -> None:
+        total_out, total = cycle.output_bytes, cycle.output_bytes + cycle.input_bytes
+        self._frame = new_frame(12 + total)
+        put_datagram(self._frame, 16, LRW, 0, 0, total)
+        self._reply = bytearray(len(self._frame) + 64)
+        self._wkc_at = DATA_AT + total
+        cycle.bind(self._frame, DATA_AT, self._reply, DATA_AT + total_out)
+        self.cycle = cycle
+        self._commands = np.zeros(self.n_inputs)
+        self._index = 0
+        self.socket = open_raw(self.interface, self.timeout_s)
+
+    def _exchange(self) -> int:
+        """Send the frame, take its answer; the working counter (-1: it did not come back in time)."""
+        frame, reply, sock = self._frame, self._reply, self.socket
+        index = self._index = (self._index + 1) & 0xFF
+        frame[17] = index
+        sock.send(frame)
+        for _ in range(16):  # a late answer of an earlier frame is passed over
+            try:
+                sock.recv_into(reply)
+            except TimeoutError:
+                return -1
+            if reply[17] == index and reply[16] == LRW:
+                return int(reply[self._wkc_at] | reply[self._wkc_at + 1] << 8)
+        return -1
+
+    def activate(self) -> None:
+        """At T0: OP is asked for (with any error acknowledged); the first exchanges carry the
+        drives' outputs from then on, and the enabling waits for every slave to be in OP."""
+        self._request_state(AL_OP | AL_ACK)
+        self.active = True
+
+    # --- the cycle ----------------------------------------------------------------------------------
+    def write(self, u: FloatVector) -> None:
+        np.copyto(self._commands, u)
+
+    def read(self, y: FloatVector) -> None:
+        cycle = self.cycle
+        assert cycle is not None
+        cycle.prepare_outputs(self._commands)
+        wkc = self._exchange()
+        # while the drives are enabled, every slave must exchange; before, a slave still on its way
+        # to OP writes no outputs (the drives stay disabled: the enabling waits, within its limit)
+        if wkc != self._expected_wkc and (cycle.enabled or wkc < 0):
+            raise DeviceFault(self._bus_problem(wkc))
+        cycle.take_inputs(y)
+
+    def _bus_problem(self, wkc: int) -> str:
+        cycle = self.cycle
+        assert cycle is not None
+        where = f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}"
+        if wkc < 0:
+            return (f"{where}: the LRW frame did not come back within {self.timeout_s * 1e6:.0f} µs "
+                    "(timeout_us): a slave lost, a cable pulled, or the frame lost")
+        lost = self._lost_slaves()
+        who = f"; not answering: {lost}" if lost else ""
+        return (f"{where}: working counter {wkc}, expected {self._expected_wkc} (every slave +3): a slave did not "
+                f"exchange its process data (lost, or out of OP){who}")
+
+    def _lost_slaves(self) -> str:
+        """Which joints' slaves do not answer a read of their AL status (outside the loop: a fault)."""
+        lost = []
+        for joint in self.joints:
+            frame = new_frame(12 + 2)
+            put_datagram(frame, 16, 4, 0x5A, (0x1000 + joint.slave) | 0x0130 << 16, 2)  # FPRD AL status
+            try:
+                self.socket.send(frame)
+                self.socket.recv_into(self._reply)
+                answered = self._reply[17] == 0x5A and struct.unpack_from("<H", self._reply, 28)[0] == 1
+            except OSError:
+                answered = False
+            if not answered:
+                lost.append(f"joint {joint.name!r} (slave {joint.slave})")
+        return ", ".join(lost)
+
+    # --- every way out ------------------------------------------------------------------------------
+    def write_safe(self, u: FloatVector) -> None:
+        """The safe transition: quick stop while enabled (the drive brakes on its own ramp), disable
+        voltage once at rest, then SAFE-OP. Before T0 the drives are disabled already."""
+        cycle = self.cycle
+        if cycle is None or not self.active:
+            return
+        self.active = False
+        deadline = time.monotonic() + self.quick_stop_timeout_s
+        scratch = np.zeros(self.n_outputs)
+        while time.monotonic() < deadline:
+            done = cycle.safe_outputs()
+            try:
+                if self._exchange() >= 0:
+                    cycle.take_inputs(scratch, check=False)
+            except OSError:
+                break
+            if done:
+                break
+            time.sleep(SAFE_STEP_S)
+        self._request_state(AL_SAFEOP)
+
+    def _request_state(self, state: int) -> None:
+        frame = new_frame(12 + 2)
+        put_datagram(frame, 16, BWR, 0x5B, 0x0120 << 16, 2)
+        struct.pack_into("<H", frame, DATA_AT, state)
+        try:
+            self.socket.send(frame)
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        if self.socket is not None:
+            self._request_state(AL_SAFEOP)
+            self.socket.close()
+        self.socket = None
+        self.cycle = None
+        self.active = False
+
+
+class EthercatTwin(Runnable):
+    """The device's twin: the same :class:`DriveCycle` exchanging with the emulated drives in process,
+    as the emulated slaves answer an LRW (the inputs they hold, then a step with the outputs)."""
+
+    def __init__(self, device: EthercatDevice) -> None:
+        self.device_name = device.name
+        self.joints: tuple[JointConfig, ...] = device.joints
+        self.n_inputs, self.n_outputs = device.n_inputs, device.n_outputs
+        self.input_names, self.output_names = device.input_names, device.output_names
+
+    def prerun(self) -> None:
+        from rtloop.io.drives.esc import tx_values
+
+        self._tx_values = tx_values
+        self.cycle = DriveCycle(self.device_name, self.joints)
+        self.drives = [DriveModel(joint.drive) for joint in self.joints]
+        self.outputs = bytearray(self.cycle.output_bytes)
+        self.inputs = bytearray(self.cycle.input_bytes)
+        self.cycle.bind(self.outputs, 0, self.inputs, 0)
+        self._publish()
+
+    def _publish(self) -> None:
+        at = 0
+        for joint, drive in zip(self.joints, self.drives, strict=True):
+            joint.tx.struct.pack_into(self.inputs, at, *self._tx_values(drive, joint.tx))
+            at += joint.tx.size
+
+    def _exchange(self) -> None:
+        self._publish()  # the answer carries what the drives held when the frame passed
+        at = 0
+        for joint, drive in zip(self.joints, self.drives, strict=True):
+            values = joint.rx.struct.unpack_from(self.outputs, at)
+            rx = joint.rx.position
+
+            def get(index: int, default: int, values: tuple[Any, ...] = values, rx: dict[int, int] = rx) -> int:
+                return int(values[rx[index]]) if index in rx else default
+
+            drive.exchange(get(0x6040, 0), get(0x6060, drive.mode), get(0x607A, 0), get(0x60FF, 0), get(0x6071, 0))
+            drive.events.clear()
+            at += joint.rx.size
+
+    def step(self, u: FloatVector, y: FloatVector) -> None:
+        self.cycle.prepare_outputs(u)
+        self._exchange()
+        self.cycle.take_inputs(y)
