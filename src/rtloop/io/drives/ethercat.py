@@ -208,9 +208,9 @@ class EthercatDevice(Device):
         finally:
             master.close()
 
-    # --- task process: configure, OP, keep alive until T0 -------------------------------------------
+    # --- task process: configure, OP, SAFE-OP -------------------------------------------
     def configure(self) -> None:
-        import pysoem  # type: ignore[import-untyped]  # pysoem ships no type information
+        import pysoem
 
         master = self._master()
         try:
