@@ -53,6 +53,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     add_simulate_arguments(parser)
     parser.add_argument("--require-rt", action="store_true",
                         help="refuse to start (exit 2, saying why) a run that would not be real time")
+    parser.add_argument("--trace-misses", action="store_true",
+                        help="record the kernel's scheduler and IRQ events on the tasks' CPUs, to name who held a "
+                             "late cycle's CPU (needs tracefs; without it, one line says so and the run goes on)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -81,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             summary = run_app(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force,
-                              on_progress=show_progress if interactive else None)
+                              on_progress=show_progress if interactive else None,
+                              trace_misses=args.trace_misses)
         finally:
             if interactive:
                 sys.stderr.write("\n")

@@ -69,6 +69,8 @@ class MissWatch:
         self.thread_ids: list[tuple[int, int]] = []
         self.scanned_ns = 0
         self.task_pids: frozenset[int] = frozenset()
+        self.tracer: Any = None
+        """``linux/trace.py:MissTracer`` with --trace-misses on a kernel that has the events."""
         self.decided: dict[tuple[str, int], tuple[str, str]] = {}
         """The latest misses' causes, (task, cycle) → (class, text): a task held by another's late step
         is late for that step's reason."""
@@ -110,10 +112,30 @@ class MissWatch:
         self.readings.setdefault(task, {})[cycle] = (before_cycle, before, reading)
         self.previous_reading[task] = (cycle, reading)
 
+    # --- the kernel's trace events (--trace-misses) ------------------------------------------------
+    def start_tracing(self) -> str:
+        """Arm the scheduler and IRQ events on the pinned tasks' CPUs; '' or why they are not there."""
+        from rtloop.linux.trace import open_tracer
+
+        cpus = {facts.cpu for facts in self.facts.values() if facts.cpu is not None}
+        if not cpus:
+            return "no task is pinned to a CPU (cpu = N): there is no CPU to trace"
+        self.tracer, why = open_tracer(cpus)
+        return why
+
+    def close(self) -> None:
+        if self.tracer is not None:
+            self.tracer.poll()  # the last events, before the buffers go
+            self.finish()
+            self.tracer.close()
+            self.tracer = None
+
     # --- between drains --------------------------------------------------------------------------
     def after_drain(self, now_ns: int, task_pids: frozenset[int] = frozenset()) -> None:
         """Sample the machine, then decide the misses the sample before this one already covered."""
         self.task_pids = task_pids
+        if self.tracer is not None:
+            self.tracer.poll()
         since_scan_ns = now_ns - self.scanned_ns
         waiting = any(miss.end_ns > self.scanned_ns for miss, _ in self.pending)
         if since_scan_ns >= THREAD_SCAN_INTERVAL_NS or (waiting and since_scan_ns >= THREAD_SCAN_MIN_INTERVAL_NS):
@@ -161,6 +183,8 @@ class MissWatch:
         self._window(miss, facts, evidence)
         self._same_cpu_tasks(miss, facts, evidence)
         self._simultaneous(miss, facts, evidence)
+        if self.tracer is not None and facts.cpu is not None:
+            evidence.traced = self.tracer.held(facts.cpu, miss.release_ns, miss.end_ns, self.task_pids)
         reading = self.readings.get(miss.task, {}).pop(miss.cycle, None)
         if reading is not None:
             before_cycle, before, now = reading

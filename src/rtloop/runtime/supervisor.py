@@ -126,7 +126,7 @@ class Supervisor:
     def __init__(self, app: App, duration_s: float | None, out: Path, *, trim: int,
                  keep_s: float | None = None, force: bool = False, limits: Limits = DEFAULT_LIMITS,
                  on_progress: Callable[[Progress], None] | None = None, on_notice: Callable[[str], None] | None = None,
-                 ) -> None:
+                 trace_misses: bool = False) -> None:
         allowance_s = startup_allowance_s(limits.startup_allowance_s)
         # Where the environment says start-up is slow (emulation, a small board), so is a task's way
         # from seeing T0 to its first release: T0's margin after the last READY grows in proportion.
@@ -160,6 +160,7 @@ class Supervisor:
         self.snapshots: list[Any] = []  # task snapshots received, not yet handed to the recorder
         self.snapshot_segment = 0  # the --keep segment whose start the tasks were last asked to snapshot
         self.misses = MissWatch(app)
+        self.trace_misses = trace_misses
         """Every miss's cause, from evidence gathered between drains (runtime/evidence.py)."""
 
     @property
@@ -195,6 +196,8 @@ class Supervisor:
     def _run_tasks(self, session: RunSession, capabilities: rt.Capabilities) -> None:
         layout, recorder = session.layout, session.recorder
         recorder.listeners.append(self.misses)
+        if self.trace_misses:  # the kernel's scheduler and IRQ events on the tasks' CPUs, or one line why not
+            self.device_problems += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
         self.bridges = Bridges(self.app)
         dma_latency = rt.CpuDmaLatency().__enter__()
         self.dma_latency_held = dma_latency.held  # read now: the summary is written after it is let go
@@ -219,6 +222,7 @@ class Supervisor:
             session.drain_after_stop(self.limits.stop_drain_budget_s)
             self._keep_snapshots(layout, recorder)
         finally:
+            self.misses.close()
             self.bridges.stop()
             if self.live is not None:
                 self.live.close()
@@ -809,14 +813,15 @@ def _describe_exit(exitcode: int) -> str:
 
 def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, keep_s: float | None = None,
         force: bool = False, limits: Limits = DEFAULT_LIMITS, on_progress: Callable[[Progress], None] | None = None,
-        ) -> RunSummary:
+        trace_misses: bool = False) -> RunSummary:
     """Run ``app`` in real time for ``duration_s`` (None: until SIGINT/SIGTERM); artifacts go into ``out``.
 
     ``keep_s``: keep only the last ``keep_s`` seconds of timing.csv, signals.csv and run.mcap,
     plus the cycles around every deadline miss, stale read or fault (None: keep everything).
     A folder that already holds a run is refused (:class:`~rtloop.runtime.session.RunDirectoryError`)
     unless ``force`` is true; then that run's files are removed first. ``on_progress`` is called
-    with a :class:`Progress` at every drain (the CLI draws its progress line with it).
+    with a :class:`Progress` at every drain (the CLI draws its progress line with it). ``trace_misses``:
+    record the kernel's scheduler and IRQ events on the tasks' CPUs, to name who held a late cycle's CPU.
     """
     return Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
-                      on_progress=on_progress).run()
+                      on_progress=on_progress, trace_misses=trace_misses).run()

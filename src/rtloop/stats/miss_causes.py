@@ -96,6 +96,9 @@ class Evidence:
     label, priority, relation, ran_ns."""
     simultaneous: list[dict[str, Any]] = field(default_factory=list)
     """Other tasks (other CPUs) that woke late at the same instant: task, cpu, latency_ns."""
+    traced: list[dict[str, Any]] = field(default_factory=list)
+    """With --trace-misses: who had the CPU between the release and the end, from the kernel's
+    scheduler and IRQ events (who, kind ``thread``/``irq``/``softirq``, ran_ns)."""
     counters: dict[str, int] | None = None
     """The task's own counters since its previous reading: since_cycle, bracketed (1: the reading
     before was at the cycle it ran just before, so these are this cycle's), on_cpu_ns,
@@ -105,7 +108,7 @@ class Evidence:
         out: dict[str, Any] = {"cpu": self.cpu}
         if self.window_ns:
             out.update(window_ns=self.window_ns, steal_ns=self.steal_ns, irq_ns=self.irq_ns)
-        largest = {"tasks": "overlap_ns", "threads": "ran_ns", "simultaneous": "latency_ns"}
+        largest = {"tasks": "overlap_ns", "threads": "ran_ns", "simultaneous": "latency_ns", "traced": "ran_ns"}
         for key, size in largest.items():
             if getattr(self, key):
                 out[key] = sorted(getattr(self, key), key=lambda item: -item[size])[:EVIDENCE_ITEMS]
@@ -158,6 +161,12 @@ def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, in
     if not ev.realtime and waited_ns >= need_ns:  # SCHED_OTHER: its own wait says more than any window
         return Cause(RUN_QUEUE, f"waited {ms(waited_ns)} on the run queue (SCHED_OTHER: it shares {cpu} with "
                                 f"every other thread; {counters.get('involuntary_switches', 0)} involuntary switches)")
+    traced = [t for t in ev.traced if t["ran_ns"] >= need_ns]
+    if traced:  # the kernel's own events: exact, so first
+        top = traced[0]
+        what = "held by an interrupt handler" if top["kind"] != "thread" else "held by another thread"
+        return Cause(IRQ if top["kind"] != "thread" else THREAD,
+                     f"{what}: {top['who']} had {cpu} for {ms(top['ran_ns'])} of the cycle (traced)")
     for other in sorted(ev.tasks, key=lambda t: -t["overlap_ns"]):
         if other["overlap_ns"] >= need_ns:
             who = ("a higher-priority task" if other["relation"] == "higher" else "a task of the same priority")

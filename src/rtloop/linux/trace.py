@@ -1,0 +1,194 @@
+"""``rtloop run --trace-misses``: the kernel's scheduler and IRQ trace events on the tasks' CPUs.
+
+Where the kernel has tracefs (Debian's kernels, its -rt ones with the osnoise and timerlat
+tracers too), a tracing instance of the run's own (``instances/rtloop-PID``: its own buffers,
+leaving the machine's tracing alone) records, on the tasks' CPUs only, every context switch
+(``sched:sched_switch``) and every IRQ and softirq handler (``irq:*``), stamped on
+CLOCK_MONOTONIC (``trace_clock mono``). The supervisor reads the buffers between drains
+(``poll``); for a late cycle, ``held`` says which threads and handlers had the CPU between its
+release and its end, to the µs. The timerlat tracer (what ``rtla timerlat --auto-analysis``
+uses) would add a FIFO-95 thread per CPU waking every period: a measurement that delays the
+tasks it explains; the plain events need no thread of their own.
+
+This machine's kernel has no tracefs at all: ``open_tracer`` then says so in one line and the
+run goes on with rtloop's own evidence.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+TRACEFS_PLACES = (Path("/sys/kernel/tracing"), Path("/sys/kernel/debug/tracing"))
+EVENTS = ("sched/sched_switch", "irq/irq_handler_entry", "irq/irq_handler_exit", "irq/softirq_entry",
+          "irq/softirq_exit")
+EVENTS_KEPT = 200_000
+"""Events kept per CPU (a 1 kHz task makes ~2000 context switches a second: ~1 min at least)."""
+BUFFER_KB = 4096
+_LINE = re.compile(r"^\s*(?P<comm>.+?)-(?P<pid>\d+)\s+\[(?P<cpu>\d+)\]\s+\S+\s+(?P<ts>\d+\.\d+):\s+"
+                   r"(?P<event>\w+):\s*(?P<rest>.*)$")
+_FIELD = re.compile(r"(\w+)=(\S+)")
+
+
+@dataclass(frozen=True)
+class Event:
+    at_ns: int
+    kind: str
+    """``switch`` (to ``who``), ``irq`` / ``softirq`` (``who`` its name), ``irq_end`` / ``softirq_end``."""
+    who: str
+
+
+def find_tracefs() -> Path | None:
+    for place in TRACEFS_PLACES:
+        if (place / "instances").is_dir() and (place / "events" / "sched" / "sched_switch").is_dir():
+            return place
+    return None
+
+
+def why_not() -> str:
+    """'' where --trace-misses can work here, else the one line that says why not."""
+    if find_tracefs() is None:
+        return ("this kernel has no tracefs with scheduler events (no /sys/kernel/tracing/events/sched; no "
+                "osnoise/timerlat tracers either): misses are explained from rtloop's own evidence")
+    return ""
+
+
+class MissTracer:
+    """A tracing instance on some CPUs, read between drains, asked about a window of one CPU."""
+
+    def __init__(self, tracefs: Path, cpus: set[int]) -> None:
+        self.root = tracefs / "instances" / f"rtloop-{os.getpid()}"
+        self.cpus = sorted(cpus)
+        self.events: dict[int, collections.deque[Event]] = {cpu: collections.deque(maxlen=EVENTS_KEPT)
+                                                            for cpu in self.cpus}
+        self.pipes: dict[int, int] = {}
+        self.partial: dict[int, bytes] = dict.fromkeys(self.cpus, b"")
+
+    def arm(self) -> None:
+        self.root.mkdir()
+        try:
+            (self.root / "trace_clock").write_text("mono")
+            (self.root / "buffer_size_kb").write_text(str(BUFFER_KB))
+            mask = sum(1 << cpu for cpu in self.cpus)
+            (self.root / "tracing_cpumask").write_text(f"{mask:x}")
+            for event in EVENTS:
+                with contextlib.suppress(OSError):  # a kernel without softirq events still traces the rest
+                    (self.root / "events" / event / "enable").write_text("1")
+            for cpu in self.cpus:
+                self.pipes[cpu] = os.open(self.root / "per_cpu" / f"cpu{cpu}" / "trace_pipe",
+                                          os.O_RDONLY | os.O_NONBLOCK)
+            (self.root / "tracing_on").write_text("1")
+        except OSError:
+            self.close()
+            raise
+
+    def poll(self) -> None:
+        """Take what the buffers hold now (never waits)."""
+        for cpu, fd in self.pipes.items():
+            chunks = [self.partial[cpu]]
+            while True:
+                try:
+                    chunk = os.read(fd, 1 << 16)
+                except BlockingIOError:
+                    break
+                if not chunk:
+                    break
+                chunks.append(chunk)
+            text = b"".join(chunks)
+            lines = text.split(b"\n")
+            self.partial[cpu] = lines.pop()
+            for line in lines:
+                event = parse(line.decode("utf-8", "replace"))
+                if event is not None:
+                    self.events[cpu].append(event)
+
+    def held(self, cpu: int, from_ns: int, to_ns: int, own_pids: frozenset[int]) -> list[dict[str, object]]:
+        """Who had ``cpu`` in [from_ns, to_ns]: threads (not ``own_pids``, not idle) and IRQ handlers,
+        the longest first: ``{"who", "kind", "ran_ns"}``."""
+        events = self.events.get(cpu)
+        if not events:
+            return []
+        ran: dict[tuple[str, str], int] = collections.Counter()
+        running, since = "", from_ns
+        entered: dict[str, int] = {}
+        names: dict[str, str] = {}
+        for event in events:
+            if event.at_ns > to_ns:
+                break
+            if event.kind == "switch":
+                if event.at_ns >= from_ns and running:
+                    ran[("thread", running)] += event.at_ns - max(since, from_ns)
+                running, since = event.who, event.at_ns
+            elif event.kind in ("irq", "softirq"):  # keyed by "IRQ 24": the exit event has no name
+                entered[event.kind + event.who.split(" (")[0]] = event.at_ns
+                names[event.kind + event.who.split(" (")[0]] = event.who
+            elif event.kind in ("irq_end", "softirq_end"):
+                key = event.kind[:-4] + event.who
+                start = entered.pop(key, None)
+                if start is not None and event.at_ns >= from_ns:
+                    ran[(event.kind[:-4], names.get(key, event.who))] += event.at_ns - max(start, from_ns)
+        if running:
+            ran[("thread", running)] += to_ns - max(since, from_ns)
+        found = []
+        for (kind, who), ran_ns in ran.items():
+            if kind == "thread" and (who.startswith("swapper/") or _pid_of(who) in own_pids):
+                continue
+            found.append({"who": who, "kind": kind, "ran_ns": ran_ns})
+        return sorted(found, key=lambda item: -int(item["ran_ns"]))  # type: ignore[call-overload]
+
+    def close(self) -> None:
+        for fd in self.pipes.values():
+            os.close(fd)
+        self.pipes.clear()
+        with contextlib.suppress(OSError):
+            (self.root / "tracing_on").write_text("0")
+        with contextlib.suppress(OSError):
+            self.root.rmdir()  # removes the instance and its buffers
+
+
+def _pid_of(who: str) -> int:
+    match = re.search(r"pid (\d+)", who)
+    return int(match.group(1)) if match else -1
+
+
+def parse(line: str) -> Event | None:
+    """One line of a trace pipe (the default text format), or None for anything else."""
+    match = _LINE.match(line)
+    if match is None:
+        return None
+    at_ns = round(float(match["ts"]) * 1e9)
+    fields = dict(_FIELD.findall(match["rest"]))
+    event = match["event"]
+    if event == "sched_switch":
+        # next_comm may hold spaces: take the text between next_comm= and next_pid=
+        rest = match["rest"]
+        name = rest[rest.find("next_comm=") + 10:rest.find(" next_pid=")]
+        prio = int(fields.get("next_prio", "120"))
+        policy = f"FIFO/RR {99 - prio}" if prio < 100 else "other"
+        return Event(at_ns, "switch", f"{name} (pid {fields.get('next_pid', '?')}, {policy})")
+    if event == "irq_handler_entry":
+        return Event(at_ns, "irq", f"IRQ {fields.get('irq', '?')} ({fields.get('name', '?')})")
+    if event == "irq_handler_exit":
+        return Event(at_ns, "irq_end", f"IRQ {fields.get('irq', '?')}")
+    if event in ("softirq_entry", "softirq_exit"):
+        action = fields.get("action", "?").strip("[]")
+        return Event(at_ns, "softirq" if event == "softirq_entry" else "softirq_end", f"softirq {action}")
+    return None
+
+
+def open_tracer(cpus: set[int]) -> tuple[MissTracer | None, str]:
+    """An armed tracer on ``cpus``, or None and the one line that says why not."""
+    tracefs = find_tracefs()
+    if tracefs is None:
+        return None, why_not()
+    tracer = MissTracer(tracefs, cpus)
+    try:
+        tracer.arm()
+    except OSError as error:
+        return None, f"tracefs at {tracefs} refused the tracing instance ({error}): misses are explained from " \
+                     "rtloop's own evidence"
+    return tracer, ""

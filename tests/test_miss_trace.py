@@ -1,0 +1,119 @@
+"""``rtloop run --trace-misses``: the kernel's scheduler and IRQ events name who held a late cycle's CPU.
+
+Parsing and attribution are tested on trace lines in the kernel's text format; on a kernel without
+tracefs (this machine's) the option is one line in the notes and the run goes on; in the PREEMPT_RT
+guest (tracefs, osnoise and timerlat built in) a thread the test starts holds the task's CPU and
+must be named by the trace.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import rtloop
+from conftest import scaled_ns, scaled_s, unique_name
+from rt_test_runnables import Noop
+from rtloop import App
+from rtloop.linux import trace
+from rtloop.stats.miss_causes import IRQ, THREAD, Evidence, Miss, explain
+
+SWITCH = ("{comm}-{pid} [001] d..2. {ts}: sched_switch: prev_comm={comm} prev_pid={pid} prev_prio=120 "
+          "prev_state=S ==> next_comm={next} next_pid={next_pid} next_prio={prio}")
+
+
+def _switch(ts: str, comm: str, pid: int, next_comm: str, next_pid: int, prio: int) -> str:
+    return "  " + SWITCH.format(comm=comm, pid=pid, ts=ts, next=next_comm, next_pid=next_pid, prio=prio)
+
+
+def test_trace_lines_are_parsed_into_switches_and_handlers() -> None:
+    switch = trace.parse(_switch("100.000100", "<idle>", 0, "rtloop hog", 77, 9))
+    assert switch == trace.Event(100_000_100_000, "switch", "rtloop hog (pid 77, FIFO/RR 90)")
+    irq = trace.parse("  <idle>-0 [001] d.h1. 100.000200: irq_handler_entry: irq=24 name=virtio0-input.0")
+    assert irq == trace.Event(100_000_200_000, "irq", "IRQ 24 (virtio0-input.0)")
+    assert trace.parse("  <idle>-0 [001] d.h1. 100.000300: irq_handler_exit: irq=24 ret=handled") == trace.Event(
+        100_000_300_000, "irq_end", "IRQ 24")
+    assert trace.parse("# tracer: nop") is None
+
+
+def test_held_sums_who_had_the_cpu_in_a_window() -> None:
+    tracer = trace.MissTracer(Path("/nonexistent"), {1})
+    lines = [_switch("100.000000", "<idle>", 0, "task", 10, 19),      # the task runs
+             _switch("100.000050", "task", 10, "swapper/1", 0, 120),  # and sleeps
+             _switch("100.001000", "swapper/1", 0, "rtloop-hog", 77, 9),  # the release: the hog has the CPU
+             "  rtloop-hog-77 [001] d.h1. 100.002000: irq_handler_entry: irq=24 name=eth0",
+             "  rtloop-hog-77 [001] d.h1. 100.002100: irq_handler_exit: irq=24 ret=handled",
+             _switch("100.004000", "rtloop-hog", 77, "task", 10, 19)]   # 3 ms later, the task
+    for line in lines:
+        event = trace.parse(line)
+        assert event is not None
+        tracer.events[1].append(event)
+    held = tracer.held(1, 100_001_000_000, 100_004_050_000, frozenset({10}))
+    assert held[0] == {"who": "rtloop-hog (pid 77, FIFO/RR 90)", "kind": "thread", "ran_ns": 3_000_000}
+    assert {"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 100_000} in held
+    assert all("task" not in item["who"] for item in held)  # the late task itself is not its own cause
+    miss = Miss("plant", 1, 100_001_000_000, 100_004_000_000, 100_004_050_000, 1_000_000)
+    cause = explain(miss, Evidence(cpu=1, traced=held))
+    assert cause.cls == THREAD
+    assert cause.text.startswith("held by another thread: rtloop-hog (pid 77, FIFO/RR 90) had CPU 1 for 3.0 ms")
+    irq_only = [{"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 2_900_000}]
+    assert explain(miss, Evidence(cpu=1, traced=irq_only)).cls == IRQ
+
+
+@pytest.mark.skipif(trace.find_tracefs() is not None, reason="this kernel has tracefs: the guest test covers it")
+def test_without_tracefs_trace_misses_is_one_note_and_the_run_goes_on(tmp_path: Path) -> None:
+    app = App(unique_name("trace_none"))
+    app.add_task("idle", Noop(), period_ns=10_000_000, policy="other", cpu=0)
+    summary = rtloop.run(app, 0.3, tmp_path / "run", trace_misses=True)
+    notes = [note for note in summary.notes if note.startswith("--trace-misses:")]
+    assert len(notes) == 1 and "no tracefs" in notes[0] and "\n" not in notes[0]
+    assert summary.tasks["idle"].timing.cycles > 0
+
+
+HOLDER = """
+import ctypes, os, sys, time
+ctypes.CDLL(None).prctl(15, b"rtloop-holder", 0, 0, 0)  # PR_SET_NAME: the name the trace shows
+os.sched_setaffinity(0, {int(sys.argv[1])})
+os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(90))
+print("holding", flush=True)
+while True:
+    busy_until = time.monotonic_ns() + int(sys.argv[2])
+    while time.monotonic_ns() < busy_until:
+        pass
+    time.sleep(int(sys.argv[3]) / 1e9)
+"""
+
+
+@pytest.mark.rtkernel
+@pytest.mark.rt
+@pytest.mark.timeout(1200)
+def test_in_the_guest_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -> None:
+    """A process of this test, at FIFO 90 on the task's CPU, spins for 8 periods now and then: the
+    task (FIFO 50) wakes late, and the trace names the thread (its comm, set here) as the holder."""
+    assert trace.find_tracefs() is not None, "the guest's kernel should have tracefs"
+    cpu = max(os.sched_getaffinity(0))
+    period_ns = scaled_ns(1_000_000)
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(cpu), str(8 * period_ns), str(40 * period_ns)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "holding"
+        app = App(unique_name("trace_guest"))
+        app.add_task("held", Noop(), period_ns=period_ns, priority=50, cpu=cpu)
+        rtloop.run(app, scaled_s(3.0), tmp_path / "run", trace_misses=True)
+    finally:
+        holder.kill()
+        holder.wait()
+        if holder.stdout is not None:
+            holder.stdout.close()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert not [note for note in summary["notes"] if note.startswith("--trace-misses:")], summary["notes"]
+    misses = summary["misses"]
+    assert misses["total"] > 0
+    traced = [m for m in misses["first"] if "(traced)" in m["cause"]]
+    assert traced, misses["first"]
+    assert any("rtloop-holder" in m["cause"] for m in traced), traced
