@@ -798,3 +798,58 @@ def test_a_can_cycle_refuses_frames_that_do_not_fit_and_lets_go_when_released():
     receiver.release()
     ours.close()
     peer.close()
+
+
+# --- a build that is not its sources' ------------------------------------------------------------
+
+
+def test_the_build_carries_the_digest_of_the_sources_it_was_built_from() -> None:
+    """setup.py passes the digest; io/compiled.py computes it the same way from the files here."""
+    from rtloop.io import compiled
+
+    assert compiled.sources_sha256() == devio.SOURCES_SHA256
+    assert "_devio.c" in compiled.source_names() and "devio_c/can.c" in compiled.source_names()
+
+
+def test_a_build_older_than_its_sources_is_not_used_and_says_so_once() -> None:
+    """Before: a stale _devio was used silently (its objects called with arguments they no longer take)."""
+    import subprocess
+    import sys
+
+    code = ("from rtloop.io import compiled\n"
+            "compiled.sources_sha256 = lambda folder=None: '0' * 64  # the sources changed since the build\n"
+            "print(compiled.devio(), compiled.devio())\n"
+            "print(compiled.why_python())\n")
+    env = {key: value for key, value in os.environ.items() if key != "RTLOOP_PURE_PYTHON"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60, check=True)
+    modules, why = done.stdout.splitlines()
+    assert modules == "None None"
+    assert "built from other sources" in why and "pip install -e ." in why
+    said = [line for line in done.stderr.splitlines() if "rtloop.io._devio" in line]
+    assert len(said) == 1 and "the Python references run" in said[0], done.stderr
+
+
+def test_a_compiled_guard_that_refuses_its_arguments_says_so_once(monkeypatch, capsys) -> None:
+    """Before: a TypeError from the compiled objects (a build and a Python side that disagree) fell back
+    to the numpy path without a word."""
+    from device_test_drivers import LogDevice
+    from rtloop.io import compiled, host
+
+    class Disagreeing:
+        SOURCES_SHA256 = ""
+
+        def Guard(self, *args):
+            raise TypeError("Guard() takes 7 arguments (8 given)")
+
+        Copies = Guard
+
+    monkeypatch.setattr(host, "devio", lambda: Disagreeing())
+    monkeypatch.setattr(compiled, "_said", set())
+    limits = [CommandLimit(-1.0, 1.0, 0.0)]
+    for _ in range(2):
+        device = LogDevice("dev", log="/dev/null", n_commands=1, n_readings=2)
+        wiring = DeviceWiring(device, "let", tuple(limits), ((slice(0, 1), slice(0, 1)),), ())
+        devices = TaskDevices("ctl", 1_000_000, [wiring], np.zeros(2), np.zeros(2))
+        assert devices.slots[0].compiled_guard is None  # the numpy reference runs
+    said = [line for line in capsys.readouterr().err.splitlines() if "refused its arguments" in line]
+    assert len(said) == 1 and "device 'dev'" in said[0] and "TypeError" in said[0]

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
-from rtloop.io.compiled import devio
+from rtloop.io.compiled import devio, refused
 from rtloop.io.device import CommandLimit, Device, FloatVector, fault
 from rtloop.io.limits import CommandGuard
 
@@ -83,7 +83,10 @@ class _Slot:
                                                      guard.out, self.command_copies, guard.rate_limited)
                 self.compiled_readings = compiled.Copies(checked)  # returns where a value is not finite
                 self.compiled_unchecked = compiled.Copies(unchecked) if unchecked else None
-            except (TypeError, ValueError, BufferError):  # a strided slice: the numpy way
+            except (ValueError, BufferError):  # a strided slice: the numpy way
+                self.compiled_guard = self.compiled_readings = self.compiled_unchecked = None
+            except TypeError as error:  # the build and this side disagree: the numpy way, said once
+                refused(f"device {name!r}", error)
                 self.compiled_guard = self.compiled_readings = self.compiled_unchecked = None
         # cycles whose read kept old values (a frame that came late): counted, the first ones kept
         self.stale_seen = self.stale_cycles = self.stale_run = self.stale_longest = 0
