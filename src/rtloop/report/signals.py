@@ -5,7 +5,7 @@ pairs inferred from its wiring), then the remaining signals one axis per unit, t
 without a unit one axis per task. Legends sit right of the axes, never over the traces.
 Every value holds from its time on, so traces are drawn as steps; rows missing from the
 recording break the line (a gap is never bridged). Live port writes are dotted vertical
-lines, labelled on the first axis. Long runs are drawn as a min/max envelope of at most
+lines, labelled on the first axis (overlaid: in each run's colour). Long runs are drawn as a min/max envelope of at most
 :data:`ENVELOPE_BUCKETS` buckets, so a day at 1 kHz plots as fast as a minute.
 """
 
@@ -130,20 +130,30 @@ def _legend(ax: Axes) -> None:
     ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, frameon=False, borderaxespad=0.0)
 
 
-def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str | None = None) -> int:
-    """Dotted lines where live port writes took effect; labelled on the first axis. Returns how many."""
-    events = sorted((float(t), port, values) for port, entry in inputs.items()
+def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str | None = None,
+                 labelled: set[tuple[float, str, tuple[float, ...]]] | None = None) -> int:
+    """Dotted lines where live port writes took effect, labelled on the first axis. Returns how many.
+
+    ``labelled``: writes already labelled by an earlier run of an overlay (a replay repeats its
+    run's writes at the same times): those get their line in this run's colour, no second label.
+    """
+    events = sorted((float(t), port, tuple(float(v) for v in values)) for port, entry in inputs.items()
                     for t, values in zip(entry.t_s, entry.values, strict=True))
+    if not axes:
+        return len(events)
     style: dict[str, Any] = {**INPUT_STYLE, **({"color": color} if color else {})}
     for ax in axes:
         for t, _, _ in events:
             ax.axvline(t, **style)
-    if events and len(events) <= MAX_LABELLED_INPUTS:
-        for t, port, values in events:
+    done = labelled if labelled is not None else set()
+    fresh = [event for event in events if event not in done]
+    if fresh and len(fresh) <= MAX_LABELLED_INPUTS:
+        for t, port, values in fresh:
             text = literal(f"{port} ← {', '.join(f'{v:g}' for v in values if v == v)}")
             axes[0].annotate(text, (t, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -2),
                              textcoords="offset points", rotation=90, va="top", ha="left", fontsize=7,
                              color=style["color"])
+    done.update(fresh)
     return len(events)
 
 
@@ -210,11 +220,14 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
         diff_ax.grid(True, alpha=0.3)
         if diff_ax.get_legend_handles_labels()[0]:
             _legend(diff_ax)
-    for r, (_, _, inputs) in enumerate(runs):
-        _mark_inputs(list(axes[::2]) if r == 0 else [], inputs)
+    labelled: set[tuple[float, str, tuple[float, ...]]] = set()
+    marked = [_mark_inputs(list(axes[::2]), inputs, RUN_COLORS[r % len(RUN_COLORS)], labelled)
+              for r, (_, _, inputs) in enumerate(runs)]
     axes[-1].set_xlabel(TIME_LABEL)
+    writes = "; ".join(f"{label}: {count}" for (label, _, _), count in zip(runs, marked, strict=True) if count)
+    note = f"; dotted, in each run's colour: live port writes ({writes})" if writes else ""
     fig.suptitle(literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
-                         f"difference to {reference_label} at common times"), fontsize=12)
+                         f"difference to {reference_label} at common times{note}"), fontsize=12)
     return fig
 
 
