@@ -375,7 +375,8 @@ def test_a_run_counts_its_stale_reads_per_cycle_in_summary_json_and_replay_says_
     assert report["stale_reads"] == report["stale_cycles"] == len(stale)  # one frame, once per cycle
     assert report["stale_reads_by_source"] == {"receive[0] (id 0x190)": len(stale)}
     assert report["longest_lag_cycles"] >= 2  # cycles 5 and 6 in a row
-    assert any(note.startswith(f"device 'drive' (task ctl): {len(stale)} stale reads") for note in summary["notes"])
+    assert any(note.startswith(f"device 'drive' (task ctl): {len(stale)} stale device reads")
+               for note in summary["notes"])
     with open(tmp_path / "run" / "signals.csv") as rows:
         readings = {round(float(row["t_s"]) * 1e9 / period_ns): float(row["ctl.u[0]"]) for row in csv.DictReader(rows)}
     for cycle in lost:

@@ -315,7 +315,7 @@ def test_jiwy_runs_on_the_rt_kernel_writes_its_report_and_reproduces_its_simulat
         cli("run", str(app), "--duration", duration_s, "--feed", feed, "--out", str(out), "-q")
         horizon_ns = _first_unclean_release_ns(out / "timing.csv", period_ns)
         tasks = json.loads((out / "summary.json").read_text())["tasks"]
-        misses.append((horizon_ns / 1e9, {name: (task["cycles"], task["overruns"], task["stale_reads"])
+        misses.append((horizon_ns / 1e9, {name: (task["cycles"], task["overruns"], task["stale_connection_reads"])
                                           for name, task in tasks.items()}))
         ran = (out / "signals.csv").read_text().splitlines()
         assert ran[0] == simulated[0]

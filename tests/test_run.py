@@ -46,7 +46,7 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     task = data["tasks"]["a"]
     assert (task["rt"], task["policy"], task["priority"], task["cpu"]) == (True, "fifo", 70, other_cpu())
     for key in ("period_ns", "cycles", "trimmed", "latency_ns", "period_jitter_ns", "exec_ns",
-                "deadline_misses", "overruns", "stale_reads", "jitter_over_3pct"):
+                "deadline_misses", "overruns", "stale_connection_reads", "stale_device_reads", "jitter_over_3pct"):
         assert key in task, key
     assert task["cycles"] + task["overruns"] == 500
     assert data["tasks"]["b"]["cycles"] + data["tasks"]["b"]["overruns"] == 250

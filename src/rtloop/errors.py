@@ -72,7 +72,8 @@ class TaskFailed(RtloopError, RuntimeError):
     Attributes:
         task: name of the task.
         cycle: cycle number at which it failed (``None`` if before the first cycle).
-        phase: ``"loading"`` (its class, in the task process), ``"prerun"``, ``"step"``, ``"postrun"`` or ``"process"``.
+        phase: ``"loading"`` (its class, in the task process), ``"prerun"``, ``"release"`` (its devices'
+            exchange before the step), ``"step"``, ``"device write after step"``, ``"postrun"`` or ``"process"``.
         traceback_text: the original traceback, formatted in the task process.
     """
 
@@ -85,7 +86,7 @@ class TaskFailed(RtloopError, RuntimeError):
         self.reason = reason
         self.traceback_text = traceback_text
         at = f" at cycle {cycle}" if cycle is not None else ""
-        super().__init__(f"task {task!r} failed in {phase}{at}: {reason}")
+        super().__init__(f"task {task!r} failed in {PHASE_WORDS.get(phase, phase)}{at}: {reason}")
 
     def __reduce__(self) -> tuple[type, tuple[str, int | None, str, str, str]]:
         return type(self), (self.task, self.cycle, self.phase, self.reason, self.traceback_text)
@@ -176,4 +177,24 @@ class DeviceFault(RtloopError, RuntimeError):
 
     The task stops, every device of the app is put in its safe state; the message names the
     task, the cycle and the device's signal.
+    """
+
+    phase: str | None = None
+    """Where in the cycle: :data:`RELEASE_PHASE` or :data:`AFTER_STEP_PHASE` (set by the task's devices)."""
+
+
+RELEASE_PHASE = "release"
+"""A task's phase: the devices' exchange at a release, before the step (the write of the commands the
+step before computed, io = "let", then the read)."""
+AFTER_STEP_PHASE = "device write after step"
+"""A task's phase: the write of an ``io = "immediate"`` device's commands, right after the step."""
+PHASE_WORDS = {RELEASE_PHASE: "the devices' write and read at the release, before the step,"}
+"""How a phase reads in ``failed in …`` where its name alone would not say it."""
+
+
+class NotRealTimeWarning(RuntimeWarning):
+    """``rtloop.run`` ran a task without a real-time policy (no privileges): its timing is not real time.
+
+    The run goes on (a laptop, a notebook); the summary's notes say it too. ``rtloop run`` prints
+    its own WARNING line instead, so it silences this one.
     """

@@ -19,11 +19,13 @@ import dataclasses
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from rtloop.app.byvalue import dumps_runnable
+from rtloop.app.hints import reissue_at_user, signal_hint
 from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.app.profiles import check_profile_file
 from rtloop.app.specs import (
@@ -142,7 +144,10 @@ class App:
                                f"{MAX_VECTOR_SIZE}, got {shorten(count)}")
         check_period = getattr(runnable, "check_period", None)
         if callable(check_period):
-            check_period(period_ns)
+            with warnings.catch_warnings(record=True) as caught:  # said again at the user's line, not ours
+                warnings.simplefilter("always")
+                check_period(period_ns)
+            reissue_at_user(caught, self.source, name)
         warn_about_step(name, runnable)  # `return y` or `y = ...` in step: outputs that never leave 0
         config = TaskConfig(name, period_ns, priority, cpu, policy, overrun, watchdog_periods,
                             max_consecutive_misses, lock_blas_buffer)
@@ -565,11 +570,13 @@ def parse_signal(text: str, app: App, where: str) -> SignalRef:
         named = _named_signal(text, app)
         if named is not None:
             return named
-        raise AppError(f"{where}: {shorten(text)} is not a signal; expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
+        raise AppError(f"{where}: {shorten(text)} is not a signal{signal_hint(text, app)}; "
+                       "expected e.g. 'plant.y[0:2]' or 'controller.u[3]'")
     task, side, start, stop = match.groups()
     block = app.block(task)
     if block is None:
-        raise AppError(f"{where}: {shorten(text)} names unknown task {shorten(task)}; tasks are {sorted(app.tasks)}")
+        raise AppError(f"{where}: {shorten(text)} names unknown task {shorten(task)}{signal_hint(text, app)}; "
+                       f"tasks are {sorted(app.tasks)}")
     vector = block.y if side == "y" else block.u
     if start is None:
         return vector.all

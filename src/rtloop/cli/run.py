@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rtloop.cli.arguments import count, port_feed, positive_seconds
-from rtloop.errors import AppError
+from rtloop.errors import AppError, NotRealTimeWarning
 from rtloop.stats import DEFAULT_TRIM
 
 if TYPE_CHECKING:
@@ -83,9 +84,11 @@ def run(args: argparse.Namespace) -> int:
         from rtloop.runtime.supervisor import run as run_app
 
         try:
-            summary = run_app(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force,
-                              on_progress=show_progress if interactive else None,
-                              trace_misses=args.trace_misses)
+            with warnings.catch_warnings():  # said by realtime_warnings below, on stderr, once
+                warnings.simplefilter("ignore", NotRealTimeWarning)
+                summary = run_app(app, args.duration, args.out, trim=args.trim, keep_s=keep_s, force=args.force,
+                                  on_progress=show_progress if interactive else None,
+                                  trace_misses=args.trace_misses)
         finally:
             if interactive:
                 sys.stderr.write("\n")
@@ -140,9 +143,11 @@ def realtime_warnings(summary: RunSummary) -> list[str]:
 
 def format_summary(summary: RunSummary, out: Path) -> str:
     """A short table of the run (its warnings go to stderr: :func:`realtime_warnings`)."""
+    from rtloop.record.summary import NOT_REAL_TIME_WORDS
+
     lines: list[str] = []
     header = (f"{'task':<14}{'cycles':>8} {'sched':<12}{'cpu':>4}  {'latency µs p50/p99/max':<26}"
-              f"{'exec µs p50/max':<18}{'misses':>7}{'overruns':>9}{'stale':>6}")
+              f"{'exec µs p50/max':<18}{'misses':>7}{'overruns':>9}{'stale conn/dev':>15}")
     lines.append(f"{summary.app}: {summary.mode} for {summary.elapsed_s:.1f} s, stopped by {summary.stopped_by}")
     lines.append(header)
     for name, task in summary.tasks.items():
@@ -154,8 +159,9 @@ def format_summary(summary: RunSummary, out: Path) -> str:
             execution = "/".join(_us(task.host_exec_ns[key]) for key in ("mean", "max")) + " host"
         else:
             execution = "/".join(_us(v) for v in (t.exec_ns.p50, t.exec_ns.max))
+        stale = f"{task.stale_reads}/{summary.stale_device_reads(name)}"  # connection reads / device reads
         lines.append(f"{name:<14}{t.cycles:>8} {sched:<12}{cpu:>4}  {latency:<26}{execution:<18}"
-                     f"{t.deadline_misses:>7}{t.overruns:>9}{task.stale_reads:>6}")
+                     f"{t.deadline_misses:>7}{t.overruns:>9}{stale:>15}")
         if task.host_exec_ns:
             host = task.host_exec_ns
             lines.append(f"  {name}: host execution time (not real time) mean {_us(host['mean'])} µs, "
@@ -165,7 +171,7 @@ def format_summary(summary: RunSummary, out: Path) -> str:
         idle = " (nobody read it: the queue filled, then dropped)" if unread else ""
         lines.append(f"port {name} ({port.direction}, {port.signal}): {port.describe()}{idle}")
     lines += [f"misses: {line}" for line in summary.misses.get("lines", [])]  # their causes (rtloop why)
-    lines += [f"note: {note}" for note in summary.notes]
+    lines += [f"note: {note}" for note in summary.notes if NOT_REAL_TIME_WORDS not in note]  # on stderr
     written = [name for name in ARTIFACTS if _holds_something(out / name)]
     lines.append(f"artifacts in {out}/: {', '.join(written)}")
     return "\n".join(lines)

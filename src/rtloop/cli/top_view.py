@@ -11,7 +11,7 @@ from rich.text import Text
 
 from rtloop.toolbox.monitor import LATENCY_MAX_NOTE, AppView, Monitor, TaskView, unreachable_notes
 
-COLUMNS = ("task", "state", "PID", "CPU", "sched", "cycle", "cyc/s", "overruns", "misses", "stale",
+COLUMNS = ("task", "state", "PID", "CPU", "sched", "cycle", "cyc/s", "overruns", "misses", "stale conn",
            "lat now µs", "lat max µs", "exec µs", "%CPU", "invol cs", "minflt", "majflt", "GC")
 
 
@@ -20,7 +20,7 @@ def _num(value: float | int | None, fmt: str = "{:,}") -> str:
 
 
 # Columns dropped first when the terminal is narrow (most important last).
-DROP_ORDER = ("GC", "majflt", "state", "cyc/s", "minflt", "PID", "invol cs", "stale", "CPU", "exec µs", "%CPU")
+DROP_ORDER = ("GC", "majflt", "state", "cyc/s", "minflt", "PID", "invol cs", "stale conn", "CPU", "exec µs", "%CPU")
 
 
 def _row_cells(t: TaskView) -> dict[str, str | Text]:
@@ -32,7 +32,7 @@ def _row_cells(t: TaskView) -> dict[str, str | Text]:
         "cycle": f"{t.cycles:,}", "cyc/s": _num(t.cycles_per_s, "{:,.0f}"),
         "overruns": Text(str(t.overruns), style=bad if t.overruns else ""),
         "misses": Text(str(t.deadline_misses), style=bad if t.deadline_misses else ""),
-        "stale": Text(str(t.stale_reads), style=bad if t.stale_reads else ""),
+        "stale conn": Text(str(t.stale_reads), style=bad if t.stale_reads else ""),
         "lat now µs": f"{t.latency_now_ns / 1e3:,.1f}", "lat max µs": f"{t.latency_max_ns / 1e3:,.1f}",
         "exec µs": f"{t.exec_last_ns / 1e3:,.1f}", "%CPU": _num(t.cpu_percent, "{:.1f}"),
         "invol cs": _num(t.nonvoluntary_ctxt_switches), "minflt": _num(t.minflt),

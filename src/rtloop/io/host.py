@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtloop.errors import DeviceError, DeviceFault
+from rtloop.errors import AFTER_STEP_PHASE, RELEASE_PHASE, DeviceError, DeviceFault
 from rtloop.io.compiled import devio, refused
 from rtloop.io.device import CommandLimit, Device, FloatVector, fault
 from rtloop.io.limits import CommandGuard
@@ -205,17 +205,25 @@ class TaskDevices:
 
     # --- every cycle ------------------------------------------------------------------------------
     def at_release(self, cycle: int) -> None:
-        for slot in self.let:  # the commands that hold from this release (computed by the job before)
-            slot.send(self.task, cycle)
-        for slot in self.slots:
-            slot.receive(self.task, cycle)
+        try:  # (a try costs nothing until it catches)
+            for slot in self.let:  # the commands that hold from this release (computed by the job before)
+                slot.send(self.task, cycle)
+            for slot in self.slots:
+                slot.receive(self.task, cycle)
+        except DeviceFault as error:  # not the step: the fault report says where it happened
+            error.phase = RELEASE_PHASE
+            raise
         for slot in self.may_be_stale:  # devices that keep old values (on_missing = "stale") rather than fail
             if slot.device.stale_reads != slot.stale_seen:
                 slot.note_stale(cycle)
 
     def after_step(self, cycle: int) -> None:
-        for slot in self.immediate:
-            slot.send(self.task, cycle)
+        try:
+            for slot in self.immediate:
+                slot.send(self.task, cycle)
+        except DeviceFault as error:
+            error.phase = AFTER_STEP_PHASE
+            raise
 
     def stale_report(self) -> dict[str, dict[str, object]]:
         """Per device: its stale reads, the cycles that had them (the first ones), the longest lag."""

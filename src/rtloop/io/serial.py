@@ -42,6 +42,7 @@ import numpy as np
 from rtloop.errors import DeviceError, DeviceFault
 from rtloop.io.device import HOUR_MS, Device, FloatVector, Setting
 from rtloop.sudo import trusted_uids, trusted_users_phrase
+from rtloop.text import counted
 
 REQUEST_SYNC = 0xA5
 RESPONSE_SYNC = 0x5A
@@ -295,7 +296,8 @@ class SerialDevice(Device):
         self.stale_by_source[missing] += 1
         self.stale_in_a_row += 1
         if self.stale_in_a_row >= self.max_stale_in_a_row:
-            raise DeviceFault(f"device {self.name!r}: no good answer to {self.stale_in_a_row} requests in a row "
+            raise DeviceFault(f"device {self.name!r}: no good answer to "
+                              f"{counted(self.stale_in_a_row, 'request')} in a row "
                               f"on {self.config['port']} (the last: {STALE_SOURCES[missing]}, {self._request()}; "
                               f"max_stale_in_a_row = {self.max_stale_in_a_row})")
 

@@ -22,6 +22,7 @@ import difflib
 import fcntl
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -313,12 +314,34 @@ def unreachable_app(name: str, refused: list[Refusal], command: str) -> AppNotRe
         return None
     owner, reason = why[0].denied_by_owner, why[0].reason
     if owner == 0:
-        return AppNotReachable(f"app {name!r} runs as root: run rtloop {command} as root too (tools/as-root "
-                               f".venv/bin/rtloop {command} ...); its registry: {reason}")
+        return AppNotReachable(f"app {name!r} runs as root: run rtloop {command} as root too "
+                               f"({as_root_command(command)} ...); its registry: {reason}")
     if owner is not None:
         return AppNotReachable(f"app {name!r} runs as uid {owner}: run rtloop {command} as that user; "
                                f"its registry: {reason}")
     return AppNotReachable(f"app {name!r}: registry refused: {reason}")
+
+
+def as_root_command(command: str) -> str:
+    """``rtloop COMMAND`` run as root, spelled so that it works from the caller's folder: this clone's
+    tools/as-root (``sudo`` outside a clone) and this environment's rtloop (or its Python's ``-m
+    rtloop``), each relative to the current folder when inside it, else absolute."""
+    import rtloop
+
+    try:
+        here = Path.cwd()
+    except OSError:  # the caller's folder was removed: absolute paths only
+        here = Path("/")
+
+    def spelled(path: Path) -> str:
+        if here != Path("/") and path.is_relative_to(here):
+            return str(path.relative_to(here))
+        return str(path)
+
+    as_root = Path(rtloop.__file__).resolve().parents[2] / "tools" / "as-root"  # src/rtloop/ → the clone
+    program = Path(sys.executable).parent / "rtloop"
+    runs_rtloop = spelled(program) if program.is_file() else f"{spelled(Path(sys.executable))} -m rtloop"
+    return f"{spelled(as_root) if as_root.is_file() else 'sudo'} {runs_rtloop} {command}"
 
 
 def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = None) -> RunningApp:

@@ -22,6 +22,7 @@ Gaps stay gaps: an empty cell or ``nan`` is NaN, and rows that are missing altog
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import tempfile
@@ -45,6 +46,8 @@ MEMORY_LIMIT_BYTES = 256 << 20
 """Files larger than this are parsed into a memory-mapped temporary file, not into memory."""
 TIMING_HEADER = b"task,cycle,release_ns,start_ns,end_ns"
 INPUTS_HEADER = b"task,cycle,port,values"
+TIME_COLUMN = "t_s"
+"""signals.csv's first column: the time from which each row holds."""
 SIDECAR = "signals.json"
 """Units, model names and plot groups of signals.csv's columns (written beside it)."""
 SEGMENTS_DIR = "segments"
@@ -62,7 +65,8 @@ class Signals(Mapping[str, FloatArray]):
     """``signals.csv``: a mapping from column name to its values, with the row times beside.
 
     ``signals["plant.omega"]`` is a float64 array with one value per row; NaN where the
-    signal has no value (not computed yet, or a gap in the recording).
+    signal has no value (not computed yet, or a gap in the recording). ``signals["t_s"]``, the
+    file's first column, is :attr:`t_s` (it is not among the names: it is no signal).
     """
 
     def __init__(self, t_s: FloatArray, names: tuple[str, ...], table: FloatArray,
@@ -85,7 +89,11 @@ class Signals(Mapping[str, FloatArray]):
     def __getitem__(self, name: str) -> FloatArray:
         index = self._index.get(name)
         if index is None:
-            raise KeyError(f"no signal {name!r}; signals are {list(self.names)}")
+            if name == TIME_COLUMN:  # signals.csv's first column: the same array as the attribute
+                return self.t_s
+            close = difflib.get_close_matches(str(name), [*self.names, TIME_COLUMN], n=1, cutoff=0.5)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise KeyError(f"no signal {shorten(name)}; {hint}signals are {shorten(list(self.names), 400)}")
         return self.table[:, index]
 
     def __iter__(self) -> Iterator[str]:

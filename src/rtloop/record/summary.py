@@ -12,6 +12,7 @@ from typing import Any, TypedDict
 
 from rtloop.newfile import open_new, write_new
 from rtloop.stats.timing import TaskTiming
+from rtloop.text import counted
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,7 +36,9 @@ class TaskSummary:
     timing: TaskTiming
     """Timing statistics."""
     stale_reads: int
-    """Connection reads that found an older value than the tick was entitled to."""
+    """Stale connection reads: reads of a connection that found an older value than the tick was
+    entitled to (its writer was late). ``stale_connection_reads`` in summary.json; a device's stale
+    reads are the other kind (:meth:`RunSummary.stale_device_reads`)."""
     timing_samples_dropped: int
     """Timing samples lost because the supervisor did not drain fast enough."""
     misses_in_a_row_max: int = 0
@@ -64,7 +67,7 @@ class TaskSummary:
             "rt_reason": self.rt_reason,
             "memory_locked": self.memory_locked,
             **{k: v for k, v in timing.items() if k != "period_ns"},
-            "stale_reads": self.stale_reads,
+            "stale_connection_reads": self.stale_reads,
             "timing_samples_dropped": self.timing_samples_dropped,
             "misses_in_a_row_max": self.misses_in_a_row_max,
             "nonfinite_values": self.nonfinite_values,
@@ -82,6 +85,21 @@ def nonfinite_notes(tasks: dict[str, TaskSummary]) -> list[str]:
             f"connection, the first {task.nonfinite_first}" for name, task in tasks.items() if task.nonfinite_values]
 
 
+REAL_TIME_POLICIES = ("fifo", "rr", "deadline")
+NOT_REAL_TIME_WORDS = "but did NOT run real-time"
+"""In each of :func:`not_real_time_notes`' sentences (the CLI prints those on stderr instead)."""
+
+
+def not_real_time_notes(tasks: dict[str, TaskSummary], requested: dict[str, str]) -> list[str]:
+    """A sentence for each task that asked for a real-time policy (``requested``: task → policy) and
+    ran without one (no privileges), and why. A task that asked for ``other`` got what it asked for."""
+    return [f"task {name!r} asked for {requested[name]} {NOT_REAL_TIME_WORDS} ({task.policy}): "
+            f"{task.rt_reason}; its timing is that of an ordinary process (run as root, e.g. through "
+            "tools/as-root, or give the user an rtprio limit: docs/service.md)"
+            for name, task in tasks.items()
+            if requested.get(name) in REAL_TIME_POLICIES and not task.rt and task.policy != "not started"]
+
+
 def stale_device_notes(devices: dict[str, dict[str, Any]]) -> list[str]:
     """A sentence for each device that read stale values (summary.json ``devices``)."""
     notes = []
@@ -90,9 +108,11 @@ def stale_device_notes(devices: dict[str, dict[str, Any]]) -> list[str]:
             first = (device.get("first_stale_cycles") or ["?"])[0]
             by_source = device.get("stale_reads_by_source") or {}
             sources = "; ".join(f"{source}: {count}" for source, count in by_source.items())
-            notes.append(f"device {name!r} (task {device.get('task')}): {device['stale_reads']} stale reads "
-                         f"({sources or 'the last good values kept'}) in {device.get('stale_cycles')} cycles, "
-                         f"the first at cycle {first}, the longest lag {device.get('longest_lag_cycles')} cycles "
+            lag, cycles = int(device.get("longest_lag_cycles") or 0), int(device.get("stale_cycles") or 0)
+            notes.append(f"device {name!r} (task {device.get('task')}): "
+                         f"{counted(int(device['stale_reads']), 'stale device read')} "
+                         f"({sources or 'the last good values kept'}) in {counted(cycles, 'cycle')}, "
+                         f"the first at cycle {first}, the longest lag {counted(lag, 'cycle')} "
                          "in a row. Those cycles used the last values that came: a simulation with the twin "
                          "differs from the first")
     return notes
@@ -236,7 +256,8 @@ class RunSummary:
             "failure": self.failure,
             "machine": self.machine,
             "notes": self.notes,
-            "tasks": {name: task.to_json() for name, task in self.tasks.items()},
+            "tasks": {name: {**task.to_json(), "stale_device_reads": self.stale_device_reads(name)}
+                      for name, task in self.tasks.items()},
             "ports": {name: port.to_json() for name, port in self.ports.items()},
             "bridges": self.bridges,
             "hot_path": self.hot_path,
@@ -245,6 +266,12 @@ class RunSummary:
             "switches": self.switches,
             **({"misses": self.misses} if self.mode == "run" else {}),
         }
+
+    def stale_device_reads(self, task: str) -> int:
+        """Stale device reads of ``task``: reads of its devices that kept the last values (a frame came
+        late), summed over them (each device's count: ``devices``)."""
+        return sum(int(device.get("stale_reads") or 0) for device in self.devices.values()
+                   if isinstance(device, dict) and device.get("task") == task)
 
     def write(self, path: Path) -> None:
         path.write_text(json.dumps(self.to_json(), indent=2) + "\n")

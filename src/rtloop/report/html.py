@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.report.data import Run
+from rtloop.text import counted, user_frames
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 1.5em auto; padding: 0 1em; max-width: 1320px; color: #222; }
@@ -72,7 +73,9 @@ METRICS: tuple[tuple[str, Any, bool], ...] = (
     ("cycles beyond ±3 % of P", lambda t: str(t.get("jitter_over_3pct", "–")), False),
     ("deadline misses", lambda t: str(t.get("deadline_misses", "–")), True),
     ("overruns (skipped releases)", lambda t: str(t.get("overruns", "–")), True),
-    ("stale reads", lambda t: str(t.get("stale_reads", "–")), True),
+    # the two kinds, as summary.json names them (an older run's summary has "stale_reads" for the first)
+    ("stale connection reads", lambda t: str(t.get("stale_connection_reads", t.get("stale_reads", "–"))), True),
+    ("stale device reads", lambda t: str(t.get("stale_device_reads", "–")), True),
 )
 
 
@@ -133,10 +136,10 @@ def criterion(run: Run, task: str) -> tuple[str, str]:
         problems.append(f"max |jitter| {worst_ns / 1e3:,.1f} µs &gt; {limit_ns / 1e3:g} µs "
                         f"({entry.get('jitter_over_3pct', '?')} cycles beyond)")
     if misses > allowed:
-        problems.append(f"{misses} deadline misses &gt; 0.01 % of {cycles:,} periods")
+        problems.append(f"{counted(misses, 'deadline miss', 'deadline misses')} &gt; 0.01 % of {cycles:,} periods")
     if not problems:
         return (f"met: max |jitter| {worst_ns / 1e3:,.1f} µs ≤ {limit_ns / 1e3:g} µs, "
-                f"{misses} deadline misses"), "ok"
+                f"{counted(misses, 'deadline miss', 'deadline misses')}"), "ok"
     return "not met: " + "; ".join(problems), "amber"
 
 
@@ -171,12 +174,23 @@ def machine_table(run: Run) -> str:
     machine = summary.get("machine") or {}
     facts = [
         ("app", summary.get("app")), ("mode", summary.get("mode")), ("started", summary.get("started")),
-        ("duration [s]", summary.get("duration_s")), ("stopped by", summary.get("stopped_by")),
+        ("duration [s]", _duration(summary)), ("stopped by", summary.get("stopped_by")),
         ("real-time capable", summary.get("rt_capable")),
         *((key.replace("_", " "), value) for key, value in machine.items()),
     ]
     rows = [_row([escape(str(k)), escape(_plain(v))]) for k, v in facts]
     return f"<table>{''.join(rows)}</table>"
+
+
+def _duration(summary: dict[str, Any]) -> str:
+    """How long the run ran; a run that ended before its duration (a failure, a stop) says both."""
+    asked, elapsed = summary.get("duration_s"), summary.get("elapsed_s")
+    if not isinstance(elapsed, int | float):  # a summary from before elapsed_s
+        return _plain(asked)
+    if summary.get("stopped_by") == "duration" and isinstance(asked, int | float):
+        return f"{asked:g}"
+    of = f" of the {asked:g} asked" if isinstance(asked, int | float) else " (until stopped)"
+    return f"{elapsed:.3f}{of}, stopped by {summary.get('stopped_by')}"
 
 
 def _plain(value: Any) -> str:
@@ -192,9 +206,8 @@ def banners(run: Run) -> str:
     if failure:
         where = ", ".join(f"{k} {failure[k]}" for k in ("task", "phase", "cycle") if failure.get(k) is not None)
         out.append(f'<div class="banner failure"><b>This run FAILED</b> ({escape(where)}): '
-                   f'{escape(str(failure.get("reason", "")))}'
-                   + (f"<pre>{escape(str(failure['traceback']))}</pre>" if failure.get("traceback") else "")
-                   + "The figures show the cycles recorded until then.</div>")
+                   f'{escape(str(failure.get("reason", "")))}{_traceback(str(failure.get("traceback") or ""))}'
+                   "The figures show the cycles recorded until then.</div>")
     non_rt = run.non_rt_tasks
     if non_rt:
         reasons = "; ".join(f"{escape(n)}: {escape(str(run.tasks[n].get('rt_reason') or 'no reason given'))}"
@@ -220,6 +233,16 @@ def misses_list(run: Run) -> str:
     items = "".join(f"<li>{escape(str(line))}</li>" for line in lines)
     return (f"<h3>Why cycles were late</h3><ul>{items}</ul><p>The evidence for one cycle: <code>rtloop why "
             f"{escape(str(run.path))} --cycle N</code>. The latency-over-time figure marks each miss.</p>")
+
+
+def _traceback(text: str) -> str:
+    """The failure's traceback, the user's own line first (Python lists it last, under rtloop's)."""
+    if not text:
+        return ""
+    own = user_frames(text)
+    first = (f"<p>In your code (innermost last):</p><pre>{escape(chr(10).join(own))}</pre>"
+             "<p>The whole traceback:</p>") if own else ""
+    return f"{first}<pre>{escape(text)}</pre>"
 
 
 def _host_exec(run: Run) -> str:

@@ -238,7 +238,8 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
     except Exception as error:  # the user's code raised: report it like a real run does
         import traceback
 
-        outcome.failure = TaskFailed(current, cycle if phase == "step" else None, phase,
+        where = getattr(error, "phase", None) or phase  # a device's fault says where in the cycle
+        outcome.failure = TaskFailed(current, cycle if phase == "step" else None, where,
                                      f"{type(error).__name__}: {error}", traceback.format_exc())
         outcome.stopped_by = "fault"
     finally:

@@ -21,6 +21,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,7 @@ from typing import Any
 
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import AppError, DeviceError, DeviceMismatch, DeviceNotReady, TaskFailed
+from rtloop.errors import AppError, DeviceError, DeviceMismatch, DeviceNotReady, NotRealTimeWarning, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once, hot_path
@@ -41,6 +42,7 @@ from rtloop.record.summary import (
     RunSummary,
     TaskSummary,
     nonfinite_notes,
+    not_real_time_notes,
     signal_names,
     slow_step_notes,
     stale_device_notes,
@@ -629,7 +631,8 @@ class Supervisor:
             stopped_by=self._stopped_by(running),
             failure=self.failure.to_json() if self.failure else None,
             machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
-            notes=[*slow_step_notes(tasks),
+            notes=[*not_real_time_notes(tasks, requested_policies(self.app)),
+                   *slow_step_notes(tasks),
                    *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
                    *nonfinite_notes(tasks), *stale_device_notes(self.device_reads), *self.memory.notes()],
             devices=self.device_reads,
@@ -640,6 +643,11 @@ class Supervisor:
             switches=recorder.switches.to_json(),
             misses=self.misses.summary(final=not running),
         )
+
+
+def requested_policies(app: App) -> dict[str, str]:
+    """Each task's scheduling policy as the app asks for it."""
+    return {name: spec.config.policy for name, spec in app.tasks.items()}
 
 
 def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
@@ -823,5 +831,9 @@ def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, 
     with a :class:`Progress` at every drain (the CLI draws its progress line with it). ``trace_misses``:
     record the kernel's scheduler and IRQ events on the tasks' CPUs, to name who held a late cycle's CPU.
     """
-    return Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
-                      on_progress=on_progress, trace_misses=trace_misses).run()
+    summary = Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
+                         on_progress=on_progress, trace_misses=trace_misses).run()
+    # a notebook sees it (the summary's notes say it too); rtloop run prints its own WARNING line
+    for note in not_real_time_notes(summary.tasks, requested_policies(app)):
+        warnings.warn(note, NotRealTimeWarning, stacklevel=2)
+    return summary

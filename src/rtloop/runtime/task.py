@@ -32,6 +32,7 @@ from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable, TickInfo
 from rtloop.runtime.snapshot import take  # here, not at the first snapshot: no import inside the loop
+from rtloop.text import counted
 
 T0_POLL_S = 0.001
 LATE_READINGS_PER_RUN = 1000
@@ -149,7 +150,8 @@ class RealtimeTask:
                 elif done == SNAPSHOT_DUE:  # a --keep run wants the state here, to replay a window from it
                     self.on_snapshot(cycle.cycle, t0_ns)
                 elif not done:  # too many deadline misses in a row (max_consecutive_misses)
-                    raise DeadlineMissesExceeded(f"{limit} deadline misses in a row (max_consecutive_misses = {limit})")
+                    raise DeadlineMissesExceeded(f"{counted(limit, 'deadline miss', 'deadline misses')} in a row "
+                                                 f"(max_consecutive_misses = {limit})")
         except StopRequested:
             raise  # an orderly end, said by the caller
         except BaseException:
@@ -312,7 +314,7 @@ def task_process_main(
         _report(
             pipe,
             kind="failed",
-            phase=phase,
+            phase=getattr(error, "phase", None) or phase,  # a device's fault says where in the cycle
             cycle=task.cycle if phase == "step" else None,
             reason=f"{type(error).__name__}: {error}",
             traceback="" if isinstance(error, DeadlineMissesExceeded) else traceback.format_exc(),

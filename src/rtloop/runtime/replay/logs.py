@@ -19,6 +19,7 @@ from rtloop.record.csvfiles import column_names, read_inputs_csv
 from rtloop.record.jsonfile import parse_json
 from rtloop.runtime.session import UNFINISHED_FOLDER
 from rtloop.runtime.simulate import PortWrites
+from rtloop.text import counted
 
 
 @dataclass(frozen=True)
@@ -175,8 +176,9 @@ def stale_device_note(name: str, device: dict[str, Any]) -> str:
     """The replay's log line for a device that read stale values in the run (summary.json ``devices``)."""
     count, cycles = int(device.get("stale_cycles") or 0), list(device.get("first_stale_cycles") or [])
     shown = ", ".join(str(cycle) for cycle in cycles[:10]) + (", …" if count > 10 else "")
-    return (f"device {name!r} read stale values in {count} cycles ({shown}; the longest lag "
-            f"{device.get('longest_lag_cycles')} cycles in a row): played back as the run read them")
+    lag = int(device.get("longest_lag_cycles") or 0)
+    return (f"device {name!r} read stale values in {counted(count, 'cycle')} ({shown}; the longest lag "
+            f"{counted(lag, 'cycle')} in a row): played back as the run read them")
 
 
 def recording_losses(recording: dict[str, Any], run_dir: Path) -> dict[str, dict[str, int]]:
