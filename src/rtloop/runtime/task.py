@@ -150,7 +150,7 @@ class RealtimeTask:
                 elif done == SNAPSHOT_DUE:  # a --keep run wants the state here, to replay a window from it
                     self.on_snapshot(cycle.cycle, t0_ns)
                 elif not done:  # too many deadline misses in a row (max_consecutive_misses)
-                    raise DeadlineMissesExceeded(f"{counted(limit, 'deadline miss', 'deadline misses')} in a row "
+                    raise DeadlineMissesExceeded(f"{counted(limit or 0, 'deadline miss', 'deadline misses')} in a row "
                                                  f"(max_consecutive_misses = {limit})")
         except StopRequested:
             raise  # an orderly end, said by the caller
