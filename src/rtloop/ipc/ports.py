@@ -326,8 +326,6 @@ def as_root_command(command: str) -> str:
     """``rtloop COMMAND`` run as root, spelled so that it works from the caller's folder: this clone's
     tools/as-root (``sudo`` outside a clone) and this environment's rtloop (or its Python's ``-m
     rtloop``), each relative to the current folder when inside it, else absolute."""
-    import rtloop
-
     try:
         here = Path.cwd()
     except OSError:  # the caller's folder was removed: absolute paths only
@@ -338,7 +336,7 @@ def as_root_command(command: str) -> str:
             return str(path.relative_to(here))
         return str(path)
 
-    as_root = Path(rtloop.__file__).resolve().parents[2] / "tools" / "as-root"  # src/rtloop/ → the clone
+    as_root = Path(__file__).resolve().parents[3] / "tools" / "as-root"  # src/rtloop/ipc/ → the clone
     program = Path(sys.executable).parent / "rtloop"
     runs_rtloop = spelled(program) if program.is_file() else f"{spelled(Path(sys.executable))} -m rtloop"
     return f"{spelled(as_root) if as_root.is_file() else 'sudo'} {runs_rtloop} {command}"
