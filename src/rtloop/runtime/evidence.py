@@ -68,6 +68,7 @@ class MissWatch:
         self.previous_reading: dict[str, tuple[int, tuple[int, ...]]] = {}
         self.thread_ids: list[tuple[int, int]] = []
         self.scanned_ns = 0
+        self.scan_cost_ns = 0
         self.task_pids: frozenset[int] = frozenset()
         self.tracer: Any = None
         """``linux/trace.py:MissTracer`` with --trace-misses on a kernel that has the events."""
@@ -138,9 +139,12 @@ class MissWatch:
             self.tracer.poll()
         since_scan_ns = now_ns - self.scanned_ns
         waiting = any(miss.end_ns > self.scanned_ns for miss, _ in self.pending)
-        if since_scan_ns >= THREAD_SCAN_INTERVAL_NS or (waiting and since_scan_ns >= THREAD_SCAN_MIN_INTERVAL_NS):
+        # a walk costs ~15 ms (more on a loaded machine): never more than a tenth of the supervisor's time
+        soonest_ns = max(THREAD_SCAN_MIN_INTERVAL_NS, 10 * self.scan_cost_ns)
+        if since_scan_ns >= max(THREAD_SCAN_INTERVAL_NS, soonest_ns) or (waiting and since_scan_ns >= soonest_ns):
             self.thread_ids = cpustat.realtime_threads(exclude_pids=task_pids)
             self.scanned_ns = now_ns
+            self.scan_cost_ns = time.monotonic_ns() - now_ns
         threads = {}
         for pid, tid in self.thread_ids:
             info = cpustat.read_thread(pid, tid)

@@ -198,6 +198,7 @@ class Supervisor:
     def _run_tasks(self, session: RunSession, capabilities: rt.Capabilities) -> None:
         layout, recorder = session.layout, session.recorder
         recorder.listeners.append(self.misses)
+        self.misses.after_drain(rt.now_ns())  # the first sample: misses of the first cycles have one before them
         if self.trace_misses:  # the kernel's scheduler and IRQ events on the tasks' CPUs, or one line why not
             self.device_problems += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
         self.bridges = Bridges(self.app)

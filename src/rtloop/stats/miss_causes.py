@@ -146,7 +146,7 @@ def explain(miss: Miss, evidence: Evidence) -> Cause:
     found = _interference(miss, evidence, lost_ns, counters if recent else {})
     if found is not None:
         return Cause(found.cls, f"{found.text}; {timing}")
-    if miss.kind == OVERRUN and exec_ns >= period:
+    if miss.kind == OVERRUN and exec_ns >= period and step_cpu_ns is None:
         return Cause(STEP, f"step overran: {ms(exec_ns)} of a {ms(period)} period (nothing else ran meanwhile "
                            "as far as the evidence shows)")
     return Cause(UNEXPLAINED, f"unexplained: {timing}; no evidence names who held the CPU"
@@ -156,7 +156,7 @@ def explain(miss: Miss, evidence: Evidence) -> Cause:
 def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, int]) -> Cause | None:
     """The first candidate, in ``CLASS_ORDER``, that took at least half the time the cycle lost."""
     need_ns = SUFFICIENT * lost_ns
-    cpu = f"CPU {ev.cpu}" if ev.cpu is not None else "its CPU"
+    cpu = f"CPU {ev.cpu}" if ev.cpu is not None else "a CPU (the task is not pinned)"
     waited_ns = counters.get("run_delay_ns", -1)
     if not ev.realtime and waited_ns >= need_ns:  # SCHED_OTHER: its own wait says more than any window
         return Cause(RUN_QUEUE, f"waited {ms(waited_ns)} on the run queue (SCHED_OTHER: it shares {cpu} with "
