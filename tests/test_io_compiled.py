@@ -665,7 +665,7 @@ def test_can_a_list_goes_the_reference_way_and_the_heartbeat_counts_on(monkeypat
 
 
 def test_can_a_failed_send_is_the_same_device_fault(monkeypatch):
-    """A send the bus refuses is a field event (tests/test_can_link.py): the same DeviceFault from both."""
+    """A send the bus refuses is a field event (tests/test_io_can_link.py): the same DeviceFault from both."""
     from rtloop.errors import DeviceFault
 
     pair = can_pair(monkeypatch)

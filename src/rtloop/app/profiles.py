@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.errors import AppError, ConnectionSizeError
+from rtloop.seconds import ns_from_seconds
 
 MAX_PROFILE_BYTES = 64 << 20
 """64 MiB: hours of a 1 kHz profile; parsing one this large holds about 0.4 GB for a moment."""
@@ -115,7 +116,7 @@ def load_profile(path: Path, size: int, where: str,
                 if not low <= value <= high:
                     raise AppError(f"{where}: {path}:{line_number}: column {column.strip()!r} is {value!r}, outside "
                                    f"the port's range [{low!r}, {high!r}]")
-        t_ns = round(numbers[0] * 1e9)
+        t_ns = ns_from_seconds(row[0])  # exactly: a float's nanoseconds drift after 104 days
         if count and t_ns <= times[count - 1]:
             raise AppError(f"{where}: {path}:{line_number}: t_s must increase")
         times[count] = t_ns

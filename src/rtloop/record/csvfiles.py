@@ -11,6 +11,7 @@ signals.csv ``t_s`` then one column per recorded signal. A row holds the values 
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import TextIO
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from rtloop.app.specs import SignalRef
 from rtloop.ipc.schema import NO_STAMP  # a read that found no sample at all
+from rtloop.seconds import seconds_text
 
 
 class TimingCsv:
@@ -169,8 +171,10 @@ class SignalsCsv:
     hold from 0. Columns are named by the model's variable names where the runnable
     gives them (``plant.AnglePan``), else by index (``plant.y[0]``).
 
-    Rows are written once every recorded stream has delivered the values up to that
-    time, so the file grows during the run. The work is done on numpy blocks: the union
+    Rows are written once every recorded stream's values are known up to that time (a
+    stream's next row comes a period after its newest at the earliest), so the file grows
+    during the run and a slow task holds back only the rows of its cycle in progress. The
+    work is done on numpy blocks: the union
     of the streams' times, then for each stream the index of its value valid at each
     time (``searchsorted``), and one ``%`` formatting call per block for the text
     (``%r``: the shortest text that reads back as the same float).
@@ -207,7 +211,11 @@ class SignalsCsv:
         self.pending: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {
             s: [] for s in self.streams}
         """Per stream, blocks of (times ns, values, lost?) not written yet, in time order."""
-        self.delivered_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
+        self.known_through_ns: dict[tuple[str, str], int] = dict.fromkeys(self.streams, -1)
+        """Per stream, the time up to which its values are known: a stream's next row comes one period
+        after its newest at the earliest, so a slow task holds back only the rows of its own cycle in
+        progress, never a whole period's worth of a fast one's (a 1-hour task beside a 1 kHz one held
+        3.6 M rows when the rows waited for the slow task's next row)."""
         self.held = {s: np.full(len(self.takes[s]), np.nan) for s in self.streams}
         """Per stream, the values valid at the last row written (NaN: none yet)."""
         self.gap: dict[tuple[str, str], bool] = dict.fromkeys(self.streams, False)
@@ -252,7 +260,7 @@ class SignalsCsv:
                 block_times, values, lost = block_times[order], values[order], lost[order]
             if block_times.size:
                 self.pending[stream].append((block_times, values, lost))
-            self.delivered_ns[stream] = max(self.delivered_ns[stream], int(times[-1]))
+            self.known_through_ns[stream] = max(self.known_through_ns[stream], int(times[-1]) + period - 1)
 
     def _gaps(self, task: str, ticks: np.ndarray, lost_so_far: int) -> list[int]:
         """First ticks of the gaps lost rows left (a skipped release leaves a gap too: it is no loss).
@@ -304,7 +312,7 @@ class SignalsCsv:
                                                          np.full((1, width), np.nan), np.ones(1, dtype=bool)))
             self.unexplained.clear()
         # at the end everything pending is written, the marks of rows lost at the very end included
-        horizon = np.iinfo(np.int64).max if final else min(self.delivered_ns.values())
+        horizon = np.iinfo(np.int64).max if final else min(self.known_through_ns.values())
         ready: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for stream in self.streams:
             blocks = self.pending[stream]
@@ -367,18 +375,19 @@ def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
 
 
 def _csv_block(t_ns: np.ndarray, table: np.ndarray, lost_cells: np.ndarray) -> str:
-    """signals.csv lines: ``repr`` of every value (NaN as nan, ±inf as inf/-inf), a lost value as an empty cell.
+    """signals.csv lines: ``t_s`` exactly (:func:`rtloop.seconds.seconds_text`: it reads back to the
+    nanosecond), then ``repr`` of every value (NaN as nan, ±inf as inf/-inf), a lost value as an empty cell.
 
     One ``%`` formatting call for the rows without a lost cell: Python's ``%r`` of a float
     is its ``repr``, the shortest text that reads back as the same float.
     """
     width = table.shape[1]
-    cells = np.column_stack((t_ns / 1e9, table)) if width else (t_ns / 1e9)[:, None]
+    times = [seconds_text(t) for t in t_ns.tolist()]
     if not lost_cells.any():
-        line = ",".join(["%r"] * (width + 1)) + "\n"
-        return (line * len(t_ns)) % tuple(cells.ravel().tolist())
+        line = ",".join(["%s", *["%r"] * width]) + "\n"
+        cells = itertools.chain.from_iterable((t, *row) for t, row in zip(times, table.tolist(), strict=True))
+        return (line * len(times)) % tuple(cells)
     lines = []
-    for row, lost in zip(cells.tolist(), lost_cells.tolist(), strict=True):
-        lines.append(",".join([repr(row[0])] + ["" if gone else repr(v) for v, gone in zip(row[1:], lost,
-                                                                                           strict=True)]) + "\n")
+    for t, row, lost in zip(times, table.tolist(), lost_cells.tolist(), strict=True):
+        lines.append(",".join([t] + ["" if gone else repr(v) for v, gone in zip(row, lost, strict=True)]) + "\n")
     return "".join(lines)

@@ -14,6 +14,7 @@ from rtloop.record.csvfiles import column_names
 from rtloop.runtime.replay.logs import CycleRecord, whole_lines
 from rtloop.runtime.replay.timeline import RunTimeline
 from rtloop.runtime.simulate import PortWrites, simulate
+from rtloop.seconds import ns_from_seconds
 
 DIVERGENCE_DIR = "divergence"
 """Inside the replay's folder: the short second replay that captures the inputs of the first divergence."""
@@ -95,9 +96,9 @@ def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | No
     if not run_rows:
         return 0, 0, None
     header, rows = run_rows[0], run_rows[1:]
-    rows = [row for row in rows if from_ns <= round(float(row[0]) * 1e9) and (
-        until_ns is None or round(float(row[0]) * 1e9) < until_ns)]
-    replay_rows = replay_rows[:1] + [row for row in replay_rows[1:] if round(float(row[0]) * 1e9) >= from_ns]
+    rows = [row for row in rows if from_ns <= ns_from_seconds(row[0]) and (
+        until_ns is None or ns_from_seconds(row[0]) < until_ns)]
+    replay_rows = replay_rows[:1] + [row for row in replay_rows[1:] if ns_from_seconds(row[0]) >= from_ns]
     if replay_rows[:1] != [header]:
         got = replay_rows[0] if replay_rows else []
         return len(rows), 0, Divergence(0.0, "", 0, (("columns", ",".join(header), ",".join(got)),))
@@ -108,7 +109,7 @@ def compare_replay(run_csv: Path, replay_csv: Path, app: App, until_ns: int | No
         replay_row = replay_rows[index + 1] if index + 1 < len(replay_rows) else None
         if replay_row == run_row:
             continue
-        t_ns = round(float(run_row[0]) * 1e9)
+        t_ns = ns_from_seconds(run_row[0])
         if replay_row is None or replay_row[0] != run_row[0]:
             other = "none" if replay_row is None else f"t = {replay_row[0]}"
             return len(rows), index, Divergence(float(run_row[0]), "", 0, (("row", f"t = {run_row[0]}", other),))

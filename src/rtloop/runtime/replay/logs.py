@@ -19,6 +19,7 @@ from rtloop.record.csvfiles import column_names, read_inputs_csv
 from rtloop.record.jsonfile import parse_json
 from rtloop.runtime.session import UNFINISHED_FOLDER
 from rtloop.runtime.simulate import PortWrites
+from rtloop.seconds import ns_from_seconds
 from rtloop.text import counted
 
 
@@ -87,7 +88,7 @@ def play_back_devices(app: App, run_dir: Path) -> None:
                                "read): a run of an older rtloop; it cannot be replayed without the device")
             columns = [header[name] for name in names]
             for row in rows[1:]:
-                t_ns = round(float(row[0]) * 1e9)
+                t_ns = ns_from_seconds(row[0])
                 cycle = t_ns // period_ns  # inputs are recorded at the release that read them (outputs at t + P)
                 if cycle < 0 or t_ns % period_ns or any(row[c] == "" for c in columns):
                     continue
