@@ -385,3 +385,13 @@ class SpinFor(Runnable):
         end_ns = time.monotonic_ns() + self.spin_ns
         while time.monotonic_ns() < end_ns:
             pass
+
+
+class TunedGain(Runnable):
+    """y[0] = k, a live parameter (its only input): what a Parameters panel tunes."""
+
+    n_inputs, n_outputs = 0, 1
+    parameters = {"k": 2.0}  # noqa: RUF012 — live parameters are declared so
+
+    def step(self, u, y) -> None:
+        y[0] = self.k

@@ -123,6 +123,32 @@ def test_the_pi_closes_the_loop_over_a_pty_and_equals_its_simulation(tmp_path: P
     assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 
+def test_a_motor_not_at_rest_runs_in_step_with_its_twin_from_row_0(tmp_path: Path) -> None:
+    """The safe exchange at configure (request 0) moves the driver's motor on by one period before
+    T0: the twin must see it too, or every row of the run is one step ahead of its simulation (a
+    motor at rest hides it: a step at 0 V from rest stays at rest)."""
+    spinning = Driver(tmp_path, 500.0, "--initial-speed-rad-s", "300")
+    try:
+        app_file = example_file(tmp_path, spinning.link, "dcm_serial_spin")
+        text = app_file.read_text().replace('twin = "serial_motor:MotorDriverTwin"',
+                                            'twin = "serial_motor:MotorDriverTwin"\n'
+                                            "twin_args = { initial_speed_rad_s = 300.0 }")
+        app_file.write_text(text)
+        rtloop.run(load_app(app_file), 0.5, tmp_path / "run")
+    finally:
+        spinning.stop()
+    rtloop.simulate(load_app(app_file), 0.5, tmp_path / "sim")
+    run = np.genfromtxt(tmp_path / "run" / "signals.csv", delimiter=",", names=True)
+    sim = np.genfromtxt(tmp_path / "sim" / "signals.csv", delimiter=",", names=True)
+    assert run["t_s"][0] == sim["t_s"][0] == 0.0
+    assert 250.0 < sim["pispeed_rad_s"][0] < 300.0  # one safe exchange at 0 V before T0: the shaft slowed
+    assert run["pispeed_rad_s"][0] == sim["pispeed_rad_s"][0]  # the first reading, whatever the timing after it
+    miss_s = first_miss_s(tmp_path / "run")
+    compared, difference = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", miss_s)
+    assert difference is None, f"run and simulation differ at t = {difference} s (first miss at {miss_s} s)"
+    assert compared >= 1
+
+
 def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path) -> None:
     """The example as written (``on_missing = "stale"``) against a driver that answers every 25th
     request 2.5 ms late: each late answer is one cycle on the last reading (its answer passed over

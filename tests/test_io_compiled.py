@@ -121,9 +121,12 @@ def test_the_guard_and_the_copies_are_the_references_bit_for_bit(monkeypatch):
             task_y[:] = rng.normal(0, 3, 5) * rng.choice([1e-3, 1, 1e3], 5)
             devices.at_release(cycle)
             seen.append(task_u.tobytes())
-        runs.append((written, seen))
+        counted = (slot.guard.clamped.tolist(), slot.guard.rate_limited_cycles.tolist())
+        runs.append((written, seen, counted))
     assert runs[0] == runs[1]
     assert len(set(runs[0][0])) > 400  # the commands moved (clamped and rate limited, not stuck)
+    clamped, rate_limited = runs[0][2]
+    assert all(clamped) and rate_limited[0] > 0 and rate_limited[1] == 0  # counted alike; no rate, no count
 
 
 def test_a_non_finite_command_is_the_same_fault_either_way(monkeypatch):
@@ -175,15 +178,18 @@ def test_a_build_that_fails_halfway_lets_go_of_every_buffer_it_held():
     import sys
 
     vectors = [np.zeros(3) for _ in range(6)]
+    counters = [np.zeros(3, dtype=np.int64) for _ in range(2)]  # clamped, rate-limited cycles
     source, target, short = np.zeros(2), np.zeros(2), np.zeros(1)
     read_only = np.zeros(2)
     read_only.flags.writeable = False
-    everything = [*vectors, source, target, short, read_only]
+    everything = [*vectors, *counters, source, target, short, read_only]
     counts = [sys.getrefcount(v) for v in everything]
     failures = [
-        (lambda: devio.Guard(*vectors[:5], np.zeros(2), [], False), "differ in length"),  # after all six held
-        (lambda: devio.Guard(*vectors, [(source, target), (source, short)], False), "differ in length"),
-        (lambda: devio.Guard(*vectors, [(source, target), (source, read_only)], False), "read-only|writable"),
+        (lambda: devio.Guard(*vectors[:5], np.zeros(2), *counters, [], False), "differ in length"),  # all eight held
+        (lambda: devio.Guard(*vectors, counters[0], np.zeros(3), [], False), "int64"),
+        (lambda: devio.Guard(*vectors, *counters, [(source, target), (source, short)], False), "differ in length"),
+        (lambda: devio.Guard(*vectors, *counters, [(source, target), (source, read_only)], False),
+         "read-only|writable"),
         (lambda: devio.Copies([(source, target), (source, short)]), "differ in length"),
         (lambda: devio.Copies([(source, read_only)]), "read-only|writable"),
     ]

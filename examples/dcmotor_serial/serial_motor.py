@@ -55,11 +55,12 @@ READINGS = ("speed_rad_s", "current_A")
 class DriverModel:
     """The driver board and its motor: one request = one period at the commanded voltage."""
 
-    def __init__(self) -> None:
+    def __init__(self, initial_speed_rad_s: float = 0.0) -> None:
         self.motor = DcMotor()
         self.motor_u = np.zeros(2)  # [voltage_V, load_torque_Nm]: no load on the shaft
         self.motor_y = np.zeros(2)
         self.motor.initialize(self.motor_u, self.motor_y, 0.0)
+        self.motor.speed_rad_s = initial_speed_rad_s  # a shaft already turning when the driver starts
 
     def exchange(self, voltage_V: float, readings: np.ndarray) -> None:
         """Answer what is measured now, then drive the motor one period at ``voltage_V``."""
@@ -74,18 +75,21 @@ class MotorDriverTwin(Runnable):
     n_inputs, n_outputs = 1, 2
     input_names, output_names = COMMANDS, READINGS
 
+    def __init__(self, initial_speed_rad_s: float = 0.0) -> None:
+        self.initial_speed_rad_s = float(initial_speed_rad_s)  # the driver's --initial-speed-rad-s
+
     def prerun(self) -> None:
-        self.model = DriverModel()
+        self.model = DriverModel(self.initial_speed_rad_s)
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
         self.model.exchange(float(u[0]), y)
 
 
 def serve(master: int, heartbeat_ms: float, log: object = sys.stdout, late_every: int = 0,
-          late_ms: float = 0.0) -> None:
+          late_ms: float = 0.0, initial_speed_rad_s: float = 0.0) -> None:
     """Answer requests on ``master`` until SIGTERM/SIGINT; go safe when they stop. With ``late_every``
     N > 0, every Nth answer goes out ``late_ms`` late (to see what the app's ``on_missing`` does)."""
-    model = DriverModel()
+    model = DriverModel(initial_speed_rad_s)
     request, response = Frame(REQUEST_SYNC, len(COMMANDS)), Frame(RESPONSE_SYNC, len(READINGS))
     poller = select.poll()
     poller.register(master, select.POLLIN)
@@ -133,6 +137,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--late-every", type=int, default=0, metavar="N",
                         help="answer every Nth request late (to see what the app's on_missing does)")
     parser.add_argument("--late-ms", type=float, default=2.5, help="how late, with --late-every (ms)")
+    parser.add_argument("--initial-speed-rad-s", type=float, default=0.0,
+                        help="the shaft's speed when the driver starts (a motor not at rest; the twin's "
+                             "twin_args = { initial_speed_rad_s = ... } must say the same)")
     args = parser.parse_args(argv)
     if args.priority:
         try:
@@ -150,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"motor driver: listening on {slave_path} ({args.link} links to it), heartbeat {args.heartbeat_ms:g} ms",
           flush=True)
     try:
-        serve(master, args.heartbeat_ms, late_every=args.late_every, late_ms=args.late_ms)
+        serve(master, args.heartbeat_ms, late_every=args.late_every, late_ms=args.late_ms,
+              initial_speed_rad_s=args.initial_speed_rad_s)
     except KeyboardInterrupt:
         pass
     finally:

@@ -116,7 +116,8 @@ PORT_KEYS = {
     "feed": str, "description": str, "range": list, "value_range": list, "nudge": str,
 }
 CONNECT_KEYS: dict[str, type] = {"from": str, "to": str}
-CONNECT_OPTIONAL_KEYS: dict[str, type] = {"allow_nonfinite": bool}
+CONNECT_OPTIONAL_KEYS: dict[str, type] = {"allow_nonfinite": bool,  # min, max, rate_per_s: numbers App.connect checks
+                                          "min": object, "max": object, "rate_per_s": object}
 RECORD_KEYS = {"signals": list}
 TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", dict: "a table", list: "an array",
               bool: "true or false"}
@@ -242,7 +243,8 @@ def _load_app(path: str | Path) -> App:
                 raise AppFileError(shown, f"{where}.{key}", "missing")
         try:
             app.connect(parse_signal(table["from"], app, "from"), parse_signal(table["to"], app, "to"),
-                        allow_nonfinite=table.get("allow_nonfinite", False))
+                        allow_nonfinite=table.get("allow_nonfinite", False), min=table.get("min"),
+                        max=table.get("max"), rate_per_s=table.get("rate_per_s"))
         except AppError as error:
             raise AppFileError(shown, where, str(error)) from None
 

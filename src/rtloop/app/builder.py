@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Literal
 
 from rtloop.app.byvalue import dumps_runnable
+from rtloop.app.guards import guarded_connection, record_device_link
 from rtloop.app.hints import reissue_at_user, signal_hint
 from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.app.profiles import check_profile_file
@@ -238,11 +239,12 @@ class App:
                 )
 
     def connect(self, source: SignalRef | SignalVector, target: SignalRef | SignalVector, *,
-                allow_nonfinite: bool = False) -> Connection:
+                allow_nonfinite: bool = False, min: float | None = None, max: float | None = None,
+                rate_per_s: float | None = None) -> Connection:
         """Wire an output slice (``y``) to an input slice (``u``) of the same size.
 
-        A NaN or infinite value crossing it is a fault naming task, cycle and output, unless
-        ``allow_nonfinite``: then it crosses, and the summary counts and names it.
+        A NaN or ±inf crossing it is a fault naming task, cycle and output, unless ``allow_nonfinite``:
+        then it crosses, counted and named. ``min``, ``max``, ``rate_per_s``: a guard (``app/guards.py``).
 
         Either end may be a device, wired to the task that owns it: ``motor.y[0]`` (a reading)
         → ``controller.u[1]``, ``controller.y[0]`` → ``motor.u[0]`` (a command).
@@ -257,8 +259,8 @@ class App:
         if src.size != dst.size:
             raise ConnectionSizeError(f"{what}: {src} has {src.size} values but {dst} has {dst.size}")
         self._check_single_writer(dst, what)
-        connection = Connection(src, dst, bool(allow_nonfinite))
         device = self.devices.get(src.task) or self.devices.get(dst.task)
+        connection = guarded_connection(what, src, dst, bool(allow_nonfinite), (min, max, rate_per_s), device)
         if device is None:
             self.connections.append(connection)
             return connection
@@ -267,8 +269,7 @@ class App:
             raise AppError(f"{what}: device {device.name!r} runs in task {device.task!r}'s process and is wired "
                            f"to that task only; route {other!r}'s signals through {device.task!r}")
         self.device_links.append(connection)
-        if dst.task in self.tasks:  # a reading: recorded, so `rtloop replay` can play it back without the device
-            self.record(dst)
+        record_device_link(self, connection, device.name)  # its reading, or what it was sent
         return connection
 
     def port(

@@ -95,6 +95,13 @@ class SignalRef:
         return f"{self.task}.{self.side}[{self.start}:{self.stop}]"
 
 
+class SentName(str):
+    """A recorded column that names itself whole (``motor.voltage_V``: what device ``motor`` was
+    sent), not after the task that records it."""
+
+    __slots__ = ()
+
+
 class SignalVector:
     """``task.u`` or ``task.y``: index or slice it to get a :class:`SignalRef`."""
 
@@ -177,6 +184,15 @@ class Connection:
     target: SignalRef
     allow_nonfinite: bool = False
     """Let NaN and ±inf cross (counted and named in the summary); otherwise they are a fault."""
+    min: float = -math.inf
+    """The guard (``app/guards.py``): the reader gets values clamped to ``[min, max]``..."""
+    max: float = math.inf
+    rate_per_s: float = math.inf
+    """...moving by at most this much per second (inf: no limit)."""
+
+    @property
+    def guarded(self) -> bool:
+        return self.min > -math.inf or self.max < math.inf or self.rate_per_s < math.inf
 
 
 ValueRange = tuple[float, float] | tuple[tuple[float, ...], tuple[float, ...]]

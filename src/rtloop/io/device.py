@@ -180,6 +180,11 @@ class Device(ABC):
     """Names of the commands (used in limits and messages); default ``u0``, ``u1``, …"""
     output_names: tuple[str, ...] | None = None
     """Names of the readings; default ``y0``, ``y1``, …"""
+    safe_write_is_exchange: ClassVar[bool] = False
+    """Whether ``write_safe`` is an exchange the device answers, moving its own state on as a
+    cycle's would (a serial request: the driver steps its model; an SPI transfer). Its twin then
+    steps on the safe values too — at configure, before T0, and on the way out — so it sees every
+    exchange the device sees and a run stays in step with its simulation from the first row."""
     stale_reads: int = 0
     """Reads that kept the last good values instead of failing (a CAN frame that did not come in
     time, an SPI answer with a bad CRC): a driver that may read stale counts them here; the task

@@ -55,11 +55,12 @@ class _Slot:
                  "device", "guard", "reading_copies", "reading_labels", "stale_cycles", "stale_first", "stale_last",
                  "stale_longest", "stale_run", "stale_seen", "u", "y")
 
-    def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector) -> None:
+    def __init__(self, wiring: DeviceWiring, period_ns: int, task_u: FloatVector, task_y: FloatVector,
+                 sent: FloatVector | None = None) -> None:
         device = self.device = wiring.device
         name = device.name
         labels = [f"{name}.u[{i}] ({command})" for i, command in enumerate(device.command_names())]
-        self.guard = CommandGuard(wiring.limits, period_ns, labels, let=wiring.io == "let")
+        self.guard = CommandGuard(wiring.limits, period_ns, labels, let=wiring.io == "let", out=sent)
         self.u = self.guard.safe.copy()  # a command nothing is wired to stays at its safe value
         self.y = np.zeros(device.n_outputs)
         self.command_copies = [(task_y[source], self.u[target]) for source, target in wiring.commands]
@@ -80,7 +81,8 @@ class _Slot:
             guard = self.guard
             try:
                 self.compiled_guard = compiled.Guard(self.u, guard.low, guard.high, guard.step_max, guard.last,
-                                                     guard.out, self.command_copies, guard.rate_limited)
+                                                     guard.out, guard.clamped, guard.rate_limited_cycles,
+                                                     self.command_copies, guard.rate_limited)
                 self.compiled_readings = compiled.Copies(checked)  # returns where a value is not finite
                 self.compiled_unchecked = compiled.Copies(unchecked) if unchecked else None
             except (ValueError, BufferError):  # a strided slice: the numpy way
@@ -144,17 +146,23 @@ class _Slot:
         return {"kind": device.kind or type(device).__name__, "stale_reads": device.stale_reads,
                 "stale_cycles": self.stale_cycles, "longest_lag_cycles": self.stale_longest,
                 "first_stale_cycles": self.stale_first[:min(self.stale_cycles, STALE_CYCLES_KEPT)].tolist(),
-                "stale_reads_by_source": device.stale_sources()}
+                "stale_reads_by_source": device.stale_sources(),
+                **self.guard.counts(device.command_names())}
 
 
 class TaskDevices:
     """The devices one task owns. ``bool(devices)`` is False when it owns none."""
 
     def __init__(self, task: str, period_ns: int, wirings: Sequence[DeviceWiring],
-                 task_u: FloatVector, task_y: FloatVector) -> None:
+                 task_u: FloatVector, task_y: FloatVector, sent: FloatVector | None = None) -> None:
+        """``sent``: where the commands each device was sent go, devices in order (the task records
+        them after its ``u``: ``TaskWiring.sent``); None: nowhere but the guards."""
         self.task = task
         self.sources = {w.device.name: w.source for w in wirings}
-        self.slots = [_Slot(w, period_ns, task_u, task_y) for w in wirings]
+        offsets = np.cumsum([0, *(w.device.n_inputs for w in wirings)]).tolist()
+        self.slots = [_Slot(w, period_ns, task_u, task_y,
+                            None if sent is None else sent[offsets[i]:offsets[i + 1]])
+                      for i, w in enumerate(wirings)]
         self.let = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "let"]
         self.immediate = [slot for slot, w in zip(self.slots, wirings, strict=True) if w.io == "immediate"]
         self.may_be_stale = [slot for slot in self.slots if slot.device.may_read_stale()]

@@ -169,6 +169,7 @@ class SerialDevice(Device):
     """A device answering one framed request per cycle on a serial line (see the module)."""
 
     kind = "serial"
+    safe_write_is_exchange = True  # the safe values are a request the device answers
     settings: ClassVar[dict[str, Setting]] = {
         "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0", is_path=True),
         "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0",

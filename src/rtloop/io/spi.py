@@ -66,6 +66,7 @@ class SpiDevice(Device):
     """A declared frame exchanged with an SPI device once per cycle (spidev)."""
 
     kind: ClassVar[str] = "spi"
+    safe_write_is_exchange = True  # the safe values go out in a full-duplex transfer, answered
     settings: ClassVar[dict[str, Setting]] = {
         "device": Setting(str, doc="the spidev node (/dev/spidevB.C)", is_path=True),
         "speed_hz": Setting(int, 1_000_000, "clock rate in Hz", _within(1, 200_000_000)),

@@ -90,6 +90,14 @@ typedef struct {
     Queue record;
     int has_record;
     int64_t *record_row;
+    const double *sent; /* what the task's devices were sent (their guards write it), recorded after u */
+    int64_t n_sent;
+    /* set_input_guards(): guarded connections (min, max, rate_per_s), applied right after the read */
+    Py_ssize_t n_guarded;
+    const int64_t *guard_index; /* the element of u each guarded value is */
+    const double *guard_low, *guard_high, *guard_step;
+    double *guard_last;
+    int64_t *guard_clamped, *guard_rate_limited;
     Queue input_log; /* [port index, values...] each time a live port delivers a new value */
     int has_input_log;
     double *input_log_row;
@@ -390,12 +398,21 @@ static PyObject *Core_add_output_port(Core *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* set_record(sample_queue_words): every tick's [y..., u...] for the recorder */
-static PyObject *Core_set_record(Core *self, PyObject *buffer) {
+/* set_record(sample_queue_words, sent): every tick's [y..., u..., sent...] for the recorder; sent is
+   the float64 vector of what the task's devices were sent (TaskWiring.sent, maybe empty) */
+static PyObject *Core_set_record(Core *self, PyObject *args) {
+    PyObject *buffer, *sent;
+    Py_ssize_t sent_len;
+    if (!PyArg_ParseTuple(args, "OO", &buffer, &sent))
+        return NULL;
+    self->sent = hold_buffer(self, sent, 0, 0, &sent_len);
+    if (self->sent == NULL && PyErr_Occurred())
+        return NULL;
+    self->n_sent = sent_len / 8;
     if (attach_queue(self, buffer, &self->record, 1) < 0)
         return NULL;
-    if (self->record.width != self->n_y + self->n_u) {
-        PyErr_SetString(PyExc_ValueError, "hot path: record queue width is not len(y) + len(u)");
+    if (self->record.width != self->n_y + self->n_u + self->n_sent) {
+        PyErr_SetString(PyExc_ValueError, "hot path: record queue width is not len(y) + len(u) + len(sent)");
         return NULL;
     }
     self->record_row = zeros(self->record.width);
@@ -403,6 +420,62 @@ static PyObject *Core_set_record(Core *self, PyObject *buffer) {
         return NULL;
     self->has_record = 1;
     Py_RETURN_NONE;
+}
+
+/* set_input_guards(indices, low, high, step_max, last, clamped, rate_limited): the guarded
+   connections' elements of u (int64 indices) and their bounds, state and counters (float64 and
+   int64 vectors of one length, held: wiring.InputGuards owns them and reads the counts) */
+static PyObject *Core_set_input_guards(Core *self, PyObject *args) {
+    PyObject *objects[7];
+    if (!PyArg_ParseTuple(args, "OOOOOOO", &objects[0], &objects[1], &objects[2], &objects[3], &objects[4],
+                          &objects[5], &objects[6]))
+        return NULL;
+    void *buffers[7];
+    Py_ssize_t lengths[7];
+    for (int i = 0; i < 7; i++) {
+        if ((buffers[i] = hold_buffer(self, objects[i], i >= 4, 0, &lengths[i])) == NULL)
+            return NULL;
+        if (lengths[i] != lengths[0]) {
+            PyErr_SetString(PyExc_ValueError, "hot path: the input guards' vectors differ in length");
+            return NULL;
+        }
+    }
+    const int64_t *index = buffers[0];
+    for (Py_ssize_t k = 0; k < lengths[0] / 8; k++)
+        if (index[k] < 0 || index[k] >= self->n_u) {
+            PyErr_SetString(PyExc_ValueError, "hot path: an input guard's index is outside u");
+            return NULL;
+        }
+    self->guard_index = index;
+    self->guard_low = buffers[1];
+    self->guard_high = buffers[2];
+    self->guard_step = buffers[3];
+    self->guard_last = buffers[4];
+    self->guard_clamped = buffers[5];
+    self->guard_rate_limited = buffers[6];
+    self->n_guarded = lengths[0] / 8;
+    Py_RETURN_NONE;
+}
+
+/* The guards of guarded connections (wiring.InputGuards.apply, element by element): clamp to
+   [low, high], then a step of at most step_max from the last value, each counted. A value the
+   rate limit does not hold back stays as clamped, exactly as the Python twin leaves it. */
+static void guard_inputs(Core *self) {
+    for (Py_ssize_t k = 0; k < self->n_guarded; k++) {
+        double value = self->u[self->guard_index[k]];
+        double out = value < self->guard_high[k] ? value : self->guard_high[k];
+        out = out > self->guard_low[k] ? out : self->guard_low[k];
+        self->guard_clamped[k] += out != value;
+        double delta = out - self->guard_last[k], step = self->guard_step[k];
+        if (delta > step || delta < -step) {
+            self->guard_rate_limited[k]++;
+            delta = delta < step ? delta : step;
+            delta = delta > -step ? delta : -step;
+            out = self->guard_last[k] + delta;
+        }
+        self->guard_last[k] = out;
+        self->u[self->guard_index[k]] = out;
+    }
 }
 
 /* set_input_log(sample_queue_words): what entered through live ports, for replay */
@@ -575,6 +648,8 @@ static void read_inputs(Core *self, int64_t release_ns) {
             }
         }
     }
+    if (self->n_guarded)
+        guard_inputs(self);
     for (Py_ssize_t i = 0; i < self->n_live_ports; i++)
         if ((self->live_ports[i].fresh = read_live_port(&self->live_ports[i])) && self->has_input_log)
             log_input(self, &self->live_ports[i], since_t0_ns);
@@ -668,6 +743,8 @@ static int publish_outputs(Core *self, int64_t cycle, int64_t publish_ns) {
     if (self->has_record) {
         memcpy(self->record_row, self->y, self->n_y * 8);
         memcpy(self->record_row + self->n_y, self->u, self->n_u * 8);
+        if (self->n_sent)
+            memcpy(self->record_row + self->n_y + self->n_u, self->sent, self->n_sent * 8);
         push(&self->record, cycle, self->record_row);
     }
     return 0;
@@ -974,7 +1051,10 @@ static PyMethodDef Core_methods[] = {
     {"add_profile", (PyCFunction)Core_add_profile, METH_VARARGS, "Attach a setpoint profile."},
     {"set_output", (PyCFunction)Core_set_output, METH_O, "Attach this task's output channel."},
     {"add_output_port", (PyCFunction)Core_add_output_port, METH_VARARGS, "Attach an output port (SampleQueue)."},
-    {"set_record", (PyCFunction)Core_set_record, METH_O, "Attach the recorder's queue."},
+    {"set_record", (PyCFunction)Core_set_record, METH_VARARGS,
+     "set_record(words, sent): attach the recorder's queue and what the devices were sent."},
+    {"set_input_guards", (PyCFunction)Core_set_input_guards, METH_VARARGS,
+     "set_input_guards(indices, low, high, step_max, last, clamped, rate_limited): guarded connections."},
     {"start", (PyCFunction)(void (*)(void))Core_start, METH_FASTCALL, "start(t0_ns, end_ns, stale_reads)"},
     {"begin", (PyCFunction)Core_begin, METH_NOARGS, "Sleep to the release, read inputs; False: stop."},
     {"finish", (PyCFunction)Core_finish, METH_NOARGS, "Publish, record timing and status, advance."},

@@ -298,7 +298,11 @@ def compiled_cycle(tick: Tick, wiring: TaskWiring, control: Words, status: Words
     for queue, source in wiring.output_ports:
         core.add_output_port(queue.words, _index_in(y, source))
     if wiring.record is not None:
-        core.set_record(wiring.record.words)
+        core.set_record(wiring.record.words, wiring.sent)
+    guards = wiring.guards
+    if guards:
+        core.set_input_guards(guards.indices, guards.low, guards.high, guards.step_max, guards.last, guards.clamped,
+                              guards.rate_limited)
     if wiring.finite_checks:
         checks = wiring.finite_checks
         core.set_finite_check(tuple(c.index for c in checks), tuple(c.fault for c in checks),

@@ -42,6 +42,15 @@ class InputLink:
     writer_period_ns: int
     writer: str = ""
     """The writing task's name (names the link in the read log, ``reads.csv``)."""
+    low: float = -math.inf
+    """The connection's guard (``app/guards.py``): values read are clamped to ``[low, high]``..."""
+    high: float = math.inf
+    step_max: float = math.inf
+    """...and move by at most this much per cycle of the reader (``rate_per_s · P``)."""
+
+    @property
+    def guarded(self) -> bool:
+        return self.low > -math.inf or self.high < math.inf or self.step_max < math.inf
 
 
 READ_LOG_WIDTH = READ_LOG_RECORD_WORDS
@@ -113,6 +122,8 @@ class TaskWiringPlan:
     segments: tuple[str, ...] = field(default=())
     finite_checks: tuple[FiniteCheck, ...] = ()
     """Outputs crossing a connection, checked for NaN and ±inf before they are published."""
+    sent_width: int = 0
+    """Commands the task's devices are sent each cycle, recorded after ``u`` (``TaskWiring.sent``)."""
 
     def writers(self) -> list[str]:
         """The writing tasks in the order the task reads them (the writer index of the read log)."""
@@ -168,6 +179,79 @@ class _ProfileReader:
             self.target[:] = self.values[index]
 
 
+class InputGuards:
+    """The guards of a task's guarded connections, applied to ``u`` right after the inputs are read.
+
+    One flat vector per bound over every guarded element, allocated once; per cycle: clamp to
+    ``[low, high]``, then a step of at most ``step_max`` from the value held before (``last``:
+    the input's start value before T0), each counted per element (``clamped``, ``rate_limited``)
+    — the arithmetic and order of ``io/limits.py:CommandGuard`` and of the C core's."""
+
+    __slots__ = ("clamped", "delta", "gather", "held", "high", "hit", "indices", "last", "low", "out", "rate_limited",
+                 "scatter", "spans", "step_max", "step_min", "targets", "values")
+
+    def __init__(self, links: Sequence[InputLink], u: np.ndarray) -> None:
+        guarded = [link for link in links if link.guarded]
+        self.spans = tuple((link.target.start, link.target.stop - link.target.start) for link in guarded)
+        """(first element of ``u``, how many) per guarded connection, for the C core."""
+        self.targets = [u[link.target] for link in guarded]
+        count = sum(n for _, n in self.spans)
+        self.low = np.array([link.low for link in guarded for _ in range(link.target.start, link.target.stop)])
+        self.high = np.array([link.high for link in guarded for _ in range(link.target.start, link.target.stop)])
+        self.step_max = np.array([link.step_max for link in guarded for _ in range(link.target.start,
+                                                                                    link.target.stop)])
+        self.step_min = -self.step_max
+        self.last = np.array([u[i] for link in guarded for i in range(link.target.start, link.target.stop)],
+                             dtype=np.float64)
+        self.values, self.out, self.delta = np.zeros(count), np.zeros(count), np.zeros(count)
+        self.hit, self.held = np.zeros(count, dtype=bool), np.zeros(count, dtype=bool)
+        starts = np.cumsum([0, *(n for _, n in self.spans)]).tolist()
+        self.indices = np.array([start + i for start, n in self.spans for i in range(n)], dtype=np.int64)
+        """The element of ``u`` each guarded value is (for the C core)."""
+        views = [slice(starts[k], starts[k] + n) for k, (_, n) in enumerate(self.spans)]  # views made once
+        self.gather = [(self.values[v], target) for v, target in zip(views, self.targets, strict=True)]
+        self.scatter = [(target, self.out[v]) for v, target in zip(views, self.targets, strict=True)]
+        self.clamped = np.zeros(count, dtype=np.int64)
+        self.rate_limited = np.zeros(count, dtype=np.int64)
+
+    def __bool__(self) -> bool:
+        return bool(self.spans)
+
+    def apply(self) -> None:
+        """Guard the values just read, in place (the Python twin of the C core's guard): plain
+        ufuncs with ``out=``, nothing allocated. A value the rate limit does not hold back is left
+        as clamped (``last + (value − last)`` could differ from it in the last bit)."""
+        values, out, last, delta, hit, held = self.values, self.out, self.last, self.delta, self.hit, self.held
+        for into, target in self.gather:
+            np.copyto(into, target)
+        np.minimum(values, self.high, out=out)
+        np.maximum(out, self.low, out=out)
+        np.not_equal(out, values, out=hit)
+        np.add(self.clamped, hit, out=self.clamped)
+        np.subtract(out, last, out=delta)
+        np.greater(delta, self.step_max, out=hit)
+        np.less(delta, self.step_min, out=held)
+        np.logical_or(hit, held, out=hit)
+        np.add(self.rate_limited, hit, out=self.rate_limited)
+        np.minimum(delta, self.step_max, out=delta)
+        np.maximum(delta, self.step_min, out=delta)
+        np.add(last, delta, out=delta)
+        np.copyto(out, delta, where=hit)
+        np.copyto(last, out)
+        for target, guarded in self.scatter:
+            np.copyto(target, guarded)
+
+    def counts(self, task: str, names: Sequence[str] | None) -> dict[str, dict[str, int]]:
+        """Per guarded input that acted: ``{"plant.u[0] (force_N)": {"clamped_cycles", "rate_limited_cycles"}}``."""
+        out = {}
+        for j, index in enumerate(self.indices.tolist()):
+            clamped, limited = int(self.clamped[j]), int(self.rate_limited[j])
+            if clamped or limited:
+                name = f" ({names[index]})" if names and index < len(names) and names[index] else ""
+                out[f"{task}.u[{index}]{name}"] = {"clamped_cycles": clamped, "rate_limited_cycles": limited}
+        return out
+
+
 class TaskWiring:
     """The wiring of one task, attached inside its process."""
 
@@ -205,8 +289,13 @@ class TaskWiring:
             (SampleQueue(self._segments[port.segment]), y[port.source]) for port in plan.output_ports
         ]
         self.record = SampleQueue(self._segments[plan.record_queue]) if plan.record_queue else None
-        self.record_row = np.zeros(len(y) + len(u))
-        self.record_y, self.record_u = self.record_row[: len(y)], self.record_row[len(y) :]
+        self.sent = np.zeros(plan.sent_width)
+        """What the task's devices were sent last (their guards write it), recorded after ``u``."""
+        self.record_row = np.zeros(len(y) + len(u) + plan.sent_width)
+        self.record_y = self.record_row[: len(y)]
+        self.record_u = self.record_row[len(y) : len(y) + len(u)]
+        self.record_sent = self.record_row[len(y) + len(u) :]
+        self.guards = InputGuards(plan.inputs, u)
         self.initial_y = y.copy()
         self.finite_checks = plan.finite_checks
 
@@ -279,6 +368,8 @@ class TaskWiring:
                 if self.read_log is not None:  # what the task got instead, for replay
                     got = stamp if stamp == NO_STAMP else stamp - t0_ns
                     self.read_log.push4(release_ns - t0_ns, index, got, entitled - t0_ns)
+        if self.guards:
+            self.guards.apply()
         fresh = self.fresh
         for position, (port, target, port_index) in enumerate(self.live_ports):
             seen = port.last_seq_seen
@@ -307,6 +398,7 @@ class TaskWiring:
         if self.record is not None:
             np.copyto(self.record_y, y)
             np.copyto(self.record_u, self.u)
+            np.copyto(self.record_sent, self.sent)
             self.record.push(cycle, self.record_row)
 
     def publish_initial(self, y: np.ndarray) -> None:

@@ -17,7 +17,7 @@ from typing import TextIO
 
 import numpy as np
 
-from rtloop.app.specs import SignalRef
+from rtloop.app.specs import SentName, SignalRef
 from rtloop.ipc.schema import NO_STAMP  # a read that found no sample at all
 from rtloop.seconds import seconds_text
 
@@ -369,6 +369,9 @@ def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
     out = []
     for i, fallback in zip(range(ref.start, ref.stop), index_form, strict=True):
         name = names[i] if i < len(names) else ""
+        if isinstance(name, SentName):  # what a device of the task was sent: named after the device
+            out.append(str(name))
+            continue
         usable = name and name not in taken and list(names).count(name) == 1
         out.append(f"{ref.task}.{name}" if usable else fallback)
     return out

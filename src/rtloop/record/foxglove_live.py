@@ -15,6 +15,14 @@ Clients may offer the WebSocket subprotocol ``foxglove.sdk.v1`` or its older nam
 Input ports listed in ``[foxglove] inputs`` take messages on ``/rtloop/ports/<port>``
 (JSON ``{"data": [...]}`` as Foxglove's Publish panel sends a ``Float64MultiArray``, or
 ``{"position": [...]}``), checked exactly as the ROS 2 talker checks them.
+
+**Live tuning.** The live parameters (``parameters = {"kp": 0.05}`` of a runnable) that an input
+port listed in ``inputs`` feeds are served with the protocol's ``parameters`` capability, named
+``task.parameter`` (``pi.kp``): Foxglove's and Lichtblick's Parameters panel reads and sets them
+(``getParameters``/``setParameters``). A change is a write to that port (its ``range`` enforced,
+``validate_values``' checks), so the task takes it at a release, logs it in inputs.csv and
+``rtloop replay`` reproduces it. A refused value leaves the parameter as it was; the answer says
+the value in force, and a status message says why.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from rtloop.app.builder import App
 from rtloop.app.specs import LiveViewSpec
 from rtloop.errors import PortValueError, RtloopError
 from rtloop.ipc.ports import RunningApp, app_from_registry
+from rtloop.record.live_parameters import LiveParameters
 from rtloop.ros.cdr import cycle_timing_cdr, joint_state_cdr
 from rtloop.ros.subprotocol import SubprotocolFront
 from rtloop.ros.types import CYCLE_TIMING_SCHEMA, JOINT_STATE_SCHEMA, SIGNALS_TOPIC, TIMING_TOPIC_PREFIX, topic_token
@@ -82,16 +91,19 @@ class LiveView:
         self.signals = channel(SIGNALS_TOPIC, "sensor_msgs/msg/JointState", JOINT_STATE_SCHEMA)
         self.timing = {task: channel(TIMING_TOPIC_PREFIX + topic_token(task), "rtloop_msgs/msg/CycleTiming",
                                      CYCLE_TIMING_SCHEMA) for task in app.tasks}
-        self.inputs = _Inputs(app.name, spec.inputs)
+        self.inputs = _Inputs(app.name, spec.inputs, LiveParameters(app, spec.inputs))
         self.inputs.attach(app_from_registry(registry_path))  # ports exist already: writes may come before T0
+        capabilities = [Capability.ClientPublish] if spec.inputs else []
+        if self.inputs.parameters.served:
+            capabilities.append(Capability.Parameters)
         try:  # clients reach it through the front below, which accepts both subprotocol names
             self.server = foxglove.start_server(
                 name=f"rtloop {app.name}", host="127.0.0.1", port=0, context=self.context,
-                capabilities=[Capability.ClientPublish] if spec.inputs else [],
-                server_listener=self.inputs, supported_encodings=["json"],
+                capabilities=capabilities, server_listener=self.inputs, supported_encodings=["json"],
             )
         except Exception as error:  # foxglove raises its own error types
             raise LiveViewError(f"cannot start the Foxglove server: {error}") from None
+        self.inputs.parameters.server = self.server
         try:
             self.front = SubprotocolFront(spec.host, spec.port, self.server.port)
         except OSError as error:
@@ -157,6 +169,7 @@ class LiveView:
             self.thread.join(5.0)
         self.front.close()
         self.server.stop()
+        self.inputs.parameters.close()
 
     def summary(self) -> dict[str, Any]:
         """What ``summary.json`` says about the live view (under ``bridges``)."""
@@ -166,8 +179,8 @@ class LiveView:
 class _Inputs:
     """Messages Foxglove publishes, to input ports, through the talker's checks (a foxglove ServerListener)."""
 
-    def __init__(self, app_name: str, ports: tuple[str, ...]) -> None:
-        self.app_name, self.ports = app_name, ports
+    def __init__(self, app_name: str, ports: tuple[str, ...], parameters: LiveParameters) -> None:
+        self.app_name, self.ports, self.parameters = app_name, ports, parameters
         self.running: RunningApp | None = None
         self.channels: dict[tuple[int, int], tuple[str, str]] = {}  # (client, channel) → (port, encoding)
         self.validators: dict[str, MessageValidator] = {}
@@ -183,6 +196,13 @@ class _Inputs:
                 int(info["size"]), allow_nonfinite=bool(info["allow_nonfinite"]),
                 what=f"foxglove {INPUT_TOPIC_PREFIX}{port} → port {port}", warner=self.warner)
         self.running = running
+        self.parameters.attach(running, self.warner)
+
+    def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None) -> list[Any]:
+        return self.parameters.get(param_names)
+
+    def on_set_parameters(self, client: Any, parameters: list[Any], request_id: str | None = None) -> list[Any]:
+        return self.parameters.set(parameters)
 
     def on_client_advertise(self, client: Any, channel: Any) -> None:
         port = channel.topic.removeprefix(INPUT_TOPIC_PREFIX)
@@ -232,7 +252,8 @@ class _Inputs:
         for validator in self.validators.values():
             for reason, count in validator.counts.rejected.items():
                 by_reason[reason] = by_reason.get(reason, 0) + count
-        return {"inputs": list(self.ports), "input_written": self.accepted, "input_rejected": sum(by_reason.values()),
+        return {**self.parameters.counts(), "inputs": list(self.ports), "input_written": self.accepted,
+                "input_rejected": sum(by_reason.values()),
                 "input_rejected_by_reason": by_reason, "input_refused_by_port": self.refused,
                 "input_undecodable": self.undecodable, "input_unknown_topic": self.unknown_topic}
 

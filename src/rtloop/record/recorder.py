@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rtloop.app.builder import App
+from rtloop.app.guards import recorded_input_names
 from rtloop.app.sources import file_digest
 from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
@@ -105,7 +106,7 @@ class Recorder:
             self.signals = SignalsCsv(
                 self._path("signals.csv"), self.app.recorded, self.periods_ns,
                 {n: t.runnable.n_outputs for n, t in self.app.tasks.items()},
-                {n: (t.runnable.input_names, t.runnable.output_names) for n, t in self.app.tasks.items()})
+                {n: (recorded_input_names(self.app, n), t.runnable.output_names) for n, t in self.app.tasks.items()})
         if any(self._writers.values()):  # a stale read needs a connection
             self.reads = ReadsCsv(self._path("reads.csv"))
         if self._has_live_ports:  # a row per value that came in: 1 GB a day from a 1-kHz setpoint topic

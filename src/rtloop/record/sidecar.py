@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app.builder import App
+from rtloop.app.guards import recorded_input_names
 from rtloop.app.plots import Element, element_units, elements, inferred_plots
 from rtloop.newfile import write_new
 from rtloop.record.csvfiles import column_names
@@ -34,7 +35,7 @@ def recorded_columns(app: App) -> dict[Element, str]:
     columns: dict[Element, str] = {}
     for ref in app.recorded:
         runnable = app.tasks[ref.task].runnable
-        names = column_names(ref, runnable.input_names, runnable.output_names)
+        names = column_names(ref, recorded_input_names(app, ref.task), runnable.output_names)
         for element, name in zip(elements(ref), names, strict=True):
             columns.setdefault(element, name)
     return columns

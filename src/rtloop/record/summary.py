@@ -55,6 +55,9 @@ class TaskSummary:
     """The first of them: ``plant.y[1] (speed) at cycle 304`` ('' when none)."""
     resident_bytes: dict[str, int] | None = None
     """Run only: the task process's resident memory at the supervisor's samples (first, last, max)."""
+    input_limits: dict[str, dict[str, int]] | None = None
+    """Inputs fed by a connection with ``min``/``max``/``rate_per_s`` whose guard acted: per input,
+    ``clamped_cycles`` and ``rate_limited_cycles`` (``{}``: guarded, never acted; None: none guarded)."""
 
     def to_json(self) -> dict[str, Any]:
         timing = self.timing.to_json()
@@ -76,6 +79,7 @@ class TaskSummary:
             "output_names": list(self.output_names) if self.output_names else None,
             **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
             **({"resident_bytes": self.resident_bytes} if self.resident_bytes is not None else {}),
+            **({"input_limits": self.input_limits} if self.input_limits is not None else {}),
         }
 
 
@@ -98,6 +102,32 @@ def not_real_time_notes(tasks: dict[str, TaskSummary], requested: dict[str, str]
             "tools/as-root, or give the user an rtprio limit: docs/service.md)"
             for name, task in tasks.items()
             if requested.get(name) in REAL_TIME_POLICIES and not task.rt and task.policy != "not started"]
+
+
+def limit_notes(tasks: dict[str, TaskSummary], devices: dict[str, dict[str, Any]]) -> list[str]:
+    """A sentence for each device command and each guarded input whose limits acted: the values
+    recorded for the controller are not what reached the device (or the reading task)."""
+    notes = []
+    for name, device in devices.items():
+        clamped, limited = device.get("clamped_cycles") or {}, device.get("rate_limited_cycles") or {}
+        for command in dict.fromkeys([*clamped, *limited]):
+            acted = _acted(clamped.get(command, 0), limited.get(command, 0))
+            notes.append(f"device {name!r}: command {command} {acted} (signals.csv column {name}.{command} holds "
+                         "what it was sent)")
+    for task in tasks.values():
+        for label, counts in (task.input_limits or {}).items():
+            notes.append(f"connection into {label}: "
+                         f"{_acted(counts['clamped_cycles'], counts['rate_limited_cycles'])} (its guard)")
+    return notes
+
+
+def _acted(clamped: int, limited: int) -> str:
+    said = []
+    if clamped:
+        said.append(f"clamped to its min/max in {clamped} {'cycle' if clamped == 1 else 'cycles'}")
+    if limited:
+        said.append(f"held back by its rate_per_s in {limited} {'cycle' if limited == 1 else 'cycles'}")
+    return " and ".join(said)
 
 
 def stale_device_notes(devices: dict[str, dict[str, Any]]) -> list[str]:

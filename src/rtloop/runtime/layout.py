@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.app.builder import App
+from rtloop.app.guards import sent_width
 from rtloop.app.plots import element_units, elements
 from rtloop.app.profiles import load_profile
 from rtloop.app.specs import PortSpec
@@ -261,14 +262,15 @@ class AppLayout:
             timing = Int64Ring.initialise(task_segment, TIMING_RING_CAPACITY, TIMING_RECORD_WORDS,
                                            TASK_TIMING_OFFSET_BYTES)
             record = None
-            if name in recorded_tasks:
-                width = spec.runnable.n_outputs + spec.runnable.n_inputs
+            if name in recorded_tasks:  # [y…, u…, what its devices were sent…]
+                width = spec.runnable.n_outputs + spec.runnable.n_inputs + sent_width(app, name)
                 record_segment = segment(f"{name}.record", SampleQueue.size_bytes(width, RECORD_QUEUE_CAPACITY))
                 record = SampleQueue.initialise(record_segment, width, RECORD_QUEUE_CAPACITY)
             inputs = tuple(
                 InputLink(
                     channels[c.source.task], c.source.slice, c.target.slice,
                     app.tasks[c.source.task].config.period_ns, c.source.task,
+                    c.min, c.max, c.rate_per_s * spec.config.period_ns * 1e-9,
                 )
                 for c in app.connections
                 if c.target.task == name
@@ -301,6 +303,7 @@ class AppLayout:
                 input_log=input_log_segment.name if input_log_segment is not None else None,
                 read_log=read_log_segment.name if read_log_segment is not None else None,
                 segments=tuple(sorted(w for w in wanted if w)),
+                sent_width=sent_width(app, name),
                 finite_checks=finite_checks_of(
                     name, [(c.source.slice, c.allow_nonfinite) for c in app.connections if c.source.task == name],
                     getattr(spec.runnable, "output_names", None)),

@@ -24,7 +24,14 @@ from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
 from rtloop.ipc.status import StatusWord
 from rtloop.ipc.wiring import TaskWiring, nonfinite_fields
 from rtloop.linux import rt
-from rtloop.record.summary import RunSummary, TaskSummary, nonfinite_notes, signal_names, slow_step_notes
+from rtloop.record.summary import (
+    RunSummary,
+    TaskSummary,
+    limit_notes,
+    nonfinite_notes,
+    signal_names,
+    slow_step_notes,
+)
 from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout, device_wiring
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
@@ -47,7 +54,7 @@ class _SimTask:
         wirings = device_wiring(app, name, twins=True)  # each device's twin in its place
         for wiring in wirings:
             wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]  # twins=True: a TwinDevice
-        self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y)
+        self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y, self.wiring.sent)
         self.records: list[tuple[int, int, int, int]] = []  # since the last drain
         self.host_exec = HostExecution()
         self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
@@ -272,9 +279,13 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
             host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
             **signal_names(spec.runnable),
             **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),
+            input_limits=sim_tasks[name].wiring.guards.counts(name, spec.runnable.input_names)
+            if name in sim_tasks and sim_tasks[name].wiring.guards else None,
         )
+    devices = {device: {"task": name, **report} for name, task in sim_tasks.items() if task.devices
+               for device, report in task.devices.stale_report().items()}
     capabilities = rt.probe()
-    notes = [*slow_step_notes(summaries), *session.notes()]
+    notes = [*slow_step_notes(summaries), *session.notes(), *limit_notes(summaries, devices)]
     return RunSummary(
         app=app.name, mode="simulate", hot_path=hot_path(),
         started=dt.datetime.fromtimestamp(outcome.started_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds"),
@@ -282,6 +293,7 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
         ports=port_summaries(layout, recorder.latest_ns), stopped_by="running" if running else outcome.stopped_by,
         failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
         notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9, running=running,
+        devices=devices,
         recording={**recorder.to_json(), **session.losses.to_json()},
         switches=recorder.switches.to_json(),
     )

@@ -41,6 +41,7 @@ from rtloop.record.summary import (
     PortSummary,
     RunSummary,
     TaskSummary,
+    limit_notes,
     nonfinite_notes,
     not_real_time_notes,
     signal_names,
@@ -143,6 +144,8 @@ class Supervisor:
         self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
         self.device_problems: list[str] = []
         self.device_reads: dict[str, dict[str, Any]] = {}
+        self.input_limits: dict[str, dict[str, dict[str, int]]] = {}
+        """Per task with guarded connections: how often each guard acted (reported when the task ends)."""
         """Per device, what its task reported of its reads at the end (stale reads: summary.json ``devices``)."""
         self.held_for_dead_tasks: list[Any] = []  # devices the supervisor made safe for a killed task (GPIO lines held)
         self.app, self.duration_s, self.out, self.limits = app, duration_s, out, limits
@@ -530,6 +533,8 @@ class Supervisor:
                 elif kind == "device_reads":
                     self.device_reads.update({name: {"task": task_run.name, **report}
                                               for name, report in message["devices"].items()})
+                elif kind == "input_limits":
+                    self.input_limits[task_run.name] = message["inputs"]
                 elif kind == "device_problems":
                     self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
                 elif kind in ("late", "stopped"):  # counters after a late cycle; a model's extra steps
@@ -579,6 +584,12 @@ class Supervisor:
             signal.signal(signum, handler)
 
     # --- results --------------------------------------------------------------------------------
+    def _input_limits(self, task: str) -> dict[str, dict[str, int]] | None:
+        """How often the guards of ``task``'s connections acted (None: it has no guarded connection)."""
+        if not any(c.guarded for c in self.app.connections if c.target.task == task):
+            return None
+        return self.input_limits.get(task, {})
+
     def _stopped_by(self, running: bool) -> str:
         if running:
             return "running"
@@ -618,6 +629,7 @@ class Supervisor:
                 **signal_names(spec.runnable),
                 **nonfinite_fields(status, layout.tasks[name].plan),
                 resident_bytes=self.memory.to_json(name),
+                input_limits=self._input_limits(name),
             )
         bridges = self.bridges.summary() if self.bridges is not None else {}
         return RunSummary(
@@ -635,7 +647,8 @@ class Supervisor:
             notes=[*not_real_time_notes(tasks, requested_policies(self.app)),
                    *slow_step_notes(tasks),
                    *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
-                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads), *self.memory.notes()],
+                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads),
+                   *limit_notes(tasks, self.device_reads), *self.memory.notes()],
             devices=self.device_reads,
             bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
             elapsed_s=recorder.latest_ns / 1e9,

@@ -268,7 +268,7 @@ def task_process_main(
     task.on_late = lambda cycle, counters: _report(pipe, kind="late", cycle=cycle, counters=counters,
                                                    baseline=baseline)
     wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
-    task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y)
+    task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y, wiring.sent)
     phase = "configure"
     try:
         task.devices.configure()  # open and check the devices: a DeviceError is bad input (exit 2)
@@ -306,7 +306,7 @@ def task_process_main(
         # this task's last outputs) while this one makes its devices safe, reports and runs postrun.
         control[ControlWord.STOP] = 1
         task.devices.stop()  # safe values before anything else
-        _report_devices(pipe, task.devices)
+        _report_devices(pipe, task)
         status[StatusWord.STATE] = TaskState.FAILED
         if isinstance(error, DeviceError) and phase == "configure":
             _report(pipe, kind="device_error", device=error.device, source=error.source, key=error.key,
@@ -324,7 +324,7 @@ def task_process_main(
         raise SystemExit(1) from None
     status[StatusWord.STATE] = TaskState.STOPPED
     task.devices.stop()  # done already unless the stop came before T0
-    _report_devices(pipe, task.devices)
+    _report_devices(pipe, task)
     _report(pipe, kind="stopped", cycles=task.cycle + 1, catch_up_steps=getattr(runnable, "catch_up_steps", 0))
 
 
@@ -354,8 +354,12 @@ def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
     rt.limit_realtime_cpu(fail_s, kill_s)
 
 
-def _report_devices(pipe: Any, devices: TaskDevices) -> None:
-    """What went wrong while stopping the devices, and what they read stale (summary.json)."""
+def _report_devices(pipe: Any, task: RealtimeTask) -> None:
+    """What went wrong while stopping the devices, what they read stale and how often their limits
+    acted, and how often the guards of the task's connections did (summary.json)."""
+    devices, wiring = task.devices, getattr(task, "wiring", None)
+    if wiring is not None and wiring.guards:
+        _report(pipe, kind="input_limits", inputs=wiring.guards.counts(devices.task, task.runnable.input_names))
     if devices.problems:
         _report(pipe, kind="device_problems", problems=devices.problems)
     if devices:
