@@ -38,7 +38,7 @@ def test_every_command_is_in_the_tree() -> None:
     top_level = {path[0] for path in PATHS}
     assert top_level == set(COMMANDS) == {
         "run", "simulate", "replay", "port", "model", "report", "top", "doctor", "bridge", "bench", "service",
-        "io", "sweep", "why", "switch", "emulate"}
+        "io", "sweep", "why", "switch", "emulate", "reload"}
     assert {("port", "write"), ("port", "read"), ("port", "list"), ("model", "info"), ("model", "build"),
             ("bridge", "listener"), ("bridge", "talker"), ("io", "list")} <= set(PATHS)
 

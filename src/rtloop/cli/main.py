@@ -23,6 +23,7 @@ from rtloop.cli import (
     emulate,
     model,
     port,
+    reload,
     replay,
     report,
     run,
@@ -41,10 +42,9 @@ EXIT_TASK_FAILED = EXIT_FAILED
 
 # name → the module that declares and runs it, in the order `rtloop --help` lists them
 COMMANDS: dict[str, ModuleType] = {
-    "run": run, "simulate": run, "replay": replay, "port": port, "switch": switch, "model": model, "report": report,
-    "top": top, "doctor": doctor, "bridge": bridge, "bench": bench, "service": service, "io": devices, "sweep": sweep,
-    "why": why,
-    "emulate": emulate,
+    "run": run, "simulate": run, "replay": replay, "port": port, "switch": switch, "reload": reload, "model": model,
+    "report": report, "top": top, "doctor": doctor, "bridge": bridge, "bench": bench, "service": service,
+    "io": devices, "sweep": sweep, "why": why, "emulate": emulate,
 }
 
 # What the OS says of a path that cannot be used as given (not of a device or a disk that failed).

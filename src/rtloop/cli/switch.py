@@ -94,22 +94,22 @@ def run(args: argparse.Namespace) -> int:
 
 def request(current: Any, port: SwitchPort, controller: str | None, at_cycle: int,
             args: argparse.Namespace) -> tuple[list[float], str]:
-    """The switch port's three values for this request, and the answer to print."""
-    active_request, _at, shadow = (float(v) for v in current)
+    """The switch port's four values for this request (no new code: 0), and the answer to print."""
+    active_request, shadow = float(current[0]), float(current[2])
     when = f"at cycle {at_cycle} (t = {at_cycle * port.period_ns / 1e9:.6f} s)"
     if args.stop_shadow:
-        return [active_request, float(at_cycle), -1.0], f"shadow controller stopped {when}"
+        return [active_request, float(at_cycle), -1.0, 0.0], f"shadow controller stopped {when}"
     if args.promote:
         if shadow < 0 and controller is None:
             raise PortValueError(f"task {port.task!r} runs no shadow controller to promote; "
                                  f"start one with: rtloop switch APP {port.task} CONTROLLER --shadow")
         index = port.controllers.index(controller) if controller is not None else int(shadow)
-        return [float(index), float(at_cycle), float(index)], f"{port.controllers[index]} promoted {when}"
+        return [float(index), float(at_cycle), float(index), 0.0], f"{port.controllers[index]} promoted {when}"
     assert controller is not None
     wanted = float(port.controllers.index(controller))
     if args.shadow:
-        return [active_request, float(at_cycle), wanted], f"{controller} runs in shadow from {when}"
-    return [wanted, float(at_cycle), shadow], f"{controller} active {when}"
+        return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {when}"
+    return [wanted, float(at_cycle), shadow, 0.0], f"{controller} active {when}"
 
 
 def parse_changes(words: list[str], *, promote: bool) -> list[tuple[str, str | None]]:

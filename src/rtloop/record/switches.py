@@ -1,8 +1,9 @@
 """The controller switches of a run, read from what its tasks of several controllers record.
 
 A task of several controllers (:class:`rtloop.switching.Controllers`) records which one is
-active every cycle; a change there is a switch. Decided from the recording, so run, simulate
-and replay list them alike. Bounded: the first :data:`MAX_SWITCHES_LISTED` in full, then a count.
+active every cycle and which code it runs; a change there is a switch (or a reload: ``code``).
+Decided from the recording, so run, simulate and replay list them alike. Bounded: the first
+:data:`MAX_SWITCHES_LISTED` in full, then a count.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ class SwitchLog:
             runnable = spec.runnable
             if isinstance(runnable, Controllers):
                 self.watched[name] = (runnable.n_common_outputs, runnable, spec.config.period_ns)
-        self.last: dict[str, float] = {name: math.nan for name in self.watched}
+        self.last: dict[str, tuple[float, float]] = {name: (math.nan, math.nan) for name in self.watched}
         self.events: list[dict[str, Any]] = []
         self.not_listed = 0
 
@@ -37,19 +38,21 @@ class SwitchLog:
         if watched is None or not len(ticks):
             return
         column, controllers, period_ns = watched
-        values = np.asarray(rows)[:, column]
-        last = self.last[task]
-        changed = np.flatnonzero(np.diff(np.concatenate(([last], values))) != 0)
+        table = np.asarray(rows)
+        active, code = table[:, column], table[:, column + 3]  # active_controller, active_code
+        last_active, last_code = self.last[task]
+        before_active = np.concatenate(([last_active], active[:-1]))
+        before_code = np.concatenate(([last_code], code[:-1]))
+        changed = np.flatnonzero((active != before_active) | (code != before_code))
         for at in changed.tolist():
-            before = last if at == 0 else float(values[at - 1])
-            now = float(values[at])
-            if math.isnan(before) or math.isnan(now):
+            if math.isnan(before_active[at]) or math.isnan(active[at]):
                 continue  # the first row, or a gap: not a switch
-            self._add_event(task, int(ticks[at]), period_ns, controllers, before, now)
-        self.last[task] = float(values[-1])
+            self._add_event(task, int(ticks[at]), period_ns, controllers, float(before_active[at]),
+                            float(active[at]), float(code[at]) if code[at] != before_code[at] else 0.0)
+        self.last[task] = (float(active[-1]), float(code[-1]))
 
     def _add_event(self, task: str, cycle: int, period_ns: int, controllers: Controllers,
-                   before: float, now: float) -> None:
+                   before: float, now: float, code: float) -> None:
         if len(self.events) >= MAX_SWITCHES_LISTED:
             self.not_listed += 1
             return
@@ -63,7 +66,8 @@ class SwitchLog:
             transfer = "direct"
         self.events.append({"task": task, "cycle": cycle, "t_s": cycle * period_ns / 1e9,
                             "from": names[int(before)] if 0 <= before < len(names) else f"#{before:g}",
-                            "to": to, "transfer": transfer})
+                            "to": to, "transfer": transfer,
+                            **({"code": f"{int(code):012x}"} if code else {})})
 
     def to_json(self) -> list[dict[str, Any]]:
         return list(self.events)

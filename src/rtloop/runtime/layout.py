@@ -8,6 +8,7 @@ queues), and the :class:`~rtloop.ipc.wiring.TaskWiringPlan` each task process at
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 from collections.abc import Callable
@@ -397,7 +398,18 @@ def _switch_facts(app: App, spec: PortSpec) -> dict[str, Any]:
     runnable = app.tasks[spec.signal.task].runnable
     if not isinstance(runnable, Controllers) or spec.direction != "in" or spec.signal.slice != runnable.switch_slice:
         return {}
-    return {"controllers": list(runnable.names), "switch_task": spec.signal.task}
+    sources = {name: _source_file(controller) for name, controller in zip(runnable.names, runnable.alternatives,
+                                                                           strict=True)}
+    return {"controllers": list(runnable.names), "switch_task": spec.signal.task, "sources": sources}
+
+
+def _source_file(runnable: object) -> str | None:
+    """The file a controller's class comes from (what `rtloop reload` reads again), if it has one."""
+    try:
+        found = inspect.getsourcefile(type(runnable))
+    except TypeError:  # a class of a compiled module
+        return None
+    return str(Path(found).resolve()) if found else None
 
 
 def _element_names(app: App, spec: PortSpec) -> list[str]:

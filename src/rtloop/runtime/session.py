@@ -47,6 +47,7 @@ from rtloop.record.disk_room import check_room
 from rtloop.record.recorder import Recorder, give_to_invoking_user
 from rtloop.record.summary import SUMMARY_RESERVE_BYTES, RunSummary, SummaryFile
 from rtloop.runtime.layout import AppLayout, TaskHandles
+from rtloop.switching import keep_start_code, prepare_reloads
 
 RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
              "inputs.csv", "reads.csv", "replay.json", "report.html")
@@ -344,6 +345,8 @@ class RunSession:
         summary_path = self.out / "summary.json"
         # The layout checks memory and loads profiles: bad input is refused before the folder is touched.
         self.layout = AppLayout.create(self.app, summary_path if self.registry else None, self.mode)
+        for spec in self.app.tasks.values():  # where `rtloop reload` keeps code; simulate waits for it
+            prepare_reloads(spec.runnable, self.out / "code", wait=self.mode != "run")
         self._opened.append("layout")
         existed = self.out.exists()
         try:
@@ -355,6 +358,7 @@ class RunSession:
             self.summary_file = reserve_summary(self.out, made_here=not existed)
             self._opened.append("summary")
             self.recorder = Recorder(self.app, self.out, keep_s=self.keep_s, trim=self.trim)
+            keep_start_code({name: spec.runnable for name, spec in self.app.tasks.items()}, self.out / "code")
             self._opened.append("recorder")
             self.recorder.write_replay_info(self.duration_s)
         except BaseException:

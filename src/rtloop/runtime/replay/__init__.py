@@ -55,6 +55,7 @@ from rtloop.runtime.replay.timeline import RunTimeline, check_timeline, timing_l
 from rtloop.runtime.session import check_out_dir
 from rtloop.runtime.simulate import simulate
 from rtloop.runtime.snapshot import TaskSnapshot
+from rtloop.switching import prepare_reloads, start_codes_of
 
 __all__ = ["ReplayResult", "load_replay_app", "port_writes", "replay", "window_start"]
 
@@ -115,6 +116,9 @@ def replay(run_dir: str | Path, out: str | Path, app: App | None = None, *, forc
         raise AppError(never_finished)
     if app is None:
         app, _duration_s = load_replay_app(run_dir)
+    start_code = start_codes_of(run_dir / "code")
+    for name, spec in app.tasks.items():  # the code the run started with, and reloaded: the run kept both
+        prepare_reloads(spec.runnable, run_dir / "code", wait=True, start_codes=start_code.get(name, {}))
     if app.devices:
         play_back_devices(app, run_dir)
     pristine = copy.deepcopy(app)  # runnables as before any prerun, for a second pass

@@ -1,0 +1,274 @@
+"""Reloading a controller's edited code into a running task, outside its real-time loop.
+
+``rtloop reload`` keeps the edited module in the run's folder (``code/<controller>-<id>.py``,
+``id``: the first 48 bits of its SHA-256, in hex) and asks the task, through its switch port,
+for that code at a release. In the task process a :class:`CodeReloader` thread, started before
+T0 and parked on a pipe, does everything that imports and allocates: it reads the file (owned by
+the run's user, not a link, its content matching its id), executes it as a fresh module, builds
+the controller again with the state it was built with (its constructor's work, kept as a copy),
+checks it (a Runnable, the same sizes, ``prerun``, a dry step on a copy with the current inputs:
+finite outputs within the task's period) and hands the result back. The loop only swaps one
+object for another at the release asked for, bumpless (:mod:`rtloop.switching`).
+
+The thread runs under ``SCHED_OTHER`` and holds the interpreter's lock only between the loop's
+steps, but while it works the loop may wait for that lock when it wakes: up to the switch
+interval this module sets for the reload (50 µs). The cost is measured in BENCHMARKS.md.
+
+In ``simulate`` and ``replay`` the loop waits for the reloader at the release (``wait = True``),
+so the reloaded code acts at the same cycle as in the run; ``replay`` reads the code the run kept.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import stat
+import sys
+import threading
+import time
+import types
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rtloop.errors import RtloopError
+from rtloop.runnable import Runnable, TickInfo
+
+CODE_ID_HEX_DIGITS = 12
+"""An id of 48 bits: a float holds it exactly, so it travels through a port as one value."""
+RELOAD_SWITCH_INTERVAL_S = 50e-6
+"""The interpreter's switch interval while a reload is prepared: how long the loop, waking, may
+wait for the lock the reloader holds (CPython's default is 5 ms)."""
+THREAD_STACK_BYTES = 512 * 1024
+"""The reloader's stack (locked memory, as the task's is): not the default 8 MB."""
+
+
+def code_id_of(source: bytes) -> int:
+    return int(hashlib.sha256(source).hexdigest()[:CODE_ID_HEX_DIGITS], 16)
+
+
+def code_file_name(controller: str, code_id: int) -> str:
+    return f"{controller}-{code_id:0{CODE_ID_HEX_DIGITS}x}.py"
+
+
+def result_file_name(controller: str, code_id: int) -> str:
+    return f"{controller}-{code_id:0{CODE_ID_HEX_DIGITS}x}.result.json"
+
+
+class CodeReloader:
+    """The task's reload thread (see the module doc). ``owner`` is the task's ``Controllers``."""
+
+    def __init__(self, owner: Any, code_dir: Path, pristine: list[Runnable | None], *, wait: bool) -> None:
+        self.owner, self.code_dir, self.pristine, self.wait = owner, code_dir, pristine, wait
+        self.request_index = -1
+        self.request_code = 0
+        self.ready_code = 0
+        """The code id of :attr:`ready_runnable` once it is ready (0: nothing ready)."""
+        self.ready_runnable: Runnable | None = None
+        self.failed_code = 0
+        self.done = threading.Event()
+        self.retired: list[Runnable] = []
+        self._wake_r, self._wake_w = os.pipe()
+        previous = threading.stack_size(THREAD_STACK_BYTES)
+        try:
+            self.thread = threading.Thread(target=self._serve, name="rtloop-reload", daemon=True)
+            self.thread.start()
+        finally:
+            threading.stack_size(previous)
+
+    # --- the loop's side: no import, no allocation beyond a one-byte write ----------------------
+    def ask(self, index: int, code_id: int) -> None:
+        self.request_index, self.request_code = index, code_id
+        self.ready_code = 0
+        self.done.clear()
+        os.write(self._wake_w, b"r")
+
+    def take(self, code_id: int) -> Runnable | None:
+        """The controller built from ``code_id`` if it is ready (in simulate: once it is)."""
+        if self.wait and self.ready_code != code_id and self.failed_code != code_id:
+            self.done.wait()
+        if self.ready_code == code_id:
+            runnable, self.ready_runnable, self.ready_code = self.ready_runnable, None, 0
+            return runnable
+        return None
+
+    def build_now(self, index: int, code_id: int) -> Runnable:
+        """Controller ``index`` built from kept code, before the run (a replay starts with the code the
+        run started with). Its prerun is the caller's."""
+        name = self.owner.names[index]
+        source = self._read(code_file_name(name, code_id), code_id)
+        return self._build(index, self._module(index, name, code_id, source))
+
+    def retire(self, runnable: Runnable) -> None:
+        """The replaced controller: its postrun runs in the reloader's thread, not in the loop."""
+        self.retired.append(runnable)
+        os.write(self._wake_w, b"p")
+
+    def close(self) -> None:
+        """After the loop: the retired controllers' postrun, then the thread ends."""
+        os.write(self._wake_w, b"q")
+        self.thread.join(timeout=10)
+        for fd in (self._wake_r, self._wake_w):
+            os.close(fd)
+
+    # --- the reloader's thread ----------------------------------------------------------------
+    def _serve(self) -> None:
+        try:  # this thread only: it inherited the task's real-time policy, which is the loop's alone
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (OSError, AttributeError):
+            pass
+        while True:
+            what = os.read(self._wake_r, 1)
+            if what == b"q" or not what:
+                self._postrun_retired()
+                return
+            if what == b"p":
+                self._postrun_retired()
+                continue
+            index, code_id = self.request_index, self.request_code
+            previous = sys.getswitchinterval()
+            sys.setswitchinterval(RELOAD_SWITCH_INTERVAL_S)
+            try:
+                result = self._prepare(index, code_id)
+            finally:
+                sys.setswitchinterval(previous)
+            self._write_result(index, code_id, result)
+            self.done.set()
+
+    def _postrun_retired(self) -> None:
+        while self.retired:
+            try:
+                self.retired.pop().postrun()
+            except Exception:
+                pass  # the code that replaced it runs on; a failing cleanup of old code stops nothing
+
+    def _prepare(self, index: int, code_id: int) -> dict[str, Any]:
+        owner = self.owner
+        name = owner.names[index]
+        try:
+            source = self._read(code_file_name(name, code_id), code_id)
+            old = owner.alternatives[index]
+            module_name = type(old).__module__
+            if module_name == "__main__":
+                raise ReloadRefused(f"{type(old).__name__} is defined in the script that started the app; "
+                                    "put it in a module of its own to reload it")
+            module = types.ModuleType(module_name)
+            module.__file__ = str(self.code_dir / code_file_name(name, code_id))
+            exec(compile(source, module.__file__, "exec"), module.__dict__)
+            built = self._build(index, module)
+            dry = self._build(index, module)
+            dry_ns = self._dry_step(dry, index)
+            built.tick = owner.tick
+            built.bind_inputs(owner.own_inputs(index))
+            built.prerun()
+        except ReloadRefused as refusal:
+            self.failed_code = code_id
+            return {"accepted": False, "reason": str(refusal)}
+        except Exception as error:  # the user's new code failed: the old code keeps running
+            self.failed_code = code_id
+            where = _user_frame(error, str(self.code_dir))
+            return {"accepted": False, "reason": f"{type(error).__name__}: {error}{where}"}
+        self.ready_runnable = built
+        self.ready_code = code_id
+        return {"accepted": True, "dry_step_ns": dry_ns, "ready_ns": time.clock_gettime_ns(time.CLOCK_MONOTONIC)}
+
+    def _module(self, index: int, name: str, code_id: int, source: bytes) -> types.ModuleType:
+        """The kept code executed as a fresh module (named as the controller's own, not registered)."""
+        old = self.owner.alternatives[index]
+        module_name = type(old).__module__
+        if module_name == "__main__":
+            raise ReloadRefused(f"{type(old).__name__} is defined in the script that started the app; "
+                                "put it in a module of its own to reload it")
+        module = types.ModuleType(module_name)
+        module.__file__ = str(self.code_dir / code_file_name(name, code_id))
+        exec(compile(source, module.__file__, "exec"), module.__dict__)
+        return module
+
+    def _read(self, file_name: str, code_id: int) -> bytes:
+        path = self.code_dir / file_name
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError as error:
+            raise ReloadRefused(f"{path}: {error.strerror}") from None
+        try:
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode) or info.st_uid != os.geteuid():
+                raise ReloadRefused(f"{path} is not a file of this run's user; not loaded")
+            source = b""
+            while chunk := os.read(fd, 1 << 16):
+                source += chunk
+        finally:
+            os.close(fd)
+        if code_id_of(source) != code_id:
+            raise ReloadRefused(f"{path}: its content does not match its name; not loaded")
+        return source
+
+    def _build(self, index: int, module: types.ModuleType) -> Runnable:
+        """The controller as it was built, of the new module's class (its constructor's state kept)."""
+        old = self.owner.alternatives[index]
+        cls = getattr(module, type(old).__qualname__, None)
+        if not isinstance(cls, type) or not issubclass(cls, Runnable):
+            raise ReloadRefused(f"the new code has no Runnable {type(old).__qualname__!r}")
+        pristine = self.pristine[index]
+        if pristine is None:
+            raise ReloadRefused(f"{type(old).__name__}'s state could not be copied when the task started: "
+                                "it cannot be built again")
+        built = cls.__new__(cls)  # with what its constructor made, before any prerun (itself: the new object)
+        built.__dict__.update(copy.deepcopy(vars(pristine), {id(pristine): built}))
+        sizes = (built.n_inputs, built.n_outputs)
+        if sizes != (old.n_inputs, old.n_outputs):
+            raise ReloadRefused(f"the new code has {sizes[0]} inputs and {sizes[1]} outputs, the task "
+                                f"{old.n_inputs} and {old.n_outputs}: a reload keeps the task's sizes")
+        return built
+
+    def _dry_step(self, dry: Runnable, index: int) -> int:
+        """One step of a copy on the inputs of now: finite outputs, within the period (not in simulate)."""
+        owner = self.owner
+        tick = owner.tick
+        dry.tick = TickInfo(tick.cycle, tick.release_ns, tick.start_ns, tick.period_ns)
+        u = np.array(owner.own_inputs(index))
+        y = np.zeros(dry.n_outputs)
+        dry.bind_inputs(u)
+        dry.prerun()
+        try:
+            started_ns = time.thread_time_ns()
+            dry.step(u, y)
+            took_ns = time.thread_time_ns() - started_ns
+        finally:
+            dry.postrun()
+        if not all(math.isfinite(value) for value in y.tolist()):
+            raise ReloadRefused(f"its dry step on the current inputs gave {y.tolist()}: not finite")
+        if not self.wait and tick.period_ns and took_ns > tick.period_ns:
+            raise ReloadRefused(f"its dry step took {took_ns / 1e3:.0f} µs of CPU, more than the task's period "
+                                f"({tick.period_ns / 1e3:.0f} µs)")
+        return took_ns
+
+    def _write_result(self, index: int, code_id: int, result: dict[str, Any]) -> None:
+        path = self.code_dir / result_file_name(self.owner.names[index], code_id)
+        try:
+            temporary = path.with_suffix(".tmp")
+            temporary.write_text(json.dumps(result) + "\n")
+            os.replace(temporary, path)
+        except OSError:
+            pass  # a replay reads the run's folder: nothing to write there, and nothing lost
+
+
+class ReloadRefused(RtloopError):
+    """The reason a reloaded module is not used (the old code keeps running)."""
+
+
+def _user_frame(error: BaseException, code_dir: str) -> str:
+    """`` (line N)`` of the reloaded file where the error arose, if it did there."""
+    line = None
+    if isinstance(error, SyntaxError):
+        line = error.lineno
+    trace = error.__traceback__
+    while trace is not None:
+        if trace.tb_frame.f_code.co_filename.startswith(code_dir):
+            line = trace.tb_lineno
+        trace = trace.tb_next
+    return f" (line {line} of the new code)" if line else ""
