@@ -24,6 +24,7 @@ from conftest import cli_env, unique_name
 from rt_test_runnables import Noop, SpinFor
 from rtloop import App
 from rtloop.cli.main import main
+from rtloop.linux import trace
 from rtloop.record.summary import SUMMARY_RESERVE_BYTES
 from rtloop.runtime.evidence import MissWatch, TaskFacts
 from rtloop.stats.miss_causes import (
@@ -234,7 +235,8 @@ while time.monotonic() < end:  # 3 ms of the CPU every 40 ms, above the tasks
 
 @pytest.mark.rt
 @pytest.mark.timeout(300)
-def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path) -> None:
+@pytest.mark.parametrize("traced", [False, True], ids=["evidence", "trace-misses"])
+def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced: bool) -> None:
     """A FIFO-90 thread holds JIWY's core 3 ms every 40 ms: the tasks (FIFO 80/81, 1 ms) miss. Every
     miss the hog can account for (late by at most its 3 ms burst and a period) names it, as a
     higher-priority thread (directly, or through the other task's step it held up); none is blamed
@@ -251,7 +253,8 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path) -> None
     try:
         assert hog.stdout is not None and hog.stdout.readline().strip() == "holding"
         done = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "2", "--out",
-                               str(tmp_path / "run")], capture_output=True, text=True, env=cli_env(), timeout=240)
+                               str(tmp_path / "run"), *(["--trace-misses"] if traced else [])],
+                              capture_output=True, text=True, env=cli_env(), timeout=240)
     finally:
         hog.kill()
         hog.wait()
@@ -265,6 +268,8 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path) -> None
     named = [m for m in misses["first"] if "rtloop-hog" in m["cause"]]
     assert named, misses["first"]
     assert all(m["cause"].startswith("preempted by a higher-priority thread: rtloop-hog (pid ") for m in named)
+    if traced and trace.availability()[0]:  # the kernel's own events said who had the CPU, to the µs
+        assert any("(traced)" in m["cause"] for m in named), named
     for miss in misses["first"]:
         assert miss["cause_class"] != STEP, miss
         lost_ns = miss["latency_ns"] if miss["kind"] == "late wake-up" else miss["exec_ns"]

@@ -33,7 +33,7 @@ def _switch(ts: str, comm: str, pid: int, next_comm: str, next_pid: int, prio: i
 
 def test_trace_lines_are_parsed_into_switches_and_handlers() -> None:
     switch = trace.parse(_switch("100.000100", "<idle>", 0, "rtloop hog", 77, 9))
-    assert switch == trace.Event(100_000_100_000, "switch", "rtloop hog (pid 77, FIFO/RR 90)")
+    assert switch == trace.Event(100_000_100_000, "switch", "rtloop hog (pid 77, FIFO/RR 90)", 90)
     irq = trace.parse("  <idle>-0 [001] d.h1. 100.000200: irq_handler_entry: irq=24 name=virtio0-input.0")
     assert irq == trace.Event(100_000_200_000, "irq", "IRQ 24 (virtio0-input.0)")
     assert trace.parse("  <idle>-0 [001] d.h1. 100.000300: irq_handler_exit: irq=24 ret=handled") == trace.Event(
@@ -54,25 +54,42 @@ def test_held_sums_who_had_the_cpu_in_a_window() -> None:
         assert event is not None
         tracer.events[1].append(event)
     held = tracer.held(1, 100_001_000_000, 100_004_050_000, frozenset({10}))
-    assert held[0] == {"who": "rtloop-hog (pid 77, FIFO/RR 90)", "kind": "thread", "ran_ns": 3_000_000}
-    assert {"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 100_000} in held
+    assert held[0] == {"who": "rtloop-hog (pid 77, FIFO/RR 90)", "kind": "thread", "ran_ns": 3_000_000,
+                       "priority": 90}
+    assert {"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 100_000, "priority": -1} in held
     assert all("task" not in item["who"] for item in held)  # the late task itself is not its own cause
     miss = Miss("plant", 1, 100_001_000_000, 100_004_000_000, 100_004_050_000, 1_000_000)
-    cause = explain(miss, Evidence(cpu=1, traced=held))
+    cause = explain(miss, Evidence(cpu=1, priority=80, traced=held))
     assert cause.cls == THREAD
-    assert cause.text.startswith("held by another thread: rtloop-hog (pid 77, FIFO/RR 90) had CPU 1 for 3.0 ms")
+    assert cause.text.startswith("preempted by a higher-priority thread: rtloop-hog (pid 77, FIFO/RR 90) had CPU 1 "
+                                 "for 3.0 ms")
+    assert explain(miss, Evidence(cpu=1, priority=95, traced=held)).text.startswith("held by another thread: ")
     irq_only = [{"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 2_900_000}]
     assert explain(miss, Evidence(cpu=1, traced=irq_only)).cls == IRQ
 
 
-@pytest.mark.skipif(trace.find_tracefs() is not None, reason="this kernel has tracefs: the guest test covers it")
-def test_without_tracefs_trace_misses_is_one_note_and_the_run_goes_on(tmp_path: Path) -> None:
+def test_without_tracefs_trace_misses_is_one_note_and_the_run_goes_on(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(trace, "find_tracefs", lambda: None)  # a kernel built without it
+    monkeypatch.setattr(trace, "kernel_has_tracefs", lambda: False)
     app = App(unique_name("trace_none"))
     app.add_task("idle", Noop(), period_ns=10_000_000, policy="other", cpu=0)
     summary = rtloop.run(app, 0.3, tmp_path / "run", trace_misses=True)
     notes = [note for note in summary.notes if note.startswith("--trace-misses:")]
     assert len(notes) == 1 and "no tracefs" in notes[0] and "\n" not in notes[0]
     assert summary.tasks["idle"].timing.cycles > 0
+
+
+def test_a_private_tracefs_mount_is_gone_after_the_run(tmp_path: Path) -> None:
+    usable, why = trace.availability()
+    if not usable or trace.find_tracefs() is not None:
+        pytest.skip(why or "tracefs is mounted here already: rtloop mounts nothing")
+    before = Path("/proc/self/mounts").read_text().count("tracefs")
+    app = App(unique_name("trace_mount"))
+    app.add_task("idle", Noop(), period_ns=10_000_000, policy="other", cpu=0)
+    summary = rtloop.run(app, 0.3, tmp_path / "run", trace_misses=True)
+    assert not [note for note in summary.notes if note.startswith("--trace-misses:")], summary.notes
+    assert Path("/proc/self/mounts").read_text().count("tracefs") == before
 
 
 HOLDER = """
@@ -89,13 +106,15 @@ while True:
 """
 
 
-@pytest.mark.rtkernel
 @pytest.mark.rt
 @pytest.mark.timeout(1200)
-def test_in_the_guest_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -> None:
+def test_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -> None:
     """A process of this test, at FIFO 90 on the task's CPU, spins for 8 periods now and then: the
-    task (FIFO 50) wakes late, and the trace names the thread (its comm, set here) as the holder."""
-    assert trace.find_tracefs() is not None, "the guest's kernel should have tracefs"
+    task (FIFO 50) wakes late, and the trace names the thread (its comm, set here) as the holder.
+    Runs here (tracefs mounted privately) and in the PREEMPT_RT guest (-m rt)."""
+    usable, why = trace.availability()
+    if not usable:
+        pytest.skip(why)
     cpu = max(os.sched_getaffinity(0))
     period_ns = scaled_ns(1_000_000)
     holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(cpu), str(8 * period_ns), str(40 * period_ns)],
@@ -116,4 +135,4 @@ def test_in_the_guest_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_
     assert misses["total"] > 0
     traced = [m for m in misses["first"] if "(traced)" in m["cause"]]
     assert traced, misses["first"]
-    assert any("rtloop-holder" in m["cause"] for m in traced), traced
+    assert any(m["cause"].startswith("preempted by a higher-priority thread: rtloop-holder (pid ") for m in traced)

@@ -112,6 +112,9 @@ def _evidence_lines(miss: dict[str, Any], summary: dict[str, Any]) -> list[str]:
     for other in ev.get("tasks", []):
         lines.append(f"  task {other['task']} ({other['relation']} priority {other['priority']}) "
                      f"cycle {other['cycle']}: its step ({ms(other['exec_ns'])}) overlapped {ms(other['overlap_ns'])}")
+    for item in ev.get("traced", []):
+        lines.append(f"  traced ({item['kind']}): {item['who']} had the CPU {ms(item['ran_ns'])} between the release "
+                     "and the end")
     for thread in ev.get("threads", []):
         lines.append(f"  thread {thread['label']} ({thread['relation']} priority): ran {ms(thread['ran_ns'])} "
                      f"on the CPU in the window")

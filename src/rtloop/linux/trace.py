@@ -10,14 +10,16 @@ release and its end, to the µs. The timerlat tracer (what ``rtla timerlat --aut
 uses) would add a FIFO-95 thread per CPU waking every period: a measurement that delays the
 tasks it explains; the plain events need no thread of their own.
 
-This machine's kernel has no tracefs at all: ``open_tracer`` then says so in one line and the
-run goes on with rtloop's own evidence.
+A kernel whose tracefs is not mounted (a VM's minimal init) gets a private mount for the run
+(root only); a kernel without tracefs gets one line saying so, and the run goes on with rtloop's
+own evidence.
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
+import ctypes
 import os
 import re
 from dataclasses import dataclass
@@ -40,21 +42,62 @@ class Event:
     kind: str
     """``switch`` (to ``who``), ``irq`` / ``softirq`` (``who`` its name), ``irq_end`` / ``softirq_end``."""
     who: str
+    priority: int = -1
+    """A switch's real-time priority (1-99; 0 for SCHED_OTHER), -1 for a handler."""
 
 
 def find_tracefs() -> Path | None:
+    """Where tracefs with the scheduler events is mounted, or None."""
     for place in TRACEFS_PLACES:
         if (place / "instances").is_dir() and (place / "events" / "sched" / "sched_switch").is_dir():
             return place
     return None
 
 
-def why_not() -> str:
-    """'' where --trace-misses can work here, else the one line that says why not."""
-    if find_tracefs() is None:
-        return ("this kernel has no tracefs with scheduler events (no /sys/kernel/tracing/events/sched; no "
-                "osnoise/timerlat tracers either): misses are explained from rtloop's own evidence")
-    return ""
+def kernel_has_tracefs() -> bool:
+    try:
+        return any(line.split()[-1] == "tracefs" for line in Path("/proc/filesystems").read_text().splitlines())
+    except OSError:
+        return False
+
+
+def mount_tracefs() -> Path:
+    """Mount tracefs in a private folder (a VM's minimal init mounts none; rtla and trace-cmd do the same):
+    the caller unmounts it (``unmount``). Raises OSError (needs root)."""
+    import tempfile
+
+    place = Path(tempfile.mkdtemp(prefix="rtloop-tracefs-"))
+    if _libc().mount(b"nodev", str(place).encode(), b"tracefs", 0, None) != 0:
+        errno = ctypes.get_errno()
+        place.rmdir()
+        raise OSError(errno, f"mount -t tracefs: {os.strerror(errno)}")
+    if not (place / "events" / "sched" / "sched_switch").is_dir():
+        unmount(place)
+        raise OSError(0, "this kernel's tracefs has no sched:sched_switch event")
+    return place
+
+
+def unmount(place: Path) -> None:
+    _libc().umount2(str(place).encode(), 2)  # MNT_DETACH: gone even if a reader still holds a file
+    with contextlib.suppress(OSError):
+        place.rmdir()
+
+
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(None, use_errno=True)
+
+
+def availability() -> tuple[bool, str]:
+    """Whether --trace-misses can work here, and if not the one line that says why."""
+    if find_tracefs() is not None:
+        return True, ""
+    if not kernel_has_tracefs():
+        return False, ("this kernel has no tracefs (not in /proc/filesystems; no osnoise/timerlat tracers "
+                       "either): misses are explained from rtloop's own evidence")
+    if os.geteuid() != 0:
+        return False, ("tracefs is not mounted and only root may mount it: misses are explained from rtloop's "
+                       "own evidence")
+    return True, ""
 
 
 class MissTracer:
@@ -67,6 +110,8 @@ class MissTracer:
                                                             for cpu in self.cpus}
         self.pipes: dict[int, int] = {}
         self.partial: dict[int, bytes] = dict.fromkeys(self.cpus, b"")
+        self.mounted: Path | None = None
+        """The private tracefs mount this tracer made (unmounted by ``close``)."""
 
     def arm(self) -> None:
         self.root.mkdir()
@@ -113,6 +158,7 @@ class MissTracer:
         if not events:
             return []
         ran: dict[tuple[str, str], int] = collections.Counter()
+        priorities: dict[str, int] = {}
         running, since = "", from_ns
         entered: dict[str, int] = {}
         names: dict[str, str] = {}
@@ -123,6 +169,7 @@ class MissTracer:
                 if event.at_ns >= from_ns and running:
                     ran[("thread", running)] += event.at_ns - max(since, from_ns)
                 running, since = event.who, event.at_ns
+                priorities[running] = event.priority
             elif event.kind in ("irq", "softirq"):  # keyed by "IRQ 24": the exit event has no name
                 entered[event.kind + event.who.split(" (")[0]] = event.at_ns
                 names[event.kind + event.who.split(" (")[0]] = event.who
@@ -137,7 +184,7 @@ class MissTracer:
         for (kind, who), ran_ns in ran.items():
             if kind == "thread" and (who.startswith("swapper/") or _pid_of(who) in own_pids):
                 continue
-            found.append({"who": who, "kind": kind, "ran_ns": ran_ns})
+            found.append({"who": who, "kind": kind, "ran_ns": ran_ns, "priority": priorities.get(who, -1)})
         return sorted(found, key=lambda item: -int(item["ran_ns"]))  # type: ignore[call-overload]
 
     def close(self) -> None:
@@ -148,6 +195,9 @@ class MissTracer:
             (self.root / "tracing_on").write_text("0")
         with contextlib.suppress(OSError):
             self.root.rmdir()  # removes the instance and its buffers
+        if self.mounted is not None:
+            unmount(self.mounted)
+            self.mounted = None
 
 
 def _pid_of(who: str) -> int:
@@ -169,7 +219,8 @@ def parse(line: str) -> Event | None:
         name = rest[rest.find("next_comm=") + 10:rest.find(" next_pid=")]
         prio = int(fields.get("next_prio", "120"))
         policy = f"FIFO/RR {99 - prio}" if prio < 100 else "other"
-        return Event(at_ns, "switch", f"{name} (pid {fields.get('next_pid', '?')}, {policy})")
+        return Event(at_ns, "switch", f"{name} (pid {fields.get('next_pid', '?')}, {policy})",
+                     99 - prio if prio < 100 else 0)
     if event == "irq_handler_entry":
         return Event(at_ns, "irq", f"IRQ {fields.get('irq', '?')} ({fields.get('name', '?')})")
     if event == "irq_handler_exit":
@@ -182,13 +233,18 @@ def parse(line: str) -> Event | None:
 
 def open_tracer(cpus: set[int]) -> tuple[MissTracer | None, str]:
     """An armed tracer on ``cpus``, or None and the one line that says why not."""
-    tracefs = find_tracefs()
-    if tracefs is None:
-        return None, why_not()
-    tracer = MissTracer(tracefs, cpus)
+    usable, why = availability()
+    if not usable:
+        return None, why
+    tracefs, mounted = find_tracefs(), None
     try:
+        if tracefs is None:
+            tracefs = mounted = mount_tracefs()
+        tracer = MissTracer(tracefs, cpus)
+        tracer.mounted = mounted
         tracer.arm()
     except OSError as error:
-        return None, f"tracefs at {tracefs} refused the tracing instance ({error}): misses are explained from " \
-                     "rtloop's own evidence"
+        if mounted is not None:
+            unmount(mounted)
+        return None, f"tracefs refused the tracing instance ({error}): misses are explained from rtloop's own evidence"
     return tracer, ""

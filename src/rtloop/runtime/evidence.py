@@ -183,7 +183,7 @@ class MissWatch:
 
     def evidence_for(self, miss: Miss, cycle_before: int) -> Evidence:
         facts = self.facts[miss.task]
-        evidence = Evidence(cpu=facts.cpu, realtime=facts.realtime)
+        evidence = Evidence(cpu=facts.cpu, realtime=facts.realtime, priority=facts.priority)
         self._window(miss, facts, evidence)
         self._same_cpu_tasks(miss, facts, evidence)
         self._simultaneous(miss, facts, evidence)

@@ -83,6 +83,8 @@ class Evidence:
 
     cpu: int | None = None
     realtime: bool = True
+    priority: int = 0
+    """The task's real-time priority (what a traced thread's is compared with)."""
     """The task's policy is a real-time one (else SCHED_OTHER: it shares the CPU with every thread)."""
     window_ns: int = 0
     """The span of the supervisor's samples around the miss (steal, IRQ, threads are per window)."""
@@ -164,7 +166,9 @@ def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, in
     traced = [t for t in ev.traced if t["ran_ns"] >= need_ns]
     if traced:  # the kernel's own events: exact, so first
         top = traced[0]
-        what = "held by an interrupt handler" if top["kind"] != "thread" else "held by another thread"
+        higher = top.get("priority", -1) > ev.priority or (not ev.realtime and top.get("priority", -1) > 0)
+        what = ("held by an interrupt handler" if top["kind"] != "thread" else
+                "preempted by a higher-priority thread" if higher else "held by another thread")
         return Cause(IRQ if top["kind"] != "thread" else THREAD,
                      f"{what}: {top['who']} had {cpu} for {ms(top['ran_ns'])} of the cycle (traced)")
     for other in sorted(ev.tasks, key=lambda t: -t["overlap_ns"]):
