@@ -4,7 +4,7 @@
 pure-Python path (and says so once at run time).
 """
 
-import hashlib
+import zlib
 from pathlib import Path
 
 from setuptools import Extension, setup
@@ -12,12 +12,12 @@ from setuptools import Extension, setup
 DEVIO_SOURCES = sorted(["_devio.c", *(f"devio_c/{p.name}" for p in Path("src/rtloop/io/devio_c").glob("*.c"))])
 
 
-def sources_sha256(folder: Path, names: list[str]) -> str:
-    """The digest io/compiled.py:sources_sha256 computes the same way (a test checks they agree)."""
-    digest = hashlib.sha256()
+def sources_digest(folder: Path, names: list[str]) -> str:
+    """The digest io/compiled.py:sources_digest computes the same way (a test checks they agree)."""
+    digest = 0
     for name in names:
-        digest.update(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0")
-    return digest.hexdigest()
+        digest = zlib.crc32(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0", digest)
+    return f"{digest:08x}"
 
 
 setup(
@@ -33,8 +33,8 @@ setup(
             "rtloop.io._devio",
             sources=["src/rtloop/io/_devio.c"],  # it includes devio_c/*.c: one translation unit
             depends=[f"src/rtloop/io/{name}" for name in DEVIO_SOURCES],
-            define_macros=[("RTLOOP_DEVIO_SOURCES_SHA256",
-                            f'"{sources_sha256(Path("src/rtloop/io"), DEVIO_SOURCES)}"')],
+            define_macros=[("RTLOOP_DEVIO_SOURCES_DIGEST",
+                            f'"{sources_digest(Path("src/rtloop/io"), DEVIO_SOURCES)}"')],
             extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
             optional=True,
         ),

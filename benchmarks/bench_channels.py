@@ -57,7 +57,8 @@ from _common import (
 )
 
 from rtloop.app.builder import App
-from rtloop.ipc.channels import LetChannel, SampleQueue
+from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.ring import SampleQueue
 from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.linux import rt
 

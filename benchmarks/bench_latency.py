@@ -178,8 +178,9 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
     from rtloop.ipc.hotpath import PythonCycle
+    from rtloop.ipc.ring import Int64Ring
     from rtloop.ipc.schema import task_segment_size
-    from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+    from rtloop.ipc.segments import Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
     from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
     from rtloop.linux import rt

@@ -39,8 +39,9 @@ from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_j
 
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt

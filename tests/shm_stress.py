@@ -6,7 +6,8 @@ import os
 
 import numpy as np
 
-from rtloop.ipc.channels import LetChannel, SampleQueue
+from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.ring import SampleQueue
 from rtloop.ipc.segments import Segment
 
 N_VALUES = 16

@@ -21,8 +21,9 @@ from rt_test_runnables import Counter, Gain, Integrator, MatrixProduct, PiContro
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
 from rtloop.ipc.wiring import InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo

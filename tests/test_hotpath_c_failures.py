@@ -15,8 +15,9 @@ import pytest
 
 from rtloop.errors import LibcError
 from rtloop.ipc import hotpath
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import constants, task_segment_size
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
 from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
 from rtloop.linux.rt import AbsoluteSleeper

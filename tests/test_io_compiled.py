@@ -813,7 +813,7 @@ def test_the_build_carries_the_digest_of_the_sources_it_was_built_from() -> None
     """setup.py passes the digest; io/compiled.py computes it the same way from the files here."""
     from rtloop.io import compiled
 
-    assert compiled.sources_sha256() == devio.SOURCES_SHA256
+    assert compiled.sources_digest() == devio.SOURCES_DIGEST
     assert "_devio.c" in compiled.source_names() and "devio_c/can.c" in compiled.source_names()
 
 
@@ -823,7 +823,7 @@ def test_a_build_older_than_its_sources_is_not_used_and_says_so_once() -> None:
     import sys
 
     code = ("from rtloop.io import compiled\n"
-            "compiled.sources_sha256 = lambda folder=None: '0' * 64  # the sources changed since the build\n"
+            "compiled.sources_digest = lambda folder=None: 'changed!'  # the sources changed since the build\n"
             "print(compiled.devio(), compiled.devio())\n"
             "print(compiled.why_python())\n")
     env = {key: value for key, value in os.environ.items() if key != "RTLOOP_PURE_PYTHON"}
@@ -842,7 +842,7 @@ def test_a_compiled_guard_that_refuses_its_arguments_says_so_once(monkeypatch, c
     from rtloop.io import compiled, host
 
     class Disagreeing:
-        SOURCES_SHA256 = ""
+        SOURCES_DIGEST = ""
 
         def Guard(self, *args):
             raise TypeError("Guard() takes 7 arguments (8 given)")

@@ -20,8 +20,9 @@ import rtloop
 from conftest import other_cpu
 from rtloop import App
 from rtloop.ipc.channels import NO_STAMP, LetChannel
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import INITIAL_STAMP
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 
 P = 1_000_000

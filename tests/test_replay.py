@@ -22,8 +22,9 @@ from conftest import other_cpu, scaled_ns, scaled_s, skip_in_rtkernel_guest, slo
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import task_segment_size
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, StatusWord, WordBlock
 from rtloop.ipc.wiring import READ_LOG_WIDTH, InputLink, TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo

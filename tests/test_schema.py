@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from rtloop.ipc import hotpath, schema
-from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.channels import LatestValue, LetChannel
+from rtloop.ipc.ring import Int64Ring, SampleQueue
 from rtloop.ipc.schema import (
     CONTROL_WORDS,
     HEADER_WORDS,
@@ -28,7 +29,7 @@ from rtloop.ipc.schema import (
     StatusWord,
     TimingField,
 )
-from rtloop.ipc.segments import Int64Ring, Segment, new_run_token
+from rtloop.ipc.segments import Segment, new_run_token
 from rtloop.ipc.status import WordBlock
 from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
 from rtloop.runnable import TickInfo

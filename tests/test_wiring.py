@@ -30,7 +30,8 @@ from conftest import (
 from rt_test_runnables import Counter, Gain, Integrator, Noop, PiController
 from rtloop import App, AppError, ConnectionSizeError, PortValueError
 from rtloop.app.appfile import load_app
-from rtloop.ipc.channels import NO_STAMP, LetChannel, SampleQueue
+from rtloop.ipc.channels import NO_STAMP, LetChannel
+from rtloop.ipc.ring import SampleQueue
 from rtloop.ipc.segments import Segment, new_run_token, remove_stale_segments
 from rtloop.ipc.values import validate_values
 

@@ -14,7 +14,7 @@
  * object is built; a cycle allocates nothing. Built by pip with the system compiler
  * (optional: without a compiler the Python path runs).
  *
- * SOURCES_SHA256 is the digest of the sources it was built from (setup.py passes it): io/compiled.py
+ * SOURCES_DIGEST is the digest of the sources it was built from (setup.py passes it): io/compiled.py
  * compares it with the sources beside it and does not use a build older than them (it says so once).
  */
 #define PY_SSIZE_T_CLEAN
@@ -69,10 +69,10 @@ PyMODINIT_FUNC PyInit__devio(void) {
     if (module == NULL) {
         return NULL;
     }
-#ifndef RTLOOP_DEVIO_SOURCES_SHA256
-#define RTLOOP_DEVIO_SOURCES_SHA256 "" /* built without setup.py: compiled.py cannot tell, and says so */
+#ifndef RTLOOP_DEVIO_SOURCES_DIGEST
+#define RTLOOP_DEVIO_SOURCES_DIGEST "" /* built without setup.py: compiled.py cannot tell, and says so */
 #endif
-    if (PyModule_AddStringConstant(module, "SOURCES_SHA256", RTLOOP_DEVIO_SOURCES_SHA256) < 0) {
+    if (PyModule_AddStringConstant(module, "SOURCES_DIGEST", RTLOOP_DEVIO_SOURCES_DIGEST) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -16,10 +16,10 @@ does: like the hot path's schema check, it is not used, and that is said once pe
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import os
 import sys
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -35,16 +35,16 @@ def source_names(folder: Path = SOURCES_DIR) -> list[str]:
     return sorted(names)
 
 
-def sources_sha256(folder: Path = SOURCES_DIR) -> str | None:
-    """The digest setup.py gives the build (``_devio.SOURCES_SHA256``), of the sources here now; None
+def sources_digest(folder: Path = SOURCES_DIR) -> str | None:
+    """The digest setup.py gives the build (``_devio.SOURCES_DIGEST``), of the sources here now; None
     where they are not shipped (an installed wheel: built in one go from its own sources)."""
     names = source_names(folder)
     if "_devio.c" not in names:
         return None
-    digest = hashlib.sha256()
+    digest = 0  # CRC-32: it tells a changed file, and a task process already has zlib (hashlib it has not)
     for name in names:
-        digest.update(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0")
-    return digest.hexdigest()
+        digest = zlib.crc32(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0", digest)
+    return f"{digest:08x}"
 
 
 def _say_once(line: str) -> None:
@@ -55,8 +55,8 @@ def _say_once(line: str) -> None:
 
 def _stale(module: Any) -> str:
     """Why ``module`` is not the build of the sources here ("" when it is, or cannot be told)."""
-    built = getattr(module, "SOURCES_SHA256", None)
-    here = sources_sha256()
+    built = getattr(module, "SOURCES_DIGEST", None)
+    here = sources_digest()
     if here is None:
         return ""
     if not built:

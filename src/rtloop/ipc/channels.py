@@ -1,10 +1,10 @@
-"""Lock-free shared-memory channels: seqlock slots and sample queues.
+"""Lock-free shared-memory channels: seqlock slots.
 
 ``LetChannel``    one writer task → any reader tasks. A ring of seqlock slots, each
                   stamped with the time its value becomes valid (logical execution time).
 ``LatestValue``   non-RT writers → one RT reader: a single seqlock slot (input ports).
-``SampleQueue``   one RT writer → one non-RT reader: every tick's values, bounded;
-                  a full queue drops and counts, it never blocks the RT side.
+(``SampleQueue``, one RT writer → one non-RT reader of every tick's values, is a ring:
+:mod:`rtloop.ipc.ring`.)
 
 Every class takes a :class:`~rtloop.ipc.segments.Segment` and an offset, so the same code runs
 over ``/dev/shm`` between processes and over plain memory in the simulator. Word
@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from rtloop.ipc.schema import HEADER_WORDS, NO_STAMP, READ_RETRIES, ChannelWord, PortWord, QueueWord, SlotWord
+from rtloop.ipc.schema import HEADER_WORDS, NO_STAMP, READ_RETRIES, ChannelWord, PortWord, SlotWord
 from rtloop.ipc.segments import Segment, fence
 
-__all__ = ["HEADER_WORDS", "NO_STAMP", "READ_RETRIES", "LatestValue", "LetChannel", "SampleQueue"]
+__all__ = ["HEADER_WORDS", "NO_STAMP", "READ_RETRIES", "LatestValue", "LetChannel"]
 
 
 class LetChannel:
@@ -194,82 +194,3 @@ class LatestValue:
                     words[PortWord.READS] += 1
                 return True
         return False
-
-
-class SampleQueue:
-    """Bounded single-producer/single-consumer queue of (tick, values) records.
-
-    A task's record queue (the signals it records) and each queued port are such queues;
-    the same header as :class:`~rtloop.ipc.segments.Int64Ring`, which holds int64 records only.
-
-    Header words: ``[written, read, dropped, n_values, capacity]``, then ``capacity``
-    ticks (int64), then ``capacity × n_values`` values (float64).
-    """
-
-    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
-        self.words = segment.buffer[offset_bytes:].cast("q")
-        self.n_values = int(self.words[QueueWord.WIDTH])
-        self.capacity = int(self.words[QueueWord.CAPACITY])
-        ticks_at = offset_bytes + HEADER_WORDS * 8
-        self.ticks = segment.array(np.int64, self.capacity, ticks_at)
-        self.rows = segment.array(
-            np.float64, self.capacity * self.n_values, ticks_at + self.capacity * 8
-        ).reshape(self.capacity, self.n_values)
-        self.written = int(self.words[QueueWord.WRITTEN])
-
-    @staticmethod
-    def size_bytes(n_values: int, capacity: int) -> int:
-        return (HEADER_WORDS + capacity * (1 + n_values)) * 8
-
-    @classmethod
-    def initialise(cls, segment: Segment, n_values: int, capacity: int, offset_bytes: int = 0) -> SampleQueue:
-        words = segment.buffer[offset_bytes:].cast("q")
-        for i in range(HEADER_WORDS):
-            words[i] = 0
-        words[QueueWord.WIDTH], words[QueueWord.CAPACITY] = n_values, capacity
-        return cls(segment, offset_bytes)
-
-    # --- producer (RT) -------------------------------------------------------------------
-    def push(self, tick: int, values: np.ndarray) -> bool:
-        words = self.words
-        written = self.written
-        if written - words[QueueWord.READ] >= self.capacity:
-            words[QueueWord.DROPPED] += 1
-            return False
-        index = written % self.capacity
-        self.ticks[index] = tick
-        self.rows[index] = values
-        fence()  # the row must be visible before the count that announces it
-        self.written = written + 1
-        words[QueueWord.WRITTEN] = written + 1
-        return True
-
-    # --- consumer (non-RT) ---------------------------------------------------------------
-    @property
-    def sent(self) -> int:
-        return int(self.words[QueueWord.WRITTEN])
-
-    @property
-    def received(self) -> int:
-        return int(self.words[QueueWord.READ])
-
-    @property
-    def dropped(self) -> int:
-        return int(self.words[QueueWord.DROPPED])
-
-    def drain(self, max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Copy out the waiting records: (ticks, rows). Never blocks."""
-        words = self.words
-        written = words[QueueWord.WRITTEN]
-        fence()
-        read = words[QueueWord.READ]
-        count = written - read
-        if max_rows is not None:
-            count = min(count, max_rows)
-        if count <= 0:
-            return np.empty(0, np.int64), np.empty((0, self.n_values))
-        indices = (read + np.arange(count)) % self.capacity
-        ticks, rows = self.ticks[indices].copy(), self.rows[indices].copy()
-        fence()  # finish copying before handing the slots back
-        words[QueueWord.READ] = read + count
-        return ticks, rows

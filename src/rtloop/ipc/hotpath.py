@@ -23,8 +23,8 @@ from typing import Protocol
 import numpy as np
 
 from rtloop.errors import NonFiniteOutput
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
-from rtloop.ipc.segments import Int64Ring
 from rtloop.ipc.wiring import TaskWiring
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
 

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from rtloop.errors import PortValueError, RtloopError
-from rtloop.ipc.channels import LatestValue, SampleQueue
+from rtloop.ipc.channels import LatestValue
+from rtloop.ipc.ring import SampleQueue
 from rtloop.ipc.segments import (
     SEGMENT_NAME,
     SHM_DIR,

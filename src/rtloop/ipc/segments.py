@@ -34,7 +34,6 @@ import numpy as np
 import numpy.typing as npt
 
 from rtloop.errors import RtloopError
-from rtloop.ipc.schema import HEADER_WORDS, QueueWord, ring_size_bytes
 from rtloop.text import shorten
 
 SHM_DIR = Path("/dev/shm")
@@ -281,93 +280,3 @@ def remove_stale_segments() -> list[str]:
         except OSError:
             pass
     return removed
-
-
-class Int64Ring:
-    """Bounded single-producer/single-consumer ring of fixed-width int64 records.
-
-    A task's timing ring and its read log are such rings; a task's recorded signals go
-    through a :class:`~rtloop.ipc.channels.SampleQueue` (the record queue) instead.
-
-    The producer (an RT task) never blocks: when the ring is full the record is
-    dropped and counted. The consumer drains all available records in one batch.
-
-    Layout (int64 words): ``[written, read, dropped, width, capacity] + records``.
-    """
-
-    HEADER_WORDS = HEADER_WORDS
-
-    def __init__(self, segment: Segment, offset_bytes: int = 0) -> None:
-        header = segment.array(np.int64, self.HEADER_WORDS, offset_bytes)
-        self._header = header
-        self.width = int(header[QueueWord.WIDTH])
-        self.capacity = int(header[QueueWord.CAPACITY])
-        data_offset = offset_bytes + self.HEADER_WORDS * 8
-        self._data = segment.array(np.int64, self.capacity * self.width, data_offset).reshape(
-            self.capacity, self.width
-        )
-        # Scalar stores through a memoryview are single aligned 8-byte writes, and fast.
-        self._header_words = segment.buffer[offset_bytes : data_offset].cast("q")
-        self._data_words = segment.buffer[data_offset : data_offset + self.capacity * self.width * 8].cast("q")
-        self._written = int(header[QueueWord.WRITTEN])
-        self.memory = segment.buffer[offset_bytes : data_offset + self.capacity * self.width * 8]
-        """Header and records as one buffer (for the compiled hot path)."""
-
-    @staticmethod
-    def size_bytes(capacity: int, width: int) -> int:
-        return ring_size_bytes(capacity, width)
-
-    @staticmethod
-    def initialise(segment: Segment, capacity: int, width: int, offset_bytes: int = 0) -> Int64Ring:
-        header = segment.array(np.int64, Int64Ring.HEADER_WORDS, offset_bytes)
-        header[:] = 0
-        header[QueueWord.WIDTH] = width
-        header[QueueWord.CAPACITY] = capacity
-        return Int64Ring(segment, offset_bytes)
-
-    # --- producer side (RT): allocation-free -------------------------------------------
-    def push4(self, a: int, b: int, c: int, d: int) -> bool:
-        """Append one 4-word record; returns False (and counts a drop) if full."""
-        words = self._header_words
-        written = self._written
-        if written - words[QueueWord.READ] >= self.capacity:
-            words[QueueWord.DROPPED] += 1
-            return False
-        base = (written % self.capacity) * 4
-        data = self._data_words
-        data[base] = a
-        data[base + 1] = b
-        data[base + 2] = c
-        data[base + 3] = d
-        fence()  # the record must be visible before the count that announces it
-        self._written = written + 1
-        words[QueueWord.WRITTEN] = written + 1
-        return True
-
-    # --- consumer side (non-RT) --------------------------------------------------------
-    @property
-    def dropped(self) -> int:
-        return int(self._header_words[QueueWord.DROPPED])
-
-    @property
-    def written_total(self) -> int:
-        """Records the producer has pushed so far (not counting drops)."""
-        return int(self._header_words[QueueWord.WRITTEN])
-
-    def drain(self, max_records: int | None = None) -> np.ndarray:
-        """Copy out the records written since the last drain, at most ``max_records`` (shape: n × width)."""
-        words = self._header_words
-        written = words[QueueWord.WRITTEN]
-        fence()
-        read = words[QueueWord.READ]
-        count = written - read
-        if max_records is not None:
-            count = min(count, max_records)
-        if count <= 0:
-            return np.empty((0, self.width), dtype=np.int64)
-        start = read % self.capacity
-        indices = (start + np.arange(count)) % self.capacity
-        records = self._data[indices].copy()
-        fence()  # finish copying before handing the slots back to the producer
-        words[QueueWord.READ] = read + count
-        return records

@@ -16,9 +16,10 @@ from typing import TypedDict
 import numpy as np
 
 from rtloop.errors import NonFiniteOutput
-from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.channels import NO_STAMP, LatestValue, LetChannel
+from rtloop.ipc.ring import Int64Ring, SampleQueue
 from rtloop.ipc.schema import INITIAL_STAMP, READ_LOG_RECORD_WORDS, NudgeMode, PortWord, SlotWord
-from rtloop.ipc.segments import Int64Ring, Segment, close_segments
+from rtloop.ipc.segments import Segment, close_segments
 from rtloop.ipc.status import StatusWord, WordBlock
 
 

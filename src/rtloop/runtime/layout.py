@@ -26,8 +26,9 @@ from rtloop.app.specs import PortSpec
 from rtloop.errors import AppError, DeviceError
 from rtloop.io.host import DeviceWiring
 from rtloop.io.twin import TwinDevice
-from rtloop.ipc.channels import LatestValue, LetChannel, SampleQueue
+from rtloop.ipc.channels import LatestValue, LetChannel
 from rtloop.ipc.ports import live_runs_named
+from rtloop.ipc.ring import Int64Ring, SampleQueue
 from rtloop.ipc.schema import (
     CONTROL_WORDS,
     STATUS_WORDS,
@@ -37,7 +38,6 @@ from rtloop.ipc.schema import (
 )
 from rtloop.ipc.segments import (
     SHM_DIR,
-    Int64Ring,
     Segment,
     close_segments,
     new_run_token,

@@ -23,8 +23,9 @@ from rtloop.app.specs import TaskConfig
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, DeviceMismatch, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE, cycle_work
+from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
-from rtloop.ipc.segments import Int64Ring, Segment
+from rtloop.ipc.segments import Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
 from rtloop.linux import rt
