@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import re
 from pathlib import Path
 
 import pytest
@@ -221,3 +222,14 @@ def test_the_task_process_imports_everything_before_its_loop() -> None:
               if isinstance(function, ast.FunctionDef | ast.AsyncFunctionDef)
               for node in ast.walk(function) if isinstance(node, ast.Import | ast.ImportFrom)]
     assert inside == []
+
+
+def test_every_type_ignore_names_its_code_and_reason() -> None:
+    """mypy runs strict (pyproject.toml); an exception to it says which check and why, on its line
+    (here, so that landing checks it: tests/test_tooling.py holds the rest of the tooling's rules)."""
+    bare = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for number, line in enumerate(path.read_text().splitlines(), start=1):
+            if "type: ignore" in line and not re.search(r"# type: ignore\[[a-z-]+(,[a-z-]+)*\]  # \S", line):
+                bare.append(f"{path.relative_to(SRC)}:{number}")
+    assert not bare, f"type: ignore without [code] and '  # reason' after it: {bare}"

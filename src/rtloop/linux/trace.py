@@ -180,12 +180,14 @@ class MissTracer:
                     ran[(event.kind[:-4], names.get(key, event.who))] += event.at_ns - max(start, from_ns)
         if running:
             ran[("thread", running)] += to_ns - max(since, from_ns)
-        found = []
+        found: list[tuple[int, str, str, int]] = []
         for (kind, who), ran_ns in ran.items():
             if kind == "thread" and (who.startswith("swapper/") or _pid_of(who) in own_pids):
                 continue
-            found.append({"who": who, "kind": kind, "ran_ns": ran_ns, "priority": priorities.get(who, -1)})
-        return sorted(found, key=lambda item: -int(item["ran_ns"]))  # type: ignore[call-overload]
+            found.append((ran_ns, who, kind, priorities.get(who, -1)))
+        found.sort(key=lambda item: -item[0])
+        return [{"who": who, "kind": kind, "ran_ns": ran_ns, "priority": priority}
+                for ran_ns, who, kind, priority in found]
 
     def close(self) -> None:
         for fd in self.pipes.values():

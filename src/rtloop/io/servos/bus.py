@@ -281,7 +281,7 @@ class ServoBusDevice(Device):
         np.maximum(raw, units.command_low, out=raw)
         self.goals.values.encode(raw)
         try:
-            self.line.send(self.goals.seal())  # type: ignore[union-attr]
+            self.line.send(self.goals.seal())  # type: ignore[union-attr]  # configure opened it; no test per cycle
         except OSError as error:
             raise self._line_gone(error) from None
 
@@ -290,8 +290,8 @@ class ServoBusDevice(Device):
         state, units = self.state, self.units
         try:
             if self.incomplete:  # late answers to the last request may still come: not this one's
-                self.line.flush_input()  # type: ignore[union-attr]
-            answered = state.exchange(self.line, self.timeout_ns)  # type: ignore[arg-type]
+                self.line.flush_input()  # type: ignore[union-attr]  # configure opened it; no test per cycle
+            answered = state.exchange(self.line, self.timeout_ns)  # type: ignore[arg-type]  # opened, as above
         except (OSError, EOFError) as error:
             raise self._line_gone(error) from None
         self.incomplete = answered < len(self.specs)
