@@ -95,23 +95,14 @@ class RunningApp:
         return info
 
     def write(self, port: str, values: list[float] | np.ndarray) -> None:
-        """Post values to an input port; rejects wrong lengths and NaN/inf (unless allowed)."""
-        info = self._port(port, "in")
-        array = validate_values(values, info["size"], allow_nonfinite=info["allow_nonfinite"],
-                                where=f"port {port!r} ({info['signal']})", value_range=port_range(info))
-        segment = self.segment(info["segment"])
-        try:
-            channel = LatestValue(segment)
-            if channel.n_values != info["size"]:
-                raise SegmentRefused(f"port {port!r}: its segment holds {channel.n_values} values, "
-                                     f"the registry says {info['size']}; not used")
-            if channel.fed_by_profile:
-                raise PortValueError(f"port {port!r} is fed from a profile in this run; live writes are refused "
-                                     '(nudge = "offset" or "override" on the port combines them with the profile)')
-            fcntl.flock(segment.fd, fcntl.LOCK_EX)  # writers serialise; the RT reader never waits
-            channel.write(array)
-        finally:
-            segment.close()
+        """Post values to an input port once; rejects wrong lengths and NaN/inf (unless allowed).
+        A client that writes again and again holds a :meth:`writer` instead (mapped once)."""
+        with self.writer(port) as writer:
+            writer.write(values)
+
+    def writer(self, port: str) -> PortWriter:
+        """A writer of an input port, its segment mapped until closed (any number of writers)."""
+        return PortWriter(self, port, self._port(port, "in"))
 
     def peek(self, port: str) -> np.ndarray:
         """The value an input port holds now (what its task reads at its next release)."""
@@ -154,6 +145,49 @@ class RunningApp:
             segment = self.segment(segment_name)
             pids[task] = WordBlock(segment, 0, STATUS_WORDS)[StatusWord.PID]
         return pids
+
+
+class PortWriter:
+    """Writes values to an input port, its segment mapped once (the reader's counterpart). Several
+    writers may hold the same port: each write takes the segment's lock for its own duration only,
+    and the real-time task that reads the port never waits for it (a seqlock)."""
+
+    def __init__(self, app: RunningApp, name: str, info: dict[str, Any]) -> None:
+        self.name = name
+        self.where = f"port {name!r} ({info['signal']})"
+        self.size, self.allow_nonfinite, self.value_range = int(info["size"]), bool(info["allow_nonfinite"]), \
+            port_range(info)
+        self.segment = app.segment(info["segment"])
+        try:
+            self.channel = LatestValue(self.segment)
+            if self.channel.n_values != self.size:
+                raise SegmentRefused(f"port {name!r}: its segment holds {self.channel.n_values} values, "
+                                     f"the registry says {self.size}; not used")
+        except BaseException:
+            self.segment.close()
+            raise
+
+    def write(self, values: list[float] | np.ndarray) -> None:
+        """Post values; rejects wrong lengths, NaN/inf (unless allowed) and values out of the port's range."""
+        array = validate_values(values, self.size, allow_nonfinite=self.allow_nonfinite, where=self.where,
+                                value_range=self.value_range)
+        if self.channel.fed_by_profile:
+            raise PortValueError(f"port {self.name!r} is fed from a profile in this run; live writes are refused "
+                                 '(nudge = "offset" or "override" on the port combines them with the profile)')
+        fcntl.flock(self.segment.fd, fcntl.LOCK_EX)  # writers serialise; the RT reader never waits
+        try:
+            self.channel.write(array)
+        finally:
+            fcntl.flock(self.segment.fd, fcntl.LOCK_UN)
+
+    def close(self) -> None:
+        self.segment.close()
+
+    def __enter__(self) -> PortWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class PortReader:

@@ -39,7 +39,7 @@ import numpy as np
 from rtloop.app.builder import App
 from rtloop.app.specs import LiveViewSpec
 from rtloop.errors import PortValueError, RtloopError
-from rtloop.ipc.ports import RunningApp, app_from_registry
+from rtloop.ipc.ports import PortWriter, RunningApp, app_from_registry
 from rtloop.record.live_parameters import LiveParameters
 from rtloop.ros.cdr import cycle_timing_cdr, joint_state_cdr
 from rtloop.ros.subprotocol import SubprotocolFront
@@ -170,6 +170,7 @@ class LiveView:
         self.front.close()
         self.server.stop()
         self.inputs.parameters.close()
+        self.inputs.close()
 
     def summary(self) -> dict[str, Any]:
         """What ``summary.json`` says about the live view (under ``bridges``)."""
@@ -182,6 +183,7 @@ class _Inputs:
     def __init__(self, app_name: str, ports: tuple[str, ...], parameters: LiveParameters) -> None:
         self.app_name, self.ports, self.parameters = app_name, ports, parameters
         self.running: RunningApp | None = None
+        self.writers: dict[str, PortWriter] = {}  # each input port mapped once, not at every message
         self.channels: dict[tuple[int, int], tuple[str, str]] = {}  # (client, channel) → (port, encoding)
         self.validators: dict[str, MessageValidator] = {}
         self.accepted = self.refused = self.undecodable = self.unknown_topic = 0
@@ -195,8 +197,14 @@ class _Inputs:
             self.validators[port] = MessageValidator(
                 int(info["size"]), allow_nonfinite=bool(info["allow_nonfinite"]),
                 what=f"foxglove {INPUT_TOPIC_PREFIX}{port} → port {port}", warner=self.warner)
+        self.writers = {port: running.writer(port) for port in self.ports}
         self.running = running
         self.parameters.attach(running, self.warner)
+
+    def close(self) -> None:
+        for writer in self.writers.values():
+            writer.close()
+        self.writers = {}
 
     def on_get_parameters(self, client: Any, param_names: list[str], request_id: str | None = None) -> list[Any]:
         return self.parameters.get(param_names)
@@ -239,7 +247,7 @@ class _Inputs:
         if checked is None:
             return
         try:
-            self.running.write(port, checked)
+            self.writers[port].write(checked)  # the server has stopped before close() lets them go
             with self.lock:
                 self.accepted += 1
         except PortValueError as error:  # e.g. fed from a profile in this run

@@ -216,14 +216,15 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats) 
                                  what=f"{topic.topic} → port {topic.port}", warner=warner,
                                  value_range=narrowest_range(topic.value_range, port_range(info)))
     refused = 0
-    with RosSubscriber(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id) as subscriber:
+    with app.writer(topic.port) as writer, \
+            RosSubscriber(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id) as subscriber:
         while not stop:
             for message in subscriber.take():
                 values = validator.check(values_of(message))
                 if values is None:
                     continue
                 try:
-                    app.write(topic.port, values)
+                    writer.write(values)
                     stats.messages += 1
                 except PortValueError as error:  # e.g. the port is fed from a profile in this run
                     refused += 1
