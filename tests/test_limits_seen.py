@@ -65,6 +65,20 @@ def test_a_rate_limit_is_counted_per_cycle_it_held_the_command_back(tmp_path: Pa
     assert device["rate_limited_cycles"] == {"c0": 4} and device["clamped_cycles"] == {"c0": 49}
 
 
+def test_the_report_draws_what_was_sent_beside_what_was_asked_and_marks_where_a_limit_acted(tmp_path: Path) -> None:
+    from rtloop.record.load import load
+    from rtloop.report.signals import groups_of, signals_figure
+
+    rtloop.simulate(device_app(tmp_path, "lim_report", rate_per_s=1000.0), 0.1, tmp_path / "sim")
+    signals = load(tmp_path / "sim").signals
+    group = groups_of(signals)[0]
+    assert group.limits and group.names == ("ctl.y[0]", "dev.c0") and group.setpoint == "ctl.y[0]"
+    figure = signals_figure("sim", signals)
+    assert "red: a device limit acted (1 stretch(es))" in figure.get_suptitle()
+    legend = [text.get_text() for text in figure.axes[0].get_legend().get_texts()]
+    assert legend == ["ctl.y[0] (asked for)", "dev.c0", "limit acted"]
+
+
 def test_a_run_says_its_device_clamps_and_equals_its_simulation(tmp_path: Path) -> None:
     rtloop.simulate(device_app(tmp_path, "lim_dev_s", rate_per_s=1000.0), 0.2, tmp_path / "sim")
     rtloop.run(device_app(tmp_path, "lim_dev_r", rate_per_s=1000.0), 0.2, tmp_path / "run")

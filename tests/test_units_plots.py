@@ -157,7 +157,9 @@ def test_a_setpoint_beside_a_device_reading_is_paired(tmp_path: Path) -> None:
     rtloop.simulate(app, 0.3, tmp_path / "dc")
     run = rtloop.load(tmp_path / "dc")
     assert [(p.signals, p.setpoint) for p in run.signals.plots] == [
-        (("pi.speed_rad_s", "pi.setpoint_rad_s"), "pi.setpoint_rad_s")]
+        (("pi.speed_rad_s", "pi.setpoint_rad_s"), "pi.setpoint_rad_s"),
+        (("pi.voltage_V", "motor.voltage_V"), "pi.voltage_V")]  # what the motor was sent, over what the PI asked
+    assert run.signals.plots[1].limits
     assert run.signals.units["pi.speed_rad_s"] == "rad/s"
 
 

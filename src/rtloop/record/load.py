@@ -144,6 +144,9 @@ class Plot:
     """For a setpoint/measured pair: the setpoint's column (the other signal is what it sets)."""
     inferred: bool = False
     """Found from the app's wiring (a setpoint port beside a connection), not declared."""
+    limits: bool = False
+    """A device command: what it was sent (after its limits) beside what the controller asked for
+    (``setpoint``); the report shades where the two differ (a limit acted)."""
 
 
 @dataclass(frozen=True)
@@ -482,7 +485,8 @@ def _read_sidecar(path: Path, names: tuple[str, ...],
                  if isinstance(columns.get(name), dict) and columns[name].get("unit")}
         plots = tuple(Plot(str(p.get("title") or " vs ".join(p["signals"])),
                            tuple(str(s) for s in p["signals"] if s in names),
-                           p["setpoint"] if p.get("setpoint") in names else None, bool(p.get("inferred")))
+                           p["setpoint"] if p.get("setpoint") in names else None, bool(p.get("inferred")),
+                           bool(p.get("limits")))
                       for p in data.get("plots", []))
     except (OSError, UnicodeDecodeError, ValueError, TypeError, KeyError, AttributeError) as error:
         problems.append(f"{SIDECAR}: unreadable ({type(error).__name__}); signals loaded without units")

@@ -62,7 +62,28 @@ def sidecar_content(app: App) -> dict[str, Any]:
             continue  # an inferred pair is drawn only when both of its signals were recorded
         plots.append({"title": spec.title or " vs ".join(names), "signals": names, "setpoint": setpoint,
                       "inferred": spec.inferred})
-    return {"version": VERSION, "columns": out_columns, "plots": plots}
+    return {"version": VERSION, "columns": out_columns, "plots": [*plots, *_sent_plots(app, columns)]}
+
+
+def _sent_plots(app: App, columns: dict[Element, str]) -> list[dict[str, Any]]:
+    """A plot per device command recorded: what the device was sent (its limits applied) over what the
+    controller asked for (drawn as its reference; the report shades where they differ)."""
+    plots = []
+    recorded = set(columns.values())
+    for link in app.device_links:
+        spec = app.devices.get(link.target.task)
+        if spec is None:
+            continue
+        names = spec.device.command_names()
+        for source, index in zip(elements(link.source), range(link.target.start, link.target.stop), strict=True):
+            sent = f"{spec.name}.{names[index]}"
+            asked = columns.get(source)
+            if sent in recorded:
+                plots.append({"title": f"{sent}: what device {spec.name} was sent (after its limits)"
+                              + (f" and what {asked} asked for" if asked else ""),
+                              "signals": [asked, sent] if asked else [sent], "setpoint": asked, "inferred": False,
+                              "limits": True})
+    return plots
 
 
 def _mirrors(app: App) -> dict[Element, list[Element]]:

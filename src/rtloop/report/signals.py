@@ -45,6 +45,8 @@ class Group:
     """The setpoint's column in a setpoint/measured pair."""
     units: tuple[str, ...]
     """The distinct units of its signals ('' for none)."""
+    limits: bool = False
+    """What a device was sent beside what was asked for (``setpoint``): where they differ, a limit acted."""
 
     @property
     def ylabel(self) -> str:
@@ -66,7 +68,7 @@ def groups_of(signals: Signals) -> list[Group]:
         if plot.inferred and plot.setpoint:
             measured = [n for n in names if n != plot.setpoint]
             title = f"{', '.join(measured)} and its setpoint {plot.setpoint}"
-        out.append(Group(title, names, plot.setpoint, _units(signals, names)))
+        out.append(Group(title, names, plot.setpoint, _units(signals, names), plot.limits))
         placed.update(names)
     by_unit: dict[str, list[str]] = {}
     by_task: dict[str, list[str]] = {}
@@ -167,6 +169,24 @@ def _shade_gaps(axes: Sequence[Axes], gaps: np.ndarray) -> None:
         _legend(axes[0])
 
 
+def _shade_limits(ax: Axes, signals: Signals, group: Group) -> int:
+    """Red where a device was sent something else than was asked for (its limits acted); how many stretches."""
+    if not group.limits or group.setpoint is None or len(group.names) < 2:
+        return 0
+    sent = next(name for name in group.names if name != group.setpoint)
+    differs = (signals[sent] != signals[group.setpoint]) & ~np.isnan(signals[sent])
+    edges = np.flatnonzero(np.diff(np.concatenate(([False], differs, [False])).astype(np.int8)))
+    stretches = edges.reshape(-1, 2)
+    t_s = signals.t_s
+    ends = np.append(t_s[1:], t_s[-1] if len(t_s) else 0.0)  # each value holds until the next row
+    for i, (first, stop) in enumerate(stretches[:MAX_SHADED_GAPS]):
+        ax.axvspan(t_s[first], ends[stop - 1], color="tab:red", alpha=0.12, linewidth=0,
+                   label="limit acted" if i == 0 else None)
+    if len(stretches):
+        _legend(ax)
+    return len(stretches)
+
+
 def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] | None = None) -> Figure:
     """A run's recorded signals: one axis per group, legends outside, live inputs marked."""
     groups = groups_of(signals)
@@ -180,8 +200,10 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
         _finish(ax, group)
     marked = _mark_inputs(list(axes), inputs or {})
     _shade_gaps(list(axes), signals.gaps)
+    limited = sum(_shade_limits(ax, signals, group) for ax, group in zip(axes, groups, strict=True))
     axes[-1].set_xlabel(TIME_LABEL)
     note = f"; dotted: {marked} live port write(s)" if marked else ""
+    note += f"; red: a device limit acted ({limited} stretch(es))" if limited else ""
     gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
     fig.suptitle(literal(f"{label} — recorded signals{note}{gaps}"), fontsize=12)
     return fig
@@ -242,7 +264,7 @@ def difference(reference: Signals, other: Signals, name: str) -> tuple[np.ndarra
 
 def _label(signals: Signals, name: str, group: Group) -> str:
     unit = signals.unit(name)
-    role = " (setpoint)" if name == group.setpoint else ""
+    role = (" (asked for)" if group.limits else " (setpoint)") if name == group.setpoint else ""
     return literal(f"{name}{role}" + (f" [{unit}]" if unit else ""))
 
 
