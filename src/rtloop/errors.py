@@ -62,8 +62,9 @@ class LibcError(RtloopError, OSError):
         return self.message
 
 
-FAULTS_SAID_IN_FULL = ("DeviceFault", "NonFiniteOutput")
-"""Faults rtloop raises itself, naming task, cycle and signal: no traceback on the console."""
+FAULTS_SAID_IN_FULL = ("DeviceFault", "NonFiniteOutput", "ModelError", "FmuError")
+"""Faults rtloop raises itself, naming task, cycle and signal (a model's error: the model and what it said):
+no traceback on the console."""
 
 
 class TaskFailed(RtloopError, RuntimeError):

@@ -285,7 +285,9 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
     devices = {device: {"task": name, **report} for name, task in sim_tasks.items() if task.devices
                for device, report in task.devices.stale_report().items()}
     capabilities = rt.probe()
-    notes = [*slow_step_notes(summaries), *session.notes(), *limit_notes(summaries, devices)]
+    started = [f"task {name}: {text}" for name, task in sim_tasks.items()  # an FMU's Event Mode refused
+               for text in getattr(getattr(task.runnable, "model", None), "start_notes", ())]
+    notes = [*started, *slow_step_notes(summaries), *session.notes(), *limit_notes(summaries, devices)]
     return RunSummary(
         app=app.name, mode="simulate", hot_path=hot_path(),
         started=dt.datetime.fromtimestamp(outcome.started_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds"),

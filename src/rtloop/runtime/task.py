@@ -275,6 +275,8 @@ def task_process_main(
         task.devices.configure()  # open and check the devices: a DeviceError is bad input (exit 2)
         phase = "prerun"
         runnable.prerun()
+        for text in getattr(getattr(runnable, "model", None), "start_notes", ()):  # an FMU's Event Mode refused
+            _report(pipe, kind="note", text=text)
         wiring.publish_initial(initial_outputs(runnable, task.y))
         # Collect before READY, not after T0: T0 follows the last READY by a short margin
         # (start_margin_ns), and a full collection takes ~5 ms here, several times that on a
