@@ -85,7 +85,8 @@ def driver(tmp_path: Path):
     started.stop()
 
 
-def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_000, timeout_ms: float = 1000.0) -> Path:
+def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_000, timeout_ms: float = 1000.0,
+                 *, copy_module: bool = False) -> Path:
     """The example's app file with the test's pty, a unique name and a 1 s timeout: a pty moves bytes through a
     kernel worker of normal priority, which a loaded shared machine can starve for tens of ms."""
     text = (EXAMPLE / "dcmotor_serial.toml").read_text()
@@ -97,7 +98,10 @@ def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_0
     text = text.replace('"../dcmotor/profiles/speed_steps.csv"', f'"{profile}"')
     path = tmp_path / "dcmotor_serial.toml"
     path.write_text(text)
-    (tmp_path / "serial_motor.py").symlink_to(EXAMPLE / "serial_motor.py")  # loaded from where it lives
+    if copy_module:  # a file of the folder's owner (the example in a sudo user's clone is theirs)
+        shutil.copyfile(EXAMPLE / "serial_motor.py", tmp_path / "serial_motor.py")
+    else:
+        (tmp_path / "serial_motor.py").symlink_to(EXAMPLE / "serial_motor.py")  # loaded from where it lives
     return path
 
 
@@ -257,7 +261,8 @@ def test_a_serial_port_without_permission_is_one_line_with_the_fix(driver: Drive
     folder = Path(tempfile.mkdtemp(prefix="rtloop-perm-"))
     try:
         folder.chmod(0o755)
-        app_file = example_file(folder, Path(os.path.realpath(driver.link)), "dcm_serial_perm")
+        # the module copied, root's: 'nobody' trusts root's files and its own, not a sudo user's clone
+        app_file = example_file(folder, Path(os.path.realpath(driver.link)), "dcm_serial_perm", copy_module=True)
         for path in folder.iterdir():
             if not path.is_symlink():
                 path.chmod(0o644)

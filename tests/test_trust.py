@@ -26,6 +26,7 @@ from rtloop.app.appfile import load_app
 from rtloop.errors import AppFileError
 from rtloop.ipc.ports import AppNotReachable, AppNotRunning, app_from_registry, connect_app, running_apps
 from rtloop.ipc.segments import Segment, SegmentRefused, check_segment_name, new_run_token
+from rtloop.sudo import trusted_users_phrase
 
 SHM = Path("/dev/shm")
 NOBODY_UID = 65534
@@ -361,7 +362,8 @@ def test_second_user_plants_modules_in_the_app_folder_and_none_runs(second_user,
     named = _app_toml(folder, f"named{os.getpid()}", f"{module}:Noop")
     refused = _rtloop(["simulate", str(named), "--duration", "0.01", "--out", str(tmp_path / "o2"), "-q"], rtloop_env)
     assert refused.returncode == 2, refused.stderr
-    assert f"is owned by uid {second_user.pw_uid}, not by you (uid 0) or root" in refused.stderr
+    # root, or under sudo the user who ran it (tools/as-root in their own clone): whom rtloop trusts
+    assert f"is owned by uid {second_user.pw_uid}, not by {trusted_users_phrase()}" in refused.stderr
     assert "Traceback" not in refused.stderr
     assert not marker.exists(), "a module planted by another user ran as root"
 
@@ -528,11 +530,30 @@ def _live_registry(name: str, pid: int) -> Path:
     return path
 
 
-def test_a_sweep_into_roots_folder_says_so_in_one_line(second_user, open_dir: Path, rtloop_env) -> None:
+@pytest.fixture
+def roots_dcmotor() -> Iterator[Path]:
+    """The DC motor example copied into a folder of root's that every user may read: the example in a
+    clone a sudo user owns is theirs, and a second user's rtloop rightly runs none of their code."""
+    import shutil
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp(prefix="rtloop-dcmotor-"))
+    folder.chmod(0o755)
+    shutil.copytree(Path(__file__).parents[1] / "examples" / "dcmotor", folder / "dcmotor",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    for path in (folder, *folder.rglob("*")):
+        os.chown(path, 0, 0)
+        path.chmod(0o755 if path.is_dir() else 0o644)
+    yield folder / "dcmotor" / "dcmotor.toml"
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_a_sweep_into_roots_folder_says_so_in_one_line(second_user, open_dir: Path, roots_dcmotor: Path,
+                                                       rtloop_env) -> None:
     out = open_dir / "sweep-sudo"  # what a sweep under sudo left: root's
     (out / "0").mkdir(parents=True)
     (out / "sweep.csv").write_text("pi.kp\n")
-    app_file = Path(__file__).parents[1] / "examples" / "dcmotor" / "dcmotor.toml"
+    app_file = roots_dcmotor
     code = ("import sys; from rtloop.cli.main import main; "
             f"sys.exit(main(['sweep', {str(app_file)!r}, '--param', 'pi.kp=0.05,0.1', '--duration', '0.1', "
             f"'--out', {str(out)!r}, '--force', '--processes', '1']))")
