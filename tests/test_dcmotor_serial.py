@@ -98,8 +98,9 @@ def example_file(tmp_path: Path, port: Path, name: str, period_ns: int = 2_000_0
     text = text.replace('"../dcmotor/profiles/speed_steps.csv"', f'"{profile}"')
     path = tmp_path / "dcmotor_serial.toml"
     path.write_text(text)
-    if copy_module:  # a file of the folder's owner (the example in a sudo user's clone is theirs)
+    if copy_module:  # files of the folder's owner (the example in a sudo user's clone is theirs)
         shutil.copyfile(EXAMPLE / "serial_motor.py", tmp_path / "serial_motor.py")
+        shutil.copyfile(EXAMPLE.parent / "dcmotor" / "dcmotor.py", tmp_path / "dcmotor.py")  # it loads it beside
     else:
         (tmp_path / "serial_motor.py").symlink_to(EXAMPLE / "serial_motor.py")  # loaded from where it lives
     return path
