@@ -35,6 +35,7 @@ import numpy as np
 
 from rtloop.errors import StopRequested
 from rtloop.models.base import FmuError, ModelError, StateNotCaptured
+from rtloop.models.fmi3_start import instantiate, said
 from rtloop.models.fmi_transfer import raw_function, transfers
 from rtloop.models.fmi_variables import UNSUPPORTED, Element, carried, elements_of
 from rtloop.runnable import FloatVector
@@ -317,7 +318,7 @@ class FmuModel:
             if isinstance(error, ModelError):
                 raise
             if isinstance(error, Exception):  # FMPy raises bare Exception / FMICallException
-                raise ModelError(f"FMU {str(self.path)!r} failed to start: {error}{self._said()}") from error
+                raise ModelError(f"FMU {str(self.path)!r} failed to start: {error}{said(self.messages)}") from error
             raise
 
     def _abandon(self) -> None:
@@ -385,24 +386,10 @@ class FmuModel:
         from fmpy.fmi3 import FMU3Slave
 
         fmu = self._fmu = FMU3Slave(**kwargs)
-
-        def instantiate(event_mode: bool) -> None:
-            fmu.instantiate(eventModeUsed=event_mode, earlyReturnAllowed=False,
-                            logMessage=lambda _env, status, category, message: self._log(status, category, message))
-
-        try:
-            instantiate(self.has_event_mode)
-        except Exception:
-            if not self.has_event_mode:
-                raise
-            # hasEventMode says the FMU *can* use Event Mode; whether it is used is the importer's
-            # choice (FMI 3.0, fmi3InstantiateCoSimulation): without it the FMU handles its events
-            # inside fmi3DoStep. Some FMUs declare it and refuse it: run them without, and say so.
-            refused = self._said()
-            instantiate(False)
+        if instantiate(fmu, self.has_event_mode, self._log) != self.has_event_mode:  # refused: runs without
             self.has_event_mode = False
-            self.start_notes.append(f"FMU {self.model_identifier} ({self.path.name}) declares Event Mode but "
-                                    f"refused it at instantiate{refused}: it runs without Event Mode, handling "
+            self.start_notes.append(f"FMU {self.model_identifier} ({self.path.name}) declares Event Mode but refused "
+                                    f"it at instantiate{said(self.messages)}: it runs without Event Mode, handling "
                                     "its events inside each step (FMI 3.0 allows it)")
         self._set_start_values(fmu, u)
         fmu.enterInitializationMode(startTime=t_s)
@@ -522,10 +509,6 @@ class FmuModel:
         function = raw_function(self._fmu.dll, "fmi2GetBooleanStatus", [ctypes.c_void_p, ctypes.c_int, ctypes.c_void_p])
         status = function(self._component, 3, ctypes.byref(value))  # fmi2Terminated
         return status == 0 and bool(value.value)
-
-    def _said(self) -> str:
-        """``; the FMU said: …`` (its last log message), or '' when it said nothing."""
-        return f"; the FMU said: {self.messages[-1]}" if self.messages else ""
 
     def _reason(self, what: str) -> str:
         last = f": {self.messages[-1]}" if self.messages else ""
