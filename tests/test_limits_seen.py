@@ -8,6 +8,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import rtloop
@@ -74,7 +75,7 @@ def test_the_report_draws_what_was_sent_beside_what_was_asked_and_marks_where_a_
     group = groups_of(signals)[0]
     assert group.limits and group.names == ("ctl.y[0]", "dev.c0") and group.setpoint == "ctl.y[0]"
     figure = signals_figure("sim", signals)
-    assert "red: a device limit acted (1 stretch(es))" in figure.get_suptitle()
+    assert "red: a limit acted (1 stretch(es))" in figure.get_suptitle()
     legend = [text.get_text() for text in figure.axes[0].get_legend().get_texts()]
     assert legend == ["ctl.y[0] (asked for)", "dev.c0", "limit acted"]
 
@@ -113,6 +114,13 @@ def test_a_guarded_connection_clamps_and_rate_limits_in_c_and_in_python(tmp_path
     assert {row["ctl.y[0]"] for row in table[1:]} == {22.0}
     limits = summary(tmp_path / "sim")["tasks"]["plant"]["input_limits"]
     assert limits == {"plant.u[0]": {"clamped_cycles": 49, "rate_limited_cycles": 3}}
+    from rtloop.record.load import load
+    from rtloop.report.signals import groups_of, signals_figure
+
+    signals = load(tmp_path / "sim").signals
+    first = groups_of(signals)[0]
+    assert (first.names, first.limits) == (("ctl.y[0]", "plant.u[0]"), True)
+    assert "red: a limit acted (1 stretch(es))" in signals_figure("sim", signals).get_suptitle()
     assert any("connection into plant.u[0]: clamped to its min/max in 49 cycles and held back by its "
                "rate_per_s in 3 cycles" in note for note in summary(tmp_path / "sim")["notes"])
 
@@ -170,3 +178,31 @@ def test_a_guard_is_refused_where_it_cannot_act(tmp_path: Path) -> None:
                           limits={"c0": {"min": -1, "max": 1, "safe": 0}})
     with pytest.raises(AppError, match=r"the device's commands have theirs \(\[devices.dev.limits\]\)"):
         app2.connect(ctl.y[0], dev.u[0], max=0.5)
+
+
+def test_the_python_guards_allocate_nothing_that_stays() -> None:
+    """The Python twin of the connections' guard (and the devices' guard with its counts) keep no
+    memory per cycle: 10,000 cycles, clamping and rate limiting every one."""
+    from io_guest_devices import bytes_kept_by
+    from rtloop.io.device import CommandLimit
+    from rtloop.io.limits import CommandGuard
+    from rtloop.ipc.wiring import InputGuards, InputLink
+
+    u = np.zeros(4)
+    guards = InputGuards([InputLink("w", slice(0, 2), slice(0, 2), PERIOD_NS, "w", -1.0, 1.0, 0.1)], u)
+
+    def connection_cycle() -> None:
+        u[0], u[1] = 5.0, -5.0 if u[1] > -0.5 else 5.0
+        guards.apply()
+
+    assert bytes_kept_by(connection_cycle, 10_000) < 1024
+    assert guards.clamped.tolist() == [12_000, 12_000] and guards.rate_limited[0] == 10
+    command = CommandGuard([CommandLimit(-1.0, 1.0, 0.0, 50.0)], PERIOD_NS, ["dev.u[0] (c0)"])
+    wanted = np.array([3.0])
+
+    def device_cycle() -> None:
+        wanted[0] = -wanted[0]
+        command.apply(wanted, "ctl", 0)
+
+    assert bytes_kept_by(device_cycle, 10_000) < 1024
+    assert command.clamped[0] == 12_000 and command.rate_limited_cycles[0] == 12_000

@@ -67,7 +67,8 @@ def sidecar_content(app: App) -> dict[str, Any]:
 
 def _sent_plots(app: App, columns: dict[Element, str]) -> list[dict[str, Any]]:
     """A plot per device command recorded: what the device was sent (its limits applied) over what the
-    controller asked for (drawn as its reference; the report shades where they differ)."""
+    controller asked for (drawn as its reference; the report shades where they differ); the same for
+    each guarded connection whose two ends are recorded (of one period: a row is the same instant)."""
     plots = []
     recorded = set(columns.values())
     for link in app.device_links:
@@ -83,6 +84,15 @@ def _sent_plots(app: App, columns: dict[Element, str]) -> list[dict[str, Any]]:
                               + (f" and what {asked} asked for" if asked else ""),
                               "signals": [asked, sent] if asked else [sent], "setpoint": asked, "inferred": False,
                               "limits": True})
+    for connection in app.connections:  # a guarded connection of equal periods: the same rows compare
+        periods = {app.tasks[end.task].config.period_ns for end in (connection.source, connection.target)}
+        if not connection.guarded or len(periods) != 1:
+            continue
+        for source, target in zip(elements(connection.source), elements(connection.target), strict=True):
+            asked, got = columns.get(source), columns.get(target)
+            if asked and got:
+                plots.append({"title": f"{got}: what it got through its connection's guard and what {asked} asked for",
+                              "signals": [asked, got], "setpoint": asked, "inferred": False, "limits": True})
     return plots
 
 

@@ -170,7 +170,8 @@ def _shade_gaps(axes: Sequence[Axes], gaps: np.ndarray) -> None:
 
 
 def _shade_limits(ax: Axes, signals: Signals, group: Group) -> int:
-    """Red where a device was sent something else than was asked for (its limits acted); how many stretches."""
+    """Red where a device (or a guarded connection's reader) got something else than was asked for (its
+    limits acted); how many stretches."""
     if not group.limits or group.setpoint is None or len(group.names) < 2:
         return 0
     sent = next(name for name in group.names if name != group.setpoint)
@@ -203,7 +204,7 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
     limited = sum(_shade_limits(ax, signals, group) for ax, group in zip(axes, groups, strict=True))
     axes[-1].set_xlabel(TIME_LABEL)
     note = f"; dotted: {marked} live port write(s)" if marked else ""
-    note += f"; red: a device limit acted ({limited} stretch(es))" if limited else ""
+    note += f"; red: a limit acted ({limited} stretch(es))" if limited else ""
     gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
     fig.suptitle(literal(f"{label} — recorded signals{note}{gaps}"), fontsize=12)
     return fig
