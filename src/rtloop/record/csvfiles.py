@@ -162,6 +162,12 @@ def read_reads_csv(path: Path) -> list[tuple[str, int, str, int | None, int]]:
     return rows
 
 
+MAX_PENDING_VALUES = 1 << 23
+"""Values signals.csv holds back at most (64 MiB of float64): past it, a task's record queue is not
+drained (:meth:`SignalsCsv.room`), so its rows wait in shared memory and what overflows there is
+counted lost and shows as a gap, never as memory that grows with the run."""
+
+
 class SignalsCsv:
     """Collects record-queue rows per task and writes signals.csv rows in time order.
 
@@ -261,6 +267,17 @@ class SignalsCsv:
             if block_times.size:
                 self.pending[stream].append((block_times, values, lost))
             self.known_through_ns[stream] = max(self.known_through_ns[stream], int(times[-1]) + period - 1)
+
+    def room(self, task: str) -> int:
+        """How many more rows of ``task`` may be held back now. Each recorded task has an equal share of
+        :data:`MAX_PENDING_VALUES`, so the task the others wait for always has room for its rows."""
+        own = [stream for stream in self.streams if stream[0] == task]
+        width = sum(len(self.takes[stream]) for stream in own)
+        if not width:
+            return MAX_PENDING_VALUES  # nothing of it is recorded: its rows are not kept
+        share = MAX_PENDING_VALUES // len({stream[0] for stream in self.streams})
+        held = sum(block[1].size for stream in own for block in self.pending[stream])
+        return max(0, (share - held) // width)
 
     def _gaps(self, task: str, ticks: np.ndarray, lost_so_far: int) -> list[int]:
         """First ticks of the gaps lost rows left (a skipped release leaves a gap too: it is no loss).

@@ -29,7 +29,7 @@ import numpy as np
 from rtloop.app.builder import App
 from rtloop.app.guards import recorded_input_names
 from rtloop.app.sources import file_digest
-from rtloop.record.csvfiles import InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
+from rtloop.record.csvfiles import MAX_PENDING_VALUES, InputsCsv, ReadsCsv, SignalsCsv, TimingCsv
 from rtloop.record.flight import SEGMENTS_DIR, FlightWindow
 from rtloop.record.rosbag2 import bag_contents_of, write_metadata
 from rtloop.record.sidecar import sidecar_content, units_by_column, write_sidecar
@@ -253,6 +253,11 @@ class Recorder:
         self.switches.add(task, ticks, rows)
         if self.signals is not None:
             self.signals.add(task, ticks, rows, lost_so_far)
+
+    def signal_room(self, task: str) -> int:
+        """How many rows of ``task`` the recorder takes now: past signals.csv's bound they wait in the
+        task's record queue (and what overflows it is counted lost: a gap, not memory)."""
+        return self.signals.room(task) if self.signals is not None else MAX_PENDING_VALUES
 
     def signals_lost_at_end(self, task: str, count: int) -> None:
         """``count`` rows of ``task`` came after the newest one drained and will never be: a gap in signals.csv."""

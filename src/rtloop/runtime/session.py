@@ -462,7 +462,7 @@ class RunSession:
         if handles.read_log is not None:
             recorder.add_reads(name, handles.read_log.drain(), handles.read_log.dropped)
         if handles.record is not None:
-            ticks, rows = handles.record.drain(DRAIN_BATCH_RECORDS)
+            ticks, rows = handles.record.drain(min(DRAIN_BATCH_RECORDS, recorder.signal_room(name)))
             recorder.add_signals(name, ticks, rows, lost_so_far=handles.record.dropped)
             more |= len(ticks) == DRAIN_BATCH_RECORDS
         return more
