@@ -29,7 +29,7 @@ ALLOWED: dict[str, set[str]] = {
     "ros.types": set(),
     "ipc": {FLOOR, "linux"},
     "models": {FLOOR},
-    "io": {FLOOR},
+    "io": {FLOOR, "linux"},
     "app": {FLOOR, "models", "ros.types", "io"},
     "ros": {FLOOR, "linux", "ros.types", "app", "ipc"},
     "record": {FLOOR, "stats", "app", "ipc", "ros", "ros.types"},

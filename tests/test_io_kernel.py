@@ -68,3 +68,22 @@ def test_i2c_smbus(compiled):
 
 def test_can_frames(compiled):
     assert compiled[3] == [canframes.CLASSIC_MTU, canframes.FD_MTU, canframes.DATA_AT, kernel.FIONREAD]
+
+
+def test_a_failed_ioctl_names_the_request_and_its_errno() -> None:
+    """Before: fcntl.ioctl's bare OSError ("[Errno 25] Inappropriate ioctl for device") named no call."""
+    import errno
+    import os
+
+    from rtloop.errors import LibcError
+    from rtloop.io.kernel import GPIO_V2_LINE_SET_VALUES_IOCTL
+    from rtloop.linux import rt
+
+    fd = os.open("/dev/null", os.O_RDWR)
+    try:
+        with pytest.raises(LibcError) as caught:
+            rt.ioctl(fd, GPIO_V2_LINE_SET_VALUES_IOCTL, bytearray(16), "GPIO_V2_LINE_SET_VALUES_IOCTL")
+    finally:
+        os.close(fd)
+    assert caught.value.errno == errno.ENOTTY and isinstance(caught.value, OSError)  # callers catching OSError still do
+    assert str(caught.value).startswith(f"ioctl(GPIO_V2_LINE_SET_VALUES_IOCTL) on fd {fd} failed: ")

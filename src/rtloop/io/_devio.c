@@ -65,6 +65,15 @@ PyMODINIT_FUNC PyInit__devio(void) {
                              &CanCycleType,  &GpioLinesType, &SpiFrameType};
     const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame"};
     crc16_table_build();
+    PyObject *errors = PyImport_ImportModule("rtloop.errors");
+    if (errors == NULL) {
+        return NULL;
+    }
+    libc_error_type = PyObject_GetAttrString(errors, "LibcError");
+    Py_DECREF(errors);
+    if (libc_error_type == NULL) {
+        return NULL;
+    }
     PyObject *module = PyModule_Create(&devio_module);
     if (module == NULL) {
         return NULL;

@@ -31,7 +31,6 @@ on its own.
 
 from __future__ import annotations
 
-import fcntl
 import os
 import select
 from typing import Any, ClassVar
@@ -47,6 +46,7 @@ from rtloop.io.kernel import (
     GPIO_V2_LINE_SET_VALUES_IOCTL,
     GPIO_V2_LINE_VALUES,
 )
+from rtloop.linux import rt
 
 __all__ = ["EmergencyStop", "GpioDevice"]
 
@@ -276,7 +276,7 @@ class GpioDevice(Device):
             if u[index] >= 0.5:
                 bits |= 1 << bit
         GPIO_V2_LINE_VALUES.pack_into(self._values, 0, bits, self._out_mask)
-        fcntl.ioctl(self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._values, True)
+        rt.ioctl(self._out_fd, GPIO_V2_LINE_SET_VALUES_IOCTL, self._values, "GPIO_V2_LINE_SET_VALUES_IOCTL")
 
     def read(self, y: FloatVector) -> None:
         """Stop on a pending E-stop edge; else input i into y[i] as 1.0 (active) or 0.0, one ioctl."""
@@ -292,7 +292,7 @@ class GpioDevice(Device):
         if self._in_fd < 0:
             return
         values = self._in_values
-        fcntl.ioctl(self._in_fd, GPIO_V2_LINE_GET_VALUES_IOCTL, values, True)
+        rt.ioctl(self._in_fd, GPIO_V2_LINE_GET_VALUES_IOCTL, values, "GPIO_V2_LINE_GET_VALUES_IOCTL")
         bits, y = GPIO_V2_LINE_VALUES.unpack_from(values, 0)[0], self._y.of(y)
         for index, bit in enumerate(self._in_bits):
             y[index] = 1.0 if bits >> bit & 1 else 0.0

@@ -17,7 +17,6 @@ new one on every call), so a cycle is one ioctl per register and nothing else.
 
 from __future__ import annotations
 
-import fcntl
 import os
 from typing import Any, ClassVar
 
@@ -35,6 +34,7 @@ from rtloop.io.kernel import (
     I2C_SMBUS_WORD_DATA,
     I2C_SMBUS_WRITE,
 )
+from rtloop.linux import rt
 
 __all__ = ["I2cDevice"]
 
@@ -165,7 +165,7 @@ class I2cDevice(Device):
         # a chip that does not answer: refuse to start, with the reason, rather than fault at cycle 0
         for message, _data, _layout in self._read_plan:
             try:
-                fcntl.ioctl(self._fd, I2C_SMBUS, message, True)
+                rt.ioctl(self._fd, I2C_SMBUS, message, "I2C_SMBUS")
             except OSError as error:
                 self.close()
                 raise DeviceError(self.name, "", "address", f"no answer from 0x{self.address:02X} on {self.path} "
@@ -181,12 +181,12 @@ class I2cDevice(Device):
         fd, u = self._fd, self._u.of(u)
         for index, (message, data, layout) in enumerate(self._write_plan):
             layout.pack_into(data, 0, u, index)
-            fcntl.ioctl(fd, I2C_SMBUS, message, True)
+            rt.ioctl(fd, I2C_SMBUS, message, "I2C_SMBUS")
 
     def read(self, y: FloatVector) -> None:
         fd, y = self._fd, self._y.of(y)
         for index, (message, data, layout) in enumerate(self._read_plan):
-            fcntl.ioctl(fd, I2C_SMBUS, message, True)
+            rt.ioctl(fd, I2C_SMBUS, message, "I2C_SMBUS")
             layout.unpack_from(data, 0, y, index)
 
     def close(self) -> None:

@@ -27,7 +27,6 @@ counter, so the device is asked every cycle.
 
 from __future__ import annotations
 
-import fcntl
 import os
 from typing import Any, ClassVar
 
@@ -44,6 +43,7 @@ from rtloop.io.kernel import (
     address_of,
 )
 from rtloop.io.spiframe import COUNTER_CHECKS, FrameCheck, frame_layout, seal
+from rtloop.linux import rt
 
 __all__ = ["SpiDevice"]
 
@@ -129,7 +129,7 @@ class SpiDevice(Device):
                                               (SPI_IOC_WR_BITS_PER_WORD, 8, 1, "device"),
                                               (SPI_IOC_WR_MAX_SPEED_HZ, self.speed_hz, 4, "speed_hz")):
                 try:
-                    fcntl.ioctl(self.fd, request, bytearray(value.to_bytes(size, "little")), True)
+                    rt.ioctl(self.fd, request, bytearray(value.to_bytes(size, "little")), f"SPI_IOC_WR {key}")
                 except OSError as error:
                     raise DeviceError(self.name, "", key, f"{self.path} refuses {key} = {value}: "
                                       f"{error.strerror}") from None
@@ -205,7 +205,7 @@ class SpiDevice(Device):
         """One full-duplex transfer of the transmit frame, with the next counter (the reference of
         ``SpiFrame``'s: seal, ioctl, check)."""
         self._seal_frame()
-        fcntl.ioctl(self.fd, SPI_IOC_MESSAGE_1, self._transfer, True)
+        rt.ioctl(self.fd, SPI_IOC_MESSAGE_1, self._transfer, "SPI_IOC_MESSAGE(1)")
         self._check_answer()
 
     def _seal_frame(self) -> None:

@@ -11,7 +11,6 @@ the tests run both and check they give the same signals (the pattern of CPython'
 
 from __future__ import annotations
 
-import fcntl
 import importlib
 import os
 import struct
@@ -26,6 +25,7 @@ from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
 from rtloop.ipc.wiring import TaskWiring
+from rtloop.linux import rt
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
 
 _hotpath: ModuleType | None
@@ -141,7 +141,7 @@ class PythonCycle:
     def _scope(self, high: int) -> None:
         _SCOPE_VALUES.pack_into(self.scope_values, 0, self.scope_mask if high else 0, self.scope_mask)
         try:
-            fcntl.ioctl(self.scope_fd, self.scope_request, self.scope_values, True)
+            rt.ioctl(self.scope_fd, self.scope_request, self.scope_values, "GPIO_V2_LINE_SET_VALUES_IOCTL")
         except OSError:
             pass  # a diagnostic pin never stops the loop (as in C)
 

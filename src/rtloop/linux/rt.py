@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import fcntl
 import os
 import platform
 import resource
@@ -68,6 +69,17 @@ def _check(call: str, result: int, hint: str = "", *, returns_errno: bool = Fals
         raise LibcError(call, ctypes.get_errno(), hint)
     return result
 
+
+
+
+def ioctl(fd: int, request: int, argument: bytearray | memoryview | ctypes.Structure, name: str) -> None:
+    """``ioctl(fd, request, argument)``, the argument read and written in place; a failure raises
+    :class:`~rtloop.errors.LibcError` naming the request (``ioctl(SPI_IOC_MESSAGE(1)) failed: …``).
+    ``name`` is a literal at each call: nothing is built unless the call fails."""
+    try:
+        fcntl.ioctl(fd, request, argument, True)
+    except OSError as error:
+        raise LibcError(f"ioctl({name}) on fd {fd}", error.errno or 0) from None
 
 
 class AbsoluteSleeper:

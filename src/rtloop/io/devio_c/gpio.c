@@ -95,7 +95,8 @@ static PyObject *GpioLines_write(GpioLines *self, PyObject *u_object) {
     }
     PyBuffer_Release(&view);
     if (ioctl(self->out_fd, self->set_request, &values) < 0) {
-        return PyErr_SetFromErrno(PyExc_OSError); /* what fcntl.ioctl raises */
+        set_ioctl_error("GPIO_V2_LINE_SET_VALUES_IOCTL", self->out_fd);
+        return NULL;
     }
     Py_RETURN_NONE;
 }
@@ -132,8 +133,9 @@ static PyObject *GpioLines_read(GpioLines *self, PyObject *y_object) {
     }
     struct gpio_v2_line_values values = {0, self->in_mask};
     if (ioctl(self->in_fd, self->get_request, &values) < 0) {
+        set_ioctl_error("GPIO_V2_LINE_GET_VALUES_IOCTL", self->in_fd);
         PyBuffer_Release(&view);
-        return PyErr_SetFromErrno(PyExc_OSError);
+        return NULL;
     }
     double *y = view.buf;
     for (Py_ssize_t i = 0; i < self->n_in; i++) {

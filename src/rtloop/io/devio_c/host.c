@@ -4,6 +4,20 @@
  * Included by ../_devio.c, which builds every part as one translation unit (so each function stays
  * static and inlinable); same arithmetic in the same order as the reference, bit for bit. */
 
+/* rtloop.errors.LibcError, taken at the module's import: a refused ioctl raises what rtloop.linux.rt.ioctl
+ * raises in the Python reference, naming the request and the descriptor, with the errno. */
+static PyObject *libc_error_type;
+
+static void set_ioctl_error(const char *name, int fd) {
+    int saved = errno;
+    PyObject *error = PyObject_CallFunction(libc_error_type, "Ni", PyUnicode_FromFormat("ioctl(%s) on fd %d", name, fd),
+                                            saved);
+    if (error != NULL) {
+        PyErr_SetObject((PyObject *)Py_TYPE(error), error);
+        Py_DECREF(error);
+    }
+}
+
 /* A float64 vector held for the object's life (a numpy array or a view of one, contiguous). */
 static int get_vector(PyObject *obj, Py_buffer *view, int writable, const char *what) {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);

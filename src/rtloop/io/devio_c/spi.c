@@ -161,12 +161,12 @@ static void spi_check(SpiFrame *self) {
     self->fresh = 1;
 }
 
-/* One transfer (SpiDevice._exchange): seal, SPI_IOC_MESSAGE(1), check. -1 with OSError set when
+/* One transfer (SpiDevice._exchange): seal, SPI_IOC_MESSAGE(1), check. -1 with LibcError set when
  * the kernel refuses it (then, as in the reference, the counter stays and nothing is fresh). */
 static int spi_exchange(SpiFrame *self) {
     spi_seal(self);
     if (ioctl(self->fd, self->request, self->transfer.buf) < 0) {
-        PyErr_SetFromErrno(PyExc_OSError); /* what fcntl.ioctl raises */
+        set_ioctl_error("SPI_IOC_MESSAGE(1)", self->fd);
         return -1;
     }
     spi_check(self);
