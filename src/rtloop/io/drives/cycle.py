@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from rtloop.errors import DeviceFault
+from rtloop.io.bytelayout import FloatView
 from rtloop.io.drives import cia402
 from rtloop.io.drives.cia402 import Cia402State, JointStateMachine, StatusBits, state_name, state_of, to_raw
 from rtloop.io.drives.joints import JointConfig
@@ -29,6 +30,11 @@ _COMMANDS = ((8, "target_position_rad"), (9, "target_velocity_rad_s"), (10, "tar
 _READING_FLAGS = (("enabled", 0), ("fault", StatusBits.FAULT), ("warning", StatusBits.WARNING),
                   ("target_reached", StatusBits.TARGET_REACHED), ("following_error", StatusBits.FOLLOWING_ERROR),
                   ("quick_stop", StatusBits.QUICK_STOP))
+
+
+_STATES = tuple(state_of(bits) for bits in range(0x70))
+"""Statusword bits 0-3, 5 and 6 (``& 0x6F``) → the state: one index instead of the standard's table."""
+_ENABLED, _QUICK_STOP = int(Cia402State.OPERATION_ENABLED), int(Cia402State.QUICK_STOP_ACTIVE)
 
 
 def command_names(joint: JointConfig) -> list[str]:
@@ -55,8 +61,11 @@ def reading_names(joint: JointConfig) -> list[str]:
 class _Joint:
     """Per joint: where its values are, its state machine, what it read last."""
 
-    __slots__ = ("config", "in_at", "machine", "mode", "mode_asked_at", "out_at", "out_values", "position_raw",
-                 "rx", "statusword", "tx", "u_at", "u_mode", "u_position", "u_torque", "u_velocity", "y_at")
+    __slots__ = ("config", "in_at", "machine", "mode", "mode_asked_at", "out_at", "out_values", "pack", "position_raw",
+                 "rad_per_count", "rx", "rx_controlword", "rx_mode", "rx_position", "rx_torque", "rx_velocity",
+                 "statusword", "torque_per_permille", "tx", "tx_error", "tx_mode", "tx_position", "tx_status",
+                 "tx_torque", "tx_velocity", "u_at", "u_mode", "u_position", "u_torque", "u_velocity", "unpack",
+                 "y_at")
 
     def __init__(self, config: JointConfig, u_at: int, y_at: int) -> None:
         self.config = config
@@ -83,6 +92,16 @@ class _Joint:
         self.u_at, self.y_at = u_at, y_at
         self.out_values = [0] * len(config.rx.objects)  # rewritten in place each cycle, packed in one call
         self.out_at = self.in_at = 0
+        # where each object sits among the values packed and unpacked (-1: not mapped), looked up once
+        rx, tx = config.rx.position, config.tx.position
+        self.rx_controlword, self.rx_mode = rx[cia402.CONTROLWORD], rx[cia402.MODES_OF_OPERATION]
+        self.rx_position, self.rx_velocity = rx.get(cia402.TARGET_POSITION, -1), rx.get(cia402.TARGET_VELOCITY, -1)
+        self.rx_torque = rx.get(cia402.TARGET_TORQUE, -1)
+        self.tx_status, self.tx_position = tx[cia402.STATUSWORD], tx[cia402.POSITION_ACTUAL]
+        self.tx_velocity, self.tx_torque = tx.get(cia402.VELOCITY_ACTUAL, -1), tx.get(cia402.TORQUE_ACTUAL, -1)
+        self.tx_error, self.tx_mode = tx.get(cia402.ERROR_CODE, -1), tx.get(cia402.MODES_DISPLAY, -1)
+        self.pack, self.unpack = config.rx.struct.pack_into, config.tx.struct.unpack_from
+        self.rad_per_count, self.torque_per_permille = config.scale.rad_per_count, config.scale.Nm_per_permille
 
 
 class DriveCycle:
@@ -96,6 +115,7 @@ class DriveCycle:
             self.joints.append(_Joint(config, u_at, y_at))
             u_at += len(command_names(config))
             y_at += len(reading_names(config))
+        self._u, self._y = FloatView(), FloatView()  # memoryviews of the task's vectors: no numpy scalars
         self.out_buffer: Any = None
         self.in_buffer: Any = None
         self.enabled = False
@@ -138,9 +158,11 @@ class DriveCycle:
 
     def prepare_outputs(self, u: Any) -> None:
         """Controlwords, modes and targets for this cycle's exchange (``u``: the device's commands)."""
+        u = self._u.of(u)
+        enabled = self.enabled
         for joint in self.joints:
-            if self.enabled:
-                word = joint.machine.running_controlword()
+            if enabled:
+                word = cia402.CW_ENABLE_OPERATION
             else:
                 word = joint.machine.enabling_controlword(joint.statusword)
                 if word == -2:
@@ -148,76 +170,77 @@ class DriveCycle:
                                       f"{JointStateMachine.FAULT_RESET_TRIES} fault resets")
                 if word == -1:
                     word = cia402.CW_ENABLE_OPERATION
-            scale = joint.config.scale
             if joint.u_mode >= 0:
-                mode = round(float(u[joint.u_mode]))
+                mode = round(u[joint.u_mode])
                 if mode != joint.mode:
                     if mode not in joint.config.modes:
-                        raise self._fault(joint, f"mode command {float(u[joint.u_mode])!r} is not one of the joint's "
+                        raise self._fault(joint, f"mode command {u[joint.u_mode]!r} is not one of the joint's "
                                           f"modes {list(joint.config.modes)}")
                     joint.mode = mode
                     joint.mode_asked_at = self.exchanges
-            operating = self.enabled
-            position = to_raw(float(u[joint.u_position]), scale.rad_per_count, 32) \
-                if operating and joint.u_position >= 0 and joint.mode == 8 else joint.position_raw
-            velocity = to_raw(float(u[joint.u_velocity]), scale.rad_per_count, 32) \
-                if operating and joint.u_velocity >= 0 and joint.mode == 9 else 0
-            torque = to_raw(float(u[joint.u_torque]), scale.Nm_per_permille, 16) \
-                if operating and joint.u_torque >= 0 and joint.mode == 10 else 0
-            self._pack(joint, word, joint.mode, position, velocity, torque)
+            mode = joint.mode
+            values = joint.out_values
+            values[joint.rx_controlword] = word
+            values[joint.rx_mode] = mode
+            if joint.rx_position >= 0:  # a joint not in CSP, or not enabled yet, holds where it is
+                values[joint.rx_position] = to_raw(u[joint.u_position], joint.rad_per_count, 32) \
+                    if enabled and mode == 8 else joint.position_raw
+            if joint.rx_velocity >= 0:
+                values[joint.rx_velocity] = to_raw(u[joint.u_velocity], joint.rad_per_count, 32) \
+                    if enabled and mode == 9 else 0
+            if joint.rx_torque >= 0:
+                values[joint.rx_torque] = to_raw(u[joint.u_torque], joint.torque_per_permille, 16) \
+                    if enabled and mode == 10 else 0
+            joint.pack(self.out_buffer, joint.out_at, *values)
 
     def _pack(self, joint: _Joint, controlword: int, mode: int, position: int, velocity: int, torque: int) -> None:
-        values, rx = joint.out_values, joint.rx.position
-        for index, value in ((cia402.CONTROLWORD, controlword), (cia402.MODES_OF_OPERATION, mode),
-                             (cia402.TARGET_POSITION, position), (cia402.TARGET_VELOCITY, velocity),
-                             (cia402.TARGET_TORQUE, torque)):
-            place = rx.get(index, -1)
+        values = joint.out_values
+        values[joint.rx_controlword] = controlword
+        values[joint.rx_mode] = mode
+        for place, value in ((joint.rx_position, position), (joint.rx_velocity, velocity), (joint.rx_torque, torque)):
             if place >= 0:
                 values[place] = value
-        joint.rx.struct.pack_into(self.out_buffer, joint.out_at, *values)
+        joint.pack(self.out_buffer, joint.out_at, *values)
 
     # --- after the exchange -----------------------------------------------------------------------
     def take_inputs(self, y: Any, check: bool = True) -> None:
         """Unpack every joint's inputs into ``y`` (SI) and, with ``check``, fault on a drive that is not
         where the run needs it."""
+        y = self._y.of(y)
         all_enabled = True
+        table = _STATES
         for joint in self.joints:
-            values = joint.tx.struct.unpack_from(self.in_buffer, joint.in_at)
-            tx = joint.tx.position
-            statusword = joint.statusword = values[tx[cia402.STATUSWORD]]
-            joint.position_raw = values[tx[cia402.POSITION_ACTUAL]]
-            scale = joint.config.scale
-            state = state_of(statusword)
+            values = joint.unpack(self.in_buffer, joint.in_at)
+            statusword = joint.statusword = values[joint.tx_status]
+            joint.position_raw = values[joint.tx_position]
+            state = table[statusword & 0x6F]
             at = joint.y_at
-            y[at] = joint.position_raw * scale.rad_per_count
+            y[at] = joint.position_raw * joint.rad_per_count
             at += 1
-            place = tx.get(cia402.VELOCITY_ACTUAL, -1)
-            if place >= 0:
-                y[at] = values[place] * scale.rad_per_count
+            if joint.tx_velocity >= 0:
+                y[at] = values[joint.tx_velocity] * joint.rad_per_count
                 at += 1
-            place = tx.get(cia402.TORQUE_ACTUAL, -1)
-            if place >= 0:
-                y[at] = values[place] * scale.Nm_per_permille
+            if joint.tx_torque >= 0:
+                y[at] = values[joint.tx_torque] * joint.torque_per_permille
                 at += 1
-            y[at] = 1.0 if state == Cia402State.OPERATION_ENABLED else 0.0
+            y[at] = 1.0 if state == _ENABLED else 0.0
             y[at + 1] = 1.0 if statusword & StatusBits.FAULT else 0.0
             y[at + 2] = 1.0 if statusword & StatusBits.WARNING else 0.0
             y[at + 3] = 1.0 if statusword & StatusBits.TARGET_REACHED else 0.0
             y[at + 4] = 1.0 if statusword & StatusBits.FOLLOWING_ERROR and joint.mode == 8 else 0.0
-            y[at + 5] = 1.0 if state == Cia402State.QUICK_STOP_ACTIVE else 0.0
+            y[at + 5] = 1.0 if state == _QUICK_STOP else 0.0
             at += 6
-            place = tx.get(cia402.ERROR_CODE, -1)
-            if place >= 0:
-                y[at] = float(values[place])
+            if joint.tx_error >= 0:
+                y[at] = values[joint.tx_error]
                 at += 1
-            place = tx.get(cia402.MODES_DISPLAY, -1)
-            if place >= 0:
-                y[at] = float(values[place])
-                if check and values[place] != joint.mode and self.exchanges - joint.mode_asked_at > MODE_LIMIT:
-                    raise self._fault(joint, f"the drive shows mode {values[place]} (0x6061), not the "
+            if joint.tx_mode >= 0:
+                shown = values[joint.tx_mode]
+                y[at] = shown
+                if check and shown != joint.mode and self.exchanges - joint.mode_asked_at > MODE_LIMIT:
+                    raise self._fault(joint, f"the drive shows mode {shown} (0x6061), not the "
                                       f"{cia402.MODE_NAMES.get(joint.mode, joint.mode)} it was asked for "
                                       f"{self.exchanges - joint.mode_asked_at} exchanges ago: it does not support it")
-            if state != Cia402State.OPERATION_ENABLED:
+            if state != _ENABLED:
                 all_enabled = False
                 if check and self.enabled:
                     raise self._fault(joint, self._left_operation(joint, values))

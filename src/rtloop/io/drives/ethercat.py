@@ -164,6 +164,7 @@ class EthercatDevice(Device):
             raise DeviceError(self.name, "", "interface", f"{self.interface}: cannot open it raw: "
                               f"{error.strerror}") from None
         master = pysoem.Master()
+        master.always_release_gil = True  # SOEM's waits (config, state checks) let the process's other threads run
         try:
             master.open(self.interface)
         except Exception as error:
@@ -249,13 +250,19 @@ class EthercatDevice(Device):
 
     def _exchange(self) -> int:
         """Send the frame, take its answer; the working counter (-1: it did not come back in time)."""
-        frame, reply, sock = self._frame, self._reply, self.socket
-        index = self._index = (self._index + 1) & 0xFF
-        frame[17] = index
-        sock.send(frame)
+        self._send()
+        return self._receive()
+
+    def _send(self) -> None:
+        frame = self._frame
+        frame[17] = self._index = (self._index + 1) & 0xFF
+        self.socket.send(frame)
+
+    def _receive(self) -> int:
+        reply, index = self._reply, self._index
         for _ in range(16):  # a late answer of an earlier frame is passed over
             try:
-                sock.recv_into(reply)
+                self.socket.recv_into(reply)
             except TimeoutError:
                 return -1
             if reply[17] == index and reply[16] == LRW:
@@ -276,7 +283,14 @@ class EthercatDevice(Device):
         cycle = self.cycle
         assert cycle is not None
         cycle.prepare_outputs(self._commands)
-        wkc = self._exchange()
+        self._send()
+        self._take_answer(y)
+
+    def _take_answer(self, y: FloatVector) -> None:
+        """The answer to the frame just sent, checked, into ``y`` (the second half of :meth:`read`)."""
+        cycle = self.cycle
+        assert cycle is not None
+        wkc = self._receive()
         # while the drives are enabled, every slave must exchange; before, a slave still on its way
         # to OP writes no outputs (the drives stay disabled: the enabling waits, within its limit)
         if wkc != self._expected_wkc and (cycle.enabled or wkc < 0):
