@@ -57,26 +57,38 @@ def _rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(rows))
 
 
+ATTEMPTS = 3
+STARVED = "did not come back within"
+
+
 def test_the_example_follows_its_trajectory_and_equals_its_simulation(veth: tuple[str, str], tmp_path: Path) -> None:
-    from rtloop.runtime.replay import compare_signals, first_miss_s
+    from replay_helpers import compare_signals, first_miss_s
 
     name = unique_name("jiwy_ecat")
     app = example_app(tmp_path, *veth, name, PERIOD_MS)
-    log = tmp_path / "drives.log"
-    emulator = start_emulator(app, log)
-    try:
-        run = _rtloop("run", str(app), "--duration", "10", "--out", str(tmp_path / "run"), "-q")
-    finally:
-        stop(emulator)
-    text = log.read_text()
-    assert run.returncode == 0, f"{run.stderr}\n{text}"
+    sim = _rtloop("simulate", str(app), "--duration", "10", "--out", str(tmp_path / "sim"), "-q")
+    assert sim.returncode == 0, sim.stderr
+    spoilt = []
+    for attempt in range(ATTEMPTS):  # a host so loaded that the emulator's answer comes after timeout_us spoils a run
+        log, out = tmp_path / f"drives{attempt}.log", tmp_path / f"run{attempt}"
+        emulator = start_emulator(app, log)  # fresh drives for each run: they keep where a run left them
+        try:
+            run = _rtloop("run", str(app), "--duration", "10", "--out", str(out), "-q")
+        finally:
+            stop(emulator)
+        text = log.read_text()
+        if run.returncode != 0 and STARVED in run.stderr and "Traceback" not in run.stderr:
+            spoilt.append(run.stderr.strip().splitlines()[0])
+            continue
+        assert run.returncode == 0, f"{run.stderr}\n{text}"
+        break
+    else:
+        pytest.fail(f"every run's frame came back late (the host starved the emulator): {spoilt}")
     assert "slave 2: AL SAFE-OP -> OP" in text
     assert "slave 1: drive: operation enabled (csp)" in text and "slave 2: drive: operation enabled (csp)" in text
     assert "slave 1: drive: quick stop (controlword)" in text  # the safe transition at the end of the run
-    sim = _rtloop("simulate", str(app), "--duration", "10", "--out", str(tmp_path / "sim"), "-q")
-    assert sim.returncode == 0, sim.stderr
-    until_s = first_miss_s(tmp_path / "run")
-    compared, differ_s = compare_signals(tmp_path / "run" / "signals.csv", tmp_path / "sim" / "signals.csv", until_s)
+    until_s = first_miss_s(out)
+    compared, differ_s = compare_signals(out / "signals.csv", tmp_path / "sim" / "signals.csv", until_s)
     assert differ_s is None, f"the run left its simulation at {differ_s} s (first miss at {until_s} s)"
     assert compared >= 300, f"only {compared} rows before the first miss at {until_s} s"
     rows = _rows(tmp_path / "sim" / "signals.csv")
