@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from drive_veth import example_app
 
+from drive_veth import example_app
 from rtloop.app.builder import App
 from rtloop.errors import DeviceError
 from rtloop.io.drives.emulator import DEFAULT_IDENTITY
