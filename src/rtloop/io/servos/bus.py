@@ -273,7 +273,8 @@ class ServoBusDevice(Device):
     # --- every cycle ------------------------------------------------------------------------------
     def write(self, u: FloatVector) -> None:
         """One sync write of every servo's goal (no answer comes to a sync write)."""
-        units, raw = self.units, self.raw
+        units = self.units  # (one name a line: no tuple made in the loop)
+        raw = self.raw
         np.multiply(u, units.command_scale, out=raw)
         np.add(raw, units.command_offset, out=raw)
         np.rint(raw, out=raw)
@@ -287,7 +288,8 @@ class ServoBusDevice(Device):
 
     def read(self, y: FloatVector) -> None:
         """One sync read of every servo's state; a servo that did not answer keeps its last values."""
-        state, units = self.state, self.units
+        state = self.state
+        units = self.units
         try:
             if self.incomplete:  # late answers to the last request may still come: not this one's
                 self.line.flush_input()  # type: ignore[union-attr]  # configure opened it; no test per cycle

@@ -359,7 +359,10 @@ class SyncRead:
         return self.collect(line, timeout_ns)
 
     def collect(self, line: Line, timeout_ns: int) -> int:
-        protocol, scan, raw, received = self.protocol, self.scan, self.raw, self.received
+        protocol = self.protocol  # (one name a line: a tuple here would be kept by the interpreter's free list)
+        scan = self.scan
+        raw = self.raw
+        received = self.received
         received[:] = False
         self.problem = ""
         deadline_ns = time.monotonic_ns() + timeout_ns
