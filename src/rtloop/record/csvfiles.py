@@ -22,26 +22,31 @@ from rtloop.ipc.schema import NO_STAMP  # a read that found no sample at all
 from rtloop.seconds import seconds_text
 
 
-class TimingCsv:
-    HEADER = "task,cycle,release_ns,start_ns,end_ns\n"
+class AppendOnlyCsv:
+    """A CSV file written in order and never rewritten: a header, then rows appended as they come,
+    flushed at every drain (a crash loses at most the last drain interval), and, for a ``--keep``
+    run's window, continued in a new segment file that starts with the header again. Every file of
+    a run's recording is one (each says its header and how it formats its rows)."""
+
+    BUFFER_BYTES = 1 << 14
 
     def __init__(self, path: Path) -> None:
+        self.path = path
         self.file: TextIO = self._open(path)
 
+    def header(self) -> str:
+        """The first line of every segment."""
+        raise NotImplementedError
+
     def _open(self, path: Path) -> TextIO:
-        file = open(path, "w", buffering=1 << 16)  # noqa: SIM115
-        file.write(self.HEADER)
+        file = open(path, "w", buffering=self.BUFFER_BYTES)  # noqa: SIM115 (open for the recording's life)
+        file.write(self.header())
         return file
 
     def switch_to(self, path: Path) -> None:
         """Go on in a new file (a recording segment), which starts with the header."""
         self.file.close()
-        self.file = self._open(path)
-
-    def append(self, task: str, records: np.ndarray) -> None:
-        if len(records):  # one % formatting call per block: the text is built in C
-            line = task.replace("%", "%%") + ",%d,%d,%d,%d\n"
-            self.file.write((line * len(records)) % tuple(records.ravel().tolist()))
+        self.path, self.file = path, self._open(path)
 
     def flush(self) -> None:
         self.file.flush()
@@ -50,7 +55,21 @@ class TimingCsv:
         self.file.close()
 
 
-class InputsCsv:
+class TimingCsv(AppendOnlyCsv):
+    HEADER = "task,cycle,release_ns,start_ns,end_ns\n"
+
+    BUFFER_BYTES = 1 << 16
+
+    def header(self) -> str:
+        return self.HEADER
+
+    def append(self, task: str, records: np.ndarray) -> None:
+        if len(records):  # one % formatting call per block: the text is built in C
+            line = task.replace("%", "%%") + ",%d,%d,%d,%d\n"
+            self.file.write((line * len(records)) % tuple(records.ravel().tolist()))
+
+
+class InputsCsv(AppendOnlyCsv):
     """``inputs.csv``: what entered the run from outside, and the cycle that took it.
 
     ``task,cycle,port,values`` — one row each time a task took a new value from a live
@@ -61,18 +80,8 @@ class InputsCsv:
 
     HEADER = "task,cycle,port,values\n"
 
-    def __init__(self, path: Path) -> None:
-        self.file: TextIO = self._open(path)
-
-    def _open(self, path: Path) -> TextIO:
-        file = open(path, "w", buffering=1 << 14)  # noqa: SIM115
-        file.write(self.HEADER)
-        return file
-
-    def switch_to(self, path: Path) -> None:
-        """Go on in a new file (a recording segment), which starts with the header."""
-        self.file.close()
-        self.file = self._open(path)
+    def header(self) -> str:
+        return self.HEADER
 
     def append(self, task: str, period_ns: int, ports: list[tuple[str, int]], ticks: np.ndarray,
                rows: np.ndarray) -> None:
@@ -81,12 +90,6 @@ class InputsCsv:
             name, size = ports[int(row[0])]
             values = " ".join(repr(v) for v in row[1 : 1 + size])
             self.file.write(f"{task},{since_t0_ns // period_ns},{name},{values}\n")
-
-    def flush(self) -> None:
-        self.file.flush()
-
-    def close(self) -> None:
-        self.file.close()
 
 
 def read_inputs_csv(path: Path) -> list[tuple[str, int, str, list[float]]]:
@@ -104,7 +107,7 @@ def read_inputs_csv(path: Path) -> list[tuple[str, int, str, list[float]]]:
     return rows
 
 
-class ReadsCsv:
+class ReadsCsv(AppendOnlyCsv):
     """``reads.csv``: each read of a connection that did not get the sample LET promised.
 
     ``task,cycle,writer,stamp_ns,due_ns`` — at ``cycle`` the task read ``writer``'s sample
@@ -115,18 +118,8 @@ class ReadsCsv:
 
     HEADER = "task,cycle,writer,stamp_ns,due_ns\n"
 
-    def __init__(self, path: Path) -> None:
-        self.file: TextIO = self._open(path)
-
-    def _open(self, path: Path) -> TextIO:
-        file = open(path, "w", buffering=1 << 14)  # noqa: SIM115
-        file.write(self.HEADER)
-        return file
-
-    def switch_to(self, path: Path) -> None:
-        """Go on in a new file (a recording segment), which starts with the header."""
-        self.file.close()
-        self.file = self._open(path)
+    def header(self) -> str:
+        return self.HEADER
 
     def append(self, task: str, period_ns: int, writers: list[str], records: np.ndarray) -> None:
         """``records``: rows of ``[release, writer index, stamp got or NO_STAMP, stamp due]`` (ns since T0)."""
@@ -135,12 +128,6 @@ class ReadsCsv:
             stamp = "" if stamp_ns == NO_STAMP else str(stamp_ns)
             lines.append(f"{task},{release_ns // period_ns},{writers[writer]},{stamp},{due_ns}\n")
         self.file.writelines(lines)
-
-    def flush(self) -> None:
-        self.file.flush()
-
-    def close(self) -> None:
-        self.file.close()
 
 
 def read_reads_csv(path: Path) -> list[tuple[str, int, str, int | None, int]]:
@@ -168,7 +155,7 @@ drained (:meth:`SignalsCsv.room`), so its rows wait in shared memory and what ov
 counted lost and shows as a gap, never as memory that grows with the run."""
 
 
-class SignalsCsv:
+class SignalsCsv(AppendOnlyCsv):
     """Collects record-queue rows per task and writes signals.csv rows in time order.
 
     Each row is labelled with the time from which its values hold (logical execution
@@ -231,17 +218,14 @@ class SignalsCsv:
         self.unexplained: dict[str, int] = {}
         """Per task, rows lost after its newest row (no later row has shown the gap yet)."""
         self.rows_written = 0
-        self.file: TextIO = self._open(path)
+        super().__init__(path)
 
-    def _open(self, path: Path) -> TextIO:
-        file = open(path, "w", buffering=1 << 16)  # noqa: SIM115
-        file.write(",".join(["t_s", *self.names]) + "\n")
-        return file
+    BUFFER_BYTES = 1 << 16
 
-    def switch_to(self, path: Path) -> None:
-        """Go on in a new file (a recording segment); the rows still pending go there."""
-        self.file.close()
-        self.path, self.file = path, self._open(path)
+    def header(self) -> str:
+        return ",".join(["t_s", *self.names]) + "\n"
+
+    # switch_to: the rows still pending go to the new segment
 
     def add(self, task: str, ticks: np.ndarray, rows: np.ndarray, lost_so_far: int = 0) -> None:
         """Rows of ``task``'s record queue; ``lost_so_far``: rows its queue has dropped in all (gaps)."""
@@ -308,7 +292,7 @@ class SignalsCsv:
         them): the final flush marks the gap from the tick after the newest row."""
         self.unexplained[task] = self.unexplained.get(task, 0) + count
 
-    def flush(self, final: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def flush(self, final: bool = False) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[override]  # writes the rows every stream reached, then the file; returns them for run.mcap
         """Write every row whose time all recorded streams have reached; return those rows.
 
         Returns (times since T0 in ns, values) of the rows written, NaN where a signal
@@ -371,7 +355,7 @@ class SignalsCsv:
 
     def close(self) -> None:
         """Close the file; ``flush(final=True)`` first writes what is still pending."""
-        self.file.close()
+        super().close()
 
 
 def column_names(ref: SignalRef, input_names: tuple[str, ...] | None,
