@@ -197,13 +197,18 @@ class JiwyController(_TwoAxisEulerModel):
         self.tilt = dataclasses.replace(self.tilt, kp=self.parameters["kp_tilt"])
 
     def take_over(self, u: FloatVector, y_last: FloatVector) -> None:
-        """Bumpless transfer (``rtloop switch``): set the integrators so that the first output
-        equals ``y_last``, the outgoing controller's last one, on this release's inputs."""
+        """Bumpless transfer (``rtloop switch``): the first output equals ``y_last``, the outgoing
+        controller's last one, on this release's inputs.
+
+        The difference goes into the lead filter's state, not the integrator's: with τI = 1000 s
+        the integrator would hold it for ever (a steady offset in the steering, so in the angle),
+        while the lead filter lets it go within β·τD (20 ms for pan). The textbook PI puts it in
+        the integrator, because there the integrator holds the steady state."""
         s = self.states
         values = u.tolist()
         for axis, (c, pd, pi) in enumerate(((self.pan, 0, 1), (self.tilt, 2, 3))):
             error = values[2 + axis] - values[axis]
-            s[pi] = float(y_last[axis]) - (s[pd] + c.kp * error / c.beta)
+            s[pd] = float(y_last[axis]) - s[pi] - c.kp * error / c.beta
         self.rates = [0.0, 0.0, 0.0, 0.0]  # the first step integrates nothing before it evaluates
 
     def _evaluate(self, u: FloatVector, y: FloatVector) -> None:

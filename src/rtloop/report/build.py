@@ -85,10 +85,12 @@ def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
             path = figures.save(figures.latency_over_time_figure(run, series), fig_dir / f"{prefix}-latency-time.png")
             refs.append(html.FigureRef(path, "Wake-up latency of every cycle over time (grey: trimmed ends)."))
         if run.signals is not None:
-            path = figures.save(signal_figures.signals_figure(run.label, run.signals, run.data.inputs),
+            switches = run.summary.get("switches") or []
+            path = figures.save(signal_figures.signals_figure(run.label, run.signals, run.data.inputs, switches),
                                 fig_dir / f"{prefix}-signals.png")
             refs.append(html.FigureRef(path, "Recorded signals (signals.csv): one axis per declared plot, "
-                                             "setpoint pair or unit; dotted lines: live port writes."))
+                                             "setpoint pair or unit; dotted lines: live port writes"
+                                             + ("; solid purple: controller switches." if switches else ".")))
         report.pngs.extend(ref.path for ref in refs)
     comparison: list[html.FigureRef] = []
     if len(runs) > 1:

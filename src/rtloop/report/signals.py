@@ -32,6 +32,7 @@ MAX_SHADED_GAPS = 200
 RUN_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 SETPOINT_STYLE = {"color": "black", "linestyle": "--", "linewidth": 1.1}
 INPUT_STYLE: dict[str, Any] = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
+SWITCH_STYLE: dict[str, Any] = {"color": "tab:purple", "linestyle": "-", "linewidth": 1.0, "alpha": 0.7}
 TIME_LABEL = "t [s] (each value holds from t on)"
 
 
@@ -159,6 +160,28 @@ def _mark_inputs(axes: Sequence[Axes], inputs: dict[str, PortInputs], color: str
     return len(events)
 
 
+def _mark_switches(axes: Sequence[Axes], switches: Sequence[dict[str, Any]]) -> int:
+    """Solid lines where a task changed controller (or loaded new code), labelled on the first axis."""
+    events = [s for s in switches if isinstance(s, dict) and isinstance(s.get("t_s"), int | float)]
+    for ax in axes:
+        for event in events:
+            ax.axvline(float(event["t_s"]), **SWITCH_STYLE)
+    if axes and len(events) <= MAX_LABELLED_INPUTS:
+        for event in events:
+            code = f" (code {event['code']})" if event.get("code") else ""
+            text = literal(f"{event.get('task')}: {event.get('from')} → {event.get('to')}{code}")
+            axes[0].annotate(text, (float(event["t_s"]), 0.0), xycoords=("data", "axes fraction"), xytext=(2, 2),
+                             textcoords="offset points", rotation=90, va="bottom", ha="left", fontsize=7,
+                             color=SWITCH_STYLE["color"])
+    return len(events)
+
+
+def without_switch_ports(inputs: dict[str, PortInputs], switches: Sequence[dict[str, Any]]) -> dict[str, PortInputs]:
+    """The live writes to mark as port writes: a switch request is marked where it took effect instead."""
+    tasks = {s.get("task") for s in switches if isinstance(s, dict)}
+    return {port: entry for port, entry in inputs.items() if not any(port == f"{task}_switch" for task in tasks)}
+
+
 def _shade_gaps(axes: Sequence[Axes], gaps: np.ndarray) -> None:
     """Grey where rows are missing (releases skipped, a pruned segment): nothing was recorded there."""
     for ax in axes:
@@ -188,8 +211,9 @@ def _shade_limits(ax: Axes, signals: Signals, group: Group) -> int:
     return len(stretches)
 
 
-def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] | None = None) -> Figure:
-    """A run's recorded signals: one axis per group, legends outside, live inputs marked."""
+def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] | None = None,
+                   switches: Sequence[dict[str, Any]] = ()) -> Figure:
+    """A run's recorded signals: one axis per group, legends outside, live inputs and switches marked."""
     groups = groups_of(signals)
     fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + AXIS_HEIGHT_IN * len(groups)), layout="constrained")
     axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
@@ -199,12 +223,14 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
             style = dict(SETPOINT_STYLE) if name == group.setpoint else {"color": next(color), "linewidth": 1.3}
             _trace(ax, signals.t_s, signals[name], signals.gaps, label=_label(signals, name, group), **style)
         _finish(ax, group)
-    marked = _mark_inputs(list(axes), inputs or {})
+    marked = _mark_inputs(list(axes), without_switch_ports(inputs or {}, switches))
+    switched = _mark_switches(list(axes), switches)
     _shade_gaps(list(axes), signals.gaps)
     limited = sum(_shade_limits(ax, signals, group) for ax, group in zip(axes, groups, strict=True))
     axes[-1].set_xlabel(TIME_LABEL)
     note = f"; dotted: {marked} live port write(s)" if marked else ""
     note += f"; red: a limit acted ({limited} stretch(es))" if limited else ""
+    note += f"; solid purple: {switched} controller switch(es)" if switched else ""
     gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
     fig.suptitle(literal(f"{label} — recorded signals{note}{gaps}"), fontsize=12)
     return fig
