@@ -78,6 +78,11 @@ def test_the_report_draws_what_was_sent_beside_what_was_asked_and_marks_where_a_
     assert "red: a limit acted (1 stretch(es))" in figure.get_suptitle()
     legend = [text.get_text() for text in figure.axes[0].get_legend().get_texts()]
     assert legend == ["ctl.y[0] (asked for)", "dev.c0", "limit acted"]
+    from rtloop.report.signals import comparison_figure
+
+    rtloop.simulate(device_app(tmp_path, "lim_report2", rate_per_s=1000.0), 0.1, tmp_path / "sim2")
+    overlay = comparison_figure([("sim", signals, {}), ("sim2", load(tmp_path / "sim2").signals, {})])
+    assert overlay is not None and "red: a limit acted in sim (1 stretch(es))" in overlay.get_suptitle()
 
 
 def test_a_run_says_its_device_clamps_and_equals_its_simulation(tmp_path: Path) -> None:
@@ -135,6 +140,11 @@ def test_a_guarded_connection_runs_as_it_simulates(tmp_path: Path, hot_path: str
     limits = summary(tmp_path / "run")["tasks"]["plant"]["input_limits"]
     assert limits["plant.u[0]"]["rate_limited_cycles"] == 3 and limits["plant.u[0]"]["clamped_cycles"] >= 10
     assert rows(tmp_path / "run")[4]["plant.u[0]"] == 10.0
+    from rtloop.runtime.replay import replay
+
+    replayed = replay(tmp_path / "run", tmp_path / "replay",  # the replay goes through the same guard
+                      guarded_app("lim_conn_p", min=-10.0, max=10.0, rate_per_s=1500.0))
+    assert replayed.equal, replayed.divergence or replayed.cannot
 
 
 def test_an_app_file_connection_takes_min_max_and_rate_per_s(tmp_path: Path) -> None:

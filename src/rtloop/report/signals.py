@@ -249,6 +249,7 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
     fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + (AXIS_HEIGHT_IN + 1.5) * len(groups)), layout="constrained")
     axes = fig.subplots(2 * len(groups), 1, sharex=True, squeeze=False,
                         gridspec_kw={"height_ratios": [AXIS_HEIGHT_IN, 1.5] * len(groups)})[:, 0]
+    limited = 0
     for i, group in enumerate(groups):
         ax, diff_ax = axes[2 * i], axes[2 * i + 1]
         for r, (label, signals, _) in enumerate(runs):
@@ -264,6 +265,7 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
                 _trace(diff_ax, t_s, delta, np.zeros((0, 2)), label=literal(f"{label} − {reference_label}: {name}"
                                                       f" (max |Δ| {worst:.3g})"), **style)
         _finish(ax, group)
+        limited += _shade_limits(ax, reference, group)  # where the first run's limits acted
         diff_ax.axhline(0.0, color="black", linewidth=0.6)
         diff_ax.set_ylabel(literal("Δ " + group.ylabel), fontsize=9)
         diff_ax.grid(True, alpha=0.3)
@@ -275,6 +277,7 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
     axes[-1].set_xlabel(TIME_LABEL)
     writes = "; ".join(f"{label}: {count}" for (label, _, _), count in zip(runs, marked, strict=True) if count)
     note = f"; dotted, in each run's colour: live port writes ({writes})" if writes else ""
+    note += f"; red: a limit acted in {reference_label} ({limited} stretch(es))" if limited else ""
     fig.suptitle(literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
                          f"difference to {reference_label} at common times{note}"), fontsize=12)
     return fig
