@@ -177,14 +177,15 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
     Uses the real loop, status block and timing ring (shared memory); runs in this
     process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
+    from rtloop.app.specs import TaskConfig
     from rtloop.ipc.hotpath import PythonCycle
     from rtloop.ipc.ring import Int64Ring
     from rtloop.ipc.schema import task_segment_size
     from rtloop.ipc.segments import Segment, new_run_token
     from rtloop.ipc.status import CONTROL_WORDS, STATUS_WORDS, WordBlock
-    from rtloop.ipc.wiring import TaskWiring, TaskWiringPlan
+    from rtloop.ipc.wiring import TaskWiringPlan
     from rtloop.linux import rt
-    from rtloop.runtime.task import RealtimeTask, TaskConfig
+    from rtloop.runtime.taskrun import TaskRun
 
     token = new_run_token()
     control_segment = Segment.create("bench", os.getpid(), token, "control", CONTROL_WORDS * 8)
@@ -196,8 +197,7 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
         status = WordBlock(task_segment, 0, STATUS_WORDS)
         timing = Int64Ring.initialise(task_segment, cycles + 8, 4, STATUS_WORDS * 8)
         period_ns = 1_000_000
-        task = RealtimeTask(TaskConfig("noop", period_ns), NoOp(), control, status, timing)
-        task.wiring = TaskWiring(TaskWiringPlan(), task.u, task.y, status)
+        task = TaskRun(TaskConfig("noop", period_ns), NoOp(), TaskWiringPlan(), control, status, timing)
         # The loop of the Python hot path (the readable twin; bench_hotpath.py times the C one),
         # with a sleep that returns at once.
         cycle = PythonCycle(task.tick, task.wiring, control, status, timing, period_ns, catch_up=False)

@@ -128,3 +128,62 @@ def test_requests_are_counted_the_supervisors_death_once_the_watchdogs_signal_br
     watchdog.task = _Task()  # type: ignore[assignment]
     with pytest.raises(TimeoutError, match="the watchdog"):
         watchdog(STEP_STUCK, None)  # its first signal: the step is stuck, break it
+
+
+# --- simulate: postrun always, once --------------------------------------------------------------
+
+
+class _CountsPostrun(Counter):
+    def __init__(self) -> None:
+        super().__init__()
+        self.postruns = 0
+
+    def postrun(self) -> None:
+        self.postruns += 1
+
+
+def test_simulate_calls_every_postrun_once_after_a_fault(tmp_path: Path) -> None:
+    from rt_test_runnables import RaiseAt
+
+    app = App(f"simpostrun_{os.getpid()}")
+    failing, healthy = RaiseAt(5), _CountsPostrun()
+    failing.postruns = 0  # type: ignore[attr-defined]
+    failing.postrun = lambda: setattr(failing, "postruns", failing.postruns + 1)  # type: ignore[method-assign]
+    app.add_task("failing", failing, period_ns=PERIOD_NS)
+    app.add_task("healthy", healthy, period_ns=PERIOD_NS)
+    with pytest.raises(TaskFailed) as failed:
+        rtloop.simulate(app, 0.2, tmp_path / "out")
+    assert failed.value.task == "failing" and failed.value.cycle == 5
+    assert (failing.postruns, healthy.postruns) == (1, 1)  # type: ignore[attr-defined]
+
+
+def test_simulate_terminates_an_fmu_and_removes_its_folder_after_a_fault(tmp_path: Path, monkeypatch) -> None:
+    import shutil
+
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc not installed: cannot build the JIWY FMU")
+    pytest.importorskip("fmpy")
+    import fmpy
+
+    from rt_test_runnables import RaiseAt
+    from rtloop.models import load_model
+    from rtloop.models.fmu_build import build_fmu
+
+    models = Path(__file__).resolve().parents[1] / "examples" / "jiwy" / "models"
+    fmu = build_fmu(models / "fmu", tmp_path / "JiwyPlant.fmu")
+    extracted: list[str] = []
+    extract = fmpy.extract
+
+    def recorded_extract(*args, **kwargs):
+        folder = extract(*args, **kwargs)
+        extracted.append(folder)
+        return folder
+
+    monkeypatch.setattr(fmpy, "extract", recorded_extract)
+    app = App(f"simfmu_{os.getpid()}")
+    plant = app.add_task("plant", load_model(f"fmu:{fmu}"), period_ns=PERIOD_NS)
+    app.add_task("failing", RaiseAt(5), period_ns=PERIOD_NS)
+    app.record(plant.y)
+    with pytest.raises(TaskFailed):
+        rtloop.simulate(app, 0.2, tmp_path / "out")
+    assert extracted and not any(Path(folder).exists() for folder in extracted), "the FMU's folder leaked"

@@ -15,7 +15,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import types
 from pathlib import Path
 
 import pytest
@@ -24,8 +23,11 @@ from conftest import other_cpu
 from rtloop.app.builder import TaskConfig
 from rtloop.errors import StopRequested, WatchdogExpired
 from rtloop.ipc.status import StatusWord, TaskState
+from rtloop.ipc.wiring import TaskWiringPlan
 from rtloop.runnable import Runnable
 from rtloop.runtime import task as task_module
+from rtloop.runtime import taskrun as taskrun_module
+from rtloop.runtime.taskrun import TaskRun
 
 SCRIPT = textwrap.dedent("""
     import os, sys
@@ -96,9 +98,10 @@ def test_a_loop_ended_by_an_error_marks_the_task_failed_before_it_leaves_real_ti
     # The loop's way out leaves SCHED_FIFO before the task reports; a supervisor waiting on that core
     # runs at once then, and would take a task still marked RUNNING, with no cycle for the limit, as stuck.
     status = {StatusWord.STATE: TaskState.RUNNING}
-    task = task_module.RealtimeTask(TaskConfig("spinner", 1_000_000), RaisesInStep(error), {}, status, None)
-    task.wiring = types.SimpleNamespace(stale_reads=0)
-    monkeypatch.setattr(task_module, "cycle_work", lambda *_args, **_kwargs: OneMoreRelease())
+    run = TaskRun(TaskConfig("spinner", 1_000_000), RaisesInStep(error), TaskWiringPlan(), {}, status,
+                  None)  # type: ignore[arg-type]
+    task = task_module.RealtimeTask(run)
+    monkeypatch.setattr(taskrun_module, "cycle_work", lambda *_args, **_kwargs: OneMoreRelease())
     seen: list[str] = []
     monkeypatch.setattr(task_module.rt, "leave_realtime", lambda: seen.append(TaskState(status[StatusWord.STATE]).name))
     with pytest.raises(type(error)):

@@ -19,10 +19,9 @@ import numpy as np
 
 from rtloop.app.builder import App
 from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
-from rtloop.io.host import TaskDevices
-from rtloop.ipc.hotpath import announce_once, cycle_work, hot_path
+from rtloop.ipc.hotpath import announce_once, hot_path
 from rtloop.ipc.status import StatusWord
-from rtloop.ipc.wiring import TaskWiring, nonfinite_fields
+from rtloop.ipc.wiring import nonfinite_fields
 from rtloop.linux import rt
 from rtloop.record.summary import (
     RunSummary,
@@ -32,56 +31,12 @@ from rtloop.record.summary import (
     signal_names,
     slow_step_notes,
 )
-from rtloop.runnable import TickInfo
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout, device_wiring
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
 from rtloop.runtime.supervisor import machine_facts, port_summaries
-from rtloop.runtime.task import initial_inputs, initial_outputs
+from rtloop.runtime.taskrun import TaskRun
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
-
-
-class _SimTask:
-    def __init__(self, name: str, app: App, layout: AppLayout) -> None:
-        spec = app.tasks[name]
-        self.name, self.runnable, self.period_ns = name, spec.runnable, spec.config.period_ns
-        self.u = initial_inputs(spec.runnable)
-        self.y = np.zeros(spec.runnable.n_outputs)
-        self.tick = TickInfo(period_ns=self.period_ns)
-        self.runnable.tick = self.tick
-        self.handles = layout.tasks[name]
-        self.wiring = TaskWiring(self.handles.plan, self.u, self.y, self.handles.status)
-        wirings = device_wiring(app, name, twins=True)  # each device's twin in its place
-        for wiring in wirings:
-            wiring.device.twin.tick = self.tick  # type: ignore[attr-defined]  # twins=True: a TwinDevice
-        self.devices = TaskDevices(name, self.period_ns, wirings, self.u, self.y, self.wiring.sent)
-        self.records: list[tuple[int, int, int, int]] = []  # since the last drain
-        self.host_exec = HostExecution()
-        self.io: Any = None  # the per-cycle work (C or Python), built once the initial outputs are out
-
-    def start(self, layout: AppLayout, t0_ns: int, end_ns: int, timeline: LetTimeline) -> None:
-        timeline.start(self, layout, t0_ns)
-        self.io = cycle_work(self.tick, self.wiring, layout.control, self.handles.status, self.handles.timing,
-                             self.period_ns, catch_up=False)
-        self.io.start(t0_ns, end_ns, self.wiring.stale_reads)
-        self.devices.activate()
-
-    def step(self, cycle: int, release_ns: int, timeline: LetTimeline) -> None:
-        tick = self.tick
-        tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
-        timeline.read_inputs(self.name, cycle, release_ns, self.io, self.u)
-        started = time.perf_counter_ns()
-        if self.devices:  # as in the task's loop: commands that hold from now, then readings
-            self.devices.at_release(cycle)
-        self.runnable.step(self.u, self.y)
-        if self.devices:
-            self.devices.after_step(cycle)
-        self.host_exec.add(time.perf_counter_ns() - started)
-        self.io.publish_outputs(cycle, release_ns + self.period_ns)
-        timeline.published(self.name, cycle, self.y)
-        # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
-        # What it cost on this host is kept apart (host_exec_ns), never taken for timing.
-        self.records.append((cycle, release_ns, release_ns, release_ns))
 
 
 class HostExecution:
@@ -153,7 +108,7 @@ def simulate(app: App, duration_s: float, out: str | Path, *, trim: int = 20,
                          protect=protect, registry=False, limits=limits,
                          check_disk=timeline is None)  # a replay checks the span it records itself
     announce_once()
-    tasks: dict[str, _SimTask] = {}
+    tasks: dict[str, TaskRun] = {}
     outcome = _Outcome()
     with session:
         session.summarise = lambda running: _summary(app, session, duration_s, outcome, tasks, running=running)
@@ -173,39 +128,48 @@ class _Outcome:
         self.stopped_by = "duration"
         self.started_ns = time.time_ns()
         """Wall time the simulation started (``started`` in summary.json: its logical T0)."""
+        self.host_exec: dict[str, HostExecution] = {}
+        """Per task, what its jobs cost on this host (never taken for timing)."""
+        self.records: dict[str, list[tuple[int, int, int, int]]] = {}
+        """Per task, its timing records since the last drain."""
 
 
-def _let_go(tasks: dict[str, _SimTask]) -> None:
+def _let_go(tasks: dict[str, TaskRun]) -> None:
     """Let go of the shared memory before it is removed: the cycle work's hold first, then the
     tasks (their views of the layout), then each task's own mappings."""
     wirings = [task.wiring for task in tasks.values()]
     for task in tasks.values():
-        if task.io is not None:
-            task.io.close()
+        if task.cycle is not None:
+            task.cycle.close()
     tasks.clear()
     for wiring in wirings:
         wiring.close()
 
 
 def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, timeline: LetTimeline,
-              tasks: dict[str, _SimTask], outcome: _Outcome) -> None:
+              tasks: dict[str, TaskRun], outcome: _Outcome) -> None:
+    """The logical clock over the tasks' lifecycles (runtime/taskrun.py): prepare each, start each at
+    T0, release their jobs in time order until the end, then stop and finish each (postrun always)."""
     app, layout, recorder = session.app, session.layout, session.recorder
     t0_ns = SIMULATION_T0_NS
     recorder.start(t0_ns, time.time_ns())
     end_ns = t0_ns + round(duration_s * 1e9)
-    phase, current = "prerun", ""
-    cycle = -1
+    current, cycle = "", -1
     try:
-        for name in app.tasks:
+        for name, spec in app.tasks.items():
             current = name
-            tasks[name] = _SimTask(name, app, layout)
-            tasks[name].devices.configure()
-            tasks[name].runnable.prerun()
-            tasks[name].wiring.publish_initial(initial_outputs(tasks[name].runnable, tasks[name].y))
-            timeline.published(name, -1, tasks[name].y)
+            handles = layout.tasks[name]
+            wirings = device_wiring(app, name, twins=True)  # each device's twin in its place
+            tasks[name] = task = TaskRun(spec.config, spec.runnable, handles.plan, layout.control, handles.status,
+                                         handles.timing, wirings)
+            for wiring in wirings:
+                wiring.device.twin.tick = task.tick  # type: ignore[attr-defined]  # twins=True: a TwinDevice
+            outcome.host_exec[name], outcome.records[name] = HostExecution(), []
+            task.prepare()
+            timeline.published(name, -1, task.y)
         for task in tasks.values():
-            task.start(layout, t0_ns, end_ns, timeline)
-        phase = "step"
+            timeline.start(task, layout, t0_ns)  # the initial outputs stamped (or a snapshot restored)
+            task.start(t0_ns, end_ns, stamped=True)
         # (release time, task order, cycle, name): a heap of the next release of each task
         order = {name: i for i, name in enumerate(tasks)}
         firsts = {name: timeline.first_cycle(name) for name in tasks}
@@ -220,7 +184,7 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
             for port, values in port_writes.get((current, cycle), ()):
                 layout.input_ports[port].write(np.asarray(values, dtype=np.float64))
             try:
-                tasks[current].step(cycle, release_ns, timeline)
+                _release(tasks[current], cycle, release_ns, timeline, outcome)
             except StopRequested as request:  # a model ended the run: stop every task, in order
                 outcome.stopped_by = f"task {current} at cycle {cycle}: {request}"
                 break
@@ -230,42 +194,61 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
             steps += 1
             now_s = time.monotonic()  # checked every step: one step may take seconds
             if steps % (min(RECORD_QUEUE_CAPACITY, READ_LOG_CAPACITY) // 2) == 0 or now_s >= summary_due_s:
-                _drain(tasks, session)
+                _drain(outcome, session)
             if now_s >= summary_due_s:  # the progress summary.json, as a run writes one
                 session.write_summary_if_due()
                 summary_due_s = now_s + summary_interval_s
-        phase = "postrun"
         for task in tasks.values():  # safe values first, as in a real run
-            task.devices.stop()
+            task.stop()
         for name, task in tasks.items():
             current = name
-            task.runnable.postrun()
+            task.finish(failed=False)
     except DeviceError:  # a twin that does not configure: bad input, like a device in a real run
         raise
     except Exception as error:  # the user's code raised: report it like a real run does
         import traceback
 
+        phase = tasks[current].phase if current in tasks else "prerun"
         where = getattr(error, "phase", None) or phase  # a device's fault says where in the cycle
         outcome.failure = TaskFailed(current, cycle if phase == "step" else None, where,
                                      f"{type(error).__name__}: {error}", traceback.format_exc())
         outcome.stopped_by = "fault"
     finally:
         for task in tasks.values():
-            task.devices.stop()  # the twins see the safe values on every way out too
-        _drain(tasks, session)
+            task.stop()  # the twins see the safe values on every way out too
+        for task in tasks.values():
+            task.finish(failed=True)  # postrun after a fault too (an FMU terminated), never twice
+        _drain(outcome, session)
 
 
-def _drain(tasks: dict[str, _SimTask], session: RunSession) -> None:
+def _release(task: TaskRun, cycle: int, release_ns: int, timeline: LetTimeline, outcome: _Outcome) -> None:
+    """The job of ``task`` at ``cycle`` on the logical clock: the inputs LET promises (or the run's
+    timeline says), the job, the outputs published as valid from release + P."""
+    tick, work = task.tick, task.cycle
+    assert work is not None
+    tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
+    timeline.read_inputs(task.name, cycle, release_ns, work, task.u)
+    started = time.perf_counter_ns()
+    task.job(cycle)
+    outcome.host_exec[task.name].add(time.perf_counter_ns() - started)
+    work.publish_outputs(cycle, release_ns + task.period_ns)
+    timeline.published(task.name, cycle, task.y)
+    # Logical time: the job starts and ends at its release, so it cannot miss a deadline.
+    # What it cost on this host is kept apart (host_exec_ns), never taken for timing.
+    outcome.records[task.name].append((cycle, release_ns, release_ns, release_ns))
+
+
+def _drain(outcome: _Outcome, session: RunSession) -> None:
     """Hand what the tasks recorded since the last drain to the recorder."""
     recorder = session.recorder
-    for name, task in tasks.items():
-        recorder.add_timing(name, np.array(task.records, dtype=np.int64).reshape(-1, 4))
-        task.records.clear()
+    for name, records in outcome.records.items():
+        recorder.add_timing(name, np.array(records, dtype=np.int64).reshape(-1, 4))
+        records.clear()
     session.drain()  # the signal and input queues, as in a real run
 
 
 def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome,
-             sim_tasks: dict[str, _SimTask], *, running: bool) -> RunSummary:
+             sim_tasks: dict[str, TaskRun], *, running: bool) -> RunSummary:
     layout, recorder = session.layout, session.recorder
     summaries: dict[str, TaskSummary] = {}
     for name, spec in app.tasks.items():
@@ -276,7 +259,7 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
             timing=recorder.timing_of(name),
             stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
             timing_samples_dropped=0,
-            host_exec_ns=sim_tasks[name].host_exec.to_json() if name in sim_tasks else None,
+            host_exec_ns=outcome.host_exec[name].to_json() if name in outcome.host_exec else None,
             **signal_names(spec.runnable),
             **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),
             input_limits=sim_tasks[name].wiring.guards.counts(name, spec.runnable.input_names)

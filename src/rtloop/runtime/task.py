@@ -16,23 +16,21 @@ import time
 import traceback
 from typing import Any
 
-import numpy as np
-
 from rtloop.app.byvalue import loads_runnable
 from rtloop.app.specs import TaskConfig
 from rtloop.errors import DeadlineMissesExceeded, DeviceError, DeviceMismatch, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
-from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE, cycle_work
+from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE
 from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BYTES
 from rtloop.ipc.segments import Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
-from rtloop.ipc.wiring import TaskSegments, TaskWiring, TaskWiringPlan
+from rtloop.ipc.wiring import TaskSegments, TaskWiringPlan
 from rtloop.linux import rt
 from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import unlock_what_the_loop_never_needs
-from rtloop.runnable import Runnable, TickInfo
-from rtloop.runtime.snapshot import take  # here, not at the first snapshot: no import inside the loop
+from rtloop.runnable import Runnable
+from rtloop.runtime.taskrun import TaskRun  # its snapshot's imports too: none inside the loop
 from rtloop.text import counted
 
 T0_POLL_S = 0.001
@@ -81,29 +79,12 @@ class StopRequests:
 
 
 class RealtimeTask:
-    """The task as seen from inside its own process."""
+    """The task's real-time loop, in its own process, over its :class:`TaskRun` (runtime/taskrun.py)."""
 
-    def __init__(
-        self,
-        config: TaskConfig,
-        runnable: Runnable,
-        control: WordBlock,
-        status: WordBlock,
-        timing: Int64Ring,
-    ) -> None:
-        self.config = config
-        self.runnable = runnable
-        self.wiring: TaskWiring
-        self.control = control
-        self.status = status
-        self.timing = timing
-        self.u = initial_inputs(runnable)
-        self.y = np.zeros(runnable.n_outputs)
-        self.tick = TickInfo(cycle=-1, period_ns=config.period_ns)
-        runnable.tick = self.tick
-        self.devices = TaskDevices(config.name, config.period_ns, (), self.u, self.y)
+    def __init__(self, run: TaskRun) -> None:
+        self.run = run
         self.in_loop = False
-        self.safe_ns = 0
+        """True while the loop runs: a stuck step there may be broken (safe values on the way out)."""
         self.on_snapshot: Any = None
         """Called with (next cycle, T0) when the supervisor asked for this task's state."""
         self.on_late: Any = None
@@ -111,36 +92,29 @@ class RealtimeTask:
         self.late_readings_left = LATE_READINGS_PER_RUN
 
     @property
+    def devices(self) -> TaskDevices:
+        return self.run.devices
+
+    @property
     def cycle(self) -> int:
         """The cycle being computed (or last computed; -1 before the first), for fault reports."""
-        return self.tick.cycle
+        return self.run.tick.cycle
 
     def run_loop(self, t0_ns: int, end_ns: int) -> None:
         """Run releases T0, T0+P, T0+2P, ... until ``end_ns`` or the stop flag."""
-        runnable, u, y, tick = self.runnable, self.u, self.y, self.tick
-        devices = self.devices or None  # None: a task without devices pays one test of None per call
-        limit = self.config.max_consecutive_misses
-        # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
-        cycle = cycle_work(self.tick, self.wiring, self.control, self.status, self.timing,
-                           self.config.period_ns, catch_up=self.config.overrun == "catch_up", max_misses=limit)
-        cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
-        scope = devices.scope_output() if devices else None
-        if scope is not None:  # a GPIO line toggled at every release, in the hot path (docs/devices.md)
-            cycle.set_scope_pin(*scope)
-        # Read → step → publish: begin() sleeps to the absolute release T0 + k·P (no drift)
-        # and reads the inputs valid at it; finish() publishes the outputs as valid from
-        # release + P (logical execution time), so the result does not depend on how fast
-        # this cycle ran, records its timing and moves to the next release (after an overrun,
-        # as the overrun policy says). Devices (docs/devices.md) are read at the release too, and
-        # written with the commands that hold from it: those of the job before (the same LET).
+        run = self.run
+        job, tick, limit = run.job, run.tick, run.config.max_consecutive_misses
         self.in_loop = True
         try:
+            # The framework's share of a cycle, in C or in its readable Python twin (ipc/hotpath.py).
+            cycle = run.start(t0_ns, end_ns)
+            # Read → step → publish: begin() sleeps to the absolute release T0 + k·P (no drift)
+            # and reads the inputs valid at it; finish() publishes the outputs as valid from
+            # release + P (logical execution time), so the result does not depend on how fast
+            # this cycle ran, records its timing and moves to the next release (after an overrun,
+            # as the overrun policy says). The job (devices, then step) is the task's: runtime/taskrun.py.
             while cycle.begin():
-                if devices:
-                    devices.at_release(tick.cycle)  # write the commands that hold from now, then read
-                runnable.step(u, y)
-                if devices:
-                    devices.after_step(tick.cycle)  # io = "immediate" devices write at once
+                job(tick.cycle)
                 done = cycle.finish()
                 if done is True:  # on time: nothing more to do
                     continue
@@ -159,33 +133,13 @@ class RealtimeTask:
             # Said before the way out leaves SCHED_FIFO: the supervisor, waiting on this core, runs
             # at once then, and must not take a task that is failing (a spin the kernel ended) for one
             # that is stuck.
-            self.status[StatusWord.STATE] = TaskState.FAILED
-            self.control[ControlWord.STOP] = 1  # the other tasks stop now, not when this process has exited
+            run.status[StatusWord.STATE] = TaskState.FAILED
+            run.control[ControlWord.STOP] = 1  # the other tasks stop now, not when this process has exited
             raise
         finally:
             self.in_loop = False
-            self.devices.stop()  # safe values first, on every way out of the loop
-            self.safe_ns = rt.now_ns() if devices is not None else 0  # when they were written (an E-stop says it)
-            cycle.close()  # let go of the shared memory before it is unmapped
+            run.stop()  # safe values first, on every way out of the loop
             rt.leave_realtime()  # teardown (gc, postrun, reports) must not delay tasks still in their loop
-
-
-def initial_inputs(runnable: Runnable) -> np.ndarray:
-    """The task's ``u`` before anything writes it: the model's input start values, or zeros."""
-    u = np.zeros(runnable.n_inputs)
-    starts = getattr(runnable, "input_start_values", None)
-    if starts is not None:
-        u[:] = starts
-    runnable.bind_inputs(u)  # live parameters (self.kp) read their slots of u
-    return u
-
-
-def initial_outputs(runnable: Runnable, y: np.ndarray) -> np.ndarray:
-    """The outputs a task shows before its first step: ``runnable.initial_outputs`` or zeros."""
-    initial = getattr(runnable, "initial_outputs", None)
-    if initial is not None:
-        y[:] = initial
-    return y
 
 
 def _report(pipe: Any, **message: Any) -> None:
@@ -253,31 +207,24 @@ def task_process_main(
     status[StatusWord.CPU] = config.cpu if config.cpu is not None else -1
     _report(pipe, kind="settings", settings=settings)
 
-    task = stop_in_order.task = RealtimeTask(config, runnable, control, status, timing)
+    run = TaskRun(config, runnable, plan, control, status, timing, devices)
+    task = stop_in_order.task = RealtimeTask(run)
 
     def send_snapshot(next_cycle: int, t0_ns: int) -> None:
         at_ns = control[ControlWord.SNAPSHOT_NS] - t0_ns
-        why_not = "its devices' state is not saved" if task.devices else ""
-        if task.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
+        why_not = ""
+        if run.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
             why_not = f"it was asked after it had passed t = {at_ns / 1e9} s"
-        _report(pipe, kind="snapshot", snapshot=take(config.name, runnable, at_ns, next_cycle, task.cycle,
-                                                     task.u, task.y, why_not, wiring.held_nudges(),
-                                                     wiring.recent_outputs()))
+        _report(pipe, kind="snapshot", snapshot=run.snapshot(at_ns, next_cycle, why_not))
 
     task.on_snapshot = send_snapshot
     baseline = own_thread_counters(rt.now_ns())  # the first late cycle's counters count from here
     task.on_late = lambda cycle, counters: _report(pipe, kind="late", cycle=cycle, counters=counters,
                                                    baseline=baseline)
-    wiring = task.wiring = TaskWiring(plan, task.u, task.y, status)
-    task.devices = TaskDevices(config.name, config.period_ns, devices, task.u, task.y, wiring.sent)
-    phase = "configure"
     try:
-        task.devices.configure()  # open and check the devices: a DeviceError is bad input (exit 2)
-        phase = "prerun"
-        runnable.prerun()
+        run.prepare()  # devices configured (a DeviceError is bad input, exit 2), prerun, initial outputs
         for text in getattr(getattr(runnable, "model", None), "start_notes", ()):  # an FMU's Event Mode refused
             _report(pipe, kind="note", text=text)
-        wiring.publish_initial(initial_outputs(runnable, task.y))
         # Collect before READY, not after T0: T0 follows the last READY by a short margin
         # (start_margin_ns), and a full collection takes ~5 ms here, several times that on a
         # small board, ~20 times under emulation; tasks sharing a CPU would pay it one after another.
@@ -287,47 +234,43 @@ def task_process_main(
         _take_back_stop_signals(stop_in_order, pipe)  # the runnable's code may have taken them over
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
-        phase = "step"
-        wiring.stamp_initial(t0_ns)
         status[StatusWord.STATE] = TaskState.RUNNING
-        if t0_ns:
-            task.devices.activate()
+        if t0_ns:  # (0: stopped before T0)
             if settings.rt and spin_limit_s:
                 _end_a_spin_after(*spin_limit_s, task)
             try:
                 task.run_loop(t0_ns, end_ns)
             except StopRequested as request:  # the runnable ended the run (a model's end): stop in order
-                _report(pipe, kind="finished", cycle=task.cycle, reason=str(request), safe_ns=task.safe_ns,
+                _report(pipe, kind="finished", cycle=task.cycle, reason=str(request), safe_ns=run.safe_ns,
                         edge_ns=getattr(request, "timestamp_ns", None))
                 control[ControlWord.STOP] = 1
         gc.enable()
-        phase = "postrun"
-        status[StatusWord.STATE] = TaskState.POSTRUN
-        runnable.postrun()
+        run.finish(failed=False)  # postrun
     except BaseException as error:
         # A failed task stops the app at once: the others must not go on (driving their devices from
         # this task's last outputs) while this one makes its devices safe, reports and runs postrun.
         control[ControlWord.STOP] = 1
-        task.devices.stop()  # safe values before anything else
-        _report_devices(pipe, task)
+        run.stop()  # safe values before anything else
+        _report_devices(pipe, run)
         status[StatusWord.STATE] = TaskState.FAILED
-        if isinstance(error, DeviceError) and phase == "configure":
+        if isinstance(error, DeviceError) and run.phase == "configure":
             _report(pipe, kind="device_error", device=error.device, source=error.source, key=error.key,
                     problem=error.problem, mismatch=isinstance(error, DeviceMismatch))
         _report(
             pipe,
             kind="failed",
-            phase=getattr(error, "phase", None) or phase,  # a device's fault says where in the cycle
-            cycle=task.cycle if phase == "step" else None,
+            phase=getattr(error, "phase", None) or run.phase,  # a device's fault says where in the cycle
+            cycle=task.cycle if run.phase == "step" else None,
             reason=f"{type(error).__name__}: {error}",
             traceback="" if isinstance(error, DeadlineMissesExceeded) else traceback.format_exc(),
         )
-        if phase != "postrun":
-            _postrun_after_failure(runnable, pipe)
+        postrun_problem = run.finish(failed=True)  # its chance to put hardware safe (unless it was postrun)
+        if postrun_problem:
+            _report(pipe, kind="postrun_failed", traceback=postrun_problem)
         raise SystemExit(1) from None
     status[StatusWord.STATE] = TaskState.STOPPED
-    task.devices.stop()  # done already unless the stop came before T0
-    _report_devices(pipe, task)
+    run.stop()  # done already unless the stop came before T0
+    _report_devices(pipe, run)
     _report(pipe, kind="stopped", cycles=task.cycle + 1, catch_up_steps=getattr(runnable, "catch_up_steps", 0))
 
 
@@ -357,21 +300,13 @@ def _end_a_spin_after(fail_s: float, kill_s: float, task: RealtimeTask) -> None:
     rt.limit_realtime_cpu(fail_s, kill_s)
 
 
-def _report_devices(pipe: Any, task: RealtimeTask) -> None:
+def _report_devices(pipe: Any, run: TaskRun) -> None:
     """What went wrong while stopping the devices, what they read stale and how often their limits
     acted, and how often the guards of the task's connections did (summary.json)."""
-    devices, wiring = task.devices, getattr(task, "wiring", None)
-    if wiring is not None and wiring.guards:
-        _report(pipe, kind="input_limits", inputs=wiring.guards.counts(devices.task, task.runnable.input_names))
+    devices, wiring = run.devices, run.wiring
+    if wiring.guards:
+        _report(pipe, kind="input_limits", inputs=wiring.guards.counts(devices.task, run.runnable.input_names))
     if devices.problems:
         _report(pipe, kind="device_problems", problems=devices.problems)
     if devices:
         _report(pipe, kind="device_reads", devices=devices.stale_report())
-
-
-def _postrun_after_failure(runnable: Runnable, pipe: Any) -> None:
-    """Give the runnable its chance to put hardware in a safe state, even after a fault."""
-    try:
-        runnable.postrun()
-    except BaseException:
-        _report(pipe, kind="postrun_failed", traceback=traceback.format_exc())
