@@ -137,7 +137,7 @@ def test_a_drive_fault_is_named_and_the_other_drive_is_quick_stopped(veth: tuple
     finally:
         stop(emulator)
     assert run.returncode == 1, run.stderr
-    line = run.stderr.strip().splitlines()[0]
+    line = next(text for text in run.stderr.splitlines() if text.startswith("rtloop run: task"))
     assert "joint 'tilt' (slave 2" in line and "drive fault" in line and "0x5530 (0x603F)" in line, run.stderr
     assert "Traceback" not in run.stderr
     assert "slave 2: drive: fault 0x5530: drive fault injected" in text
@@ -214,3 +214,26 @@ def test_io_list_shows_the_slaves_on_an_interface(veth: tuple[str, str], tmp_pat
     assert listing.returncode == 0, listing.stderr
     assert f"{veth[0]} slave 2" in listing.stdout and "product 0x00402402" in listing.stdout
     assert "no network interface 'nosuchif0'" in listing.stdout
+
+
+@pytest.mark.parametrize(("inject", "words"), [
+    ("drop:2@200", "working counter 3, expected 6 (every slave +3)"),
+    ("lose@200", "the LRW frame did not come back within"),
+])
+def test_a_slave_that_drops_out_or_a_lost_frame_is_named_and_the_drives_quick_stop(
+        veth: tuple[str, str], tmp_path: Path, inject: str, words: str) -> None:
+    app = example_app(tmp_path, *veth, unique_name("ecat_bus"), PERIOD_MS)
+    log = tmp_path / "drives.log"
+    emulator = start_emulator(app, log, "--inject", inject)
+    try:
+        run = _rtloop("run", str(app), "--duration", "20", "--out", str(tmp_path / "run"), "-q")
+        text = _wait_in_log(log, "slave 1: left OP")
+    finally:
+        stop(emulator)
+    assert run.returncode == 1, run.stderr
+    line = next(text for text in run.stderr.splitlines() if text.startswith("rtloop run: task"))
+    assert words in line and "Traceback" not in run.stderr, run.stderr
+    if inject.startswith("drop"):
+        assert "not answering: joint 'tilt' (slave 2)" in line
+    injected = text.split("injected")[1]
+    assert "slave 1: drive: quick stop (controlword)" in injected  # the safe transition after the fault
