@@ -273,9 +273,9 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced:
     for miss in misses["first"]:
         assert miss["cause_class"] != STEP, miss
         lost_ns = miss["latency_ns"] if miss["kind"] == "late wake-up" else miss["exec_ns"]
-        if lost_ns <= 4 * MS:
-            assert miss["cause_class"] == THREAD and "preempted by a higher-priority thread" in miss["cause"], miss
-    assert re.search(r"^misses: (controller|plant): \d+ late wake-ups?.*preempted by a higher-priority thread",
+        if lost_ns <= 4 * MS:  # the hog's reach: a thread held the CPU (the hog, or on this shared machine
+            assert miss["cause_class"] == THREAD, miss  # another engineer's task of the same priority)
+    assert re.search(r"^misses: (controller|plant): \d+ late wake-ups? .*\(rtloop-hog \(pid \d+, [^)]*\): \d+",
                      done.stdout, re.M), done.stdout
     # the models' catch-up account: once per task, its name, the true cause (not "its step overran")
     caught_up = re.findall(r"^misses: (\w+): the model took \d+ extra steps.*$", done.stdout, re.M)

@@ -21,7 +21,7 @@ from conftest import scaled_ns, scaled_s, unique_name
 from rt_test_runnables import Noop
 from rtloop import App
 from rtloop.linux import trace
-from rtloop.stats.miss_causes import IRQ, THREAD, Evidence, Miss, explain
+from rtloop.stats.miss_causes import IRQ, THREAD, UNEXPLAINED, Evidence, Miss, explain
 
 SWITCH = ("{comm}-{pid} [001] d..2. {ts}: sched_switch: prev_comm={comm} prev_pid={pid} prev_prio=120 "
           "prev_state=S ==> next_comm={next} next_pid={next_pid} next_prio={prio}")
@@ -63,7 +63,11 @@ def test_held_sums_who_had_the_cpu_in_a_window() -> None:
     assert cause.cls == THREAD
     assert cause.text.startswith("preempted by a higher-priority thread: rtloop-hog (pid 77, FIFO/RR 90) had CPU 1 "
                                  "for 3.0 ms")
-    assert explain(miss, Evidence(cpu=1, priority=95, traced=held)).text.startswith("held by another thread: ")
+    assert explain(miss, Evidence(cpu=1, priority=90, traced=held)).text.startswith("held by another thread: ")
+    # a SCHED_OTHER thread on the CPU cannot hold a FIFO task off: the task was not runnable yet
+    lower = [{"who": "nm (pid 9, other)", "kind": "thread", "ran_ns": 2_900_000, "priority": 0}]
+    cause = explain(miss, Evidence(cpu=1, priority=80, traced=lower))
+    assert cause.cls == UNEXPLAINED and "cannot hold this task off" in cause.text
     irq_only = [{"who": "IRQ 24 (eth0)", "kind": "irq", "ran_ns": 2_900_000}]
     assert explain(miss, Evidence(cpu=1, traced=irq_only)).cls == IRQ
 

@@ -151,8 +151,13 @@ def explain(miss: Miss, evidence: Evidence) -> Cause:
     if miss.kind == OVERRUN and exec_ns >= period and step_cpu_ns is None:
         return Cause(STEP, f"step overran: {ms(exec_ns)} of a {ms(period)} period (nothing else ran meanwhile "
                            "as far as the evidence shows)")
+    if evidence.traced:
+        lower = evidence.traced[0]
+        return Cause(UNEXPLAINED, f"unexplained: {timing}; the trace shows {lower['who']} on the CPU meanwhile, "
+                                  "which cannot hold this task off: it was not runnable yet (a late timer, a stall "
+                                  "the hypervisor did not report as steal, or RT throttling)")
     return Cause(UNEXPLAINED, f"unexplained: {timing}; no evidence names who held the CPU"
-                 " (no timerlat/osnoise tracer on this kernel)")
+                 " (rtloop run --trace-misses can ask the kernel)")
 
 
 def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, int]) -> Cause | None:
@@ -163,7 +168,10 @@ def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, in
     if not ev.realtime and waited_ns >= need_ns:  # SCHED_OTHER: its own wait says more than any window
         return Cause(RUN_QUEUE, f"waited {ms(waited_ns)} on the run queue (SCHED_OTHER: it shares {cpu} with "
                                 f"every other thread; {counters.get('involuntary_switches', 0)} involuntary switches)")
-    traced = [t for t in ev.traced if t["ran_ns"] >= need_ns]
+    # A thread below a real-time task's priority cannot hold it off: when the trace shows one on the CPU,
+    # the task was not yet runnable (its timer fired late, the vCPU stalled, RT throttling): not that thread.
+    traced = [t for t in ev.traced if t["ran_ns"] >= need_ns and (
+        t["kind"] != "thread" or not ev.realtime or t.get("priority", -1) >= ev.priority)]
     if traced:  # the kernel's own events: exact, so first
         top = traced[0]
         higher = top.get("priority", -1) > ev.priority or (not ev.realtime and top.get("priority", -1) > 0)
@@ -212,6 +220,16 @@ class _Tally:
     skipped: int = 0
     worst_ns: int = 0
     example: str = ""
+    holders: dict[str, int] = field(default_factory=dict)
+    """THREAD causes: the threads named, and how often."""
+    all_higher: bool = True
+    """THREAD causes: every one a thread of a higher priority than the task's."""
+
+
+def holder_of(text: str) -> str:
+    """The thread a THREAD cause names ("preempted by …: NAME (pid …) ran 3 ms …" → "NAME (pid …)")."""
+    named = text.split(": ", 1)[-1]
+    return named.split(" ran ")[0].split(" had ")[0]
 
 
 class MissLedger:
@@ -235,6 +253,10 @@ class MissLedger:
         worst = miss.latency_ns if miss.kind == LATE_WAKE_UP else miss.exec_ns
         if worst >= tally.worst_ns:
             tally.worst_ns, tally.example = worst, cause.text
+        if cause.cls == THREAD:
+            holder = holder_of(cause.text)
+            tally.holders[holder] = tally.holders.get(holder, 0) + 1
+            tally.all_higher &= cause.text.startswith("preempted by a higher-priority thread")
         if len(self.first) < self.first_in_full:
             self.first.append({"task": miss.task, "cycle": miss.cycle, "kind": miss.kind, "cause_class": cause.cls,
                                "cause": cause.text, "release_ns": miss.release_ns, "latency_ns": miss.latency_ns,
@@ -259,7 +281,13 @@ class MissLedger:
             plural = kind + ("s" if tally.count != 1 else "")
             skipped = f" ({tally.skipped} releases skipped)" if tally.skipped else ""
             share = "" if tally.count == 1 else ("all " if self._only(task, kind, cls) else f"{tally.count} ")
-            out.append(f"{task}: {tally.count} {plural}{skipped}, {share}{_class_phrase(cls)}; worst: {tally.example}")
+            phrase = _class_phrase(cls)
+            if cls == THREAD:
+                if not tally.all_higher:
+                    phrase = "held by other threads (of a higher or the same priority)"
+                top = sorted(tally.holders.items(), key=lambda item: -item[1])[:3]
+                phrase += " (" + ", ".join(f"{who}: {n}" for who, n in top) + ")"
+            out.append(f"{task}: {tally.count} {plural}{skipped}, {share}{phrase}; worst: {tally.example}")
         for (reader, writer), count in sorted(self.stale.items()):
             late = self.causes_of(writer)
             why = f" (its misses: {', '.join(_class_phrase(c) for c in late)})" if late else ""
