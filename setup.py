@@ -9,11 +9,12 @@ from pathlib import Path
 
 from setuptools import Extension, setup
 
+HOTPATH_SOURCES = ["_hotpath.c", "_schema.h"]
 DEVIO_SOURCES = sorted(["_devio.c", *(f"devio_c/{p.name}" for p in Path("src/rtloop/io/devio_c").glob("*.c"))])
 
 
 def sources_digest(folder: Path, names: list[str]) -> str:
-    """The digest io/compiled.py:sources_digest computes the same way (a test checks they agree)."""
+    """The digest rtloop/build_check.py computes the same way (the tests check they agree)."""
     digest = 0
     for name in names:
         digest = zlib.crc32(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0", digest)
@@ -26,6 +27,8 @@ setup(
             "rtloop.ipc._hotpath",
             sources=["src/rtloop/ipc/_hotpath.c"],
             depends=["src/rtloop/ipc/_schema.h"],
+            define_macros=[("RTLOOP_HOTPATH_SOURCES_DIGEST",
+                            f'"{sources_digest(Path("src/rtloop/ipc"), HOTPATH_SOURCES)}"')],
             extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
             optional=True,
         ),

@@ -213,3 +213,24 @@ def test_a_compiled_cycle_left_in_a_reference_cycle_is_collected_without_a_crash
         "print('collected')\n")
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout == "collected\n", (result.returncode, result.stderr[-2000:])
+
+
+def test_the_built_extension_carries_the_digest_of_its_sources() -> None:
+    from rtloop import build_check
+    from rtloop.ipc import _hotpath
+
+    here = build_check.sources_digest(Path(hotpath.__file__).resolve().parent, hotpath.SOURCES)
+    assert here is not None and here == _hotpath.SOURCES_DIGEST
+
+
+def test_an_extension_older_than_its_sources_is_not_used(tmp_path: Path) -> None:
+    """Before: only the schema was compared, so a build older than _hotpath.c (same schema, another
+    signature) was used, and a task failed with ``TypeError: Core.set_record() takes exactly one argument``."""
+    code = ("from rtloop import build_check; build_check.sources_digest = lambda folder, names: 'changed!'\n"
+            "from rtloop.ipc import hotpath; print(hotpath.hot_path()); print(hotpath.why_python())")
+    env = {**os.environ}
+    env.pop(hotpath.PURE_PYTHON_ENV, None)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    kind, reason = result.stdout.splitlines()
+    assert kind == "python"
+    assert "built from other sources" in reason and "pip install -e ." in reason

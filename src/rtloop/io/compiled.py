@@ -19,9 +19,10 @@ from __future__ import annotations
 import importlib
 import os
 import sys
-import zlib
 from pathlib import Path
 from typing import Any
+
+from rtloop import build_check
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 SOURCES_DIR = Path(__file__).resolve().parent
@@ -29,22 +30,13 @@ _said: set[str] = set()
 
 
 def source_names(folder: Path = SOURCES_DIR) -> list[str]:
-    """The C files ``_devio`` is built from, relative to ``io/`` (none in an install without sources)."""
-    names = [*(["_devio.c"] if (folder / "_devio.c").is_file() else []),
-             *(f"devio_c/{path.name}" for path in (folder / "devio_c").glob("*.c"))]
-    return sorted(names)
+    """The C files ``_devio`` is built from, relative to ``io/``."""
+    return sorted(["_devio.c", *(f"devio_c/{path.name}" for path in (folder / "devio_c").glob("*.c"))])
 
 
 def sources_digest(folder: Path = SOURCES_DIR) -> str | None:
-    """The digest setup.py gives the build (``_devio.SOURCES_DIGEST``), of the sources here now; None
-    where they are not shipped (an installed wheel: built in one go from its own sources)."""
-    names = source_names(folder)
-    if "_devio.c" not in names:
-        return None
-    digest = 0  # CRC-32: it tells a changed file, and a task process already has zlib (hashlib it has not)
-    for name in names:
-        digest = zlib.crc32(name.encode() + b"\0" + (folder / name).read_bytes() + b"\0", digest)
-    return f"{digest:08x}"
+    """The digest setup.py gives the build (``_devio.SOURCES_DIGEST``), of the sources here now."""
+    return build_check.sources_digest(folder, source_names(folder))
 
 
 def _say_once(line: str) -> None:
@@ -55,17 +47,8 @@ def _say_once(line: str) -> None:
 
 def _stale(module: Any) -> str:
     """Why ``module`` is not the build of the sources here ("" when it is, or cannot be told)."""
-    built = getattr(module, "SOURCES_DIGEST", None)
-    here = sources_digest()
-    if here is None:
-        return ""
-    if not built:
-        return "the devices' C code (rtloop.io._devio) was built without its sources' digest: rebuild it " \
-               "(pip install -e .)"
-    if built != here:
-        return "the devices' C code (rtloop.io._devio) was built from other sources than io/_devio.c and " \
-               "io/devio_c/ hold now: rebuild it (pip install -e .)"
-    return ""
+    return build_check.stale_build(module, "the devices' C code (rtloop.io._devio)", sources_digest(),
+                                   "io/_devio.c and io/devio_c/")
 
 
 def why_python() -> str:

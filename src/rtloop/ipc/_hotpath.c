@@ -1148,8 +1148,12 @@ PyMODINIT_FUNC PyInit__hotpath(void) {
         return NULL;
     Py_INCREF(&CoreType);
     PyObject *schema = PyDict_New();
+#ifndef RTLOOP_HOTPATH_SOURCES_DIGEST
+#define RTLOOP_HOTPATH_SOURCES_DIGEST "" /* built without setup.py: hotpath.py says it cannot tell */
+#endif
     if (schema == NULL || PyModule_AddObject(module, "Core", (PyObject *)&CoreType) < 0 ||
-        PyModule_AddObject(module, "SCHEMA", schema) < 0 || export_schema(schema) < 0) {
+        PyModule_AddObject(module, "SCHEMA", schema) < 0 || export_schema(schema) < 0 ||
+        PyModule_AddStringConstant(module, "SOURCES_DIGEST", RTLOOP_HOTPATH_SOURCES_DIGEST) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -16,17 +16,22 @@ import os
 import struct
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 from typing import Protocol
 
 import numpy as np
 
+from rtloop import build_check
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.ring import Int64Ring
 from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
 from rtloop.ipc.wiring import TaskWiring
 from rtloop.linux import rt
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
+
+SOURCES = ["_hotpath.c", "_schema.h"]
+"""What the C hot path is built from (setup.py: HOTPATH_SOURCES)."""
 
 _hotpath: ModuleType | None
 try:
@@ -39,6 +44,11 @@ else:
     # A stale build (an older schema.py) would read and write the wrong words: use Python instead.
     _NOT_BUILT = f"the C hot path was built from another schema (differs in {', '.join(_differ)}): rebuild it" \
         if _differ else ""
+    # ... and one older than _hotpath.c would be called with arguments it does not take (where the
+    # sources are here to tell: a checkout; an installed wheel was built in one go)
+    _NOT_BUILT = _NOT_BUILT or build_check.stale_build(
+        _hotpath, "the C hot path (rtloop.ipc._hotpath)",
+        build_check.sources_digest(Path(__file__).resolve().parent, SOURCES), "ipc/_hotpath.c and ipc/_schema.h")
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
 SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = ScopeMode.OFF, ScopeMode.TOGGLE, ScopeMode.STEP
