@@ -116,3 +116,13 @@ def test_an_esi_file_that_does_not_parse_is_named(tmp_path: Path) -> None:
     with pytest.raises(DeviceError, match=r"joints\[0\]\.esi: .*drive.xml: cannot read it as an ESI file"):
         _app().add_device("arm", "ethercat", task="ctl", interface="ecm0", esi_dir=str(tmp_path),
                           joints=[{"name": "pan", "esi": "drive.xml", "counts_per_rev": 4096}])
+
+
+def test_two_drive_devices_on_one_interface_are_refused() -> None:
+    joint = {"vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
+    app = _app()
+    app.add_device("arm", "ethercat", task="ctl", interface="ecm0", joints=[{"name": "a", **joint}])
+    with pytest.raises(DeviceError, match=r"devices.legs.interface: EtherCAT segment clash: ecm0 is also held by "
+                                          r"devices.arm.interface"):
+        app.add_device("legs", "ethercat", task="ctl", interface="ecm0", joints=[{"name": "b", **joint}])

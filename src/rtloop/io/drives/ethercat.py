@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
-from rtloop.io.device import CommandLimit, Device, FloatVector, Setting
+from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting
 from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
 from rtloop.io.drives.drive_model import DriveModel
 from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
@@ -135,6 +135,12 @@ class EthercatDevice(Device):
                 else:  # wide open: the app's limits say what the machine allows
                     limits[command] = CommandLimit(-1e6, 1e6, 0.0)
         return limits
+
+    def claims(self) -> tuple[Claim, ...]:
+        """The whole segment: a second master on the interface would scan, reconfigure and exchange
+        with the same slaves (each frame of one master read as the other's)."""
+        return (Claim(("ethercat", self.interface), "interface",
+                      f"EtherCAT segment clash: {self.interface} is also"),)
 
     def default_twin(self) -> Runnable:
         return EthercatTwin(self)
