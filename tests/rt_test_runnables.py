@@ -395,3 +395,13 @@ class TunedGain(Runnable):
 
     def step(self, u, y) -> None:
         y[0] = self.k
+
+
+class BigState(Counter):
+    """A Counter with a large state (``n`` floats): its --keep snapshot is far above a pipe's 64 KiB."""
+
+    def __init__(self, n: int = 40_000) -> None:
+        super().__init__()
+        import numpy
+
+        self.big = numpy.arange(float(n))

@@ -187,3 +187,26 @@ def test_simulate_terminates_an_fmu_and_removes_its_folder_after_a_fault(tmp_pat
     with pytest.raises(TaskFailed):
         rtloop.simulate(app, 0.2, tmp_path / "out")
     assert extracted and not any(Path(folder).exists() for folder in extracted), "the FMU's folder leaked"
+
+
+# --- a --keep snapshot never waits for the supervisor -------------------------------------------------
+
+
+def test_a_large_keep_snapshot_does_not_block_the_loop_while_the_supervisor_is_away(tmp_path: Path) -> None:
+    """The snapshot (~320 KiB) went through a blocking pipe from inside the loop: with a supervisor
+    that looks every 2 s, the loop waited for it (~1.8 s) — the misses the flight recorder then kept."""
+    import json
+    import pickle
+
+    from rt_test_runnables import BigState
+
+    app = App(f"bigsnap_{os.getpid()}")
+    task = app.add_task("big", BigState(), period_ns=PERIOD_NS, policy="other")
+    app.record(task.y)
+    rtloop.run(app, 5.0, tmp_path / "out", keep_s=1.2, limits=Limits(drain_interval_s=2.0))
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    latency_max_s = summary["tasks"]["big"]["latency_ns"]["max"] / 1e9
+    assert latency_max_s < 1.0, f"a release started {latency_max_s:.2f} s late: the loop waited for the supervisor"
+    kept = [s for path in sorted((tmp_path / "out" / "snapshots").glob("*")) for s in pickle.loads(path.read_bytes())]
+    assert kept and all(s.state is not None for s in kept), "the snapshot did not reach the run's folder"
+    assert not list(Path("/dev/shm").glob(f"rtloop-{app.name}-*")), "a snapshot file was left behind"

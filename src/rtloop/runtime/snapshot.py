@@ -21,12 +21,15 @@ replay of that window says so instead of guessing.
 from __future__ import annotations
 
 import math
+import os
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from rtloop.ipc.segments import SHM_DIR, open_in_shm, unlink_in_shm
 from rtloop.models.base import NOT_STATE
 from rtloop.runnable import Runnable
 
@@ -105,3 +108,114 @@ def read_snapshots(path: Path) -> list[TaskSnapshot]:
     if not isinstance(snapshots, list) or not all(isinstance(s, TaskSnapshot) for s in snapshots):
         raise ValueError(f"{path}: not a list of task snapshots")
     return snapshots
+
+
+# --- from the task to the supervisor, without waiting for it -----------------------------------------
+
+
+def snapshot_file_name(task_segment: str, wanted_ns: int) -> str:
+    """The shared-memory file of a task's snapshot for the request of instant ``wanted_ns`` (CLOCK_MONOTONIC):
+    beside the task's segment, so it carries the run's token and goes with a dead run's segments."""
+    return f"{task_segment}.snap{wanted_ns}"
+
+
+def write_snapshot(name: str, snapshot: TaskSnapshot) -> None:
+    """Write a task's snapshot into a new file of shared memory (tmpfs: memory, no disk, and no wait on the
+    supervisor, which picks it up at its next drain): written under a temporary name, then renamed, so
+    the supervisor never reads half of one. Called inside the loop: a pipe there would block on a full
+    buffer (64 KiB) until the supervisor reads, and a large FMU state or many outputs fill it."""
+    data = pickle.dumps(snapshot, protocol=pickle.HIGHEST_PROTOCOL)
+    partial = f"{name}.tmp"
+    fd = open_in_shm(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+    finally:
+        os.close(fd)
+    directory = os.open(SHM_DIR, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        os.rename(partial, name, src_dir_fd=directory, dst_dir_fd=directory)
+    finally:
+        os.close(directory)
+
+
+def take_snapshot_file(name: str) -> TaskSnapshot | None:
+    """The snapshot in ``name`` (owned by this user, like every segment), removed once read; None while
+    the task has not written it."""
+    try:
+        fd = open_in_shm(name, os.O_RDONLY, owner_uid=os.geteuid())
+    except FileNotFoundError:
+        return None
+    try:
+        with os.fdopen(fd, "rb") as file:
+            snapshot = pickle.load(file)
+    finally:
+        unlink_in_shm(name)
+    if not isinstance(snapshot, TaskSnapshot):
+        raise ValueError(f"{SHM_DIR}/{name}: not a task snapshot")
+    return snapshot
+
+
+def remove_snapshot_files(names: list[str]) -> None:
+    """Remove snapshot files nobody will read (and their temporaries): at the end of the run."""
+    for name in names:
+        for each in (name, f"{name}.tmp"):
+            unlink_in_shm(each)
+
+
+class SnapshotRequests:
+    """The supervisor's side of a --keep run's snapshots: at each new recording segment it asks every
+    task for its state at a common release a little ahead (so the kept window replays from it), and at
+    every drain it hands the snapshots the tasks wrote to the recorder. A bounded number of requests
+    wait for their tasks (a task that failed never answers); what is left is removed at the end."""
+
+    WAITING_REQUESTS = 8
+
+    def __init__(self, task_segments: dict[str, str], periods_ns: list[int]) -> None:
+        self.task_segments = task_segments
+        """Per task, the name of its segment (its snapshot files sit beside it)."""
+        self.periods_ns = periods_ns
+        self.segment = 0
+        """The recording segment whose start the tasks were last asked to snapshot."""
+        self.waiting: dict[int, set[str]] = {}
+        """Per requested instant (CLOCK_MONOTONIC), the tasks whose snapshot has not come yet."""
+        self.problems: list[str] = []
+
+    def collect(self, recorder: Any) -> None:
+        for wanted_ns, tasks in self.waiting.items():
+            for task in sorted(tasks):
+                name = snapshot_file_name(self.task_segments[task], wanted_ns)
+                try:
+                    snapshot = take_snapshot_file(name)
+                except (OSError, ValueError, pickle.UnpicklingError, EOFError) as error:
+                    self.problems.append(f"task {task}: its snapshot could not be read ({error}); the kept window "
+                                         "may not replay from that instant")
+                    tasks.discard(task)
+                    continue
+                if snapshot is not None:
+                    recorder.add_snapshot(snapshot)
+                    tasks.discard(task)
+        for wanted_ns in [w for w, tasks in self.waiting.items() if not tasks]:
+            del self.waiting[wanted_ns]
+
+    def ask(self, control: Any, recorder: Any, t0_ns: int) -> None:
+        """A new recording segment: ask for the tasks' state at a common release ahead of them."""
+        from rtloop.ipc.status import ControlWord
+
+        segment = recorder.segment_index
+        if segment is None or segment == self.segment:
+            return
+        self.segment = segment
+        wanted_ns = t0_ns + common_instant_ns(recorder.latest_ns + SNAPSHOT_MARGIN_NS, self.periods_ns)
+        while len(self.waiting) >= self.WAITING_REQUESTS:  # the oldest request's stragglers are given up
+            oldest = min(self.waiting)
+            remove_snapshot_files([snapshot_file_name(self.task_segments[t], oldest) for t in self.waiting.pop(oldest)])
+        self.waiting[wanted_ns] = set(self.task_segments)
+        control[ControlWord.SNAPSHOT_NS] = wanted_ns
+
+    def close(self) -> None:
+        """Remove the snapshot files nobody took (a task that wrote after the last collect, or never)."""
+        for wanted_ns, tasks in self.waiting.items():
+            remove_snapshot_files([snapshot_file_name(self.task_segments[t], wanted_ns) for t in tasks])
+        self.waiting.clear()

@@ -60,6 +60,7 @@ from rtloop.runtime.session import (
     RunState,
     drop_output_to_a_lost_terminal,
 )
+from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
@@ -162,8 +163,8 @@ class Supervisor:
         self.live: Any = None
         self.bridges: Bridges | None = None
         self.dma_latency_held = False
-        self.snapshots: list[Any] = []  # task snapshots received, not yet handed to the recorder
-        self.snapshot_segment = 0  # the --keep segment whose start the tasks were last asked to snapshot
+        self.snapshots = SnapshotRequests({}, [task.config.period_ns for task in app.tasks.values()])
+        """--keep: the tasks' snapshots asked for and collected (runtime/snapshot.py)."""
         self.misses = MissWatch(app)
         self.trace_misses = trace_misses
         """Every miss's cause, from evidence gathered between drains (runtime/evidence.py)."""
@@ -201,6 +202,7 @@ class Supervisor:
     def _run_tasks(self, session: RunSession, capabilities: rt.Capabilities) -> None:
         layout, recorder = session.layout, session.recorder
         recorder.listeners.append(self.misses)
+        self.snapshots.task_segments = {name: handles.segments.task for name, handles in layout.tasks.items()}
         self.misses.after_drain(rt.now_ns())  # the first sample: misses of the first cycles have one before them
         if self.trace_misses:  # the kernel's scheduler and IRQ events on the tasks' CPUs, or one line why not
             self.device_problems += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
@@ -228,6 +230,7 @@ class Supervisor:
             session.drain_after_stop(self.limits.stop_drain_budget_s)
             self._keep_snapshots(layout, recorder)
         finally:
+            self.snapshots.close()
             self.misses.close()
             self.bridges.stop()
             if self.live is not None:
@@ -368,20 +371,9 @@ class Supervisor:
                 self.on_progress(self._progress(layout, session))
 
     def _keep_snapshots(self, layout: AppLayout, recorder: Any) -> None:
-        """--keep: at each new recording segment, ask every task for its state at a common release
-        a little ahead (so the kept window can be replayed from it); hand what came to the recorder."""
-        from rtloop.runtime.snapshot import SNAPSHOT_MARGIN_NS, common_instant_ns
-
-        for snapshot in self.snapshots:
-            recorder.add_snapshot(snapshot)
-        self.snapshots.clear()
-        segment = recorder.segment_index
-        if segment is None or segment == self.snapshot_segment:
-            return
-        self.snapshot_segment = segment
-        periods = [task.config.period_ns for task in self.app.tasks.values()]
-        at_ns = common_instant_ns(recorder.latest_ns + SNAPSHOT_MARGIN_NS, periods)
-        layout.control[ControlWord.SNAPSHOT_NS] = self.t0_ns + at_ns
+        """--keep: the snapshots the tasks wrote to the recorder; at a new recording segment, a new request."""
+        self.snapshots.collect(recorder)
+        self.snapshots.ask(layout.control, recorder, self.t0_ns)
 
     def _watch(self, layout: AppLayout, recorder: Any) -> None:
         """The watchdog: a running task whose cycle count stands still too long is stuck."""
@@ -517,8 +509,6 @@ class Supervisor:
                 kind = message.get("kind")
                 if kind == "settings":
                     task_run.settings = message["settings"]
-                elif kind == "snapshot":
-                    self.snapshots.append(message["snapshot"])
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
                     if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe

@@ -30,6 +30,7 @@ from rtloop.linux import rt
 from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable
+from rtloop.runtime.snapshot import snapshot_file_name, write_snapshot
 from rtloop.runtime.taskrun import TaskRun  # its snapshot's imports too: none inside the loop
 from rtloop.text import counted
 
@@ -210,12 +211,20 @@ def task_process_main(
     run = TaskRun(config, runnable, plan, control, status, timing, devices)
     task = stop_in_order.task = RealtimeTask(run)
 
+    snapshots_lost: list[str] = []
+
     def send_snapshot(next_cycle: int, t0_ns: int) -> None:
-        at_ns = control[ControlWord.SNAPSHOT_NS] - t0_ns
+        # Inside the loop: into a file of shared memory, never through the pipe (a full pipe blocks
+        # until the supervisor reads it, and a large state fills it).
+        wanted_ns = control[ControlWord.SNAPSHOT_NS]
+        at_ns = wanted_ns - t0_ns
         why_not = ""
         if run.tick.release_ns - t0_ns >= at_ns:  # the request came after the task had passed that instant
             why_not = f"it was asked after it had passed t = {at_ns / 1e9} s"
-        _report(pipe, kind="snapshot", snapshot=run.snapshot(at_ns, next_cycle, why_not))
+        try:
+            write_snapshot(snapshot_file_name(segments.task, wanted_ns), run.snapshot(at_ns, next_cycle, why_not))
+        except OSError as error:  # no room in /dev/shm: counted and said at the end, the loop goes on
+            snapshots_lost.append(f"its snapshot at t = {at_ns / 1e9} s was not kept: {error}")
 
     task.on_snapshot = send_snapshot
     baseline = own_thread_counters(rt.now_ns())  # the first late cycle's counters count from here
@@ -268,6 +277,8 @@ def task_process_main(
         if postrun_problem:
             _report(pipe, kind="postrun_failed", traceback=postrun_problem)
         raise SystemExit(1) from None
+    for text in snapshots_lost:
+        _report(pipe, kind="note", text=text)
     status[StatusWord.STATE] = TaskState.STOPPED
     run.stop()  # done already unless the stop came before T0
     _report_devices(pipe, run)
