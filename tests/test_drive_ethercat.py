@@ -161,6 +161,8 @@ def test_sigkill_of_the_task_the_sm_watchdog_takes_the_drives_out_of_op(veth: tu
         assert f"slave {slave}: left OP (SM watchdog" in text
         assert f"slave {slave}: drive: quick stop (outputs no longer valid: the slave left OP)" in text
     assert "drive: quick stop (controlword)" not in text  # nothing of the task's ran: the watchdog stopped them
+    notes = json.loads((tmp_path / "run" / "summary.json").read_text())["notes"]
+    assert any("device 'gimbal' (ethercat)" in note and "SM watchdog" in note for note in notes), notes
 
 
 def test_a_slave_count_that_differs_from_the_app_file_is_refused_before_anything_starts(

@@ -331,6 +331,12 @@ class EthercatDevice(Device):
                 lost.append(f"joint {joint.name!r} (slave {joint.slave})")
         return ", ".join(lost)
 
+    def write_safe_for_dead_task(self, u: FloatVector) -> str:
+        """Nothing is sent from the supervisor (a second master's frames would be the slaves' process
+        data): each slave's SM watchdog takes it out of OP, and its drive stops by itself."""
+        return (f"leaves the drives to the slaves' SM watchdog: without process data for {self.watchdog_ms:g} ms "
+                "each slave leaves OP and its drive quick-stops by itself")
+
     # --- every way out ------------------------------------------------------------------------------
     def write_safe(self, u: FloatVector) -> None:
         """The safe transition: quick stop while enabled (the drive brakes on its own ramp), disable
