@@ -329,9 +329,9 @@ class GpioDevice(Device):
                           for line, level in zip(self.outputs, levels, strict=True))
         return f"holds its output lines at their safe levels ({shown}) until the run ends"
 
-    # --- the scope pin, for the hot path ---------------------------------------------------------
+    # --- the scope pin, driven by the task's devices (io/host.py ScopePin) -----------------------
     def scope_output(self) -> tuple[int, int, int, int] | None:
-        """The scope pin for the task's hot path (``set_scope_pin``): (line request fd, its
+        """The scope pin (io/host.py ``ScopePin``): (line request fd, its
         SET_VALUES ioctl number, the pin's bit in the request, mode 1 toggle / 2 high during step);
         None without a scope pin."""
         if self.scope_pin is None or self._out is None:

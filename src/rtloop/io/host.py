@@ -23,7 +23,9 @@ import numpy as np
 from rtloop.errors import AFTER_STEP_PHASE, RELEASE_PHASE, DeviceError, DeviceFault
 from rtloop.io.compiled import devio, refused
 from rtloop.io.device import CommandLimit, Device, FloatVector, fault
+from rtloop.io.kernel import GPIO_V2_LINE_VALUES
 from rtloop.io.limits import CommandGuard
+from rtloop.linux import rt
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,6 +152,40 @@ class _Slot:
                 **self.guard.counts(device.command_names())}
 
 
+class ScopePin:
+    """A GPIO line that shows a task's cycles on an oscilloscope (a GPIO device's ``scope_pin``):
+    toggled at every release (``toggle``), or high while ``step()`` runs (``step``). The task's
+    devices drive it, first thing at the release and around the step; one ioctl per edge on the
+    line request its device holds, with a buffer made once. A failed write of a diagnostic pin
+    never stops the loop."""
+
+    def __init__(self, fd: int, request: int, bit: int, mode: int) -> None:
+        self.fd, self.request, self.mask = fd, request, 1 << bit
+        self.toggles = mode == 1  # 1: toggle at every release, 2: high during step
+        self.level = 0
+        self.values = bytearray(GPIO_V2_LINE_VALUES.size)
+
+    def _set(self, high: int) -> None:
+        GPIO_V2_LINE_VALUES.pack_into(self.values, 0, self.mask if high else 0, self.mask)
+        try:
+            rt.ioctl(self.fd, self.request, self.values, "GPIO_V2_LINE_SET_VALUES_IOCTL")
+        except OSError:
+            pass  # a diagnostic pin: the loop goes on without it
+
+    def at_release(self) -> None:
+        if self.toggles:
+            self.level ^= 1
+            self._set(self.level)
+
+    def before_step(self) -> None:
+        if not self.toggles:
+            self._set(1)
+
+    def after_step(self) -> None:
+        if not self.toggles:
+            self._set(0)
+
+
 class TaskDevices:
     """The devices one task owns. ``bool(devices)`` is False when it owns none."""
 
@@ -168,6 +204,8 @@ class TaskDevices:
         self.may_be_stale = [slot for slot in self.slots if slot.device.may_read_stale()]
         self.configured: list[_Slot] = []
         self.active = False
+        self.scope: ScopePin | None = None
+        """The scope pin of the first device that has one, driven from activate() on."""
         self.problems: list[str] = []
         """What went wrong while stopping (the task reports it; the run's summary lists it)."""
 
@@ -197,13 +235,16 @@ class TaskDevices:
                                   f"configure failed: {type(error).__name__}: {error}") from None
 
     def activate(self) -> None:
-        """At T0: enable the outputs (the first write follows at once)."""
+        """At T0: enable the outputs (the first write follows at once), and the scope pin."""
         self.active = True
         for slot in self.configured:
             slot.device.activate()
+        pin = self.scope_output()
+        self.scope = ScopePin(*pin) if pin is not None else None
 
     def scope_output(self) -> tuple[int, int, int, int] | None:
-        """The scope pin of the first device that has one (a GPIO device's ``scope_pin``), for the hot path."""
+        """The scope pin of the first device that has one (a GPIO device's ``scope_pin``): (line request fd,
+        its SET_VALUES ioctl number, the pin's bit, mode 1 toggle / 2 high during step)."""
         for slot in self.configured:
             scope = getattr(slot.device, "scope_output", None)
             pin: tuple[int, int, int, int] | None = scope() if scope is not None else None
@@ -213,6 +254,9 @@ class TaskDevices:
 
     # --- every cycle ------------------------------------------------------------------------------
     def at_release(self, cycle: int) -> None:
+        scope = self.scope
+        if scope is not None:
+            scope.at_release()  # first: the edge shows the wake-up, not the devices' I/O after it
         try:  # (a try costs nothing until it catches)
             for slot in self.let:  # the commands that hold from this release (computed by the job before)
                 slot.send(self.task, cycle)
@@ -224,8 +268,12 @@ class TaskDevices:
         for slot in self.may_be_stale:  # devices that keep old values (on_missing = "stale") rather than fail
             if slot.device.stale_reads != slot.stale_seen:
                 slot.note_stale(cycle)
+        if scope is not None:
+            scope.before_step()  # last: high for exactly the step
 
     def after_step(self, cycle: int) -> None:
+        if self.scope is not None:
+            self.scope.after_step()
         try:
             for slot in self.immediate:
                 slot.send(self.task, cycle)
@@ -241,6 +289,9 @@ class TaskDevices:
     def stop(self) -> None:
         """Safe values to every configured device, then deactivate and close it. Never raises:
         each device gets its turn whatever the others do (see ``problems``)."""
+        if self.scope is not None:
+            self.scope.after_step()  # low (a step that raised left it high)
+            self.scope = None
         for slot in self.configured:
             device = slot.device
             for action in ("write_safe", "deactivate", "close"):

@@ -19,7 +19,6 @@
 #include <stdatomic.h>
 #include <stdint.h>
 #include <string.h>
-#include <sys/ioctl.h>
 #include <time.h>
 
 #if ATOMIC_LLONG_LOCK_FREE != 2
@@ -113,11 +112,6 @@ typedef struct {
     /* measure_busy(): time from each wake-up to the next sleep (everything but the sleep call) */
     int measure_busy;
     int64_t busy_ns, busy_cycles, busy_max_ns, busy_wake_ns;
-    /* set_scope_pin(): a GPIO line toggled at every release, or high while step() runs */
-    int scope_mode; /* SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP */
-    int scope_fd;
-    unsigned long scope_request; /* GPIO_V2_LINE_SET_VALUES_IOCTL, from the caller */
-    uint64_t scope_mask, scope_level;
     /* set_finite_check(): outputs that cross a connection; a non-finite one is a fault unless allowed */
     Py_ssize_t n_checks;
     int64_t *check_index, *check_fault;
@@ -125,13 +119,6 @@ typedef struct {
     PyObject *check_error;  /* the exception type raised on a fault */
 } Core;
 
-
-/* One ioctl on the line request: struct gpio_v2_line_values { u64 bits; u64 mask; }. A failed
-   write of a diagnostic pin must not stop the loop: the result is not checked. */
-static void scope_write(Core *self, uint64_t high) {
-    uint64_t values[2] = {high ? self->scope_mask : 0, self->scope_mask};
-    (void)ioctl(self->scope_fd, self->scope_request, values);
-}
 
 static PyObject *str_cycle, *str_release_ns, *str_start_ns;
 
@@ -799,18 +786,12 @@ static int refuse_closed(Core *self) {
 static PyObject *start_cycle(Core *self, int64_t start_ns) {
     int64_t release_ns = self->release_ns;
     self->start_ns = start_ns;
-    if (self->scope_mode == SCOPE_TOGGLE) { /* an edge at every release */
-        self->scope_level ^= 1;
-        scope_write(self, self->scope_level);
-    }
     if (self->measure_busy)
         self->busy_wake_ns = start_ns;
     if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
         set_tick(self, str_start_ns, start_ns) < 0)
         return NULL;
     read_inputs(self, release_ns);
-    if (self->scope_mode == SCOPE_STEP)
-        scope_write(self, 1);
     Py_RETURN_TRUE;
 }
 
@@ -905,8 +886,6 @@ static PyObject *end_cycle(Core *self, int64_t end_ns) {
 static PyObject *Core_finish(Core *self, PyObject *unused) {
     if (refuse_closed(self))
         return NULL;
-    if (self->scope_mode == SCOPE_STEP)
-        scope_write(self, 0);
     if (publish_outputs(self, self->cycle, self->release_ns + self->period_ns) < 0)
         return NULL;
     return end_cycle(self, now_ns());
@@ -917,8 +896,6 @@ static PyObject *Core_finish_at(Core *self, PyObject *arg) {
     int64_t end_ns = PyLong_AsLongLong(arg);
     if ((end_ns == -1 && PyErr_Occurred()) || refuse_closed(self))
         return NULL;
-    if (self->scope_mode == SCOPE_STEP)
-        scope_write(self, 0);
     if (publish_outputs(self, self->cycle, self->release_ns + self->period_ns) < 0)
         return NULL;
     return end_cycle(self, end_ns);
@@ -957,25 +934,6 @@ static PyObject *Core_publish_outputs(Core *self, PyObject *const *args, Py_ssiz
 static PyObject *Core_get_stale_reads(Core *self, void *closure) { return PyLong_FromLongLong(self->stale_reads); }
 static PyObject *Core_get_cycle(Core *self, void *closure) { return PyLong_FromLongLong(self->cycle); }
 static PyObject *Core_get_release_ns(Core *self, void *closure) { return PyLong_FromLongLong(self->release_ns); }
-
-/* set_scope_pin(fd, request, bit, mode): mode 1 toggles the line at every release, 2 holds it high
-   while step() runs, 0 stops; fd is a GPIO line request, request its SET_VALUES ioctl number. */
-static PyObject *Core_set_scope_pin(Core *self, PyObject *args) {
-    int fd, mode, bit;
-    unsigned long request;
-    if (!PyArg_ParseTuple(args, "ikii", &fd, &request, &bit, &mode))
-        return NULL;
-    if (mode < SCOPE_OFF || mode > SCOPE_STEP || bit < 0 || bit > 63) {
-        PyErr_SetString(PyExc_ValueError, "set_scope_pin: mode 0..2 and bit 0..63");
-        return NULL;
-    }
-    self->scope_fd = fd;
-    self->scope_request = request;
-    self->scope_mask = (uint64_t)1 << bit;
-    self->scope_level = 0;
-    self->scope_mode = mode;
-    Py_RETURN_NONE;
-}
 
 /* measure_busy(): from now on, sum the time from each wake-up to the next sleep (a benchmark's probe) */
 static PyObject *Core_measure_busy(Core *self, PyObject *unused) {
@@ -1064,8 +1022,6 @@ static PyMethodDef Core_methods[] = {
     {"finish_at", (PyCFunction)Core_finish_at, METH_O, "finish() on a given clock: finish_at(end_ns)."},
     {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
     {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
-    {"set_scope_pin", (PyCFunction)Core_set_scope_pin, METH_VARARGS,
-     "set_scope_pin(fd, request, bit, mode): toggle a GPIO line at every release (1) or high during step (2)."},
     {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
      "publish_outputs(cycle, publish_ns)"},
     {NULL, NULL, 0, NULL},

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import importlib
 import os
-import struct
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -25,9 +24,8 @@ import numpy as np
 from rtloop import build_check
 from rtloop.errors import NonFiniteOutput
 from rtloop.ipc.ring import Int64Ring
-from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, ScopeMode, StatusWord, constants
+from rtloop.ipc.schema import STOP_POLL_NS, ControlWord, StatusWord, constants
 from rtloop.ipc.wiring import TaskWiring
-from rtloop.linux import rt
 from rtloop.linux.rt import AbsoluteSleeper, now_ns
 
 SOURCES = ["_hotpath.c", "_schema.h"]
@@ -51,9 +49,6 @@ else:
         build_check.sources_digest(Path(__file__).resolve().parent, SOURCES), "ipc/_hotpath.c and ipc/_schema.h")
 
 PURE_PYTHON_ENV = "RTLOOP_PURE_PYTHON"
-SCOPE_OFF, SCOPE_TOGGLE, SCOPE_STEP = ScopeMode.OFF, ScopeMode.TOGGLE, ScopeMode.STEP
-"""Scope pin modes (``set_scope_pin``): none, toggle at every release, high while step() runs."""
-_SCOPE_VALUES = struct.Struct("=QQ")  # struct gpio_v2_line_values
 SNAPSHOT_DUE = 2
 """What ``finish()`` returns when the supervisor asked for the task's state before the next release."""
 CYCLE_LATE = 3
@@ -99,7 +94,6 @@ class CycleWork(Protocol):
     def finish(self) -> bool | int: ...
     def begin_at(self, start_ns: int) -> bool: ...
     def finish_at(self, end_ns: int) -> bool | int: ...
-    def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None: ...
     def read_inputs(self, release_ns: int) -> None: ...
     def publish_outputs(self, cycle: int, publish_ns: int) -> None: ...
     def close(self) -> None: ...
@@ -134,26 +128,9 @@ class PythonCycle:
         self.tick, self.wiring, self.control, self.status, self.timing = tick, wiring, control, status, timing
         self.period_ns, self.catch_up, self.max_misses = period_ns, catch_up, max_misses
         self.misses_in_a_row = 0
-        self.scope_mode: int = SCOPE_OFF
         self.snapshot_taken_ns = 0
         self.sleeper = AbsoluteSleeper()
         self.t0_ns = self.end_ns = self.cycle = self.release_ns = self.start_ns = self.last_end_ns = 0
-
-    def set_scope_pin(self, fd: int, request: int, bit: int, mode: int) -> None:
-        """Toggle a GPIO line at every release (mode 1) or hold it high while step() runs (mode 2).
-
-        ``fd`` is the line request's file descriptor, ``request`` its GPIO_V2_LINE_SET_VALUES_IOCTL
-        number: one ioctl with ``struct gpio_v2_line_values {bits, mask}`` built once here."""
-        self.scope_fd, self.scope_request, self.scope_mode = fd, request, mode
-        self.scope_mask, self.scope_level = 1 << bit, 0
-        self.scope_values = bytearray(16)
-
-    def _scope(self, high: int) -> None:
-        _SCOPE_VALUES.pack_into(self.scope_values, 0, self.scope_mask if high else 0, self.scope_mask)
-        try:
-            rt.ioctl(self.scope_fd, self.scope_request, self.scope_values, "GPIO_V2_LINE_SET_VALUES_IOCTL")
-        except OSError:
-            pass  # a diagnostic pin never stops the loop (as in C)
 
     def start(self, t0_ns: int, end_ns: int, stale_reads: int) -> None:
         self.t0_ns, self.end_ns = t0_ns, end_ns
@@ -182,14 +159,9 @@ class PythonCycle:
     def _start_cycle(self, start_ns: int) -> bool:
         release_ns = self.release_ns
         self.start_ns = start_ns
-        if self.scope_mode == SCOPE_TOGGLE:  # an edge at every release
-            self.scope_level ^= 1
-            self._scope(self.scope_level)
         tick = self.tick
         tick.cycle, tick.release_ns, tick.start_ns = self.cycle, release_ns, self.start_ns
         self.wiring.read_inputs(release_ns, self.wiring.u)
-        if self.scope_mode == SCOPE_STEP:
-            self._scope(1)
         return True
 
     def sleep_until_release(self, release_ns: int) -> bool:
@@ -223,8 +195,6 @@ class PythonCycle:
         return self._end_cycle(end_ns)
 
     def _publish(self) -> None:
-        if self.scope_mode == SCOPE_STEP:
-            self._scope(0)
         self.wiring.publish_outputs(self.cycle, self.release_ns + self.period_ns, self.wiring.y)
 
     def _end_cycle(self, end_ns: int) -> bool | int:

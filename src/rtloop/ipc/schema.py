@@ -21,7 +21,7 @@ Blocks (word indices):
   ``[SlotWord.SEQ, SlotWord.STAMP_NS, values…]``.
 - live port (LatestValue): header :class:`PortWord`, values from ``HEADER_WORDS``.
 
-And the modes both twins of the hot path are told about: :class:`NudgeMode`, :class:`ScopeMode`.
+And the mode both twins of the hot path are told about: :class:`NudgeMode`.
 """
 
 from __future__ import annotations
@@ -147,16 +147,6 @@ class NudgeMode(enum.IntEnum):
     """The newest of a row and a live write holds."""
 
 
-class ScopeMode(enum.IntEnum):
-    """What a scope pin shows (``set_scope_pin``)."""
-
-    OFF = 0
-    TOGGLE = 1
-    """An edge at every release."""
-    STEP = 2
-    """High while step() runs."""
-
-
 HEADER_WORDS = 8
 """Every ring, queue, channel and port starts with this many header words."""
 CONTROL_WORDS = 8
@@ -192,7 +182,7 @@ def task_segment_size(timing_capacity: int) -> int:
 _BLOCKS: tuple[tuple[str, type[enum.IntEnum]], ...] = (
     ("CONTROL", ControlWord), ("STATUS", StatusWord), ("QUEUE", QueueWord), ("CHANNEL", ChannelWord),
     ("SLOT", SlotWord), ("PORT", PortWord), ("TIMING", TimingField), ("READ_LOG", ReadLogField),
-    ("NUDGE", NudgeMode), ("SCOPE", ScopeMode),
+    ("NUDGE", NudgeMode),
 )
 
 

@@ -85,9 +85,6 @@ class TaskRun:
                                         max_misses=config.max_consecutive_misses)
         cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
         self.devices.activate()
-        scope = self.devices.scope_output() if self.devices else None
-        if scope is not None:  # a GPIO line toggled at every release, in the hot path (docs/devices.md)
-            cycle.set_scope_pin(*scope)
         return cycle
 
     def job(self, cycle: int) -> None:
