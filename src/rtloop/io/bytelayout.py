@@ -10,6 +10,23 @@ Packing rounds to the nearest raw integer (ties to even) and saturates at the ty
 a command too large for its field is sent as the largest value the field holds, never
 wrapped round to the other sign. A non-finite value is refused (``ValueError`` naming the
 field): a NaN never reaches a wire.
+
+Two kinds of field carry a signal rather than a number:
+
+- an **encoder**, ``encoder = { counts_per_rev = 4096, gear_ratio = 50 }`` on an integer field:
+  a counter that wraps (a 16- or 32-bit encoder count) read as the position in rad of the
+  output shaft (``counts_per_rev × gear_ratio`` counts a turn, plus ``offset`` rad), unwrapped:
+  the layout keeps the count it read last and adds each change, taken the short way round the
+  counter's range (the counter must move less than half its range between two reads). The
+  first read starts from the count as it is. Packed (a twin's side), a position goes out as
+  its count, wrapped into the field's range, as the hardware's counter would show it;
+- a **duty**, ``duty = { full_scale = 1000, range = [-1.0, 1.0] }``: a PWM duty cycle, sent as
+  ``duty × full_scale`` (the PWM generator's period in counts) and clamped to ``range`` first:
+  whatever the command, no more than the declared duty reaches the wire.
+
+Neither takes a ``scale`` (the encoder and the full scale say it). A layout with either runs
+in Python (its state and its clamp are not in ``io/_devio.c``): so do the SPI or CAN cycles
+that use it.
 """
 
 from __future__ import annotations
@@ -47,6 +64,10 @@ class Field:
     scale: float = 1.0
     offset: float = 0.0
     byte_order: str = "little"
+    counts_per_turn: float = 0.0
+    """An encoder (see the module): counts per turn of the output (counts per rev × gear ratio); 0: not one."""
+    duty_range: tuple[float, float] | None = None
+    """A duty (see the module): the duty's [min, max], ``scale`` being 1 / full scale; None: not one."""
 
     @property
     def size_bytes(self) -> int:
@@ -72,8 +93,9 @@ class Field:
 
 
 def field_from_table(table: Mapping[str, Any], where: str) -> Field:
-    """A :class:`Field` from its app-file table (``{name, start_byte, type, scale, offset, byte_order}``)."""
-    known = {"name", "start_byte", "type", "scale", "offset", "byte_order"}
+    """A :class:`Field` from its app-file table (``{name, start_byte, type, scale, offset, byte_order}``,
+    or ``encoder``/``duty`` in place of ``scale``)."""
+    known = {"name", "start_byte", "type", "scale", "offset", "byte_order", "encoder", "duty"}
     unknown = sorted(set(table) - known)
     if unknown:
         raise LayoutError(f"{where}: unknown key {unknown[0]!r} (a field has {', '.join(sorted(known))})")
@@ -103,7 +125,57 @@ def field_from_table(table: Mapping[str, Any], where: str) -> Field:
     if abs(numbers["scale"]) < 1 / MAX_SETTING_MAGNITUDE:  # a command divided by it would overflow to inf
         raise LayoutError(f"{where}.scale: must be at least {1 / MAX_SETTING_MAGNITUDE:g} in size, "
                           f"got {numbers['scale']!r}")
-    return Field(name, start, kind, numbers["scale"], numbers["offset"], order)
+    if "encoder" in table and "duty" in table:
+        raise LayoutError(f"{where}: a field is an encoder or a duty, not both")
+    if ("encoder" in table or "duty" in table) and "scale" in table:
+        raise LayoutError(f"{where}.scale: not with {'encoder' if 'encoder' in table else 'duty'} "
+                          "(it says the scale)")
+    field = Field(name, start, kind, numbers["scale"], numbers["offset"], order)
+    if "encoder" in table:
+        return _encoder_field(field, table["encoder"], f"{where}.encoder")
+    if "duty" in table:
+        return _duty_field(field, table["duty"], f"{where}.duty")
+    return field
+
+
+def _positive(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+        raise LayoutError(f"{where}: expected a number > 0, got {value!r}")
+    problem = number_problem(value)
+    if problem:
+        raise LayoutError(f"{where}: {problem}")
+    return float(value)
+
+
+def _encoder_field(field: Field, table: Any, where: str) -> Field:
+    if not isinstance(table, Mapping) or set(table) - {"counts_per_rev", "gear_ratio"} or "counts_per_rev" not in table:
+        raise LayoutError(f"{where}: expected {{ counts_per_rev = 4096, gear_ratio = 1.0 }}, got {table!r}")
+    if not FIELD_TYPES[field.type][1]:
+        raise LayoutError(f"{where}: an encoder counts: its type is an integer (u16, i32, ...), not {field.type}")
+    counts = _positive(table["counts_per_rev"], f"{where}.counts_per_rev")
+    ratio = _positive(table.get("gear_ratio", 1.0), f"{where}.gear_ratio")
+    per_turn = counts * ratio
+    return Field(field.name, field.start_byte, field.type, 2 * math.pi / per_turn, field.offset, field.byte_order,
+                 counts_per_turn=per_turn)
+
+
+def _duty_field(field: Field, table: Any, where: str) -> Field:
+    if not isinstance(table, Mapping) or set(table) - {"full_scale", "range"} or "full_scale" not in table:
+        raise LayoutError(f"{where}: expected {{ full_scale = 1000, range = [-1.0, 1.0] }}, got {table!r}")
+    if field.offset:
+        raise LayoutError(f"{where}: a duty has no offset (0 is no drive)")
+    full_scale = _positive(table["full_scale"], f"{where}.full_scale")
+    bounds = table.get("range", [-1.0, 1.0])
+    if not isinstance(bounds, list | tuple) or len(bounds) != 2 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in bounds) \
+            or not bounds[0] < bounds[1] or abs(bounds[0]) > 1 or abs(bounds[1]) > 1:
+        raise LayoutError(f"{where}.range: expected [min, max] within [-1, 1], min < max, got {bounds!r}")
+    low, high = Field(field.name, 0, field.type).raw_range
+    if bounds[0] * full_scale < low or bounds[1] * full_scale > high:
+        raise LayoutError(f"{where}: {bounds[0]:g}..{bounds[1]:g} × full_scale {full_scale:g} does not fit a "
+                          f"{field.type} ({low:g}..{high:g})")
+    return Field(field.name, field.start_byte, field.type, 1.0 / full_scale, 0.0, field.byte_order,
+                 duty_range=(float(bounds[0]), float(bounds[1])))
 
 
 class ByteLayout:
@@ -131,9 +203,16 @@ class ByteLayout:
         # (codec, byte offset, scale, offset, raw low, raw high, is integer), compiled once.
         self._plan = tuple(
             (struct.Struct(BYTE_ORDERS[f.byte_order] + FIELD_TYPES[f.type][0]), f.start_byte, f.scale, f.offset,
-             *f.raw_range, FIELD_TYPES[f.type][1])
+             *_sent_range(f), FIELD_TYPES[f.type][1])
             for f in self.fields)
-        compiled = devio()  # the same packing in C (io/_devio.c), where it was built
+        # encoders: (index, counter span) and, per encoder, the count read last and the unwrapped total
+        self._encoders = tuple((i, int(f.raw_range[1] - f.raw_range[0] + 1)) for i, f in enumerate(self.fields)
+                               if f.counts_per_turn)
+        self._last_count: list[int | None] = [None] * len(self.fields)
+        self._total_count = [0] * len(self.fields)
+        self._float_duties = any(f.duty_range is not None and not FIELD_TYPES[f.type][1] for f in self.fields)
+        signals = any(f.counts_per_turn or f.duty_range for f in self.fields)  # stateful or clamped: Python's
+        compiled = None if signals else devio()  # the same packing in C (io/_devio.c), where it was built
         self._compiled = compiled.Layout([(FIELD_TYPES[f.type][0], f.start_byte, f.scale, f.offset,
                                            f.byte_order == "big") for f in self.fields]) if compiled else None
 
@@ -165,12 +244,16 @@ class ByteLayout:
                 raw = (values[index] - offset) / scale
                 if integer:
                     raw = round(raw)  # NaN and ±inf raise here: never sent
-                    if raw > high:
+                    if self._encoders and self.fields[index - first].counts_per_turn:
+                        raw = (raw - low) % (high - low + 1) + low  # a counter shows the count wrapped
+                    elif raw > high:
                         raw = high
                     elif raw < low:
                         raw = low
                 elif raw - raw != 0.0:  # NaN or ±inf (inf - inf is NaN); 0.0 for every finite value
                     raise ValueError
+                elif self._float_duties and self.fields[index - first].duty_range is not None:
+                    raw = min(max(raw, low), high)  # a float duty: its range
                 codec.pack_into(frame, at + start, raw)
                 index += 1
         except (ValueError, OverflowError):
@@ -188,6 +271,18 @@ class ByteLayout:
         for codec, start, scale, offset, _low, _high, _integer in self._plan:
             out[index] = codec.unpack_from(frame, at + start)[0] * scale + offset
             index += 1
+        for field_index, span in self._encoders:  # counts → the unwrapped position
+            count = self._plan[field_index][0].unpack_from(frame, at + self._plan[field_index][1])[0]
+            last = self._last_count[field_index]
+            if last is None:
+                total = count
+            else:
+                step = (count - last) % span
+                total = self._total_count[field_index] + (step - span if step >= span // 2 else step)
+            self._last_count[field_index] = count
+            self._total_count[field_index] = total
+            field = self.fields[field_index]
+            out[first + field_index] = total * field.scale + field.offset
 
     def round_trip(self, values: Any, out: Any, first: int = 0) -> None:
         """What the other end reads when ``values`` are packed: the layout's rounding and saturation.
@@ -199,6 +294,16 @@ class ByteLayout:
 
     def _not_finite(self, index: int, value: float) -> str:
         return f"{self.where}: {self.fields[index].name!r} is {value!r}: a non-finite value is never sent"
+
+
+def _sent_range(field: Field) -> tuple[float, float]:
+    """The raw values a field may be sent as: its type's range, or its duty's."""
+    if field.duty_range is None:
+        return field.raw_range
+    low, high = field.duty_range[0] / field.scale, field.duty_range[1] / field.scale
+    if FIELD_TYPES[field.type][1]:  # an integer field: the counts within the range
+        return math.ceil(low - 1e-9), math.floor(high + 1e-9)
+    return low, high
 
 
 class FloatView:
