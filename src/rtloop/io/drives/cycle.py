@@ -35,6 +35,8 @@ _READING_FLAGS = (("enabled", 0), ("fault", StatusBits.FAULT), ("warning", Statu
 _STATES = tuple(state_of(bits) for bits in range(0x70))
 """Statusword bits 0-3, 5 and 6 (``& 0x6F``) → the state: one index instead of the standard's table."""
 _ENABLED, _QUICK_STOP = int(Cia402State.OPERATION_ENABLED), int(Cia402State.QUICK_STOP_ACTIVE)
+_FAULT, _WARNING = StatusBits.FAULT, StatusBits.WARNING  # module names: one lookup less each, every cycle
+_TARGET_REACHED, _FOLLOWING_ERROR = StatusBits.TARGET_REACHED, StatusBits.FOLLOWING_ERROR
 
 
 def command_names(joint: JointConfig) -> list[str]:
@@ -209,8 +211,9 @@ class DriveCycle:
         y = self._y.of(y)
         all_enabled = True
         table = _STATES
+        buffer = self.in_buffer
         for joint in self.joints:
-            values = joint.unpack(self.in_buffer, joint.in_at)
+            values = joint.unpack(buffer, joint.in_at)
             statusword = joint.statusword = values[joint.tx_status]
             joint.position_raw = values[joint.tx_position]
             state = table[statusword & 0x6F]
@@ -224,10 +227,10 @@ class DriveCycle:
                 y[at] = values[joint.tx_torque] * joint.torque_per_permille
                 at += 1
             y[at] = 1.0 if state == _ENABLED else 0.0
-            y[at + 1] = 1.0 if statusword & StatusBits.FAULT else 0.0
-            y[at + 2] = 1.0 if statusword & StatusBits.WARNING else 0.0
-            y[at + 3] = 1.0 if statusword & StatusBits.TARGET_REACHED else 0.0
-            y[at + 4] = 1.0 if statusword & StatusBits.FOLLOWING_ERROR and joint.mode == 8 else 0.0
+            y[at + 1] = 1.0 if statusword & _FAULT else 0.0
+            y[at + 2] = 1.0 if statusword & _WARNING else 0.0
+            y[at + 3] = 1.0 if statusword & _TARGET_REACHED else 0.0
+            y[at + 4] = 1.0 if statusword & _FOLLOWING_ERROR and joint.mode == 8 else 0.0
             y[at + 5] = 1.0 if state == _QUICK_STOP else 0.0
             at += 6
             if joint.tx_error >= 0:
