@@ -126,26 +126,14 @@ def realtime_threads(exclude_pids: frozenset[int] = frozenset()) -> list[tuple[i
     return found
 
 
-@dataclass(frozen=True)
-class ThreadCounters:
-    """A thread's own counters at one instant (read by the thread itself, after a late cycle)."""
-
-    at_ns: int
-    on_cpu_ns: int
-    """Time on a CPU so far (CLOCK_THREAD_CPUTIME_ID)."""
-    run_delay_ns: int
-    """Time spent runnable but waiting for a CPU (schedstat field 2), -1 without it."""
-    involuntary_switches: int
-    minor_faults: int
-    major_faults: int
-
-    def to_tuple(self) -> tuple[int, ...]:
-        return (self.at_ns, self.on_cpu_ns, self.run_delay_ns, self.involuntary_switches, self.minor_faults,
-                self.major_faults)
+THREAD_COUNTERS = ("at_ns", "on_cpu_ns", "run_delay_ns", "involuntary_switches", "minor_faults", "major_faults")
+"""What :func:`own_thread_counters` returns, in order: when it read them (CLOCK_MONOTONIC), the thread's
+CPU time (CLOCK_THREAD_CPUTIME_ID), its run-queue wait (schedstat; -1 without CONFIG_SCHED_INFO), its
+involuntary context switches and its minor and major page faults (getrusage(RUSAGE_THREAD)), so far."""
 
 
 def own_thread_counters(now_ns: int) -> tuple[int, ...]:
-    """The calling thread's counters (``ThreadCounters`` as a tuple: a pipe message stays small).
+    """The calling thread's counters (:data:`THREAD_COUNTERS`; a tuple: the pipe message stays small).
 
     Costs a few µs (one getrusage, one /proc read): call it only after a cycle that was late."""
     usage = resource.getrusage(resource.RUSAGE_THREAD)

@@ -29,7 +29,8 @@ THREAD_SCAN_MIN_INTERVAL_NS = 200_000_000
 """How soon a miss waiting for a walk after it may ask for one (a thread started just before it)."""
 DECIDED_KEPT = 4096
 """Misses whose causes are kept for the tasks they held up (decided in release order)."""
-COUNTER_FIELDS = ("on_cpu_ns", "run_delay_ns", "involuntary_switches", "minor_faults", "major_faults")
+COUNTER_FIELDS = cpustat.THREAD_COUNTERS[1:]
+"""The task's counters compared between two readings (the first field is when each was read)."""
 
 
 @dataclass(frozen=True)
