@@ -102,6 +102,10 @@ def test_jiwy_on_dynamixel_servos_equals_its_simulation(tmp_path: Path) -> None:
         assert len(model.wait_for("torque on")) == 2
     finally:
         model.stop()
+    from rtloop.runtime.replay import replay
+
+    replayed = replay(tmp_path / "run", tmp_path / "replay")  # the model is gone: the servos' readings play back
+    assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
     import numpy as np
 
     sim = np.genfromtxt(tmp_path / "sim" / "signals.csv", delimiter=",", names=True)
