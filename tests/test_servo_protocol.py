@@ -232,3 +232,17 @@ def test_a_cycle_keeps_nothing_allocated() -> None:
     tracemalloc.stop()
     grown = sum(stat.size_diff for stat in after.compare_to(before, "filename") if stat.size_diff > 0)
     assert grown == 0
+
+
+def test_an_error_reading_clears_when_the_status_does() -> None:
+    """Feetech's error bits are the status of the moment (a voltage dip passes): the reading follows them."""
+    servos = [{**servo, "model": "STS3215"} for servo in PAN_TILT]
+    device = bus_device("feetech", servos, on_hardware_error="report")
+    bus = attached(device)
+    y = np.zeros(device.n_outputs)
+    bus.servos[1].error_bits = 0x01  # input voltage
+    device.read(y)
+    assert y[6:8].tolist() == [1.0, 0.0]
+    bus.servos[1].error_bits = 0
+    device.read(y)
+    assert y[6:8].tolist() == [0.0, 0.0]

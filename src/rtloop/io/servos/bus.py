@@ -191,6 +191,7 @@ class ServoBusDevice(Device):
         self.stale_in_a_row = np.zeros(n, dtype=np.int64)
         self.missing = np.zeros(n, dtype=bool)
         self.incomplete = False
+        self.error_shown = False  # a NAME_error reading is not 0
 
     def _ping(self, spec: ServoSpec) -> tuple[int, bytes] | None:
         for _ in range(SETUP_TRIES):
@@ -312,6 +313,9 @@ class ServoBusDevice(Device):
         np.multiply(raw, units.current, out=self.reading_current)
         if np.count_nonzero(state.errors):
             self._status_errors()
+        elif self.error_shown:  # every status is clear again (a Feetech voltage dip that passed)
+            self.reading_error[:] = 0.0
+            self.error_shown = False
         y[:] = self.readings
 
     def _missing_answers(self) -> None:
@@ -349,6 +353,7 @@ class ServoBusDevice(Device):
             else:
                 bits = error
             self.reading_error[index] = bits
+            self.error_shown = self.error_shown or bool(bits)
             if bits and self.config["on_hardware_error"] == "fault":
                 raise DeviceFault(f"device {self.name!r}: servo {spec.servo_id} ({spec.name}) reports a hardware "
                                   f"error: 0x{bits:02x} ({family.error_words(bits)}); it turns its torque off by "
