@@ -159,7 +159,7 @@ def test_a_setpoint_beside_a_device_reading_is_paired(tmp_path: Path) -> None:
     assert [(p.signals, p.setpoint) for p in run.signals.plots] == [
         (("pi.speed_rad_s", "pi.setpoint_rad_s"), "pi.setpoint_rad_s"),
         (("pi.voltage_V", "motor.voltage_V"), "pi.voltage_V")]  # what the motor was sent, over what the PI asked
-    assert run.signals.plots[1].limits
+    assert run.signals.plots[1].limits and run.signals.units["motor.voltage_V"] == "V"  # the PI's output's unit
     assert run.signals.units["pi.speed_rad_s"] == "rad/s"
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app.builder import App
-from rtloop.app.guards import recorded_input_names
+from rtloop.app.guards import recorded_input_names, sent_signal
 from rtloop.app.plots import Element, element_units, elements, inferred_plots
 from rtloop.newfile import write_new
 from rtloop.record.csvfiles import column_names
@@ -45,6 +45,11 @@ def sidecar_content(app: App) -> dict[str, Any]:
     """The JSON of ``signals.json`` for ``app``'s recording."""
     columns = recorded_columns(app)
     units = element_units(app)
+    for link in app.device_links:  # what a device was sent has the unit of the output that asked for it
+        if link.target.task in app.devices:
+            sent = sent_signal(app, link.target.task, link.target.start, link.target.stop)
+            for source, element in zip(elements(link.source), elements(sent), strict=True):
+                units.setdefault(element, units.get(source, ""))
     carried_by = _mirrors(app)
     out_columns = {name: {"task": task, "side": side, "index": index, "unit": units.get((task, side, index), "")}
                    for (task, side, index), name in columns.items()}
