@@ -97,7 +97,7 @@ def _evidence_lines(miss: dict[str, Any], summary: dict[str, Any]) -> list[str]:
     if counters:
         since = ("this cycle alone" if counters.get("bracketed")
                  else f"since its reading after cycle {counters['since_cycle']}" if counters["since_cycle"] >= 0
-                 else "since the loop started")
+                 else "since before its first cycle")
         lines.append(f"  its thread's counters ({since}): on the CPU {ms(counters['on_cpu_ns'])}, waiting on the run "
                      f"queue {ms(counters['run_delay_ns'])}, {counters['involuntary_switches']} involuntary switches, "
                      f"{counters['minor_faults']} minor and {counters['major_faults']} major page faults")
@@ -117,7 +117,7 @@ def _evidence_lines(miss: dict[str, Any], summary: dict[str, Any]) -> list[str]:
                      "and the end")
     for thread in ev.get("threads", []):
         lines.append(f"  thread {thread['label']} ({thread['relation']} priority): ran {ms(thread['ran_ns'])} "
-                     f"on the CPU in the window")
+                     f"on the CPU in the {ms(thread.get('window_ns', ev.get('window_ns', 0)))} around it")
     for other in ev.get("simultaneous", []):
         lines.append(f"  task {other['task']} on CPU {other['cpu']} woke {ms(other['latency_ns'])} late at the same "
                      "instant")
