@@ -16,7 +16,7 @@ from rtloop.errors import PortValueError
 
 HELP = "switch a running task to another of its controllers at one release"
 
-LEAD_S = 0.1
+LEAD_S = 0.2
 """How far ahead of now a switch is placed when no --at-cycle is given: the write must reach the
 task before that release, whatever this process is kept waiting by the machine."""
 
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the task and the controller to make active; several TASK=CONTROLLER switch at the "
                              "same release, all or none")
     parser.add_argument("--at-cycle", type=int, default=None, metavar="N",
-                        help="the release from which the new controller acts (default: about 0.1 s from now); "
+                        help="the release from which the new controller acts (default: about 0.2 s from now); "
                              "counted in the first task's periods")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--shadow", action="store_true",
