@@ -9,7 +9,6 @@ deadline reproduces this simulation value for value.
 
 from __future__ import annotations
 
-import datetime as dt
 import heapq
 import time
 from pathlib import Path
@@ -19,21 +18,13 @@ import numpy as np
 
 from rtloop.app.builder import App
 from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
-from rtloop.ipc.hotpath import announce_once, hot_path
-from rtloop.ipc.status import StatusWord
-from rtloop.ipc.wiring import nonfinite_fields
-from rtloop.linux import rt
+from rtloop.ipc.hotpath import announce_once
 from rtloop.record.summary import (
     RunSummary,
-    TaskSummary,
-    limit_notes,
-    nonfinite_notes,
-    signal_names,
-    slow_step_notes,
 )
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout, device_wiring
+from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
-from rtloop.runtime.supervisor import machine_facts, port_summaries
 from rtloop.runtime.taskrun import TaskRun
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
@@ -249,36 +240,17 @@ def _drain(outcome: _Outcome, session: RunSession) -> None:
 
 def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome,
              sim_tasks: dict[str, TaskRun], *, running: bool) -> RunSummary:
-    layout, recorder = session.layout, session.recorder
-    summaries: dict[str, TaskSummary] = {}
-    for name, spec in app.tasks.items():
-        summaries[name] = TaskSummary(
-            period_ns=spec.config.period_ns, priority=0, cpu=None, policy="simulated", rt=False,
-            rt_reason="offline simulation: logical time, no real-time scheduling",
-            memory_locked=False,
-            timing=recorder.timing_of(name),
-            stale_reads=layout.tasks[name].status[StatusWord.STALE_READS],
-            timing_samples_dropped=0,
-            host_exec_ns=outcome.host_exec[name].to_json() if name in outcome.host_exec else None,
-            **signal_names(spec.runnable),
-            **nonfinite_fields(layout.tasks[name].status, layout.tasks[name].plan),
-            input_limits=sim_tasks[name].wiring.guards.counts(name, spec.runnable.input_names)
-            if name in sim_tasks and sim_tasks[name].wiring.guards else None,
-        )
+    tasks = {name: TaskFacts(simulated=True,
+                             host_exec_ns=outcome.host_exec[name].to_json() if name in outcome.host_exec else None,
+                             input_limits=task.wiring.guards.counts(name, task.runnable.input_names)
+                             if task.wiring.guards else None)
+             for name, task in sim_tasks.items()}
     devices = {device: {"task": name, **report} for name, task in sim_tasks.items() if task.devices
                for device, report in task.devices.stale_report().items()}
-    capabilities = rt.probe()
     started = [f"task {name}: {text}" for name, task in sim_tasks.items()  # an FMU's Event Mode refused
                for text in getattr(getattr(task.runnable, "model", None), "start_notes", ())]
-    notes = [*started, *slow_step_notes(summaries), *session.notes(), *limit_notes(summaries, devices)]
-    return RunSummary(
-        app=app.name, mode="simulate", hot_path=hot_path(),
-        started=dt.datetime.fromtimestamp(outcome.started_ns / 1e9, tz=dt.UTC).isoformat(timespec="milliseconds"),
-        duration_s=duration_s, rt_capable=capabilities.may_use_rt, tasks=summaries,
-        ports=port_summaries(layout, recorder.latest_ns), stopped_by="running" if running else outcome.stopped_by,
-        failure=outcome.failure.to_json() if outcome.failure else None, machine=machine_facts(capabilities),
-        notes=[*notes, *nonfinite_notes(summaries)], elapsed_s=recorder.latest_ns / 1e9, running=running,
-        devices=devices,
-        recording={**recorder.to_json(), **session.losses.to_json()},
-        switches=recorder.switches.to_json(),
-    )
+    run = RunFacts(mode="simulate", started_wall_ns=outcome.started_ns, duration_s=duration_s,
+                   stopped_by=outcome.stopped_by, failure=outcome.failure.to_json() if outcome.failure else None,
+                   notes=started, devices=devices)
+    return build_summary(session, {name: tasks.get(name, TaskFacts(simulated=True)) for name in app.tasks}, run,
+                         running=running)

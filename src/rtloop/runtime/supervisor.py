@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import datetime as dt
 import multiprocessing
 import os
 import signal
@@ -32,26 +31,19 @@ from rtloop.app.byvalue import children_without_main, dumps_runnable
 from rtloop.errors import AppError, DeviceError, DeviceMismatch, DeviceNotReady, NotRealTimeWarning, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.io.host import release_after_dead_task, safe_for_dead_task
-from rtloop.ipc.hotpath import announce_once, hot_path
+from rtloop.ipc.hotpath import announce_once
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
-from rtloop.ipc.wiring import nonfinite_fields
 from rtloop.linux import rt
 from rtloop.linux.lean import single_threaded_children
 from rtloop.record.summary import (
-    PortSummary,
     RunSummary,
-    TaskSummary,
-    limit_notes,
-    nonfinite_notes,
     not_real_time_notes,
-    signal_names,
-    slow_step_notes,
-    stale_device_notes,
 )
 from rtloop.runtime.bridges import Bridges
 from rtloop.runtime.evidence import MissWatch
 from rtloop.runtime.layout import AppLayout, device_wiring
 from rtloop.runtime.memory_watch import MemoryWatch
+from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
     STOP_SIGNALS,
@@ -588,65 +580,24 @@ class Supervisor:
         return str((RunState.DURATION if self.state is RunState.RUNNING else self.state).value)
 
     def _summary(self, capabilities: rt.Capabilities, *, running: bool) -> RunSummary:
-        session = self.session
-        layout, recorder = session.layout, session.recorder
-        tasks: dict[str, TaskSummary] = {}
-        for name, spec in self.app.tasks.items():
+        recorder = self.session.recorder
+        tasks: dict[str, TaskFacts] = {}
+        for name in self.app.tasks:
             task_run = self.runs.get(name)
             if running and task_run is not None:
                 self.memory.sample(name, task_run.process.pid, recorder.latest_ns)
-            status = layout.tasks[name].status
-            settings = task_run.settings if task_run else None
-            dropped = layout.tasks[name].timing.dropped
-            timing = recorder.timing_of(name)
-            if spec.config.overrun == "skip":
-                # The task's own count of the releases it skipped is the true one: timing.csv's gaps
-                # miss those after its last cycle (an overrun running into the run's end) and count
-                # lost records as if they were skips.
-                timing = dataclasses.replace(timing, overruns=status[StatusWord.OVERRUNS])
-            tasks[name] = TaskSummary(
-                period_ns=spec.config.period_ns,
-                priority=settings.priority if settings else 0,
-                cpu=spec.config.cpu,
-                policy=settings.policy if settings else "not started",
-                rt=settings.rt if settings else False,
-                rt_reason="; ".join(settings.reasons) if settings else "the task never started",
-                memory_locked=settings.memory_locked if settings else False,
-                timing=timing,
-                stale_reads=status[StatusWord.STALE_READS],
-                misses_in_a_row_max=status[StatusWord.MISSES_IN_A_ROW_MAX],
-                timing_samples_dropped=dropped,
-                **signal_names(spec.runnable),
-                **nonfinite_fields(status, layout.tasks[name].plan),
-                resident_bytes=self.memory.to_json(name),
-                input_limits=self._input_limits(name),
-            )
+            tasks[name] = TaskFacts(settings=task_run.settings if task_run else None,
+                                    resident_bytes=self.memory.to_json(name), input_limits=self._input_limits(name))
         bridges = self.bridges.summary() if self.bridges is not None else {}
-        return RunSummary(
-            app=self.app.name,
-            mode="run",
-            hot_path=hot_path(),
-            started=_iso((self.wall_t0_ns or time.time_ns()) / 1e9),
-            duration_s=self.duration_s,
-            rt_capable=capabilities.may_use_rt,
-            tasks=tasks,
-            ports=port_summaries(layout, recorder.latest_ns),
-            stopped_by=self._stopped_by(running),
-            failure=self.failure.to_json() if self.failure else None,
-            machine={**machine_facts(capabilities), "cpu_dma_latency_held": self.dma_latency_held},
-            notes=[*not_real_time_notes(tasks, requested_policies(self.app)),
-                   *slow_step_notes(tasks),
-                   *session.notes(self.bridges.note if self.bridges is not None else "", *self.device_problems),
-                   *nonfinite_notes(tasks), *stale_device_notes(self.device_reads),
-                   *limit_notes(tasks, self.device_reads), *self.memory.notes()],
-            devices=self.device_reads,
+        run = RunFacts(
+            mode="run", started_wall_ns=self.wall_t0_ns or time.time_ns(), duration_s=self.duration_s,
+            stopped_by=self._stopped_by(running), failure=self.failure.to_json() if self.failure else None,
+            notes=[self.bridges.note if self.bridges is not None else "", *self.device_problems,
+                   *self.snapshots.problems],
+            more_notes=self.memory.notes(), devices=self.device_reads,
             bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
-            elapsed_s=recorder.latest_ns / 1e9,
-            running=running,
-            recording={**recorder.to_json(), **session.losses.to_json()},
-            switches=recorder.switches.to_json(),
-            misses=self.misses.summary(final=not running),
-        )
+            machine={"cpu_dma_latency_held": self.dma_latency_held}, misses=self.misses.summary(final=not running))
+        return build_summary(self.session, tasks, run, running=running)
 
 
 def requested_policies(app: App) -> dict[str, str]:
@@ -773,45 +724,6 @@ def _end_task_strays(token: str, keep: set[int]) -> None:
     mark = f"{TASK_MARK_ENV}={os.getpid()}-{token}".encode()
     rt.end_strays(keep, only=lambda pid: _carries_mark(pid, mark))
 
-
-def port_summaries(layout: AppLayout, last_release_ns: int = 0) -> dict[str, PortSummary]:
-    """Traffic of every port; what a profile delivered counts its rows up to ``last_release_ns`` (since T0)."""
-    ports: dict[str, PortSummary] = {}
-    for name, spec in layout.app.ports.items():
-        if spec.direction == "in":
-            value = layout.input_ports[name]
-            ports[name] = PortSummary("in", str(spec.signal), value.writes, value.reads,
-                                      max(0, value.writes - value.reads), _feed_summary(layout, name, last_release_ns))
-        else:
-            queue = layout.output_ports[name]
-            ports[name] = PortSummary("out", str(spec.signal), queue.sent + queue.dropped,
-                                      queue.received, queue.dropped)
-    return ports
-
-
-def _feed_summary(layout: AppLayout, port: str, last_release_ns: int) -> dict[str, Any] | None:
-    """What a port's profile delivered: its rows whose time came by the last release recorded."""
-    spec = layout.app.ports[port]
-    link = next((link for link in layout.tasks[spec.signal.task].plan.input_ports if link.name == port), None)
-    if spec.feed is None or link is None or link.profile is None:
-        return None
-    delivered = sum(1 for t_ns in link.profile.t_ns if t_ns <= last_release_ns)
-    return {"file": str(spec.feed), "rows": len(link.profile.t_ns), "rows_delivered": delivered,
-            "nudge": link.nudge}
-
-
-def machine_facts(capabilities: rt.Capabilities) -> dict[str, Any]:
-    return {
-        "kernel": capabilities.kernel,
-        "preemption": capabilities.preemption_model,
-        "cpus": list(capabilities.cpus),
-        "isolated_cpus": list(capabilities.isolated_cpus),
-        "rt_permission": capabilities.rt_reason,
-    }
-
-
-def _iso(wall_s: float) -> str:
-    return dt.datetime.fromtimestamp(wall_s, tz=dt.UTC).isoformat(timespec="milliseconds")
 
 
 def _describe_exit(exitcode: int) -> str:
