@@ -246,3 +246,24 @@ def test_an_error_reading_clears_when_the_status_does() -> None:
     bus.servos[1].error_bits = 0
     device.read(y)
     assert y[6:8].tolist() == [0.0, 0.0]
+
+
+def test_the_tail_of_a_late_answer_does_not_spoil_the_next_reads() -> None:
+    """The input was flushed before a request while a late answer was still on its way: its tail comes
+    first. The read passes over it to the answers (it gave up at the first bad byte, and so did every
+    read after it: a flush, the tail of the answer it missed, again)."""
+    device = bus_device()
+    bus = attached(device)
+    y = np.zeros(device.n_outputs)
+    device.read(y)
+    late_tail = bus.receive(bytes(device.state.request))[5:]  # an answer cut by the flush
+    line = device.line
+    sent = line.send
+
+    def send_after_the_tail(data: Any) -> None:
+        line.pending += late_tail
+        sent(data)
+
+    line.send = send_after_the_tail
+    device.read(y)
+    assert device.stale_reads == 0 and not device.incomplete

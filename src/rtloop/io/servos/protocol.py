@@ -339,7 +339,7 @@ class SyncRead:
                                                         protocol.range_params(address, width) + bytes(ids))))
         self.slot = 1 + width
         self.clean = bytearray(len(ids) * self.slot)
-        self.raw = bytearray(len(ids) * protocol.max_status_bytes(width) + 64)
+        self.raw = bytearray(2 * len(ids) * protocol.max_status_bytes(width) + 64)  # room for a late answer's tail
         self.raw_view = memoryview(self.raw)
         self.received = np.zeros(len(ids), dtype=bool)
         self.errors = np.ndarray((len(ids),), dtype=np.uint8, buffer=self.clean, offset=0, strides=(self.slot,))
@@ -378,13 +378,14 @@ class SyncRead:
                 # process answers whatever the host's clock says, so a simulation never times out)
                 came = line.receive(self.raw_view[got:], deadline_ns - time.monotonic_ns())
                 if came == 0:
-                    self.problem = "no answer within timeout_ms"
+                    self.problem = "no answer within timeout_ms" + (" (and a bad packet)" if self.problem else "")
                     return count
                 got += came
                 continue
-            if size == BAD:
-                self.problem = f"bad packet ({scan.problem})"
-                return count
+            if size == BAD:  # the tail of a late answer the flush before this request missed, or noise:
+                self.problem = "bad packet"  # look for the next header (else every cycle after would start so)
+                start += 1
+                continue
             index = self.index_of[scan.servo_id]
             if index >= 0 and not received[index] and \
                     protocol.copy_params(raw, scan, self.clean, index * self.slot, self.slot):
