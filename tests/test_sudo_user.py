@@ -4,6 +4,7 @@ stays theirs. Runs as root, playing the sudo user with SUDO_UID/SUDO_GID."""
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -75,7 +76,10 @@ def test_new_folders_and_the_last_summary_belong_to_the_sudo_user(tmp_path: Path
 def test_a_sweeps_folders_and_table_belong_to_the_sudo_user(tmp_path: Path, under_sudo: None) -> None:
     from rtloop.toolbox.sweep import sweep
 
-    app_file = Path(__file__).parents[1] / "examples" / "dcmotor" / "dcmotor.toml"
+    # root's copy of the example: in a clone a real sudo user owns, the example is theirs, not uid 4242's
+    shutil.copytree(Path(__file__).parents[1] / "examples" / "dcmotor", tmp_path / "dcmotor",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    app_file = tmp_path / "dcmotor" / "dcmotor.toml"
     result = sweep(app_file, {"pi.kp": [0.05, 0.1]}, duration_s=0.1, out=tmp_path / "runs" / "sweep", processes=1)
     assert not [row["error"] for row in result.rows if row["error"]]
     out = tmp_path / "runs" / "sweep"
