@@ -157,7 +157,11 @@ class Segment:
                 if size_bytes <= 0:
                     raise SegmentRefused(f"{self.path} is empty; not an rtloop segment")
             self.size_bytes = size_bytes
-            self._map = mmap.mmap(fd, size_bytes)
+            # The run's creator (the supervisor) maps every page now: it touches them all as the rings
+            # and queues fill, and its resident size would otherwise grow for a minute or more (JIWY:
+            # +3.7 MiB in 90 s) with no memory taken from the machine (the tasks lock these pages).
+            populate = getattr(mmap, "MAP_POPULATE", 0) if create else 0
+            self._map = mmap.mmap(fd, size_bytes, flags=mmap.MAP_SHARED | populate)
         except BaseException:
             os.close(fd)
             raise

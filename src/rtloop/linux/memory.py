@@ -1,8 +1,11 @@
-"""The machine's available memory and a process's resident size, from /proc (None where unreadable)."""
+"""The machine's available memory and a process's resident size, from /proc (None where unreadable);
+giving the heap's free pages back to the kernel."""
 
 from __future__ import annotations
 
+import ctypes
 from pathlib import Path
+from typing import Any
 
 PROC = Path("/proc")
 
@@ -29,3 +32,23 @@ def available_bytes(proc: Path = PROC) -> int | None:
 def resident_bytes(pid: int | str = "self", proc: Path = PROC) -> int | None:
     """``VmRSS`` of a process: the memory it holds now."""
     return _kib_field(proc / str(pid) / "status", "VmRSS")
+
+
+_TRIM: list[Any] = []  # [malloc_trim] once looked up, [None] where the C library has none (musl)
+
+
+def give_back_free_heap() -> bool:
+    """glibc's ``malloc_trim(0)``: free pages anywhere in the heap go back to the kernel.
+
+    The supervisor drains batches of different sizes into numpy arrays and bytes: freed, their
+    pages stay with the process (glibc keeps them for reuse, in several arenas when threads
+    allocate), and its resident size creeps up for minutes (a 95 s soak: +2.7 MB). Called at every
+    summary rewrite (every 2 s) it keeps the resident size to what is in use; it costs about a
+    millisecond, outside any real-time task. Returns whether memory was given back."""
+    if not _TRIM:
+        function = getattr(ctypes.CDLL(None), "malloc_trim", None)  # the C library this process runs on
+        if function is not None:
+            function.argtypes, function.restype = [ctypes.c_size_t], ctypes.c_int
+        _TRIM.append(function)
+    function = _TRIM[0]
+    return bool(function(0)) if function is not None else False

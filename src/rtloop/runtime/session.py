@@ -42,6 +42,7 @@ from rtloop.app.builder import App, check_duration
 from rtloop.app.specs import WATCHDOG_MIN_S
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
+from rtloop.linux.memory import give_back_free_heap
 from rtloop.owners import output_folder_problem
 from rtloop.record.disk_room import check_room
 from rtloop.record.recorder import Recorder, give_to_invoking_user
@@ -421,6 +422,7 @@ class RunSession:
             return
         self._next_summary_s = now_s + self.limits.summary_interval_s
         self.summary_file.write(self.summarise(True))
+        give_back_free_heap()  # what the drains freed: the supervisor's resident size stays what it uses
 
     def drain(self, budget_s: float | None = None) -> bool:
         """Move what the tasks recorded into the recorder, in batches, for at most ``budget_s``.
