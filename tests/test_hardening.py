@@ -14,7 +14,8 @@ import pytest
 
 import rtloop
 from rtloop.app.appfile import load_app
-from rtloop.app.builder import MAX_DURATION_S, App, check_duration
+from rtloop.app.builder import App
+from rtloop.app.specs import MAX_DURATION_S, check_duration
 from rtloop.cli.main import main
 from rtloop.errors import AppError, PortValueError
 from rtloop.ipc.ports import connect_app

@@ -76,9 +76,9 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.app import sources
-from rtloop.app.builder import App, parse_signal, too_many_tasks
+from rtloop.app.builder import App, parse_signal
 from rtloop.app.modules import ModuleRefused, check_model_files, installed_origin, load_module_file, module_beside
-from rtloop.app.specs import DEFAULT_WATCHDOG_PERIODS, MAX_TASKS
+from rtloop.app.specs import DEFAULT_WATCHDOG_PERIODS, MAX_TASKS, too_many_tasks
 from rtloop.errors import AppError, AppFileError, DeviceError, RtloopError
 from rtloop.io.device import build_device, device_class
 from rtloop.runnable import Runnable

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import re
 import warnings
 from dataclasses import dataclass, field
@@ -31,7 +30,6 @@ from rtloop.app.plots import PlotSpec, check_unit
 from rtloop.app.profiles import check_profile_file
 from rtloop.app.specs import (
     DEFAULT_WATCHDOG_PERIODS,
-    MAX_DURATION_S,
     MAX_PERIOD_NS,
     MAX_PORT_CAPACITY,
     MAX_TASKS,
@@ -49,9 +47,13 @@ from rtloop.app.specs import (
     SignalVector,
     TaskConfig,
     TaskSpec,
-    ValueRange,
+    check_cpu,
+    check_number,
+    check_range,
     check_twin,
+    range_of_value,
     resolve_limits,
+    too_many_tasks,
 )
 from rtloop.app.step_check import warn_about_step
 from rtloop.errors import AppError, ConnectionSizeError, DeviceError
@@ -125,7 +127,7 @@ class App:
             raise AppError(f"{where}: priority {priority!r}; expected an integer {low}–99 for {policy}")
         if policy in ("other", "deadline"):
             priority = 0
-        _check_cpu(where, cpu, policy)
+        check_cpu(where, cpu, policy)
         if overrun not in OVERRUN_POLICIES:
             raise AppError(f"{where}: overrun {overrun!r}; expected one of {OVERRUN_POLICIES}")
         if not isinstance(watchdog_periods, int) or isinstance(watchdog_periods, bool) or watchdog_periods < 0:
@@ -163,7 +165,7 @@ class App:
     def pin_all(self, cpu: int) -> None:
         """Pin every task to ``cpu`` (e.g. the isolated core of a Raspberry Pi)."""
         for spec in self.tasks.values():
-            _check_cpu(f"task {spec.name!r}", cpu, spec.config.policy)
+            check_cpu(f"task {spec.name!r}", cpu, spec.config.policy)
         for spec in self.tasks.values():
             spec.config = dataclasses.replace(spec.config, cpu=cpu)
 
@@ -314,11 +316,11 @@ class App:
                 raise AppError(f"{what}: to={ref} must be a task input (u)")
             self._check_single_writer(ref, what)
             initial_values = None
-            checked_range = _check_range(what, value_range, ref.size)
+            checked_range = check_range(what, value_range, ref.size)
             if initial is not None:
                 if len(initial) != ref.size:
                     raise ConnectionSizeError(f"{what}: initial has {len(initial)} values, {ref} has {ref.size}")
-                initial_values = tuple(_number(what, "initial", v) for v in initial)
+                initial_values = tuple(check_number(what, "initial", v) for v in initial)
                 if not allow_nonfinite and not all(math.isfinite(v) for v in initial_values):
                     raise AppError(f"{what}: initial {shorten(list(initial_values))} holds NaN or inf: the task would "
                                    "read it at cycle 0 (allow_nonfinite = true on the port lets it through)")
@@ -385,7 +387,7 @@ class App:
         ``value_range=(lo, hi)``: messages with a value outside it are rejected and counted, like NaN
         (the port's own range, if any, applies too).
         """
-        checked = _check_range(f"ros subscribe {shorten(topic)}", value_range)
+        checked = check_range(f"ros subscribe {shorten(topic)}", value_range)
         topic_spec = self._ros("subscribe", topic, port, msg_type, qos, (), 1, domain_id)
         if checked is not None:
             self.ros_topics[-1] = topic_spec = dataclasses.replace(topic_spec, value_range=checked)
@@ -496,72 +498,6 @@ class App:
             except Exception as error:
                 raise DeviceError(name, self.source, "", f"cannot be sent to task {device.task!r}'s process "
                                   f"({error}); a driver opens its interface in configure(), not __init__") from None
-
-
-def too_many_tasks(count: int) -> str:
-    """The refusal of an app of ``count`` tasks (more than :data:`MAX_TASKS`)."""
-    return (f"{count} tasks; an app has at most {MAX_TASKS} (each task is a process that locks its memory): "
-            "let one task step several runnables, or split the app")
-
-
-def check_duration(duration_s: float) -> float:
-    """A run's length: a finite number of seconds, more than 0 and at most :data:`MAX_DURATION_S`."""
-    if isinstance(duration_s, bool) or not isinstance(duration_s, int | float) \
-            or not 0 < duration_s <= MAX_DURATION_S:
-        raise AppError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} seconds, "
-                       f"got {shorten(duration_s)}")
-    return float(duration_s)
-
-
-def _number(what: str, key: str, value: object) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise AppError(f"{what}: {key} must hold numbers, got {shorten(value)}")
-    try:
-        return float(value)
-    except OverflowError:
-        raise AppError(f"{what}: {key} value {shorten(value)} does not fit a float64") from None
-
-
-def _check_range(what: str, value_range: object, size: int | None = None) -> ValueRange | None:
-    """``[lo, hi]`` for every value, or (a port of ``size`` values) ``[[lo, hi], ...]``, one pair per
-    value: a port of gains in different units needs a bound of its own for each."""
-    if value_range is None:
-        return None
-    if size is not None and isinstance(value_range, list | tuple) and value_range \
-            and all(isinstance(pair, list | tuple) for pair in value_range):
-        if len(value_range) != size:
-            raise AppError(f"{what}: range has {len(value_range)} [lo, hi] pairs, the port has {size} values")
-        pairs = [_check_pair(f"{what}: range[{index}]", pair) for index, pair in enumerate(value_range)]
-        return tuple(pair[0] for pair in pairs), tuple(pair[1] for pair in pairs)
-    return _check_pair(what, value_range, " or one [lo, hi] per value" if size is not None and size > 1 else "")
-
-
-def _check_pair(what: str, value_range: object, one_per_value: str = "") -> tuple[float, float]:
-    """One ``[lo, hi]``: two finite numbers, lo ≤ hi."""
-    if not isinstance(value_range, list | tuple) or len(value_range) != 2:
-        raise AppError(f"{what}: range must be [lo, hi]{one_per_value}, got {shorten(value_range)}")
-    low, high = (_number(what, "range", v) for v in value_range)
-    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-        raise AppError(f"{what}: range [{low!r}, {high!r}] must be finite with lo ≤ hi")
-    return low, high
-
-
-def range_of_value(value_range: ValueRange, index: int) -> tuple[float, float]:
-    """The ``(lo, hi)`` that value ``index`` of a port must lie in."""
-    low, high = value_range
-    return (low[index] if isinstance(low, tuple) else low, high[index] if isinstance(high, tuple) else high)
-
-
-def _check_cpu(where: str, cpu: int | None, policy: str) -> None:
-    """A CPU this process may run on, and not for SCHED_DEADLINE (the kernel refuses to pin those)."""
-    if cpu is None:
-        return
-    available = sorted(os.sched_getaffinity(0))
-    if not isinstance(cpu, int) or cpu not in available:
-        raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
-    if policy == "deadline":
-        raise AppError(f"{where}: a SCHED_DEADLINE task cannot be pinned to one CPU (the kernel refuses); "
-                       "leave cpu unset, or use fifo/rr to pin it")
 
 
 def parse_signal(text: str, app: App, where: str) -> SignalRef:

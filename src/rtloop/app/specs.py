@@ -6,6 +6,7 @@ makes them (each checked as it is added); everything that runs an app reads them
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -299,3 +300,69 @@ def resolve_limits(name: str, source: str, device: Device,
         raise DeviceError(name, source, f"limits.{missing_commands[0]}",
                           "missing; every command needs min, max and a safe value (written when the run ends)")
     return tuple(limits[c] for c in commands)
+
+
+def too_many_tasks(count: int) -> str:
+    """The refusal of an app of ``count`` tasks (more than :data:`MAX_TASKS`)."""
+    return (f"{count} tasks; an app has at most {MAX_TASKS} (each task is a process that locks its memory): "
+            "let one task step several runnables, or split the app")
+
+
+def check_duration(duration_s: float) -> float:
+    """A run's length: a finite number of seconds, more than 0 and at most :data:`MAX_DURATION_S`."""
+    if isinstance(duration_s, bool) or not isinstance(duration_s, int | float) \
+            or not 0 < duration_s <= MAX_DURATION_S:
+        raise AppError(f"duration must be more than 0 and at most {MAX_DURATION_S:g} seconds, "
+                       f"got {shorten(duration_s)}")
+    return float(duration_s)
+
+
+def check_number(what: str, key: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise AppError(f"{what}: {key} must hold numbers, got {shorten(value)}")
+    try:
+        return float(value)
+    except OverflowError:
+        raise AppError(f"{what}: {key} value {shorten(value)} does not fit a float64") from None
+
+
+def check_range(what: str, value_range: object, size: int | None = None) -> ValueRange | None:
+    """``[lo, hi]`` for every value, or (a port of ``size`` values) ``[[lo, hi], ...]``, one pair per
+    value: a port of gains in different units needs a bound of its own for each."""
+    if value_range is None:
+        return None
+    if size is not None and isinstance(value_range, list | tuple) and value_range \
+            and all(isinstance(pair, list | tuple) for pair in value_range):
+        if len(value_range) != size:
+            raise AppError(f"{what}: range has {len(value_range)} [lo, hi] pairs, the port has {size} values")
+        pairs = [check_pair(f"{what}: range[{index}]", pair) for index, pair in enumerate(value_range)]
+        return tuple(pair[0] for pair in pairs), tuple(pair[1] for pair in pairs)
+    return check_pair(what, value_range, " or one [lo, hi] per value" if size is not None and size > 1 else "")
+
+
+def check_pair(what: str, value_range: object, one_per_value: str = "") -> tuple[float, float]:
+    """One ``[lo, hi]``: two finite numbers, lo ≤ hi."""
+    if not isinstance(value_range, list | tuple) or len(value_range) != 2:
+        raise AppError(f"{what}: range must be [lo, hi]{one_per_value}, got {shorten(value_range)}")
+    low, high = (check_number(what, "range", v) for v in value_range)
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+        raise AppError(f"{what}: range [{low!r}, {high!r}] must be finite with lo ≤ hi")
+    return low, high
+
+
+def range_of_value(value_range: ValueRange, index: int) -> tuple[float, float]:
+    """The ``(lo, hi)`` that value ``index`` of a port must lie in."""
+    low, high = value_range
+    return (low[index] if isinstance(low, tuple) else low, high[index] if isinstance(high, tuple) else high)
+
+
+def check_cpu(where: str, cpu: int | None, policy: str) -> None:
+    """A CPU this process may run on, and not for SCHED_DEADLINE (the kernel refuses to pin those)."""
+    if cpu is None:
+        return
+    available = sorted(os.sched_getaffinity(0))
+    if not isinstance(cpu, int) or cpu not in available:
+        raise AppError(f"{where}: cpu {cpu!r} is not one of this machine's CPUs {available}")
+    if policy == "deadline":
+        raise AppError(f"{where}: a SCHED_DEADLINE task cannot be pinned to one CPU (the kernel refuses); "
+                       "leave cpu unset, or use fifo/rr to pin it")

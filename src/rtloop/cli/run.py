@@ -62,7 +62,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``rtloop run`` or ``rtloop simulate`` (``args.command``): the run, then its summary table."""
     from rtloop.app.appfile import load_app
-    from rtloop.app.builder import check_duration
+    from rtloop.app.specs import check_duration
 
     if args.duration is not None:  # without one, a run lasts until SIGINT or SIGTERM
         check_duration(args.duration)

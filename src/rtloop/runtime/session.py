@@ -38,8 +38,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rtloop.app.builder import App, check_duration
-from rtloop.app.specs import WATCHDOG_MIN_S
+from rtloop.app.builder import App
+from rtloop.app.specs import WATCHDOG_MIN_S, check_duration
 from rtloop.errors import AppError
 from rtloop.ipc.status import ControlWord
 from rtloop.linux.memory import give_back_free_heap

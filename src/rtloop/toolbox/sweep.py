@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from rtloop.app.builder import App, check_duration
+from rtloop.app.builder import App
+from rtloop.app.specs import check_duration
 from rtloop.errors import AppError, RtloopError
 from rtloop.owners import output_folder_problem
 from rtloop.record.disk_room import check_room
