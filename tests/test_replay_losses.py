@@ -150,8 +150,8 @@ def test_unlogged_port_values_dropped_reads_and_a_stopped_recording_are_named(tm
         "the run took 1 values from ports of controller that it did not log (recording.lost.inputs: its input log "
         "was full): the replay cannot feed them, and the run does not say when they came, so rows may differ from "
         "then on",
-        "the run's read log of plant dropped 4 stale reads (recording.reads_dropped: ring full): the replay reads "
-        "what logical execution time promised there instead",
+        "the run's read log of plant dropped 4 stale connection reads (recording.reads_dropped: ring full): the "
+        "replay reads what logical execution time promised there instead",
         "the recording stopped during the run (disk full): its files end there (timing.csv holds every task up to "
         "t = 0.2 s), what was recorded is replayed and compared, the rest of the run is not")
     assert result.divergence is not None and result.divergence.task == "controller", "the unlogged write shows"
@@ -175,7 +175,8 @@ def test_the_cli_says_what_was_lost_and_exits_1_a_garbled_count_is_bad_input(tmp
     assert "equal where it kept their values" in done.stderr and "not called equal" in done.stderr
     assert "  lost: signals.csv: 1 rows from t = " in done.stderr
     # the run may skip a release when the machine stalls it (1 kHz): the replay follows it, and says so
-    assert re.search(r"\(\d+ skipped releases?, 0 stale reads and 0 port inputs followed\)", done.stderr), done.stderr
+    followed = r"\(\d+ skipped releases?, 0 stale connection reads and 0 port inputs followed\)"
+    assert re.search(followed, done.stderr), done.stderr
     _lose(tmp_path / "run", signal_rows={"a": "many"})
     done = subprocess.run([*cli, "replay", str(tmp_path / "run"), "--out", str(tmp_path / "again")], env=env,
                           capture_output=True, text=True, timeout=300)

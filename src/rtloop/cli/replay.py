@@ -24,7 +24,8 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.text import counted
 
     result = replay(args.run_dir, args.out, force=args.force)
-    followed = (f"{counted(result.skipped_releases, 'skipped release')}, {counted(result.stale_reads, 'stale read')} "
+    followed = (f"{counted(result.skipped_releases, 'skipped release')}, "
+                f"{counted(result.stale_reads, 'stale connection read')} "
                 f"and {counted(result.port_inputs, 'port input')} followed")
     for note in result.notes:
         print(f"note: {note}", file=sys.stderr)

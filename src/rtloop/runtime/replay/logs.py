@@ -211,8 +211,9 @@ def lost_on_the_way(recording: dict[str, Any], run_dir: Path, recorded_until_ns:
                     "its input log was full): the replay cannot feed them, and the run does not say when they "
                     "came, so rows may differ from then on")
     for task, count in (recording.get("reads_dropped") or {}).items():
-        lost.append(f"the run's read log of {task} dropped {count} stale reads (recording.reads_dropped: ring "
-                    "full): the replay reads what logical execution time promised there instead")
+        lost.append(f"the run's read log of {task} dropped {count} stale connection reads "
+                    "(recording.reads_dropped: ring full): the replay reads what logical execution time promised "
+                    "there instead")
     if recording.get("stopped"):
         until = f" (timing.csv holds every task up to t = {recorded_until_ns / 1e9!r} s)" if recorded_until_ns else ""
         lost.append(f"the recording stopped during the run ({recording['stopped']}): its files end there{until}, "
