@@ -82,7 +82,7 @@ def test_the_watchdog_names_a_stopped_process_as_stopped() -> None:
     import signal
     import time
 
-    from rtloop.runtime.supervisor import _why_stuck
+    from rtloop.linux.hygiene import why_stuck as _why_stuck
 
     sleeper = subprocess.Popen(["sleep", "30"])
     try:

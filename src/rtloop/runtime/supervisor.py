@@ -21,7 +21,7 @@ import signal
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +34,14 @@ from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, publish_epoch
 from rtloop.linux import rt
+from rtloop.linux.hygiene import (
+    SUPERVISOR_PRIORITY,
+    adopting_orphans,
+    describe_exit,
+    marked_environment,
+    serving_below_real_time_tasks,
+    why_stuck,
+)
 from rtloop.linux.lean import single_threaded_children
 from rtloop.record.summary import (
     RunSummary,
@@ -57,8 +65,6 @@ from rtloop.runtime.task import STEP_STUCK, task_process_main
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
 UNTIL_STOPPED_NS = 1 << 62  # the end time of a run without a duration: never
-TASK_MARK_ENV = "RTLOOP_TASK_OF_RUN"
-"""Set in each task process's environment (and so in whatever it starts): what the cleanup may end."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,18 +111,6 @@ def startup_allowance_s(default_s: float) -> float:
     return seconds
 
 
-
-def _why_stuck(pid: int) -> str:
-    """Why a task's cycles stand still, as /proc says: stopped (SIGSTOP, a debugger), or a stuck step."""
-    try:
-        with open(f"/proc/{pid}/stat") as stat:
-            state = stat.read().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        state = ""
-    if state in ("T", "t"):
-        return ("its process is stopped (state T: SIGSTOP, Ctrl-Z or a debugger), not running its step" if state == "T"
-                else "its process is stopped by a debugger (state t)")
-    return "the step is stuck (a blocking call or an endless loop)"
 
 class Supervisor:
     def __init__(self, app: App, duration_s: float | None, out: Path, *, trim: int,
@@ -199,15 +193,23 @@ class Supervisor:
         if self.trace_misses:  # the kernel's scheduler and IRQ events on the tasks' CPUs, or one line why not
             self.device_problems += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
         self.bridges = Bridges(self.app)
-        dma_latency = rt.CpuDmaLatency().__enter__()
-        self.dma_latency_held = dma_latency.held  # read now: the summary is written after it is let go
-        was_subreaper = _is_subreaper()
-        children_before = _adopt_orphans()
-        previous_scheduling = None
-        try:
+        configs = [task.config for task in self.app.tasks.values()]
+        above = all(c.policy == "deadline" or (c.policy in ("fifo", "rr") and c.priority > SUPERVISOR_PRIORITY)
+                    for c in configs)
+        # Whatever is opened here is closed on every way out, in the reverse order (trio's nursery).
+        with contextlib.ExitStack() as resources:
+            resources.callback(self._ended_by_duration_unless_said)
+            resources.enter_context(adopting_orphans(layout.token))  # the strays of the tasks end with the run
+            resources.enter_context(serving_below_real_time_tasks(above, capabilities.may_use_rt))
+            resources.callback(release_after_dead_task, self.held_for_dead_tasks)
+            resources.callback(self._end_processes, layout)
+            self.dma_latency_held = resources.enter_context(rt.CpuDmaLatency()).held  # read now: for the summary
+            resources.callback(self._close_live_view)
+            resources.callback(self.bridges.stop)
+            resources.callback(self.misses.close)
+            resources.callback(self.snapshots.close)
             self._open_live_view(session)
             self._spawn(layout)
-            previous_scheduling = _serve_below_the_tasks(self.app, capabilities)
             assert layout.registry_path is not None
             self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
             self._wait_until_ready(layout)
@@ -221,29 +223,25 @@ class Supervisor:
             self._join(layout)
             session.drain_after_stop(self.limits.stop_drain_budget_s)
             self._keep_snapshots(layout, recorder)
-        finally:
-            self.snapshots.close()
-            self.misses.close()
-            self.bridges.stop()
-            if self.live is not None:
-                self.live.close()
-            dma_latency.__exit__()
-            layout.control[ControlWord.STOP] = 1
-            for task_run in self.runs.values():
-                if task_run.process.is_alive():
-                    task_run.process.kill()
-                    task_run.process.join()
-                    self._devices_safe_after_death(task_run)
+
+    def _end_processes(self, layout: AppLayout) -> None:
+        """Every task stopped, a process still alive killed (its devices made safe from here), each let go."""
+        layout.control[ControlWord.STOP] = 1
+        for task_run in self.runs.values():
+            if task_run.process.is_alive():
+                task_run.process.kill()
                 task_run.process.join()
-                _let_go_of_process(task_run)
-            release_after_dead_task(self.held_for_dead_tasks)
-            if previous_scheduling is not None:
-                os.sched_setscheduler(0, *previous_scheduling)
-            _end_task_strays(layout.token, keep=children_before | _resource_tracker())
-            if not was_subreaper:
-                _stop_adopting()
-            if self.state is RunState.RUNNING:
-                self.state = RunState.DURATION
+                self._devices_safe_after_death(task_run)
+            task_run.process.join()
+            _let_go_of_process(task_run)
+
+    def _close_live_view(self) -> None:
+        if self.live is not None:
+            self.live.close()
+
+    def _ended_by_duration_unless_said(self) -> None:
+        if self.state is RunState.RUNNING:
+            self.state = RunState.DURATION
 
     def _open_live_view(self, session: RunSession) -> None:
         """Start the Foxglove server if the app asks for one (in this non-real-time process)."""
@@ -279,7 +277,7 @@ class Supervisor:
             )
             # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
             try:
-                with single_threaded_children(), children_without_main(), _marked_environment(layout.token):
+                with single_threaded_children(), children_without_main(), marked_environment(layout.token):
                     process.start()
             except BaseException:
                 reader.close()
@@ -389,7 +387,7 @@ class Supervisor:
             self.failure = TaskFailed(
                 task_run.name, self._cycle_after(task_run.name, recorder), "step",
                 f"watchdog: no cycle finished for {quiet_ns / 1e9:.1f} s ({config.watchdog_periods} periods); "
-                f"{_why_stuck(task_run.process.pid)}",
+                f"{why_stuck(task_run.process.pid)}",
             )
             self.state = RunState.WATCHDOG
             layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
@@ -462,7 +460,7 @@ class Supervisor:
             if task_run.failure is None and process.exitcode != 0:
                 phase, cycle = self._phase_of(layout, task_run.name)
                 task_run.failure = TaskFailed(
-                    task_run.name, cycle, phase, f"task process died: {_describe_exit(process.exitcode)}"
+                    task_run.name, cycle, phase, f"task process died: {describe_exit(process.exitcode)}"
                 )
             if task_run.failure is not None:
                 self._fail(task_run.failure)
@@ -478,7 +476,7 @@ class Supervisor:
         """Write the safe values of a killed task's devices from here, where their interface allows."""
         wirings = device_wiring(self.app, task_run.name)
         if wirings:
-            why = f"was {_describe_exit(task_run.process.exitcode)}"
+            why = f"was {describe_exit(task_run.process.exitcode)}"
             self.device_problems += safe_for_dead_task(task_run.name, wirings, why)
             self.held_for_dead_tasks += wirings
 
@@ -620,31 +618,6 @@ def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
     return int(following)
 
 
-SUPERVISOR_PRIORITY = 1
-
-
-def _serve_below_the_tasks(app: App, capabilities: rt.Capabilities) -> tuple[int, os.sched_param] | None:
-    """Run this thread at SCHED_FIFO 1 while every task is real-time above it; returns what to restore.
-
-    Busy real-time tasks leave the rest of the machine the crumbs (RT throttling: 5 %), shared
-    with every SCHED_OTHER process: the supervisor then could not serve Ctrl-C, the watchdog or
-    the recording. At the lowest real-time priority it runs whenever the tasks sleep and never
-    delays one of them. Children (bridges) start as SCHED_OTHER (reset on fork). Not done when a
-    task is SCHED_OTHER (the supervisor would starve it) or shares priority 1.
-    """
-    configs = [task.config for task in app.tasks.values()]
-    above = all(c.policy == "deadline" or (c.policy in ("fifo", "rr") and c.priority > SUPERVISOR_PRIORITY)
-                for c in configs)
-    if not capabilities.may_use_rt or not above:
-        return None
-    previous = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(SUPERVISOR_PRIORITY))
-    except OSError:
-        return None
-    return previous
-
-
 def _let_go_of_process(task_run: _TaskRun) -> None:
     """Close what a joined task process holds open here (its pipe, its exit sentinel): a library's
     caller runs many apps in one process and must not run out of file descriptors."""
@@ -658,81 +631,6 @@ def _print_notice(text: str) -> None:
 
     sys.stderr.write(f"\nrtloop: {text}\n")
     sys.stderr.flush()
-
-
-def _is_subreaper() -> bool:
-    try:
-        return rt.is_subreaper()
-    except OSError:
-        return False
-
-
-def _adopt_orphans() -> set[int]:
-    """Become the subreaper of what the tasks start (for this run only); returns the children that existed before."""
-    try:
-        rt.become_subreaper()
-    except OSError:
-        pass  # an old kernel: task processes still end their own strays
-    return rt.child_pids()
-
-
-def _stop_adopting() -> None:
-    """Give the caller back what it was: a library's caller does not stay a subreaper after a run."""
-    try:
-        rt.become_subreaper(False)
-    except OSError:
-        pass
-
-
-@contextlib.contextmanager
-def _marked_environment(token: str) -> Iterator[None]:
-    """The task process starts with a mark in its environment that its descendants inherit."""
-    previous = os.environ.get(TASK_MARK_ENV)
-    os.environ[TASK_MARK_ENV] = f"{os.getpid()}-{token}"
-    try:
-        yield
-    finally:
-        if previous is None:
-            os.environ.pop(TASK_MARK_ENV, None)
-        else:
-            os.environ[TASK_MARK_ENV] = previous
-
-
-def _resource_tracker() -> set[int]:
-    """multiprocessing's helper process (a child of ours, started with the first task: it carries the mark)."""
-    from multiprocessing import resource_tracker
-
-    pid = getattr(resource_tracker._resource_tracker, "_pid", None)
-    return {pid} if pid else set()
-
-
-def _carries_mark(pid: int, mark: bytes) -> bool:
-    try:
-        with open(f"/proc/{pid}/environ", "rb") as file:
-            return mark in file.read().split(b"\0")
-    except OSError:
-        return False
-
-
-def _end_task_strays(token: str, keep: set[int]) -> None:
-    """SIGKILL what the tasks left running (orphans adopted here), never a child the caller started itself.
-
-    Only children that carry this run's mark in their environment are ended: the task processes
-    and whatever they started (a program started with a wiped environment escapes this and
-    is reparented to init, as without rtloop).
-    """
-    mark = f"{TASK_MARK_ENV}={os.getpid()}-{token}".encode()
-    rt.end_strays(keep, only=lambda pid: _carries_mark(pid, mark))
-
-
-
-def _describe_exit(exitcode: int) -> str:
-    if exitcode < 0:
-        try:
-            return f"killed by {signal.Signals(-exitcode).name}"
-        except ValueError:
-            return f"killed by signal {-exitcode}"
-    return f"exit code {exitcode}"
 
 
 def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, keep_s: float | None = None,

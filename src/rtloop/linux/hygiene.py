@@ -1,0 +1,133 @@
+"""Process hygiene of a run: nothing a task starts outlives the app, and the caller gets back what it was.
+
+The supervisor becomes the child subreaper for the run only (orphans of what the tasks start are
+reparented to it), marks each task process's environment (inherited by whatever the task starts),
+and at the end kills the children that carry this run's mark — never a child the caller started
+itself. Also here: what /proc says of a task that stands still, and the supervisor's own
+scheduling while busy real-time tasks would leave it only crumbs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+from collections.abc import Iterator
+
+from rtloop.linux import rt
+
+TASK_MARK_ENV = "RTLOOP_TASK_OF_RUN"
+"""Set in each task process's environment (and so in whatever it starts): what the cleanup may end."""
+SUPERVISOR_PRIORITY = 1
+
+
+@contextlib.contextmanager
+def adopting_orphans(token: str) -> Iterator[None]:
+    """For the run (``token``): become the subreaper of what the tasks start; on the way out end the
+    marked children left (never one that existed before) and give the caller back its subreaper state."""
+    try:
+        was_subreaper = rt.is_subreaper()
+    except OSError:
+        was_subreaper = False
+    with contextlib.suppress(OSError):  # an old kernel: task processes still end their own strays
+        rt.become_subreaper()
+    children_before = rt.child_pids()
+    try:
+        yield
+    finally:
+        end_marked_strays(token, keep=children_before | _resource_tracker())
+        if not was_subreaper:  # a library's caller does not stay a subreaper after a run
+            with contextlib.suppress(OSError):
+                rt.become_subreaper(False)
+
+
+def task_mark(token: str) -> str:
+    return f"{os.getpid()}-{token}"
+
+
+@contextlib.contextmanager
+def marked_environment(token: str) -> Iterator[None]:
+    """A process started in the block starts with this run's mark in its environment (its descendants inherit it)."""
+    previous = os.environ.get(TASK_MARK_ENV)
+    os.environ[TASK_MARK_ENV] = task_mark(token)
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop(TASK_MARK_ENV, None)
+        else:
+            os.environ[TASK_MARK_ENV] = previous
+
+
+def end_marked_strays(token: str, keep: set[int]) -> None:
+    """SIGKILL what the tasks left running (orphans adopted here), never a child the caller started itself.
+
+    Only children that carry this run's mark in their environment are ended: the task processes
+    and whatever they started (a program started with a wiped environment escapes this and
+    is reparented to init, as without rtloop).
+    """
+    mark = f"{TASK_MARK_ENV}={task_mark(token)}".encode()
+    rt.end_strays(keep, only=lambda pid: _carries_mark(pid, mark))
+
+
+def _resource_tracker() -> set[int]:
+    """multiprocessing's helper process (a child of ours, started with the first task: it carries the mark)."""
+    from multiprocessing import resource_tracker
+
+    pid = getattr(resource_tracker._resource_tracker, "_pid", None)
+    return {pid} if pid else set()
+
+
+def _carries_mark(pid: int, mark: bytes) -> bool:
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as file:
+            return mark in file.read().split(b"\0")
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def serving_below_real_time_tasks(all_tasks_above: bool, may_use_rt: bool) -> Iterator[None]:
+    """Run this thread at SCHED_FIFO 1 in the block when every task is real-time above it.
+
+    Busy real-time tasks leave the rest of the machine the crumbs (RT throttling: 5 %), shared
+    with every SCHED_OTHER process: the supervisor then could not serve Ctrl-C, the watchdog or
+    the recording. At the lowest real-time priority it runs whenever the tasks sleep and never
+    delays one of them. Children (bridges) start as SCHED_OTHER (reset on fork). Not done when a
+    task is SCHED_OTHER (the supervisor would starve it) or shares priority 1.
+    """
+    previous = None
+    if may_use_rt and all_tasks_above:
+        previous = os.sched_getscheduler(0), os.sched_getparam(0)
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(SUPERVISOR_PRIORITY))
+        except OSError:
+            previous = None
+    try:
+        yield
+    finally:
+        if previous is not None:
+            os.sched_setscheduler(0, *previous)
+
+
+def why_stuck(pid: int) -> str:
+    """Why a task's cycles stand still, as /proc says: stopped (SIGSTOP, a debugger), or a stuck step."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            state = stat.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        state = ""
+    if state in ("T", "t"):
+        return ("its process is stopped (state T: SIGSTOP, Ctrl-Z or a debugger), not running its step" if state == "T"
+                else "its process is stopped by a debugger (state t)")
+    return "the step is stuck (a blocking call or an endless loop)"
+
+
+def describe_exit(exitcode: int) -> str:
+    """A process's exit as words: ``killed by SIGKILL``, ``exit code 3``."""
+    if exitcode < 0:
+        try:
+            return f"killed by {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
