@@ -8,7 +8,8 @@
  * io/bytelayout.py ByteLayout.pack_into/unpack_from, CanReceiver (cansocket.c) <->
  * io/cansocket.py CanSocket._drain, CanCycle (can.c) <-> io/can.py CanDevice.write/read (with
  * CanSocket.receive_cycle), GpioLines (gpio.c) <-> io/gpio.py GpioDevice.write/read, SpiFrame
- * (spi.c) <-> io/spi.py SpiDevice with io/spiframe.py. This file includes them all (one
+ * (spi.c) <-> io/spi.py SpiDevice with io/spiframe.py, DriveRun (drive.c) <-> io/drives/cycle.py
+ * DriveCycle's running cycle. This file includes them all (one
  * translation unit) and makes the module. Same arithmetic in the same order, so the results are
  * bit for bit the Python ones. Every buffer a cycle touches is acquired once, when the
  * object is built; a cycle allocates nothing. Built by pip with the system compiler
@@ -37,6 +38,7 @@
 #include "devio_c/can.c"
 #include "devio_c/gpio.c"
 #include "devio_c/spi.c"
+#include "devio_c/drive.c"
 
 /* crc16_ccitt(data) -> the frame's CRC (for the tests: the same as binascii.crc_hqx(data, 0xFFFF)). */
 static PyObject *devio_crc16_ccitt(PyObject *module, PyObject *data) {
@@ -62,8 +64,9 @@ static struct PyModuleDef devio_module = {
 
 PyMODINIT_FUNC PyInit__devio(void) {
     PyTypeObject *types[] = {&GuardType,     &CopiesType,    &LayoutType,  &CanReceiverType,
-                             &CanCycleType,  &GpioLinesType, &SpiFrameType};
-    const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame"};
+                             &CanCycleType,  &GpioLinesType, &SpiFrameType, &DriveRunType};
+    const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame",
+                           "DriveRun"};
     crc16_table_build();
     PyObject *errors = PyImport_ImportModule("rtloop.errors");
     if (errors == NULL) {
@@ -85,7 +88,7 @@ PyMODINIT_FUNC PyInit__devio(void) {
         Py_DECREF(module);
         return NULL;
     }
-    for (int i = 0; i < 7; i++) {
+    for (int i = 0; i < 8; i++) {
         if (PyType_Ready(types[i]) < 0) {
             Py_DECREF(module);
             return NULL;

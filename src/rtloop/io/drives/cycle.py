@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from rtloop.errors import DeviceFault
 from rtloop.io.bytelayout import FloatView
 from rtloop.io.drives import cia402
@@ -122,6 +124,11 @@ class DriveCycle:
         self.in_buffer: Any = None
         self.enabled = False
         self.exchanges = 0
+        self._fast: Any = None  # the running cycle in C (io/devio_c/drive.c DriveRun), once every drive is enabled
+        self._fast_u: Any = None
+        self._fast_y: Any = None
+        self._fast_used = False
+        self._last_u: Any = None
         """Exchanges since activate (named in faults: the drive's cycle)."""
 
     @property
@@ -136,6 +143,7 @@ class DriveCycle:
         """Outputs of joint after joint from ``out_buffer[out_at]``, inputs from ``in_buffer[in_at]``
         (SOEM's layout: every slave's outputs, then every slave's inputs)."""
         self.out_buffer, self.in_buffer = out_buffer, in_buffer
+        self._fast = None
         for joint in self.joints:
             joint.out_at, joint.in_at = out_at, in_at
             out_at += joint.rx.size
@@ -148,6 +156,7 @@ class DriveCycle:
     # --- before the exchange ----------------------------------------------------------------------
     def safe_outputs(self) -> bool:
         """The next step of the safe transition for every joint; True once all are disabled."""
+        self._from_fast()
         done = True
         for joint in self.joints:
             word = joint.machine.stopping_controlword(joint.statusword)
@@ -160,6 +169,19 @@ class DriveCycle:
 
     def prepare_outputs(self, u: Any) -> None:
         """Controlwords, modes and targets for this cycle's exchange (``u``: the device's commands)."""
+        fast = self._fast
+        if fast is not None and u is self._fast_u and self.enabled and fast.prepare() < 0:
+            self._fast_used = True
+            return
+        self._from_fast()
+        self._last_u = u
+        self._prepare_reference(u)
+        if self._fast is not None:
+            modes = self._modes
+            for i, joint in enumerate(self.joints):
+                modes[i] = joint.mode
+
+    def _prepare_reference(self, u: Any) -> None:
         u = self._u.of(u)
         enabled = self.enabled
         for joint in self.joints:
@@ -208,6 +230,64 @@ class DriveCycle:
     def take_inputs(self, y: Any, check: bool = True) -> None:
         """Unpack every joint's inputs into ``y`` (SI) and, with ``check``, fault on a drive that is not
         where the run needs it."""
+        if check and self.enabled:
+            fast = self._fast
+            if fast is None or y is not self._fast_y:
+                fast = self._compiled(y)
+            if fast is not None and fast.take() < 0:
+                self._fast_used = True
+                self.exchanges += 1
+                return
+        self._from_fast()
+        try:
+            self._take_reference(y, check)
+        finally:
+            if self._fast is not None:  # the C cycle goes on from what the reference saw
+                state = self._state
+                for i, joint in enumerate(self.joints):
+                    state[2 * i], state[2 * i + 1] = joint.statusword, joint.position_raw
+
+    def _compiled(self, y: Any) -> Any:
+        """The running cycle in C on these vectors and buffers (None where the Python reference runs)."""
+        from rtloop.io.compiled import devio, refused
+
+        compiled, u = devio(), self._last_u
+        self._fast = None
+        if compiled is None or u is None or not isinstance(self.out_buffer, bytearray) or \
+                not isinstance(self.in_buffer, bytearray):
+            return None
+        plan = np.full((len(self.joints), 16), -1, dtype=np.int64)
+        for row, joint in zip(plan, self.joints, strict=True):
+            rx, tx = joint.config.rx.offsets, joint.config.tx.offsets
+            for column, (offsets, index) in enumerate(
+                    ((rx, cia402.CONTROLWORD), (rx, cia402.MODES_OF_OPERATION), (rx, cia402.TARGET_POSITION),
+                     (rx, cia402.TARGET_VELOCITY), (rx, cia402.TARGET_TORQUE), (tx, cia402.STATUSWORD),
+                     (tx, cia402.MODES_DISPLAY), (tx, cia402.POSITION_ACTUAL), (tx, cia402.VELOCITY_ACTUAL),
+                     (tx, cia402.TORQUE_ACTUAL), (tx, cia402.ERROR_CODE))):
+                if index in offsets:
+                    row[column] = (joint.out_at if offsets is rx else joint.in_at) + offsets[index]
+            row[11:16] = (joint.u_position, joint.u_velocity, joint.u_torque, joint.u_mode, joint.y_at)
+        scale = np.array([[j.rad_per_count, j.torque_per_permille] for j in self.joints], dtype=np.float64)
+        self._modes = np.array([j.mode for j in self.joints], dtype=np.int64)
+        self._state = np.zeros(2 * len(self.joints), dtype=np.int64)
+        try:
+            fast = compiled.DriveRun(self.out_buffer, self.in_buffer, u, y, plan, scale, self._modes, self._state,
+                                     np.array(_STATES, dtype=np.int64))
+        except (TypeError, ValueError, BufferError) as error:
+            refused("a drive device's cycle", error)
+            return None
+        self._fast, self._fast_u, self._fast_y = fast, u, y
+        return fast
+
+    def _from_fast(self) -> None:
+        """The joints' last statusword and position as the C cycle saw them (before the reference runs)."""
+        if self._fast_used:
+            self._fast_used = False
+            state = self._state
+            for i, joint in enumerate(self.joints):
+                joint.statusword, joint.position_raw = int(state[2 * i]), int(state[2 * i + 1])
+
+    def _take_reference(self, y: Any, check: bool) -> None:
         y = self._y.of(y)
         all_enabled = True
         table = _STATES
