@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import select
 import termios
@@ -17,7 +18,8 @@ class PortLine:
         self.poller.register(fd, select.POLLIN)
 
     def send(self, data: Any) -> None:
-        os.write(self.fd, data)
+        if os.write(self.fd, data) != len(data):  # (the port is non-blocking: a full output buffer cuts a packet)
+            raise OSError(errno.EAGAIN, "the line's output buffer is full: a packet went out cut short")
 
     def receive(self, buffer: memoryview, timeout_ns: int) -> int:
         if not self.poller.poll(max(0, -(-timeout_ns // 1_000_000))):  # past the deadline: what is there
