@@ -172,7 +172,8 @@ class _ExitingProcess:
 
 def test_a_task_that_exits_between_the_pipe_read_and_the_exit_check_keeps_its_traceback(tmp_path: Path) -> None:
     from rtloop.runtime.layout import AppLayout
-    from rtloop.runtime.supervisor import Supervisor, _TaskRun
+    from rtloop.runtime.supervisor import Supervisor
+    from rtloop.runtime.task_watch import TaskProcess as _TaskRun
 
     app = counter_app(f"race_{os.getpid()}")
     supervisor = Supervisor(app, 0.1, tmp_path / "o", trim=0)

@@ -233,6 +233,35 @@ class Limits:
 
 DEFAULT_LIMITS = Limits()
 
+STARTUP_ALLOWANCE_ENV = "RTLOOP_STARTUP_ALLOWANCE_S"  # more where start-up is slow: emulation, a small board
+
+
+def startup_allowance_s(default_s: float) -> float:
+    """``default_s``, or the seconds RTLOOP_STARTUP_ALLOWANCE_S gives (1 to 3600)."""
+    text = os.environ.get(STARTUP_ALLOWANCE_ENV)
+    if text is None:
+        return default_s
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 1 <= seconds <= 3600:  # also NaN
+        raise AppError(f"{STARTUP_ALLOWANCE_ENV}={text!r}: a number of seconds from 1 to 3600 is expected")
+    return seconds
+
+
+@dataclass(frozen=True, slots=True)
+class Progress:
+    """What the console shows while a run goes on (the CLI formats it)."""
+
+    elapsed_s: float
+    duration_s: float | None
+    deadline_misses: int
+    latency_now_ns: int
+    recording_stopped: str
+    lost: int
+    """Timing records, signal rows and logged inputs lost so far (the supervisor fell behind)."""
+
 
 class RunState(enum.Enum):
     """Where a run is; once it leaves RUNNING, why it ended (``stopped_by`` in summary.json)."""

@@ -22,13 +22,12 @@ import threading
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import AppError, DeviceError, DeviceMismatch, DeviceNotReady, NotRealTimeWarning, TaskFailed
+from rtloop.errors import DeviceError, DeviceMismatch, DeviceNotReady, NotRealTimeWarning, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once
@@ -40,7 +39,6 @@ from rtloop.linux.hygiene import (
     describe_exit,
     marked_environment,
     serving_below_real_time_tasks,
-    why_stuck,
 )
 from rtloop.linux.lean import single_threaded_children
 from rtloop.record.summary import (
@@ -54,62 +52,21 @@ from rtloop.runtime.memory_watch import MemoryWatch
 from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
+    STARTUP_ALLOWANCE_ENV,
     STOP_SIGNALS,
     Limits,
+    Progress,
     RunSession,
     RunState,
     drop_output_to_a_lost_terminal,
+    startup_allowance_s,
 )
 from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
+from rtloop.runtime.task_watch import TaskProcess, Watchdog, phase_of
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
 UNTIL_STOPPED_NS = 1 << 62  # the end time of a run without a duration: never
-
-
-@dataclass(frozen=True, slots=True)
-class Progress:
-    """What the console shows while a run goes on (the CLI formats it)."""
-
-    elapsed_s: float
-    duration_s: float | None
-    deadline_misses: int
-    latency_now_ns: int
-    recording_stopped: str
-    lost: int
-    """Timing records, signal rows and logged inputs lost so far (the supervisor fell behind)."""
-
-
-@dataclass
-class _TaskRun:
-    name: str
-    process: Any
-    pipe: Any
-    settings: rt.AppliedSettings | None = None
-    failure: TaskFailed | None = None
-    finished: bool = False
-    stop_request: str | None = None
-    progress_cycle: int = -1  # the CYCLE status word when the watchdog last saw it change
-    progress_ns: int = 0  # and when that was
-    stuck: bool = False  # the watchdog gave up on it: its signal (STEP_STUCK) sent, SIGKILL follows
-
-
-STARTUP_ALLOWANCE_ENV = "RTLOOP_STARTUP_ALLOWANCE_S"  # more where start-up is slow: emulation, a small board
-
-
-def startup_allowance_s(default_s: float) -> float:
-    """``default_s``, or the seconds RTLOOP_STARTUP_ALLOWANCE_S gives (1 to 3600)."""
-    text = os.environ.get(STARTUP_ALLOWANCE_ENV)
-    if text is None:
-        return default_s
-    try:
-        seconds = float(text)
-    except ValueError:
-        seconds = float("nan")
-    if not 1 <= seconds <= 3600:  # also NaN
-        raise AppError(f"{STARTUP_ALLOWANCE_ENV}={text!r}: a number of seconds from 1 to 3600 is expected")
-    return seconds
-
 
 
 class Supervisor:
@@ -143,7 +100,7 @@ class Supervisor:
         self.t0_ns = 0
         self.end_ns = 0
         self.wall_t0_ns = 0
-        self.runs: dict[str, _TaskRun] = {}
+        self.runs: dict[str, TaskProcess] = {}
         self.memory = MemoryWatch()
         """Each task's resident size at the summary rewrites (a step leaking reference cycles)."""
         self.live: Any = None
@@ -151,6 +108,7 @@ class Supervisor:
         self.dma_latency_held = False
         self.snapshots = SnapshotRequests({}, [task.config.period_ns for task in app.tasks.values()])
         """--keep: the tasks' snapshots asked for and collected (runtime/snapshot.py)."""
+        self.watchdog = Watchdog(app, limits)
         self.misses = MissWatch(app)
         self.trace_misses = trace_misses
         """Every miss's cause, from evidence gathered between drains (runtime/evidence.py)."""
@@ -272,7 +230,7 @@ class Supervisor:
             process = context.Process(
                 target=task_process_main,
                 args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name],
-                      self._spin_limit_s(spec.config)),
+                      self.watchdog.spin_limit_s(spec.config)),
                 name=f"rtloop-{self.app.name}-{name}",
             )
             # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
@@ -284,7 +242,7 @@ class Supervisor:
                 raise
             finally:
                 writer.close()
-            self.runs[name] = _TaskRun(name, process, reader)
+            self.runs[name] = TaskProcess(name, process, reader)
 
     def _wait_until_ready(self, layout: AppLayout) -> None:
         """Wait for every prerun; bounded by a stop signal and by the run's duration (plus start-up)."""
@@ -366,57 +324,15 @@ class Supervisor:
         self.snapshots.ask(layout.control, recorder, self.t0_ns)
 
     def _watch(self, layout: AppLayout, recorder: Any) -> None:
-        """The watchdog: a running task whose cycle count stands still too long is stuck."""
-        now_ns = rt.now_ns()
-        for task_run in self.runs.values():
-            status = layout.tasks[task_run.name].status
-            if task_run.finished or task_run.stuck or status[StatusWord.STATE] != TaskState.RUNNING:
-                continue
-            cycle = status[StatusWord.CYCLE]
-            if cycle != task_run.progress_cycle:
-                task_run.progress_cycle, task_run.progress_ns = cycle, now_ns
-                continue
-            config = self.app.tasks[task_run.name].config
-            if not config.watchdog_periods:
-                continue
-            limit_ns = self._watchdog_limit_ns(config)
-            quiet_ns = now_ns - max(task_run.progress_ns, self.t0_ns)
-            if quiet_ns <= limit_ns or self.failure is not None:
-                continue
-            task_run.stuck = True
-            self.failure = TaskFailed(
-                task_run.name, self._cycle_after(task_run.name, recorder), "step",
-                f"watchdog: no cycle finished for {quiet_ns / 1e9:.1f} s ({config.watchdog_periods} periods); "
-                f"{why_stuck(task_run.process.pid)}",
-            )
-            self.state = RunState.WATCHDOG
-            layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
-            try:
-                os.kill(task_run.process.pid, STEP_STUCK)  # breaks the step of a task with devices
-            except ProcessLookupError:
-                pass
-
-    def _watchdog_limit_ns(self, config: Any) -> int:
-        """How long a task may go without finishing a cycle: its periods, never under the minimum."""
-        return int(max(config.watchdog_periods * config.period_ns, round(self.limits.watchdog_min_s * 1e9)))
-
-    def _spin_limit_s(self, config: Any) -> tuple[float, float] | None:
-        """The kernel's side of the watchdog (RLIMIT_RTTIME in the task): the same limit, then the grace."""
-        if not config.watchdog_periods:
-            return None
-        limit_s = self._watchdog_limit_ns(config) / 1e9
-        return limit_s, limit_s + self.limits.watchdog_grace_s
-
-    def _cycle_after(self, name: str, recorder: Any) -> int:
-        """The cycle a task works on: the one after its newest timing record."""
-        last = recorder.last_record[name]
-        if last is None:
-            return 0
-        cycle, release_ns, _start_ns, end_ns = last
-        config = self.app.tasks[name].config
-        if end_ns <= release_ns + config.period_ns or config.overrun == "catch_up":
-            return int(cycle) + 1
-        return int(end_ns - self.t0_ns) // config.period_ns + 1  # skip: the next release after it ended
+        """The watchdog (runtime/task_watch.py): a stuck task fails the run; its step is broken."""
+        found = self.watchdog.find_stuck(self.runs, layout, recorder, self.t0_ns) if self.failure is None else None
+        if found is None:
+            return
+        task_run, self.failure = found
+        self.state = RunState.WATCHDOG
+        layout.control[ControlWord.STOP] = 1  # the other tasks stop the orderly way
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(task_run.process.pid, STEP_STUCK)  # breaks the step of a task with devices
 
     def _join(self, layout: AppLayout) -> None:
         stop_grace_s, watchdog_grace_s = self.limits.stop_grace_s, self.limits.watchdog_grace_s
@@ -435,7 +351,7 @@ class Supervisor:
                         f"{self.failure.reason}; its step did not return on the watchdog's signal; it was "
                         f"killed (SIGKILL) after {watchdog_grace_s:g} s, so its postrun did not run")
                 if self.failure is None:
-                    phase, cycle = self._phase_of(layout, task_run.name)
+                    phase, cycle = phase_of(layout, self.app, task_run.name, self.t0_ns)
                     self.failure = TaskFailed(
                         task_run.name, cycle, phase,
                         f"did not stop within {stop_grace_s:g} s of the stop request; killed "
@@ -458,7 +374,7 @@ class Supervisor:
             if process.exitcode < 0:  # killed by a signal: its own way out, safe values first, never ran
                 self._devices_safe_after_death(task_run)
             if task_run.failure is None and process.exitcode != 0:
-                phase, cycle = self._phase_of(layout, task_run.name)
+                phase, cycle = phase_of(layout, self.app, task_run.name, self.t0_ns)
                 task_run.failure = TaskFailed(
                     task_run.name, cycle, phase, f"task process died: {describe_exit(process.exitcode)}"
                 )
@@ -472,7 +388,7 @@ class Supervisor:
             self.state = RunState.WATCHDOG if failure.reason.startswith("WatchdogExpired") else RunState.FAULT
         self.session.stop_tasks()
 
-    def _devices_safe_after_death(self, task_run: _TaskRun) -> None:
+    def _devices_safe_after_death(self, task_run: TaskProcess) -> None:
         """Write the safe values of a killed task's devices from here, where their interface allows."""
         wirings = device_wiring(self.app, task_run.name)
         if wirings:
@@ -480,19 +396,7 @@ class Supervisor:
             self.device_problems += safe_for_dead_task(task_run.name, wirings, why)
             self.held_for_dead_tasks += wirings
 
-    def _phase_of(self, layout: AppLayout, name: str) -> tuple[str, int | None]:
-        """What a task was doing when it died or hung: its phase and, in step, the cycle in progress."""
-        handles = layout.tasks[name]
-        state = handles.status[StatusWord.STATE]
-        if state in (TaskState.STARTING, TaskState.READY):
-            return "prerun", None
-        if state == TaskState.POSTRUN:
-            return "postrun", None
-        if state == TaskState.STOPPED:
-            return "process", None
-        return "step", cycle_in_progress(handles, self.t0_ns, self.app.tasks[name].config)
-
-    def _read_messages(self, task_run: _TaskRun) -> None:
+    def _read_messages(self, task_run: TaskProcess) -> None:
         try:
             while task_run.pipe.poll():
                 message = task_run.pipe.recv()
@@ -603,22 +507,7 @@ def requested_policies(app: App) -> dict[str, str]:
     return {name: spec.config.policy for name, spec in app.tasks.items()}
 
 
-def cycle_in_progress(handles: Any, t0_ns: int, config: Any) -> int:
-    """The cycle a running task was in: the one after its last completed cycle (the status
-    block holds the last completed one), or after the releases an overrun skipped."""
-    status = handles.status
-    if handles.timing.written_total == 0:
-        return 0
-    last = status[StatusWord.CYCLE]
-    period_ns = config.period_ns
-    last_end_ns = t0_ns + last * period_ns + status[StatusWord.LATENCY_LAST_NS] + status[StatusWord.EXEC_LAST_NS]
-    following = last + 1
-    if config.overrun == "skip" and t0_ns and last_end_ns > t0_ns + following * period_ns:
-        following = (last_end_ns - t0_ns) // period_ns + 1
-    return int(following)
-
-
-def _let_go_of_process(task_run: _TaskRun) -> None:
+def _let_go_of_process(task_run: TaskProcess) -> None:
     """Close what a joined task process holds open here (its pipe, its exit sentinel): a library's
     caller runs many apps in one process and must not run out of file descriptors."""
     task_run.pipe.close()
