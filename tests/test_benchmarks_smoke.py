@@ -142,3 +142,8 @@ def test_bench_recorder_prints_rates_beside_numpy(tmp_path: Path) -> None:
     assert [row[0] for row in rows] == ["timing records", "signal rows"]
     data = json.loads((tmp_path / "r.json").read_text())
     assert set(data["results"]) == {"timing records", "signal rows"}
+
+
+def test_bench_port_writer_puts_the_held_writer_beside_a_mapping_per_write() -> None:
+    stdout = run_script("bench_port_writer.py", "--writes", "20", "--rounds", "1")
+    assert "held PortWriter" in stdout and "RunningApp.write (map per write)" in stdout
