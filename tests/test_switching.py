@@ -237,7 +237,7 @@ def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit
         shadow = _cli("switch", name, "controller", "soft", "--shadow", env=rtloop_env)
         assert shadow.returncode == 0, shadow.stderr
         done = wait_for_cycles(app, "controller", 1500, process)
-        promoted = _cli("switch", name, "controller", "--promote", "--at-cycle", str(done + 3000), env=rtloop_env)
+        promoted = _cli("switch", name, "controller", "--promote", "--at-cycle", str(done + 5000), env=rtloop_env)
         assert promoted.returncode == 0 and "soft promoted at cycle" in promoted.stdout, promoted.stderr
         done = wait_for_cycles(app, "controller", int(promoted.stdout.split("at cycle ")[1].split()[0]) + 1000,
                                process)
@@ -495,7 +495,7 @@ parameters = {{ kp = 2.0, ki = 3.0 }}
         try:
             app = wait_for_app(name, process)
             done = wait_for_cycles(app, "pi", 300, process)
-            switched = _cli("switch", name, "pi", "hot", "--at-cycle", str(done + 1500), env=rtloop_env)
+            switched = _cli("switch", name, "pi", "hot", "--at-cycle", str(done + 2500), env=rtloop_env)
             assert switched.returncode == 0, switched.stderr
             asked = int(switched.stdout.split("at cycle ")[1].split()[0])
             wait_for_cycles(app, "pi", asked + 100, process)

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from rtloop.runtime.simulate import simulate as simulate
     from rtloop.runtime.supervisor import run as run
     from rtloop.stats.timing import TaskTiming as TaskTiming
+    from rtloop.switching import Controllers as Controllers
     from rtloop.toolbox.sweep import sweep as sweep
 
 # Every other name is imported on first use (PEP 562), not here, for two reasons:
@@ -57,6 +58,7 @@ _LAZY = {
     "run": "rtloop.runtime.supervisor",
     "sweep": "rtloop.toolbox.sweep",
     "TaskTiming": "rtloop.stats.timing",
+    "Controllers": "rtloop.switching",
 }
 
 
@@ -79,6 +81,7 @@ __all__ = [
     "AppError",
     "AppFileError",
     "ConnectionSizeError",
+    "Controllers",
     "LibcError",
     "PortValueError",
     "RtloopError",

@@ -38,9 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtloop.cli.switch import switch_ports
     from rtloop.code_reload import code_file_name, code_id_of, result_file_name
     from rtloop.ipc.ports import connect_app
+    from rtloop.ipc.switch_requests import switch_ports
 
     app = connect_app(args.app, owner_uid=args.user)
     ports = switch_ports(app.ports)

@@ -1,0 +1,119 @@
+"""Switching a running task's controller from non-real-time code (what ``rtloop switch`` does).
+
+    from rtloop.ipc.ports import connect_app
+    from rtloop.ipc.switch_requests import switch
+    app = connect_app("jiwy_switch")
+    print(switch(app, {"controller": "soft"}))               # about 0.2 s from now, at one release
+    switch(app, {"controller": "lqr"}, mode="shadow")         # run lqr beside the active one
+    switch(app, {"controller": None}, mode="promote")         # the shadow becomes the active one
+
+A request is a write to the task's switch port (``<task>_switch``), so it is logged like any
+port write and ``rtloop replay`` reproduces it. Every name is checked before anything is
+written: a request naming a task or controller that does not exist changes nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from rtloop.errors import PortValueError
+from rtloop.ipc.ports import RunningApp
+
+LEAD_S = 0.2
+"""How far ahead of now a switch is placed when no cycle is given: the write must reach the task
+before that release, whatever this process is kept waiting by the machine."""
+Mode = Literal["active", "shadow", "promote", "stop_shadow"]
+
+
+@dataclass(frozen=True)
+class SwitchPort:
+    task: str
+    port: str
+    controllers: tuple[str, ...]
+    period_ns: int
+
+
+@dataclass(frozen=True)
+class SwitchAnswer:
+    task: str
+    at_cycle: int
+    """The release from which the request holds (the first one the task runs from there)."""
+    said: str
+    late: bool
+    """The write reached the task after that release: it acted at the first release after the write."""
+
+
+def switch_ports(ports: Mapping[str, Mapping[str, Any]]) -> dict[str, SwitchPort]:
+    """The running app's switch ports, by task (from its registry)."""
+    found: dict[str, SwitchPort] = {}
+    for name, info in ports.items():
+        names, task = info.get("controllers"), info.get("switch_task")
+        if isinstance(names, list) and isinstance(task, str) and all(isinstance(n, str) for n in names):
+            found[task] = SwitchPort(task, name, tuple(names), int(info["period_ns"]))
+    return found
+
+
+def switch(app: RunningApp, changes: Mapping[str, str | None], *, at_cycle: int | None = None,
+           mode: Mode = "active", lead_s: float = LEAD_S) -> list[SwitchAnswer]:
+    """Ask each task of ``changes`` for its controller (``None``: with ``promote``, the task's shadow)
+    from one release: ``at_cycle`` (in the first task's periods) or about ``lead_s`` from now."""
+    if not changes:
+        raise PortValueError("switch: name at least one task and its controller")
+    ports = switch_ports(app.ports)
+    chosen: list[tuple[SwitchPort, str | None]] = []
+    for task, controller in changes.items():  # every name checked before anything is written: all or none
+        if task not in ports:
+            raise PortValueError(f"app {app.name!r}: task {task!r} has no controllers to switch "
+                                 f"(tasks with [tasks.NAME.controllers]: {sorted(ports) or 'none'})")
+        if controller is not None and controller not in ports[task].controllers:
+            raise PortValueError(f"task {task!r} has no controller {controller!r}; "
+                                 f"its controllers are {list(ports[task].controllers)}")
+        if controller is None and mode not in ("promote", "stop_shadow"):
+            raise PortValueError(f"switch: name the controller for task {task!r}")
+        chosen.append((ports[task], controller))
+    t0_ns = app.epoch_ns()
+    if not t0_ns:
+        raise PortValueError(f"app {app.name!r} has not started its tasks yet; switch once it runs")
+    first = chosen[0][0]
+    now_ns = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+    if at_cycle is not None:
+        at_ns = t0_ns + at_cycle * first.period_ns
+        if at_ns <= now_ns:
+            raise PortValueError(f"at cycle {at_cycle}: task {first.task!r} is at cycle "
+                                 f"{(now_ns - t0_ns) // first.period_ns} already; give a release still to come")
+    else:
+        at_ns = now_ns + int(lead_s * 1e9)
+    requests = [(port, *_request(app.peek(port.port), port, controller,
+                                 math.ceil((at_ns - t0_ns) / port.period_ns), mode))
+                for port, controller in chosen]  # all built (and refused) before the first write
+    answers = []
+    for port, values, said in requests:
+        app.write(port.port, values)
+        cycle = int(values[1])
+        late = time.clock_gettime_ns(time.CLOCK_MONOTONIC) > t0_ns + cycle * port.period_ns
+        answers.append(SwitchAnswer(port.task, cycle, said, late))
+    return answers
+
+
+def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: int,
+             mode: Mode) -> tuple[list[float], str]:
+    """The switch port's four values for this request (no new code: 0), and the answer to print."""
+    active_request, shadow = float(current[0]), float(current[2])
+    when = f"at cycle {at_cycle} (t = {at_cycle * port.period_ns / 1e9:.6f} s)"
+    if mode == "stop_shadow":
+        return [active_request, float(at_cycle), -1.0, 0.0], f"shadow controller stopped {when}"
+    if mode == "promote":
+        if shadow < 0 and controller is None:
+            raise PortValueError(f"task {port.task!r} runs no shadow controller to promote; "
+                                 f"start one with: rtloop switch APP {port.task} CONTROLLER --shadow")
+        index = port.controllers.index(controller) if controller is not None else int(shadow)
+        return [float(index), float(at_cycle), float(index), 0.0], f"{port.controllers[index]} promoted {when}"
+    assert controller is not None
+    wanted = float(port.controllers.index(controller))
+    if mode == "shadow":
+        return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {when}"
+    return [wanted, float(at_cycle), shadow, 0.0], f"{controller} active {when}"
