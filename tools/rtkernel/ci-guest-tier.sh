@@ -21,23 +21,11 @@ set -uo pipefail
 cd "$(dirname "$0")/../.."
 selection=(tests/test_rtkernel_guest.py tests/test_run.py::test_rt_settings_are_really_applied_in_the_task_process
            tests/test_io_*.py)
-# Set aside while its cause is looked for: the whole guest hung, now and then, in the scope pin's
-# whole-run tests, which count the line's values through the kernel's gpio_value trace event: in
-# [step-c] twice, in a clean clone's tier in [step-python], and once in [toggle-c] in a loop of
-# the four (docs/rtkernel-guest.md, "An intermittent hang of the whole guest"); a hung guest would
-# end the tier by its time limit. They run in the whole selection by hand and on a board; the
-# tier still checks that the scope pin drives its own line (tests/test_io_gpio.py).
-scope_test="tests/test_io_scope_estop.py::test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say"
-quarantined=("$scope_test[toggle-c]" "$scope_test[toggle-python]" "$scope_test[step-c]" "$scope_test[step-python]")
-for test in "${quarantined[@]}"; do
-    echo "guest tier: set aside (an intermittent hang of the guest, docs/rtkernel-guest.md): $test"
-done
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
 RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-2400} tools/rtkernel-vm.sh \
     .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 "${selection[@]}" \
-    "${quarantined[@]/#/--deselect=}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 wall_s=$(($(date +%s) - started_s))
@@ -46,5 +34,5 @@ if [ "$status" -eq 125 ]; then
     exit 0
 fi
 counts=$(grep -E "^=+ .* in [0-9.]+s" "$log" | tail -1 | sed 's/=//g; s/^ *//; s/ *$//')
-echo "guest tier: ${counts:-no pytest summary} (${#quarantined[@]} set aside, above); wall time ${wall_s} s, boot included; exit status $status"
+echo "guest tier: ${counts:-no pytest summary}; wall time ${wall_s} s, boot included; exit status $status"
 exit "$status"
