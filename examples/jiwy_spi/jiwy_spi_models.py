@@ -39,13 +39,13 @@ ENABLED = 1.0
 
 FRAME_LENGTH = 12
 FRAME_SEND: list[dict[str, Any]] = [
-    {"name": "pwm_pan", "start_byte": 1, "type": "i16", "scale": 0.0001, "range": [-1.0, 1.0]},
-    {"name": "pwm_tilt", "start_byte": 3, "type": "i16", "scale": 0.0001, "range": [-1.0, 1.0]},
+    {"name": "pwm_pan", "start_byte": 1, "type": "i16", "duty": {"full_scale": 10000, "range": [-1.0, 1.0]}},
+    {"name": "pwm_tilt", "start_byte": 3, "type": "i16", "duty": {"full_scale": 10000, "range": [-1.0, 1.0]}},
     {"name": "enable", "start_byte": 5, "type": "u8"},
 ]
 FRAME_RECEIVE: list[dict[str, Any]] = [
-    {"name": "encoder_pan", "start_byte": 1, "type": "u16", "counts_per_rev": 2000, "gear_ratio": 19},
-    {"name": "encoder_tilt", "start_byte": 3, "type": "u16", "counts_per_rev": 2000, "gear_ratio": 76},
+    {"name": "encoder_pan", "start_byte": 1, "type": "u16", "encoder": {"counts_per_rev": 2000, "gear_ratio": 19}},
+    {"name": "encoder_tilt", "start_byte": 3, "type": "u16", "encoder": {"counts_per_rev": 2000, "gear_ratio": 76}},
     {"name": "status", "start_byte": 5, "type": "u8"},
 ]
 
