@@ -106,7 +106,8 @@ def test_every_command_has_checked_limits_and_a_safe_value(tmp_path: Path, limit
 
 
 def test_kinds_and_names(tmp_path: Path) -> None:
-    assert set(KINDS) == {"gpio", "can", "spi", "serial", "i2c", "dynamixel", "feetech", "ethercat"}
+    assert set(KINDS) == {"gpio", "can", "spi", "serial", "i2c", "dynamixel", "feetech", "ethercat",
+                          "canopen402"}
     with pytest.raises(DeviceError, match="expected one of"):
         device_class("usb", "d", "app.toml")
     with pytest.raises(DeviceError, match="cannot import"):

@@ -12,16 +12,23 @@ import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from rtloop.io.drives.canopen_node import add_arguments as canopen_arguments
     from rtloop.io.drives.emulator import add_arguments as emulator_arguments
 
-    parser.add_argument("bus", choices=["ethercat"], help="the bus to emulate drives on")
+    parser.add_argument("bus", choices=["ethercat", "canopen"], help="the bus to emulate drives on")
     parser.add_argument("--app", help="the drives the app file's EtherCAT device declares (with their drive models)")
     parser.add_argument("--device", help="with --app: which EtherCAT device, when the app has several")
     emulator_arguments(parser)
+    canopen_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from rtloop.io.drives.emulator import DriveSpec, serve
+
+    if args.bus == "canopen":
+        from rtloop.cli.emulate_canopen import run as run_canopen
+
+        return run_canopen(args)
 
     interface = args.interface
     if args.app:

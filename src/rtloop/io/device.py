@@ -68,6 +68,7 @@ KINDS: dict[str, str] = {
     "dynamixel": "rtloop.io.servos.bus:DynamixelBus",
     "feetech": "rtloop.io.servos.bus:FeetechBus",
     "ethercat": "rtloop.io.drives.ethercat:EthercatDevice",
+    "canopen402": "rtloop.io.drives.canopen:Canopen402Device",
 }
 """Device kinds → their driver class (``module:Class``), imported when an app uses the kind.
 A driver adds itself by living at that path; ``kind = "package.module:Class"`` names any

@@ -1,0 +1,319 @@
+"""CANopen CiA 402 drives on any machine (no CAN socket): the frames, the emulated node's logic driven
+in process, and the ``canopen402`` device against that node over a UNIX socket pair standing in for
+the bus (the same send, poll and receive calls as on SocketCAN). On vcan0 in the RT guest:
+``tests/test_io_canopen.py``."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
+from rtloop.io.device import build_device
+from rtloop.io.drives import canopen_wire as wire
+from rtloop.io.drives import cia402
+from rtloop.io.drives.canopen_node import DEFAULT_IDENTITY, OPERATIONAL, CanopenNode
+from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO, PdoLayout
+
+JOINT = {"name": "wheel", "node": 3, "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+         "revision": DEFAULT_IDENTITY.revision, "mode": "csv", "counts_per_rev": 4096, "gear_ratio": 10.0,
+         "rxpdo": ["0x6040", "0x6060", "0x60FF"], "txpdo": ["0x6041", "0x6061", "0x6064", "0x606C"]}
+
+
+# --- frames -------------------------------------------------------------------------------------------
+
+def test_expedited_sdo_requests_and_answers() -> None:
+    assert wire.sdo_upload(0x1018, 1) == bytes([0x40, 0x18, 0x10, 1, 0, 0, 0, 0])
+    assert wire.sdo_download(0x1017, 0, 100, 2) == bytes([0x2B, 0x17, 0x10, 0, 100, 0, 0, 0])
+    assert wire.sdo_download(0x1800, 1, 0x80000183, 4) == bytes([0x23, 0x00, 0x18, 1, 0x83, 0x01, 0, 0x80])
+    assert wire.sdo_answer(bytes([0x43, 0x18, 0x10, 1, 0x7E, 0x0A, 0, 0]), 0x1018, 1) == 0xA7E
+    assert wire.sdo_answer(bytes([0x4F, 0x00, 0x18, 2, 1, 0, 0, 0]), 0x1800, 2) == 1
+    assert wire.sdo_answer(bytes([0x60, 0x17, 0x10, 0, 0, 0, 0, 0]), 0x1017, 0) == 0
+    assert wire.sdo_answer(bytes([0x60, 0x17, 0x10, 0, 0, 0, 0, 0]), 0x1018, 0) is None  # another object's
+    with pytest.raises(wire.SdoAbort) as abort:
+        wire.sdo_answer(bytes([0x80, 0x18, 0x10, 1]) + struct.pack("<I", 0x06020000), 0x1018, 1)
+    assert abort.value.code == 0x06020000
+
+
+def test_the_default_mapping_splits_into_pdos_of_eight_bytes_at_object_boundaries() -> None:
+    assert wire.pdo_chunks(PdoLayout(DEFAULT_RXPDO)) == [(0, 7, (0x6040, 0x6060, 0x607A)), (7, 6, (0x60FF, 0x6071))]
+    assert [length for _start, length, _objects in wire.pdo_chunks(PdoLayout(DEFAULT_TXPDO))] == [7, 6, 6]
+    too_many = PdoLayout((0x6041, 0x6064, 0x606C, 0x60F4, 0x6061, 0x6077, 0x603F))
+    assert len(wire.pdo_chunks(too_many)) == 3
+    writes = wire.mapping_writes(3, PdoLayout(DEFAULT_RXPDO), PdoLayout(DEFAULT_TXPDO))
+    assert (0x1600, 1, 0x60400010, 4) in writes and (0x1A00, 3, 0x60640020, 4) in writes
+    assert (0x1403, 1, 0x80000503, 4) in writes  # an unused RPDO is switched off
+    assert writes.index((0x1400, 1, 0x80000203, 4)) < writes.index((0x1600, 1, 0x60400010, 4)) \
+        < writes.index((0x1400, 1, 0x203, 4))  # invalid while its mapping is written
+
+
+# --- the emulated node, in process ------------------------------------------------------------------
+
+def _configured_node(log: list[str]) -> CanopenNode:
+    node = CanopenNode(3, log=log.append)
+    node.boot(0.0)
+    for index, sub, value, size in wire.mapping_writes(3, PdoLayout((0x6040, 0x6060, 0x60FF)),
+                                                        PdoLayout((0x6041, 0x6061, 0x6064, 0x606C))):
+        (answer_id, answer), = node.receive(0x603, wire.sdo_download(index, sub, value, size), 0.0)
+        assert answer_id == 0x583 and wire.sdo_answer(answer, index, sub) == 0
+    node.receive(0x000, bytes([wire.NMT_START, 3]), 0.0)
+    assert node.nmt == OPERATIONAL
+    return node
+
+
+def _enable(node: CanopenNode, now_s: float = 0.0) -> int:
+    """The master's enabling sequence through RPDO1 and SYNC; the SYNCs it took."""
+    machine = cia402.JointStateMachine()
+    for syncs in range(1, 20):
+        frames = node.receive(0x080, b"", now_s)
+        statusword = struct.unpack_from("<H", dict(frames)[0x183])[0]
+        word = machine.enabling_controlword(statusword)
+        if word == -1:
+            return syncs
+        node.receive(0x203, struct.pack("<Hbi", word, 9, 0), now_s)
+    raise AssertionError("not enabled")
+
+
+def test_the_node_answers_its_identity_and_refuses_an_object_it_lacks() -> None:
+    node = CanopenNode(5)
+    assert node.boot(0.0) == [(0x705, b"\0")]
+    (_id, answer), = node.receive(0x605, wire.sdo_upload(0x1018, 2), 0.0)
+    assert wire.sdo_answer(answer, 0x1018, 2) == DEFAULT_IDENTITY.product
+    (_id, answer), = node.receive(0x605, wire.sdo_upload(0x2000, 0), 0.0)
+    with pytest.raises(wire.SdoAbort):
+        wire.sdo_answer(answer, 0x2000, 0)
+    assert node.receive(0x080, b"", 0.0) == []  # no PDOs before NMT start
+
+
+def test_sync_sends_the_tpdos_then_steps_the_drive_and_a_fault_sends_an_emcy() -> None:
+    log: list[str] = []
+    node = _configured_node(log)
+    assert _enable(node) <= 8  # one transition per SYNC, each seen in the TPDO of the SYNC after
+    assert any("operation enabled" in line for line in log)
+    node.receive(0x203, struct.pack("<Hbi", 0x0F, 9, 1000), 0.0)  # 1000 counts/s
+    for _ in range(50):
+        frames = dict(node.receive(0x080, b"", 0.0))
+    assert set(frames) == {0x183, 0x283}
+    assert struct.unpack("<i", frames[0x283][:4])[0] > 0  # the motor turns
+    node.inject_at_sync = node.syncs_enabled + 1
+    frames = dict(node.receive(0x080, b"", 0.0))
+    assert struct.unpack_from("<HB", frames[0x083]) == (0x5530, 1)
+    assert any("EMCY 0x5530" in line for line in log)
+
+
+@pytest.mark.parametrize("how", ["nmt stop", "sync lost"])
+def test_an_enabled_node_quick_stops_then_disables_when_the_master_goes(how: str) -> None:
+    log: list[str] = []
+    node = _configured_node(log)
+    _enable(node)
+    node.receive(0x203, struct.pack("<Hbi", 0x0F, 9, 20000), 0.0)
+    for _ in range(100):
+        node.receive(0x080, b"", 0.0)
+    if how == "nmt stop":
+        node.receive(0x000, bytes([wire.NMT_STOP, 3]), 0.0)
+    else:
+        assert node.tick(0.05) == []  # within its SYNC timeout: nothing
+        assert node.drive.state == cia402.Cia402State.OPERATION_ENABLED
+        node.tick(0.5)
+    said = "\n".join(log)
+    assert "quick stop" in said and said.index("quick stop") < said.index("switch on disabled (disable voltage)")
+    assert node.drive.state == cia402.Cia402State.SWITCH_ON_DISABLED
+
+
+def test_the_heartbeat_comes_every_period_with_the_nmt_state() -> None:
+    node = _configured_node([])
+    node.receive(0x603, wire.sdo_download(0x1017, 0, 100, 2), 0.0)
+    assert node.tick(0.05) == []
+    assert node.tick(0.1) == [(0x703, bytes([OPERATIONAL]))]
+
+
+# --- the device against the node, over a socket pair ----------------------------------------------------
+
+class PairedNode:
+    """The emulated node answering on one end of a SOCK_SEQPACKET pair, in a thread."""
+
+    def __init__(self, node: CanopenNode) -> None:
+        self.node = node
+        self.ours, self.peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.peer.settimeout(0.002)
+        self.stopping = False
+        self.answering = True
+        self.lock = threading.Lock()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        self._send(self.node.boot(time.monotonic()))
+        while not self.stopping:
+            try:
+                frame = self.peer.recv(16)
+            except TimeoutError:
+                frame = b""
+            except OSError:
+                return
+            with self.lock:
+                if frame and self.answering:
+                    can_id, length, data = wire.WIRE.unpack(frame)
+                    self._send(self.node.receive(can_id, data[:length], time.monotonic()))
+                self._send(self.node.tick(time.monotonic()))
+
+    def _send(self, frames: list[tuple[int, bytes]]) -> None:
+        for can_id, data in frames:
+            try:
+                self.peer.send(wire.WIRE.pack(can_id, len(data), data))
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self.stopping = True
+        self.thread.join(5)
+        self.peer.close()
+
+
+def _device_on(paired: PairedNode, **settings: object):  # type: ignore[no-untyped-def]
+    from rtloop.io.cansocket import CanSocket
+
+    device = build_device("canopen402", "axis", {"interface": "vcan0", "joints": [JOINT], "answer_timeout_ms": 200,
+                                                 "tpdo_timeout_ms": 200, **settings}, "app.toml")
+    device.open_socket = lambda frames: CanSocket("pair", False, frames, "devices.axis", sock=paired.ours)
+    return device
+
+
+def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_stops() -> None:
+    log: list[str] = []
+    paired = PairedNode(CanopenNode(3, log=log.append))
+    device = _device_on(paired)
+    twin = device.default_twin()
+    try:
+        device.configure()
+        device.activate()
+        twin.prerun()
+        u, y, y_twin = np.zeros(device.n_inputs), np.zeros(device.n_outputs), np.zeros(device.n_outputs)
+        enabled = device.output_names.index("wheel_enabled")
+        velocity = device.output_names.index("wheel_velocity_rad_s")
+        for cycle in range(60):
+            u[0] = 0.0 if cycle < 10 else 2.0  # rad/s at the joint
+            device.write(u)
+            device.read(y)
+            twin.step(u, y_twin)
+            assert y.tolist() == y_twin.tolist(), f"cycle {cycle}"  # bit for bit
+        assert y[enabled] == 1.0 and y[velocity] > 0.0
+        device.write_safe(np.zeros(device.n_inputs))
+        deadline = time.monotonic() + 5
+        while "NMT enter pre-operational" not in log[-1] and time.monotonic() < deadline:
+            time.sleep(0.01)  # the node's thread takes the NMT frame
+    finally:
+        device.close()
+        paired.close()
+    said = "\n".join(log)
+    assert "NMT operational" in said and "operation enabled (csv)" in said
+    assert said.index("quick stop (controlword)") < said.index("switch on disabled (disable voltage)")
+    assert said.rstrip().endswith("NMT pre-operational (NMT enter pre-operational)")
+
+
+def test_an_emcy_is_a_named_fault() -> None:
+    paired = PairedNode(CanopenNode(3))
+    device = _device_on(paired)
+    try:
+        device.configure()
+        device.activate()
+        u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
+        for _ in range(10):
+            device.read(y)
+        paired.node.inject_at_sync = paired.node.syncs_enabled + 1
+        with pytest.raises(DeviceFault, match=r"joint 'wheel' \(node 3\): EMCY 0x5530 \(power stage"):
+            for _ in range(5):
+                device.write(u)
+                device.read(y)
+    finally:
+        device.close()
+        paired.close()
+
+
+def test_a_node_that_does_not_answer_its_sdo_is_not_ready_and_another_identity_is_a_mismatch() -> None:
+    paired = PairedNode(CanopenNode(3))
+    paired.answering = False
+    device = _device_on(paired, answer_timeout_ms=50)
+    try:
+        with pytest.raises(DeviceError, match=r"joints\[0\]\.node: node 3 on vcan0 did not answer SDO 0x1018:1") \
+                as error:
+            device.configure()
+        assert not isinstance(error.value, DeviceMismatch)  # exit 3, not 2: a drive powered late is retried
+    finally:
+        paired.close()
+    paired = PairedNode(CanopenNode(3, identity=DEFAULT_IDENTITY.__class__(0x9, 0x402402, 0x10000)))
+    device = _device_on(paired)
+    try:
+        with pytest.raises(DeviceMismatch, match=r"joints\[0\]\.vendor: node 3 has vendor 0x00000009"):
+            device.configure()
+    finally:
+        paired.close()
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"node": 0}, r"joints\[0\]\.node: expected the drive's node id 1\.\.127"),
+    ({"mode": "pp"}, r"joints\[0\]\.mode: 'pp' is not a mode"),
+    ({"eds": "missing.eds"}, r"joints\[0\]\.eds: missing\.eds: no such file"),
+])
+def test_bad_joints_are_one_line_before_anything_starts(change: dict[str, object], message: str) -> None:
+    with pytest.raises(DeviceError, match=message):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**JOINT, **change}]}, "app.toml")
+
+
+def test_two_joints_on_one_node_are_bad_input() -> None:
+    with pytest.raises(DeviceError, match=r"devices\.axis\.joints: two joints share a node: \[3, 3\]"):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [JOINT, {**JOINT, "name": "b"}]}, "t")
+
+
+def test_an_eds_gives_the_identity_and_a_broken_one_is_bad_input(tmp_path: Path) -> None:
+    pytest.importorskip("canopen", reason="reading an EDS needs the canopen package (rtloop[canopen])")
+    eds = tmp_path / "drive.eds"
+    objects = "".join(f"\n[{index:04X}]\nParameterName=o{index:04X}\nObjectType=0x7\nDataType=0x0003\n"
+                      f"AccessType=rw\nPDOMapping=1\n" for index in (0x6040, 0x6060, 0x60FF, 0x6041, 0x6061,
+                                                                     0x6064, 0x606C))
+    eds.write_text("[DeviceInfo]\nVendorNumber=0xA7E\nProductNumber=0x402402\nRevisionNumber=0x10000\n"
+                   "[MandatoryObjects]\nSupportedObjects=0\n" + objects)
+    joint = {key: value for key, value in JOINT.items() if key not in ("vendor", "product", "revision")}
+    device = build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**joint, "eds": str(eds)}]}, "t")
+    assert device.joints[0].identity == DEFAULT_IDENTITY
+    with pytest.raises(DeviceError, match=r"joints\[0\]\.txpdo: 0x6077 \(torque actual value\) not in the EDS"):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [
+            {**joint, "eds": str(eds), "txpdo": ["0x6041", "0x6061", "0x6064", "0x6077"]}]}, "t")
+    eds.write_text("this is not [an EDS\n")
+    with pytest.raises(DeviceError, match=r"joints\[0\]\.eds: .*not an EDS file rtloop reads"):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**joint, "eds": str(eds)}]}, "t")
+
+
+@pytest.mark.parametrize("lost", ["heartbeat", "tpdo"])
+def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
+    paired = PairedNode(CanopenNode(3))
+    device = _device_on(paired, heartbeat_ms=20, tpdo_timeout_ms=50)
+    try:
+        device.configure()
+        device.activate()
+        u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
+        for _ in range(10):
+            device.read(y)
+        with paired.lock:
+            if lost == "heartbeat":
+                paired.node.tick = lambda now_s: []  # type: ignore[method-assign]  # the node's heartbeat stops
+            else:
+                paired.answering = False  # the node answers nothing more
+        message = (r"joint 'wheel' \(node 3\): heartbeat lost: none for \d+ ms \(heartbeat_ms 20\)"
+                   if lost == "heartbeat" else
+                   r"joint 'wheel' \(node 3\): TPDO1 \(0x183\) did not come within 50 ms of SYNC")
+        with pytest.raises(DeviceFault, match=message):
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:
+                device.write(u)
+                device.read(y)
+                time.sleep(0.005)
+    finally:
+        device.close()
+        paired.close()
