@@ -85,7 +85,7 @@ def test_impossible_signal_fields_are_one_line(table: dict, words: str) -> None:
     assert words in str(caught.value)
 
 
-def test_an_spi_device_takes_them_and_runs_them_in_python() -> None:
+def test_an_spi_device_takes_them_and_runs_them_in_c_where_built() -> None:
     from rtloop.io.device import build_device
 
     device = build_device("spi", "fpga", {
@@ -93,7 +93,68 @@ def test_an_spi_device_takes_them_and_runs_them_in_python() -> None:
         "send": [{**DUTY, "start_byte": 1}],
         "receive": [{**ENCODER, "start_byte": 1}]}, "app.toml")
     assert device.input_names == ("pan_duty",) and device.output_names == ("pan_rad",)
-    assert device.tx_layout._compiled is None and device.rx_layout._compiled is None  # state and clamp: Python
+    compiled = pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
+    assert isinstance(device.tx_layout._compiled, compiled.Layout)
+    assert isinstance(device.rx_layout._compiled, compiled.Layout)  # the SPI cycle stays one C call
+
+
+def twins(tables: list[dict], size: int, monkeypatch: pytest.MonkeyPatch) -> tuple[ByteLayout, ByteLayout]:
+    """The same layout twice: compiled (io/devio_c/bytelayout.c), and the Python reference."""
+    pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
+    fields = [field_from_table(t, f"frame[{i}]") for i, t in enumerate(tables)]
+    compiled = ByteLayout(fields, size, "frame")
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+    reference = ByteLayout(fields, size, "frame")
+    monkeypatch.delenv("RTLOOP_PURE_PYTHON")
+    assert compiled._compiled is not None and reference._compiled is None
+    return compiled, reference
+
+
+@pytest.mark.parametrize("kind", ["u8", "i8", "u16", "i16", "u32", "i32"])
+@pytest.mark.parametrize("order", ["little", "big"])
+def test_encoders_and_duties_in_c_are_the_references_bit_for_bit(kind, order, monkeypatch) -> None:
+    tables = [{"name": "enc", "start_byte": 0, "type": kind, "byte_order": order, "offset": 0.25,
+               "encoder": {"counts_per_rev": 500, "gear_ratio": 3.7}},
+              {"name": "duty", "start_byte": 4, "type": "i16", "byte_order": order,
+               "duty": {"full_scale": 1000, "range": [-0.95, 0.95]}},
+              {"name": "fduty", "start_byte": 6, "type": "f32", "duty": {"full_scale": 1.0, "range": [0.0, 0.5]}},
+              {"name": "enc2", "start_byte": 10, "type": "i32", "encoder": {"counts_per_rev": 4096}}]
+    compiled, reference = twins(tables, 16, monkeypatch)
+    bits = 8 * int(kind[1:])
+    per_count = 2 * math.pi / (500 * 3.7)
+    rng = np.random.default_rng(11)
+    position = np.zeros(4)
+    # steps of up to a third of the counter's range, both ways: it wraps round many times
+    steps = rng.uniform(-1, 1, (4_000, 4)) * [(2 ** bits / 3) * per_count, 0, 0, 5_000.0]
+    for index, step in enumerate(steps):
+        position += step
+        position[1] = rng.uniform(-2, 2) if index % 7 else math.inf * rng.choice([-1, 1])
+        position[2] = rng.uniform(-1, 1)
+        frames = [bytearray(16), bytearray(16)]
+        errors = []
+        for one, frame in zip((compiled, reference), frames, strict=True):
+            try:
+                one.pack_into(frame, 0, memoryview(position))
+                errors.append(None)
+            except ValueError as error:
+                errors.append(str(error))
+        assert errors[0] == errors[1] and frames[0] == frames[1], (index, errors)
+        outs = [np.zeros(4), np.zeros(4)]
+        for one, out in zip((compiled, reference), outs, strict=True):
+            one.unpack_from(frames[0], 0, out)
+        assert outs[0].tobytes() == outs[1].tobytes(), (index, outs)
+    assert abs(position[0]) > 2 ** bits * per_count or bits == 32  # it went round the counter
+
+
+def test_a_reading_into_a_list_keeps_counting_where_the_c_layout_counts(monkeypatch) -> None:
+    compiled, reference = twins([ENCODER], 4, monkeypatch)
+    for count in (65_000, 100, 30_000, 65_000, 200):  # wraps up, then down
+        seen = []
+        for one in (compiled, reference):
+            array_out, list_out = np.zeros(1), [0.0]
+            one.unpack_from(frame_with(count), 0, array_out if count % 2 == 0 else list_out)
+            seen.append(array_out[0] if count % 2 == 0 else list_out[0])
+        assert seen[0] == seen[1], count
 
 
 def test_a_float_duty_is_clamped_too() -> None:

@@ -24,15 +24,17 @@ Two kinds of field carry a signal rather than a number:
   ``duty × full_scale`` (the PWM generator's period in counts) and clamped to ``range`` first:
   whatever the command, no more than the declared duty reaches the wire.
 
-Neither takes a ``scale`` (the encoder and the full scale say it). A layout with either runs
-in Python (its state and its clamp are not in ``io/_devio.c``): so do the SPI or CAN cycles
-that use it.
+Neither takes a ``scale`` (the encoder and the full scale say it). Both run in C where it was
+built (``io/devio_c/bytelayout.c``: the encoders' counts kept there, the duty's clamp), bit for
+bit as the Python below, so the SPI and CAN cycles that use them stay one C call; a 64-bit
+encoder (its unsigned count would outgrow C's int64) runs in Python.
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from array import array
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -211,10 +213,16 @@ class ByteLayout:
         self._last_count: list[int | None] = [None] * len(self.fields)
         self._total_count = [0] * len(self.fields)
         self._float_duties = any(f.duty_range is not None and not FIELD_TYPES[f.type][1] for f in self.fields)
-        signals = any(f.counts_per_turn or f.duty_range for f in self.fields)  # stateful or clamped: Python's
-        compiled = None if signals else devio()  # the same packing in C (io/_devio.c), where it was built
+        # the same packing in C (io/_devio.c), where it was built; encoders and duties too, bit for bit
+        # (a 64-bit encoder's unsigned count would outgrow the C int64 it is kept in: Python's)
+        wide = any(f.counts_per_turn and f.size_bytes == 8 for f in self.fields)
+        compiled = None if wide else devio()
         self._compiled = compiled.Layout([(FIELD_TYPES[f.type][0], f.start_byte, f.scale, f.offset,
-                                           f.byte_order == "big") for f in self.fields]) if compiled else None
+                                           f.byte_order == "big", bool(f.counts_per_turn),
+                                           *(_sent_range(f) if f.duty_range is not None else (-math.inf, math.inf)))
+                                          for f in self.fields]) if compiled else None
+        # where the encoders' counts live in C, a reading into a list goes through this (one count per encoder)
+        self._scratch = array("d", bytes(8 * len(self.fields))) if self._compiled and self._encoders else None
 
     def __len__(self) -> int:
         return len(self.fields)
@@ -266,7 +274,12 @@ class ByteLayout:
                 self._compiled.unpack_from(frame, at, out, first)
                 return
             except TypeError:  # not a float64 vector: the Python way below
-                pass
+                scratch = self._scratch
+                if scratch is not None:  # the encoders' counts are kept in C: read there, then copied
+                    self._compiled.unpack_from(frame, at, scratch, 0)
+                    for index, value in enumerate(scratch):
+                        out[first + index] = value
+                    return
         index = first
         for codec, start, scale, offset, _low, _high, _integer in self._plan:
             out[index] = codec.unpack_from(frame, at + start)[0] * scale + offset

@@ -13,6 +13,11 @@ typedef struct {
     int big_endian;
     Py_ssize_t start;    /* byte offset from the frame's ``at`` */
     double scale, offset;
+    int wrap;            /* an encoder: packed wrapped round, unpacked unwrapped */
+    double sent_low, sent_high; /* a duty: the raw values it may be sent as (its range), else +-inf */
+    int started;         /* an encoder: read at least once */
+    uint64_t last_bits;  /* an encoder: the last reading's bits */
+    int64_t count;       /* an encoder: the unwrapped count */
 } FieldPlan;
 
 typedef struct {
@@ -27,7 +32,7 @@ static void Layout_dealloc(Layout *self) {
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* Layout(fields): each field (code, start_byte, scale, offset, big_endian). */
+/* Layout(fields): each field (code, start_byte, scale, offset, big_endian[, encoder, sent_low, sent_high]). */
 static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
     PyObject *fields;
     if (!PyArg_ParseTuple(args, "O", &fields)) {
@@ -49,11 +54,14 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
     for (Py_ssize_t i = 0; i < count; i++) {
         FieldPlan *f = &self->fields[i];
         const char *code;
-        int big;
-        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(items, i), "snddp", &code, &f->start, &f->scale, &f->offset,
-                              &big)) {
+        int big, wrap = 0;
+        f->sent_low = -INFINITY;
+        f->sent_high = INFINITY;
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(items, i), "snddp|pdd", &code, &f->start, &f->scale,
+                              &f->offset, &big, &wrap, &f->sent_low, &f->sent_high)) {
             goto fail;
         }
+        f->wrap = wrap;
         f->code = code[0];
         f->big_endian = big;
         f->is_signed = (f->code == 'b' || f->code == 'h' || f->code == 'i' || f->code == 'q');
@@ -64,6 +72,10 @@ static int Layout_init(Layout *self, PyObject *args, PyObject *kwargs) {
         case 'Q': case 'q': case 'd': f->size = 8; break;
         default:
             PyErr_Format(PyExc_ValueError, "unknown field code %R", PySequence_Fast_GET_ITEM(items, i));
+            goto fail;
+        }
+        if (f->wrap && (f->code == 'f' || f->code == 'd')) {
+            PyErr_SetString(PyExc_ValueError, "an encoder is an integer field");
             goto fail;
         }
         if (code[1] != '\0' || f->start < 0 || f->start > PY_SSIZE_T_MAX - 8) {
@@ -108,6 +120,9 @@ static long layout_pack(const Layout *layout, unsigned char *frame, const double
             return (long)i;
         }
         uint64_t bits;
+        if ((f->code == 'd' || f->code == 'f') && (raw < f->sent_low || raw > f->sent_high)) {
+            raw = raw < f->sent_low ? f->sent_low : f->sent_high; /* a float duty: its range */
+        }
         if (f->code == 'd') {
             memcpy(&bits, &raw, 8);
         } else if (f->code == 'f') {
@@ -120,11 +135,23 @@ static long layout_pack(const Layout *layout, unsigned char *frame, const double
             bits = word;
         } else {
             raw = nearbyint(raw); /* round half to even, as Python's round() */
+            if (raw > f->sent_high) { /* a duty: the counts within its range */
+                raw = f->sent_high;
+            } else if (raw < f->sent_low) {
+                raw = f->sent_low;
+            }
             int width = 8 * f->size;
             /* the exact range of the raw type, as doubles: [low, high_exclusive) */
             double low = f->is_signed ? -ldexp(1.0, width - 1) : 0.0;
             double high_exclusive = ldexp(1.0, f->is_signed ? width - 1 : width);
-            if (f->is_signed) {
+            if (f->wrap) { /* an encoder's count wraps round its field, as the counter shows it */
+                double modulus = ldexp(1.0, width);
+                double wrapped = fmod(raw, modulus); /* exact; the sign of raw */
+                if (wrapped < 0) {
+                    wrapped += modulus; /* exact: both are multiples of a power of two within 2^64 */
+                }
+                bits = wrapped >= modulus ? 0 : (uint64_t)wrapped;
+            } else if (f->is_signed) {
                 int64_t integer = raw >= high_exclusive ? (int64_t)(((uint64_t)1 << (width - 1)) - 1)
                                   : raw < low ? -(int64_t)(((uint64_t)1 << (width - 1)) - 1) - 1
                                   : (int64_t)raw;
@@ -143,10 +170,11 @@ static long layout_pack(const Layout *layout, unsigned char *frame, const double
     return -1;
 }
 
-/* The layout's fields of ``frame`` (at least layout->end bytes) into target[0..n-1]. */
-static void layout_unpack(const Layout *layout, const unsigned char *frame, double *target) {
+/* The layout's fields of ``frame`` (at least layout->end bytes) into target[0..n-1]; each encoder
+ * unwrapped by the shortest signed step from its last reading (the first taken as it is). */
+static void layout_unpack(Layout *layout, const unsigned char *frame, double *target) {
     for (Py_ssize_t i = 0; i < layout->n; i++) {
-        const FieldPlan *f = &layout->fields[i];
+        FieldPlan *f = &layout->fields[i];
         uint64_t bits = get_bits(frame + f->start, f->size, f->big_endian);
         double raw;
         if (f->code == 'd') {
@@ -156,6 +184,21 @@ static void layout_unpack(const Layout *layout, const unsigned char *frame, doub
             float narrow;
             memcpy(&narrow, &word, 4);
             raw = narrow;
+        } else if (f->wrap) {
+            int width = 8 * f->size;
+            uint64_t mask = width == 64 ? UINT64_MAX : ((uint64_t)1 << width) - 1;
+            if (!f->started) {
+                f->count = !f->is_signed ? (int64_t)bits
+                           : width == 64 ? (int64_t)bits
+                           : (int64_t)(bits ^ ((uint64_t)1 << (width - 1))) - ((int64_t)1 << (width - 1));
+                f->started = 1;
+            } else {
+                uint64_t step = (bits - f->last_bits) & mask;
+                /* step - 2^width when step >= 2^(width-1): the two's complement of step in width bits */
+                f->count += step >= ((uint64_t)1 << (width - 1)) ? -(int64_t)((~step + 1) & mask) : (int64_t)step;
+            }
+            f->last_bits = bits;
+            raw = (double)f->count;
         } else if (f->is_signed) {
             int width = 8 * f->size;
             int64_t integer = width == 64 ? (int64_t)bits
