@@ -272,7 +272,7 @@ def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cyc
     assert seen == [0.0, 1.0, 2.0, 2.0, 2.0, 5.0, 6.0, 6.0, 8.0, 9.0]  # the stale cycles kept the last values
     assert devices.stale_report() == {"drive": {
         "kind": "can", "stale_reads": 3, "stale_cycles": 3, "longest_lag_cycles": 2, "first_stale_cycles": [3, 4, 7],
-        "stale_reads_by_source": {"receive[0] (id 0x180)": 3}}}
+        "stale_reads_by_source": {"receive[0] (id 0x180)": 3}, "clamped_cycles": {}, "rate_limited_cycles": {}}}
 
 
 def test_counting_stale_reads_allocates_nothing_that_stays():
