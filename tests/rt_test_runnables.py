@@ -405,3 +405,21 @@ class BigState(Counter):
         import numpy
 
         self.big = numpy.arange(float(n))
+
+
+class ThreadPageFaults(Runnable):
+    """y[0] = page faults (minor + major) of the task's thread since prerun, read each step."""
+
+    n_inputs = 0
+    n_outputs = 1
+
+    def prerun(self) -> None:
+        import resource
+
+        self.getrusage, self.who = resource.getrusage, resource.RUSAGE_THREAD
+        usage = self.getrusage(self.who)
+        self.before = usage.ru_minflt + usage.ru_majflt
+
+    def step(self, u, y) -> None:
+        usage = self.getrusage(self.who)
+        y[0] = usage.ru_minflt + usage.ru_majflt - self.before

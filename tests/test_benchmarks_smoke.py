@@ -132,6 +132,19 @@ def test_bench_hotpath_measures_the_iteration_in_c(tmp_path: Path) -> None:
     assert measured[0] == "n/a" and 0 < float(measured[1]) < 1000
     result = json.loads(out.read_text())
     assert result["task_process"]["VmLck_MB"] > 0
+    assert 0 < result["task_process"]["locked_MB"] <= result["task_process"]["VmLck_MB"]
+
+
+def test_bench_locked_memory_compares_the_two_ways_of_locking(tmp_path: Path) -> None:
+    out = tmp_path / "locked.json"
+    run_script("bench_locked_memory.py", "--window-s", "0.5", "--json", str(out))
+    results = json.loads(out.read_text())["results"]
+    everything, on_fault = results.values()
+    assert [(r["app"], r["task"]) for r in on_fault] == [("no-op", "t"), ("JIWY", "controller"), ("JIWY", "plant")]
+    for before, after in zip(everything, on_fault, strict=True):
+        # Locked up front, every page of every locked mapping is resident; on fault, far fewer.
+        assert before["locked_resident_MB"] == pytest.approx(before["VmLck_MB"], rel=0.02)
+        assert after["locked_resident_MB"] < after["VmLck_MB"] - 10
 
 
 def test_bench_recorder_prints_rates_beside_numpy(tmp_path: Path) -> None:

@@ -45,6 +45,7 @@ def single_threaded_children() -> Iterator[None]:
 
 _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
 _libc.munlock.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+_libc.mlock.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
 _libc.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
 MADV_DONTNEED = 4
 
@@ -122,6 +123,10 @@ class Unlocked:
     """PROT_NONE reservations (gaps between a library's segments): a touch would be a crash."""
     blas_buffer_bytes: int
     """OpenBLAS's work buffer (0 when kept locked or not found)."""
+    blas_buffer: Mapping | None = None
+    """Where that buffer is, when it was unlocked (:func:`lock_what_the_loop_touches` leaves it out)."""
+    blas_in_the_loop: bool = False
+    """The task said it multiplies matrices in its loop (``lock_blas_buffer``): BLAS code locked in full too."""
 
 
 def unlock_what_the_loop_never_needs(lock_blas_buffer: bool) -> Unlocked:
@@ -142,4 +147,58 @@ def unlock_what_the_loop_never_needs(lock_blas_buffer: bool) -> Unlocked:
     if buffer is not None and not lock_blas_buffer and _libc.munlock(buffer.start, buffer.size_bytes) == 0:
         _libc.madvise(buffer.start, buffer.size_bytes, MADV_DONTNEED)
         blas_bytes = buffer.size_bytes
-    return Unlocked(guard_bytes, blas_bytes)
+    return Unlocked(guard_bytes, blas_bytes, buffer if blas_bytes else None, lock_blas_buffer)
+
+
+# Under mlockall(MCL_ONFAULT) (rt.lock_memory) a page is locked when first touched: a page the
+# loop first touches after T0 is a page fault inside a cycle (the timing ring takes one every
+# 128 cycles, measured before this). So, the last thing before T0, the task locks in full, with
+# mlock(2) (which faults every page in), all the memory its loop may touch: every writable
+# mapping (heap, stack, Python's arenas, numpy arrays, the shared segments: timing ring, record
+# queues, channels) and all of the interpreter and rtloop's own code. What stays locked only as
+# far as it was touched is the code and read-only data of other libraries (numpy, OpenBLAS,
+# libgfortran...): what imports and prerun ran is locked; a function a step calls for the first
+# time inside the loop takes one minor fault per new page, once.
+LOOP_CODE = ("libpython", "libc.so", "libc-", "libm.so", "libm-", "ld-linux", "/rtloop/")
+"""Mappings whose code the loop always runs: the interpreter, libc, libm, the loader, rtloop's own."""
+BLAS_CODE = ("openblas", "_multiarray_umath", "libgfortran", "libquadmath")
+"""And of a task that multiplies matrices in its loop (``lock_blas_buffer``): numpy's core and its BLAS
+(a first 3×3 product in the loop faulted in 3 pages of their code)."""
+
+
+def the_loop_touches(mapping: Mapping, interpreter: str, blas: bool = False) -> bool:
+    if mapping.permissions.startswith("---"):
+        return False  # a reservation: a touch would crash
+    if mapping.path.startswith("[") and mapping.path not in ("[heap]", "[stack]"):
+        return False  # [vdso], [vvar], [vsyscall]: the kernel's own, never swapped
+    if "w" in mapping.permissions[:2]:
+        return True
+    code = LOOP_CODE + BLAS_CODE if blas else LOOP_CODE
+    return mapping.path == interpreter or any(part in mapping.path for part in code)
+
+
+@dataclass(frozen=True, slots=True)
+class Touched:
+    """What :func:`lock_what_the_loop_touches` locked in full."""
+
+    locked_bytes: int
+    failed: tuple[str, ...] = ()
+    """Mappings mlock refused (address range and errno), for a note."""
+
+
+def lock_what_the_loop_touches(unlocked: Unlocked | None) -> Touched:
+    """Fault in and lock every page the loop may touch (see above); call it the last thing before T0,
+    after prerun and everything the task maps (segments, devices, arrays), with the memory locked."""
+    skip = unlocked.blas_buffer if unlocked is not None else None
+    blas = unlocked is not None and unlocked.blas_in_the_loop
+    interpreter = os.path.realpath("/proc/self/exe")
+    locked = 0
+    failed = []
+    for mapping in mappings():
+        if (skip is not None and mapping.start == skip.start) or not the_loop_touches(mapping, interpreter, blas):
+            continue
+        if _libc.mlock(mapping.start, mapping.size_bytes) == 0:
+            locked += mapping.size_bytes
+        else:
+            failed.append(f"{mapping.start:x}-{mapping.end:x} {mapping.path}: {os.strerror(ctypes.get_errno())}")
+    return Touched(locked, tuple(failed))

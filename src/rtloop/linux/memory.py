@@ -1,4 +1,4 @@
-"""The machine's available memory and a process's resident size, from /proc (None where unreadable);
+"""The machine's available memory and a process's resident and locked size, from /proc (None where unreadable);
 giving the heap's free pages back to the kernel."""
 
 from __future__ import annotations
@@ -52,3 +52,24 @@ def give_back_free_heap() -> bool:
         _TRIM.append(function)
     function = _TRIM[0]
     return bool(function(0)) if function is not None else False
+
+
+def locked_bytes(pid: int | str = "self", proc: Path = PROC) -> int | None:
+    """Memory a process holds locked in RAM: the resident pages (``Rss``) of its locked mappings
+    (``lo`` in ``VmFlags`` of ``/proc/PID/smaps``), pages shared with other processes counted whole.
+
+    Not ``VmLck`` of ``status``: that is the size of every locked mapping, pages touched or not, so
+    under ``mlockall(MCL_ONFAULT)`` it counts library code never read in. Nor ``Locked`` of
+    ``smaps_rollup``: that is a proportional share (a page shared by 3 processes counts a third), so it
+    falls as more task processes share the same libraries."""
+    try:
+        text = (proc / str(pid) / "smaps").read_text()
+    except OSError:
+        return None
+    total_kib = rss_kib = 0
+    for line in text.splitlines():
+        if line.startswith("Rss:"):
+            rss_kib = int(line.split()[1])
+        elif line.startswith("VmFlags:") and "lo" in line.split()[1:]:
+            total_kib += rss_kib
+    return total_kib * 1024

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import errno
 import fcntl
 import os
 import platform
@@ -31,6 +32,12 @@ CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 MCL_CURRENT = 1
 MCL_FUTURE = 2
+MCL_ONFAULT = 4
+"""Linux 4.4+: lock each page when it is first touched, not every page of every mapping at once."""
+LOCK_ALL_MEMORY_ENV = "RTLOOP_LOCK_ALL_MEMORY"
+"""Set to 1 in a task's environment: mlockall without MCL_ONFAULT, every page of every mapping read in
+and locked (as before MCL_ONFAULT): no first-call fault in any library's code, for ~35 MB more per
+task with numpy; benchmarks/bench_locked_memory.py compares the two."""
 EINTR = 4
 
 POLICIES: dict[str, int] = {
@@ -273,13 +280,28 @@ def limit_realtime_cpu(soft_s: float, hard_s: float) -> None:
                         "a hard limit above the current one needs root (CAP_SYS_RESOURCE)") from None
 
 
-def lock_memory() -> None:
-    """mlockall(MCL_CURRENT | MCL_FUTURE): no page faults from swapping in the loop."""
+def lock_memory() -> bool:
+    """mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT): no page faults from swapping in the loop.
+
+    With MCL_ONFAULT the pages already resident are locked and the others when first touched, so
+    the code of libraries the loop never runs (most of numpy and OpenBLAS) is not read in and
+    pinned; the task then locks in full what its loop touches (linux/lean.py,
+    ``lock_what_the_loop_touches``) before T0. Returns True when MCL_ONFAULT was in force; a
+    kernel without it (EINVAL), or RTLOOP_LOCK_ALL_MEMORY=1, gets MCL_CURRENT | MCL_FUTURE, which
+    faults in every mapping."""
+    if os.environ.get(LOCK_ALL_MEMORY_ENV) == "1":
+        pass
+    elif _mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) == 0:
+        return True
+    elif ctypes.get_errno() != errno.EINVAL:
+        _check("mlockall(MCL_CURRENT|MCL_FUTURE|MCL_ONFAULT)", -1,
+               "needs root, CAP_IPC_LOCK or a large enough RLIMIT_MEMLOCK (see `rtloop doctor`)")
     _check(
         "mlockall(MCL_CURRENT|MCL_FUTURE)",
         _mlockall(MCL_CURRENT | MCL_FUTURE),
         "needs root, CAP_IPC_LOCK or a large enough RLIMIT_MEMLOCK (see `rtloop doctor`)",
     )
+    return False
 
 
 class CpuDmaLatency:

@@ -28,7 +28,7 @@ from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, rea
 from rtloop.ipc.wiring import TaskSegments, TaskWiringPlan
 from rtloop.linux import rt
 from rtloop.linux.cpustat import own_thread_counters
-from rtloop.linux.lean import unlock_what_the_loop_never_needs
+from rtloop.linux.lean import lock_what_the_loop_touches, unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable
 from rtloop.runtime.snapshot import snapshot_file_name, write_snapshot
 from rtloop.runtime.taskrun import TaskRun  # its snapshot's imports too: none inside the loop
@@ -203,8 +203,8 @@ def task_process_main(
         raise SystemExit(1) from None
 
     settings = rt.apply_realtime(config.cpu, config.policy, config.priority, config.period_ns)
-    if settings.memory_locked:  # mlockall locked every mapping; keep only what the loop may touch
-        unlock_what_the_loop_never_needs(config.lock_blas_buffer)
+    # mlockall (on fault): no guard gaps, no OpenBLAS work buffer unless asked; the rest before T0
+    unlocked = unlock_what_the_loop_never_needs(config.lock_blas_buffer) if settings.memory_locked else None
     status[StatusWord.CPU] = config.cpu if config.cpu is not None else -1
     _report(pipe, kind="settings", settings=settings)
 
@@ -241,6 +241,9 @@ def task_process_main(
         gc.freeze()  # everything alive now is never scanned again
         gc.disable()  # and no collection pauses inside the loop
         _take_back_stop_signals(stop_in_order, pipe)  # the runnable's code may have taken them over
+        if unlocked is not None:  # every page the loop may touch, faulted in and locked now, not in a cycle
+            for failed in lock_what_the_loop_touches(unlocked).failed[:1]:  # the loop may fault there, once per page
+                _report(pipe, kind="note", text=f"mlock refused a mapping its loop may touch ({failed})")
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
         status[StatusWord.STATE] = TaskState.RUNNING
