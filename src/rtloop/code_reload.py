@@ -12,7 +12,7 @@ object for another at the release asked for, bumpless (:mod:`rtloop.switching`).
 
 The thread runs under ``SCHED_OTHER`` and holds the interpreter's lock only between the loop's
 steps, but while it works the loop may wait for that lock when it wakes: up to the switch
-interval this module sets for the reload (50 µs). The cost is measured in BENCHMARKS.md.
+interval this module sets for the reload (50 µs). docs/switching.md says what that costs.
 
 In ``simulate`` and ``replay`` the loop waits for the reloader at the release (``wait = True``),
 so the reloaded code acts at the same cycle as in the run; ``replay`` reads the code the run kept.
