@@ -345,6 +345,7 @@ class Supervisor:
             if task_run.process.is_alive():
                 task_run.process.kill()
                 task_run.process.join()
+                self._read_messages(task_run)  # a failure it reported before it hung (in postrun) is the one to say
                 if task_run.stuck and self.failure is not None:
                     self.failure = TaskFailed(
                         task_run.name, self.failure.cycle, self.failure.phase,
