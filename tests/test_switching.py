@@ -519,3 +519,42 @@ parameters = {{ kp = 2.0, ki = 3.0 }}
     assert abs(asked_for[at] - asked_for[at - 1]) > 2 * limit_v, "the switch did not jump: nothing shown"
     assert abs(sent[at] - sent[at - 1]) == pytest.approx(limit_v), "the rate limit did not hold the jump back"
     assert summary["devices"]["motor"]["rate_limited_cycles"].get("voltage_V", 0) >= 1
+
+
+class _FakeApp:
+    """The parts of a RunningApp that switch requests use: two tasks of controllers, T0 an hour ago."""
+
+    name = "fake"
+
+    def __init__(self) -> None:
+        import time
+
+        self.t0_ns = time.clock_gettime_ns(time.CLOCK_MONOTONIC) - 3600 * 10**9
+        self.ports = {f"{task}_switch": {"controllers": ["pid", "lqr"], "switch_task": task, "period_ns": period}
+                      for task, period in (("left", 1_000_000), ("right", 2_000_000))}
+        self.written: list[tuple[str, list[float]]] = []
+
+    def epoch_ns(self) -> int:
+        return self.t0_ns
+
+    def peek(self, port: str) -> np.ndarray:
+        return np.array([0.0, 0.0, -1.0, 0.0])
+
+    def write(self, port: str, values: list[float]) -> None:
+        self.written.append((port, values))
+
+
+def test_several_tasks_switch_at_one_instant_or_none_does() -> None:
+    from rtloop.errors import PortValueError
+    from rtloop.ipc.switch_requests import switch
+
+    app = _FakeApp()
+    with pytest.raises(PortValueError, match="task 'right' has no controller 'mpc'"):
+        switch(app, {"left": "lqr", "right": "mpc"})  # type: ignore[arg-type]
+    assert app.written == []  # the left task was not switched alone
+    answers = switch(app, {"left": "lqr", "right": "lqr"}, at_cycle=3_700_000)  # type: ignore[arg-type]
+    assert [(a.task, a.at_cycle) for a in answers] == [("left", 3_700_000), ("right", 1_850_000)]  # one instant
+    assert app.written == [("left_switch", [1.0, 3_700_000.0, -1.0, 0.0]),
+                           ("right_switch", [1.0, 1_850_000.0, -1.0, 0.0])]
+    with pytest.raises(PortValueError, match="is at cycle"):
+        switch(app, {"left": "pid"}, at_cycle=10)  # type: ignore[arg-type]
