@@ -549,6 +549,26 @@ def drop_output_to_a_lost_terminal(signum: int) -> None:
 
 
 @contextlib.contextmanager
+def stop_signals_handled(on_stop: Callable[[int], None]) -> Iterator[None]:
+    """In the block (a run), SIGINT/SIGTERM/SIGHUP call ``on_stop(signum)``; the handlers before come back after.
+    Only the main thread can set handlers: elsewhere (a library's caller in a thread) nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: object) -> None:
+        drop_output_to_a_lost_terminal(signum)
+        on_stop(signum)
+
+    previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, before in previous.items():
+            signal.signal(signum, before)
+
+
+@contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
     """Hold SIGINT/SIGTERM/SIGHUP back while the block runs; then act on them as the handlers before would."""
     if threading.current_thread() is not threading.main_thread():

@@ -17,8 +17,6 @@ import contextlib
 import dataclasses
 import multiprocessing
 import os
-import signal
-import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -53,13 +51,12 @@ from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
     STARTUP_ALLOWANCE_ENV,
-    STOP_SIGNALS,
     Limits,
     Progress,
     RunSession,
     RunState,
-    drop_output_to_a_lost_terminal,
     startup_allowance_s,
+    stop_signals_handled,
 )
 from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
@@ -129,13 +126,10 @@ class Supervisor:
             import_foxglove()
         capabilities = rt.probe()
         announce_once()
-        previous_handlers = self._install_signal_handlers()  # kept until the session has written everything
-        try:
-            with self.session as session:
-                session.summarise = lambda running: self._summary(capabilities, running=running)
-                self._run_tasks(session, capabilities)
-        finally:
-            self._restore_signal_handlers(previous_handlers)
+        # The handlers are kept until the session has written everything.
+        with stop_signals_handled(self._request_stop), self.session as session:
+            session.summarise = lambda running: self._summary(capabilities, running=running)
+            self._run_tasks(session, capabilities)
         if self.refused is not None:
             raise self.refused
         if self.failure is not None:
@@ -449,24 +443,12 @@ class Supervisor:
         )
 
     # --- signals ------------------------------------------------------------------------------
-    def _install_signal_handlers(self) -> dict[int, Any]:
-        if threading.current_thread() is not threading.main_thread():
-            return {}
-
-        def request_stop(signum: int, _frame: object) -> None:
-            drop_output_to_a_lost_terminal(signum)
-            if self.state is RunState.RUNNING:
-                self.state = RunState.SIGNAL
-            # The tasks are stopped from here, not at the control loop's next turn: tasks that keep
-            # the processors busy can delay that turn by seconds (the supervisor runs below them).
-            self.session.stop_tasks()
-
-        return {s: signal.signal(s, request_stop) for s in STOP_SIGNALS}
-
-    @staticmethod
-    def _restore_signal_handlers(previous: dict[int, Any]) -> None:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+    def _request_stop(self, _signum: int) -> None:
+        """Ctrl-C, SIGTERM, SIGHUP: the tasks are stopped from here, not at the control loop's next turn
+        (tasks that keep the processors busy can delay that turn by seconds: it runs below them)."""
+        if self.state is RunState.RUNNING:
+            self.state = RunState.SIGNAL
+        self.session.stop_tasks()
 
     # --- results --------------------------------------------------------------------------------
     def _input_limits(self, task: str) -> dict[str, dict[str, int]] | None:
