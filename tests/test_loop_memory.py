@@ -125,3 +125,6 @@ def test_the_loop_takes_no_page_fault_over_5000_cycles(tmp_path: Path) -> None:
     assert len(faults) >= 5000
     # The thread's faults since prerun, read in each step: the same from the first step to the last.
     assert faults[-1] == faults[0], [(k, f) for k, f in enumerate(faults) if f != faults[0]][:10]
+    # What the summary says it locked: the loop's memory, far less than the mappings' whole size (VmLck)
+    locked = summary.tasks["t"].to_json()["locked_bytes"]
+    assert 1 << 20 < locked < 60 << 20, locked

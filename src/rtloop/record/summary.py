@@ -55,6 +55,9 @@ class TaskSummary:
     """The first of them: ``plant.y[1] (speed) at cycle 304`` ('' when none)."""
     resident_bytes: dict[str, int] | None = None
     """Run only: the task process's resident memory at the supervisor's samples (first, last, max)."""
+    locked_bytes: int | None = None
+    """Run only, memory locked: the resident pages of the task process's locked mappings, once all the
+    memory its loop may touch was locked, before T0 (not VmLck: see rtloop.linux.memory.locked_bytes)."""
     input_limits: dict[str, dict[str, int]] | None = None
     """Inputs fed by a connection with ``min``/``max``/``rate_per_s`` whose guard acted: per input,
     ``clamped_cycles`` and ``rate_limited_cycles`` (``{}``: guarded, never acted; None: none guarded)."""
@@ -79,6 +82,7 @@ class TaskSummary:
             "output_names": list(self.output_names) if self.output_names else None,
             **({"host_exec_ns": self.host_exec_ns} if self.host_exec_ns is not None else {}),
             **({"resident_bytes": self.resident_bytes} if self.resident_bytes is not None else {}),
+            **({"locked_bytes": self.locked_bytes} if self.locked_bytes is not None else {}),
             **({"input_limits": self.input_limits} if self.input_limits is not None else {}),
         }
 

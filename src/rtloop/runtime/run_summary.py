@@ -47,6 +47,8 @@ class TaskFacts:
     """Simulation: what its steps cost on the host."""
     resident_bytes: dict[str, int] | None = None
     """Run: the task process's resident memory at the supervisor's samples."""
+    locked_bytes: int | None = None
+    """Run: the memory its process holds locked, measured by itself before T0 (linux/memory.locked_bytes)."""
     input_limits: dict[str, Any] | None = None
     """How often the guards of its connections acted."""
 
@@ -104,6 +106,7 @@ def task_summary(session: RunSession, name: str, facts: TaskFacts) -> TaskSummar
         **signal_names(spec.runnable),
         **nonfinite_fields(status, handles.plan),
         resident_bytes=facts.resident_bytes,
+        locked_bytes=facts.locked_bytes,
         input_limits=facts.input_limits,
     )
 

@@ -398,6 +398,8 @@ class Supervisor:
                 kind = message.get("kind")
                 if kind == "settings":
                     task_run.settings = message["settings"]
+                elif kind == "locked":
+                    task_run.locked_bytes = message["bytes"]
                 elif kind == "finished":
                     task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
                     if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe
@@ -472,6 +474,7 @@ class Supervisor:
             if running and task_run is not None:
                 self.memory.sample(name, task_run.process.pid, recorder.latest_ns)
             tasks[name] = TaskFacts(settings=task_run.settings if task_run else None,
+                                    locked_bytes=task_run.locked_bytes if task_run else None,
                                     resident_bytes=self.memory.to_json(name), input_limits=self._input_limits(name))
         bridges = self.bridges.summary() if self.bridges is not None else {}
         run = RunFacts(

@@ -26,7 +26,7 @@ from rtloop.ipc.schema import CONTROL_WORDS, STATUS_WORDS, TASK_TIMING_OFFSET_BY
 from rtloop.ipc.segments import Segment
 from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, read_epoch
 from rtloop.ipc.wiring import TaskSegments, TaskWiringPlan
-from rtloop.linux import rt
+from rtloop.linux import memory, rt
 from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import lock_what_the_loop_touches, unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable
@@ -244,6 +244,7 @@ def task_process_main(
         if unlocked is not None:  # every page the loop may touch, faulted in and locked now, not in a cycle
             for failed in lock_what_the_loop_touches(unlocked).failed[:1]:  # the loop may fault there, once per page
                 _report(pipe, kind="note", text=f"mlock refused a mapping its loop may touch ({failed})")
+            _report(pipe, kind="locked", bytes=memory.locked_bytes())
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
         status[StatusWord.STATE] = TaskState.RUNNING

@@ -28,6 +28,7 @@ class TaskProcess:
     process: Any
     pipe: Any
     settings: rt.AppliedSettings | None = None
+    locked_bytes: int | None = None  # memory the process holds locked once its loop's memory is (linux/memory.py)
     failure: TaskFailed | None = None
     finished: bool = False
     stop_request: str | None = None
