@@ -24,7 +24,7 @@ selection=(tests/test_rtkernel_guest.py tests/test_run.py::test_rt_settings_are_
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
-RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-2400} tools/rtkernel-vm.sh \
+RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-3300} tools/rtkernel-vm.sh \
     .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 "${selection[@]}" \
     2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
