@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from rtloop.linux import cpustat
-from rtloop.stats.miss_causes import Evidence, Miss, MissLedger, explain
+from rtloop.stats.miss_causes import UNEXPLAINED, Cause, Evidence, Miss, MissLedger, explain
 
 SAMPLES_KEPT = 400
 """Supervisor samples kept (one per drain, 50 ms: 20 s), enough for the misses still to decide."""
@@ -28,6 +28,10 @@ THREAD_SCAN_INTERVAL_NS = 1_000_000_000
 THREAD_SCAN_MIN_INTERVAL_NS = 200_000_000
 """How soon a miss waiting for a walk after it may ask for one (a thread started just before it)."""
 DECIDED_KEPT = 4096
+EXAMINED_PER_DECISION = 500
+"""Misses examined in full at one decision (a drain, or the end of the run): the evidence of one
+costs a look through its task's recent records, so a flood of misses (a task far behind at a
+high rate) would cost the supervisor more than the run; the others are counted, not examined."""
 """Misses whose causes are kept for the tasks they held up (decided in release order)."""
 COUNTER_FIELDS = cpustat.THREAD_COUNTERS[1:]
 """The task's counters compared between two readings (the first field is when each was read)."""
@@ -174,7 +178,14 @@ class MissWatch:
     # --- deciding ----------------------------------------------------------------------------------
     def _decide(self, misses: list[tuple[Miss, int]]) -> None:
         # in release order, a higher priority first: a step that held another is decided before it
-        for miss, before in sorted(misses, key=lambda p: (p[0].release_ns, -self.facts[p[0].task].priority)):
+        ordered = sorted(misses, key=lambda p: (p[0].release_ns, -self.facts[p[0].task].priority))
+        if len(ordered) > EXAMINED_PER_DECISION:
+            flood = Cause(UNEXPLAINED, f"not examined: {len(ordered)} misses came at once, more than the "
+                                       f"{EXAMINED_PER_DECISION} the supervisor examines together")
+            for miss, _before in ordered[EXAMINED_PER_DECISION:]:
+                self.ledger.add(miss, Evidence(), flood)
+            ordered = ordered[:EXAMINED_PER_DECISION]
+        for miss, before in ordered:
             evidence = self.evidence_for(miss, before)
             cause = explain(miss, evidence)
             self.ledger.add(miss, evidence, cause)
