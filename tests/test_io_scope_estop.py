@@ -100,7 +100,7 @@ def test_the_scope_pin_changes_exactly_as_often_as_the_cycles_say(tmp_path, hot_
     traces.parent.mkdir()
     # -ff: one file per process and thread (no interleaved, unfinished calls); seccomp-bpf: the
     # traced processes stop at their ioctls only, not at every system call
-    run = run_app(tmp_path, text, "--duration", "40", env={"RTLOOP_PURE_PYTHON": "1" if hot_path == "python" else "0"},
+    run = run_app(tmp_path, text, "--duration", "10", env={"RTLOOP_PURE_PYTHON": "1" if hot_path == "python" else "0"},
                   wrapper=(strace, "-ff", "-qq", "--seccomp-bpf", "-e", "trace=ioctl", "-e", "signal=none",
                            "-o", str(traces)))
     assert run.returncode == 0, run.stderr
