@@ -47,4 +47,4 @@ def run(args: argparse.Namespace) -> int:
                   "drive enabled)", file=sys.stderr)
             return 2
         node.inject_at_sync = int(at)
-    return serve(interface, node)
+    return serve(interface, node, priority=args.priority)

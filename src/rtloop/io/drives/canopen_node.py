@@ -20,6 +20,7 @@ sends an EMCY (its error code, error register 0x01). The log says every NMT and 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import socket
 import struct
@@ -239,8 +240,9 @@ class CanopenNode:
 
 # --- on a SocketCAN interface ---------------------------------------------------------------------------
 
-def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0) -> int:
-    """Answer on ``interface`` until SIGTERM/SIGINT (or ``stop_after_s``)."""
+def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0, priority: int = 0) -> int:
+    """Answer on ``interface`` until SIGTERM/SIGINT (or ``stop_after_s``), at SCHED_FIFO ``priority``
+    when given (a drive must answer within the master's TPDO timeout)."""
     try:
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
         sock.bind((interface,))
@@ -260,6 +262,11 @@ def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0) -> int:
             except OSError as error:
                 node.log(f"node {node.node}: send failed: {error.strerror}")
 
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except OSError as error:
+            node.log(f"node {node.node}: SCHED_FIFO {priority} refused ({error.strerror}): normal priority")
     start = time.monotonic()
     node.log(f"node {node.node}: emulated CiA 402 drive on {interface} ({node.identity.describe()})")
     send(node.boot(start))
