@@ -104,7 +104,8 @@ def _draw(runs: list[Run], out: Path, write_html: bool) -> Report:
             report.pngs.append(path)
     with_signals = [(run.label, run.signals, run.data.inputs) for run in runs if run.signals is not None]
     if len(with_signals) > 1:
-        overlaid = signal_figures.comparison_figure(with_signals)
+        first = next(run for run in runs if run.signals is not None)
+        overlaid = signal_figures.comparison_figure(with_signals, first.summary.get("switches") or [])
         if overlaid is not None:
             path = figures.save(overlaid, fig_dir / "compare-signals.png")
             comparison.insert(0, html.FigureRef(path, f"The runs' signals overlaid, and each run's difference to "

@@ -236,7 +236,8 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
     return fig
 
 
-def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]) -> Figure | None:
+def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]],
+                      switches: Sequence[dict[str, Any]] = ()) -> Figure | None:
     """The runs' signals overlaid, each group with the differences to the first run below it.
 
     Runs are matched by column name and rows by time (a run and its simulation share
@@ -272,11 +273,14 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
         if diff_ax.get_legend_handles_labels()[0]:
             _legend(diff_ax)
     labelled: set[tuple[float, str, tuple[float, ...]]] = set()
-    marked = [_mark_inputs(list(axes[::2]), inputs, RUN_COLORS[r % len(RUN_COLORS)], labelled)
+    marked = [_mark_inputs(list(axes[::2]), without_switch_ports(inputs, switches), RUN_COLORS[r % len(RUN_COLORS)],
+                           labelled)
               for r, (_, _, inputs) in enumerate(runs)]
+    switched = _mark_switches(list(axes[::2]), switches)  # the first run's: a replay or a simulation repeats them
     axes[-1].set_xlabel(TIME_LABEL)
     writes = "; ".join(f"{label}: {count}" for (label, _, _), count in zip(runs, marked, strict=True) if count)
     note = f"; dotted, in each run's colour: live port writes ({writes})" if writes else ""
+    note += f"; solid purple: {reference_label}'s {switched} controller switch(es)" if switched else ""
     note += f"; red: a limit acted in {reference_label} ({limited} stretch(es))" if limited else ""
     fig.suptitle(literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
                          f"difference to {reference_label} at common times{note}"), fontsize=12)
