@@ -28,7 +28,8 @@ class PanelWithScope(LogDevice):
         return 99, GPIO_V2_LINE_SET_VALUES_IOCTL, BIT, self.mode
 
 
-def cycles(monkeypatch: pytest.MonkeyPatch, tmp_path, mode: int, fail: bool = False) -> list[object]:
+def cycles(monkeypatch: pytest.MonkeyPatch, tmp_path, mode: int, fail: bool = False,
+           raises_at: int | None = None) -> list[object]:
     """What the devices of a task do over three cycles and a stop: the scope pin's writes and the
     steps between them."""
     seen: list[object] = []
@@ -51,6 +52,8 @@ def cycles(monkeypatch: pytest.MonkeyPatch, tmp_path, mode: int, fail: bool = Fa
     for cycle in range(3):
         devices.at_release(cycle)
         seen.append("step")
+        if cycle == raises_at:
+            break  # the step raised: the loop goes to the stop, the pin still high
         devices.after_step(cycle)
     devices.stop()
     return seen
@@ -60,12 +63,18 @@ def test_toggle_an_edge_at_every_release(monkeypatch: pytest.MonkeyPatch, tmp_pa
     assert cycles(monkeypatch, tmp_path, mode=1) == [1, "step", 0, "step", 1, "step"]
 
 
-def test_step_high_for_exactly_the_step_and_low_at_the_stop(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
-    assert cycles(monkeypatch, tmp_path, mode=2) == [1, "step", 0] * 3 + [0]
+def test_step_high_for_exactly_the_step_and_one_edge_each_way(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    # the stop writes nothing when the pin is low already: one rise and one fall per step, as a
+    # scope and the guest's count of the pin's writes (tests/test_io_scope_estop.py) expect
+    assert cycles(monkeypatch, tmp_path, mode=2) == [1, "step", 0] * 3
+
+
+def test_a_step_that_raised_leaves_the_pin_high_and_the_stop_brings_it_low(monkeypatch, tmp_path) -> None:
+    assert cycles(monkeypatch, tmp_path, mode=2, raises_at=1) == [1, "step", 0, 1, "step", 0]
 
 
 def test_a_failed_write_of_the_scope_pin_never_stops_the_loop(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
-    assert cycles(monkeypatch, tmp_path, mode=2, fail=True) == [1, "step", 0] * 3 + [0]
+    assert cycles(monkeypatch, tmp_path, mode=2, fail=True) == [1, "step", 0] * 3
 
 
 def test_the_hot_path_knows_no_scope_pin() -> None:

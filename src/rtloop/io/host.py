@@ -179,11 +179,19 @@ class ScopePin:
 
     def before_step(self) -> None:
         if not self.toggles:
+            self.level = 1
             self._set(1)
 
     def after_step(self) -> None:
         if not self.toggles:
+            self.level = 0
             self._set(0)
+
+    def stop(self) -> None:
+        """Low, if a step that raised left it high: an edge only where there is one (a scope, or a
+        test counting the pin's values, sees exactly one rise and one fall per step)."""
+        if not self.toggles and self.level:
+            self.after_step()
 
 
 class TaskDevices:
@@ -290,7 +298,7 @@ class TaskDevices:
         """Safe values to every configured device, then deactivate and close it. Never raises:
         each device gets its turn whatever the others do (see ``problems``)."""
         if self.scope is not None:
-            self.scope.after_step()  # low (a step that raised left it high)
+            self.scope.stop()  # low, if a step that raised left it high
             self.scope = None
         for slot in self.configured:
             device = slot.device
