@@ -71,6 +71,8 @@ class CodeReloader:
         self.ready_runnable: Runnable | None = None
         self.failed_code = 0
         self.done = threading.Event()
+        self.finished: set[int] = set()
+        """Code ids the thread has answered (ready or refused)."""
         self.retired: list[Runnable] = []
         self._wake_r, self._wake_w = os.pipe()
         previous = threading.stack_size(THREAD_STACK_BYTES)
@@ -89,8 +91,9 @@ class CodeReloader:
 
     def take(self, code_id: int) -> Runnable | None:
         """The controller built from ``code_id`` if it is ready (in simulate: once it is)."""
-        if self.wait and self.ready_code != code_id and self.failed_code != code_id:
-            self.done.wait()
+        while self.wait and code_id not in self.finished:  # that code's answer, not an earlier request's
+            self.done.wait(0.05)
+            self.done.clear()
         if self.ready_code == code_id:
             runnable, self.ready_runnable, self.ready_code = self.ready_runnable, None, 0
             return runnable
@@ -137,6 +140,7 @@ class CodeReloader:
             finally:
                 sys.setswitchinterval(previous)
             self._write_result(index, code_id, result)
+            self.finished.add(code_id)
             self.done.set()
 
     def _postrun_retired(self) -> None:
