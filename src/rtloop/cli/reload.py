@@ -40,19 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from rtloop.code_reload import code_file_name, code_id_of, result_file_name
     from rtloop.ipc.ports import connect_app
-    from rtloop.ipc.switch_requests import switch_ports
+    from rtloop.ipc.switch_requests import release_at, switch_port_of
 
     app = connect_app(args.app, owner_uid=args.user)
-    ports = switch_ports(app.ports)
-    port = ports.get(args.task)
-    if port is None:
-        raise PortValueError(f"app {app.name!r}: task {args.task!r} has no controllers to reload "
-                             f"(tasks with [tasks.NAME.controllers]: {sorted(ports) or 'none'})")
+    port = switch_port_of(app, args.task, args.controller, "reload")
     current = app.peek(port.port)
     name = args.controller if args.controller is not None else port.controllers[int(current[0])]
-    if name not in port.controllers:
-        raise PortValueError(f"task {args.task!r} has no controller {name!r}; its controllers are "
-                             f"{list(port.controllers)}")
     source_path = args.file if args.file is not None else _registered_source(app.ports[port.port], name)
     source = _read_source(source_path)
     try:
@@ -64,15 +57,9 @@ def run(args: argparse.Namespace) -> int:
     run_dir = _run_dir(app.registry)
     code_dir = run_dir / "code"
     _keep(code_dir, code_file_name(name, code_id), source)
-    t0_ns = app.epoch_ns()
-    if not t0_ns:
-        raise PortValueError(f"app {app.name!r} has not started its tasks yet; reload once it runs")
-    now_ns = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
-    at_cycle = args.at_cycle if args.at_cycle is not None else \
-        math.ceil((now_ns + LEAD_S * 1e9 - t0_ns) / port.period_ns)
-    at_ns = t0_ns + at_cycle * port.period_ns
-    if at_ns <= now_ns:
-        raise PortValueError(f"--at-cycle {at_cycle}: task {args.task!r} is past it already; give a release to come")
+    t0_ns, at_ns = release_at(app, port, args.at_cycle, LEAD_S, "reload")
+    at_cycle = math.ceil((at_ns - t0_ns) / port.period_ns)
+    at_ns = t0_ns + at_cycle * port.period_ns  # the release itself
     result_path = code_dir / result_file_name(name, code_id)
     result_path.unlink(missing_ok=True)  # the answer to this request, not to an earlier one
     app.write(port.port, [float(port.controllers.index(name)), float(at_cycle), float(current[2]), float(code_id)])

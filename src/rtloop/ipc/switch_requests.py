@@ -57,36 +57,46 @@ def switch_ports(ports: Mapping[str, Mapping[str, Any]]) -> dict[str, SwitchPort
     return found
 
 
+def switch_port_of(app: RunningApp, task: str, controller: str | None, verb: str) -> SwitchPort:
+    """``task``'s switch port, checked to have ``controller`` (None: any), or why not (``verb``: what for)."""
+    ports = switch_ports(app.ports)
+    if task not in ports:
+        raise PortValueError(f"app {app.name!r}: task {task!r} has no controllers to {verb} "
+                             f"(tasks with [tasks.NAME.controllers]: {sorted(ports) or 'none'})")
+    if controller is not None and controller not in ports[task].controllers:
+        raise PortValueError(f"task {task!r} has no controller {controller!r}; "
+                             f"its controllers are {list(ports[task].controllers)}")
+    return ports[task]
+
+
+def release_at(app: RunningApp, port: SwitchPort, at_cycle: int | None, lead_s: float, verb: str) -> tuple[int, int]:
+    """(T0, the instant a request holds from): ``at_cycle`` of ``port``'s task, or ``lead_s`` from now."""
+    t0_ns = app.epoch_ns()
+    if not t0_ns:
+        raise PortValueError(f"app {app.name!r} has not started its tasks yet; {verb} once it runs")
+    now_ns = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
+    if at_cycle is None:
+        return t0_ns, now_ns + int(lead_s * 1e9)
+    at_ns = t0_ns + at_cycle * port.period_ns
+    if at_ns <= now_ns:
+        raise PortValueError(f"at cycle {at_cycle}: task {port.task!r} is at cycle "
+                             f"{(now_ns - t0_ns) // port.period_ns} already; give a release still to come")
+    return t0_ns, at_ns
+
+
 def switch(app: RunningApp, changes: Mapping[str, str | None], *, at_cycle: int | None = None,
            mode: Mode = "active", lead_s: float = LEAD_S) -> list[SwitchAnswer]:
     """Ask each task of ``changes`` for its controller (``None``: with ``promote``, the task's shadow)
     from one release: ``at_cycle`` (in the first task's periods) or about ``lead_s`` from now."""
     if not changes:
         raise PortValueError("switch: name at least one task and its controller")
-    ports = switch_ports(app.ports)
     chosen: list[tuple[SwitchPort, str | None]] = []
     for task, controller in changes.items():  # every name checked before anything is written: all or none
-        if task not in ports:
-            raise PortValueError(f"app {app.name!r}: task {task!r} has no controllers to switch "
-                                 f"(tasks with [tasks.NAME.controllers]: {sorted(ports) or 'none'})")
-        if controller is not None and controller not in ports[task].controllers:
-            raise PortValueError(f"task {task!r} has no controller {controller!r}; "
-                                 f"its controllers are {list(ports[task].controllers)}")
+        port = switch_port_of(app, task, controller, "switch")
         if controller is None and mode not in ("promote", "stop_shadow"):
             raise PortValueError(f"switch: name the controller for task {task!r}")
-        chosen.append((ports[task], controller))
-    t0_ns = app.epoch_ns()
-    if not t0_ns:
-        raise PortValueError(f"app {app.name!r} has not started its tasks yet; switch once it runs")
-    first = chosen[0][0]
-    now_ns = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
-    if at_cycle is not None:
-        at_ns = t0_ns + at_cycle * first.period_ns
-        if at_ns <= now_ns:
-            raise PortValueError(f"at cycle {at_cycle}: task {first.task!r} is at cycle "
-                                 f"{(now_ns - t0_ns) // first.period_ns} already; give a release still to come")
-    else:
-        at_ns = now_ns + int(lead_s * 1e9)
+        chosen.append((port, controller))
+    t0_ns, at_ns = release_at(app, chosen[0][0], at_cycle, lead_s, "switch")
     requests = [(port, *_request(app.peek(port.port), port, controller,
                                  math.ceil((at_ns - t0_ns) / port.period_ns), mode))
                 for port, controller in chosen]  # all built (and refused) before the first write
