@@ -358,6 +358,11 @@ def _checked(device: str, source: str, key: str, setting: Setting, value: Any) -
     return value
 
 
+def positive(value: float) -> str | None:
+    """A setting's check: a number above 0."""
+    return None if value > 0 else f"must be > 0, got {value!r}"
+
+
 def number_problem(value: float, at_most: float = MAX_SETTING_MAGNITUDE) -> str | None:
     """What is wrong with a number of a device's settings (one phrase), or None: not finite, or absurd."""
     if not math.isfinite(value):

@@ -40,7 +40,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault
-from rtloop.io.device import HOUR_MS, Device, FloatVector, Setting
+from rtloop.io.device import HOUR_MS, Device, FloatVector, Setting, positive
 from rtloop.sudo import trusted_uids, trusted_users_phrase
 from rtloop.text import counted
 
@@ -132,10 +132,6 @@ def _on_missing(value: str) -> str | None:
     return None if value in ON_MISSING else f"expected one of {', '.join(ON_MISSING)}, got {value!r}"
 
 
-def _positive(value: float) -> str | None:
-    return None if value > 0 else "must be > 0"
-
-
 def _names(value: list[Any]) -> str | None:
     if not all(isinstance(name, str) and name.isidentifier() for name in value):
         return "expected names (letters, digits, underscores)"
@@ -172,10 +168,10 @@ class SerialDevice(Device):
     safe_write_is_exchange = True  # the safe values are a request the device answers
     settings: ClassVar[dict[str, Setting]] = {
         "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 or /dev/ttyAMA0", is_path=True),
-        "baudrate": Setting(int, 115200, "bits per second", check=lambda v: None if v > 0 else "must be > 0",
+        "baudrate": Setting(int, 115200, "bits per second", check=positive,
                             at_most=100_000_000),
         "timeout_ms": Setting(float, 5.0, "how long to wait for the response, in ms (a late one is a fault)",
-                              check=_positive, at_most=HOUR_MS),
+                              check=positive, at_most=HOUR_MS),
         "commands": Setting(list, doc="names of the values sent each cycle (its u), e.g. [\"voltage_V\"]",
                             check=_names),
         "readings": Setting(list, doc="names of the values received each cycle (its y)", check=_names),

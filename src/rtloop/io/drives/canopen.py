@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
-from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting
+from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives import canopen_wire as wire
 from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
 from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
@@ -51,10 +51,6 @@ def _tables(value: list[Any]) -> str | None:
     if not value or not all(isinstance(item, dict) for item in value):
         return "expected one table per drive: [{ name, node, vendor, product, revision, mode, ... }]"
     return None
-
-
-def _positive(value: float) -> str | None:
-    return None if value > 0 else f"must be > 0, got {value!r}"
 
 
 def read_eds(path: Path, node: int, where: str) -> tuple[dict[str, int], set[int]]:
@@ -96,13 +92,13 @@ class Canopen402Device(Device):
         "interface": Setting(str, doc="the SocketCAN interface the drives are on (can0; vcan0 for the emulated node)"),
         "joints": Setting(list, doc="one table per drive: its joint and its node id", check=_tables),
         "answer_timeout_ms": Setting(float, 500.0, "how long a node may take to answer an SDO or to boot up after "
-                                     "NMT reset, ms", _positive, at_most=60_000.0),
-        "tpdo_timeout_ms": Setting(float, 1.0, "how long after SYNC the TPDOs may take to come, ms", _positive,
+                                     "NMT reset, ms", positive, at_most=60_000.0),
+        "tpdo_timeout_ms": Setting(float, 1.0, "how long after SYNC the TPDOs may take to come, ms", positive,
                                    at_most=10_000.0),
         "heartbeat_ms": Setting(float, 100.0, "the nodes' heartbeat period (0x1017); rtloop faults after three "
-                                "missed", _positive, at_most=60_000.0),
+                                "missed", positive, at_most=60_000.0),
         "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
-                                        "disable) before rtloop gives up on it", _positive, at_most=60.0),
+                                        "disable) before rtloop gives up on it", positive, at_most=60.0),
         "eds_dir": Setting(str, "", "the folder relative eds paths are taken from (in an app file, \".\" is the "
                            "app file's folder)", is_path=True),
     }

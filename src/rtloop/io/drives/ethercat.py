@@ -35,7 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
-from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting
+from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
 from rtloop.io.drives.drive_model import DriveModel
 from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
@@ -58,10 +58,6 @@ def _tables(value: list[Any]) -> str | None:
     return None
 
 
-def _positive(value: float) -> str | None:
-    return None if value > 0 else f"must be > 0, got {value!r}"
-
-
 def _eeprom_reader(slave: Any) -> Any:
     return lambda word: bytes(slave.eeprom_read(word))
 
@@ -73,12 +69,12 @@ class EthercatDevice(Device):
     settings: ClassVar[dict[str, Setting]] = {
         "interface": Setting(str, doc="the network interface the slaves are on (eth1; a veth end for emulated drives)"),
         "joints": Setting(list, doc="one table per drive, in bus order", check=_tables),
-        "timeout_us": Setting(float, 1000.0, "how long a cycle's frame may take to come back, µs", _positive,
+        "timeout_us": Setting(float, 1000.0, "how long a cycle's frame may take to come back, µs", positive,
                               at_most=1e6),
         "watchdog_ms": Setting(float, 100.0, "the slaves' SM watchdog: without process data this long, a slave "
-                               "leaves OP and its drive stops", _positive, at_most=6000.0),
+                               "leaves OP and its drive stops", positive, at_most=6000.0),
         "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
-                                        "disable) before rtloop gives up on it", _positive, at_most=60.0),
+                                        "disable) before rtloop gives up on it", positive, at_most=60.0),
         "emulator_interface": Setting(str, "", "the veth end `rtloop emulate ethercat --app` answers on (tests, "
                                       "examples)"),
         "esi_dir": Setting(str, "", "the folder relative esi paths are taken from (in an app file, \".\" is the "

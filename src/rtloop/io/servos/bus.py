@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch, DeviceNotReady
-from rtloop.io.device import HOUR_MS, Claim, CommandLimit, Device, FloatVector, Setting
+from rtloop.io.device import HOUR_MS, Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.servos.calibration import ServoSpec, Units, parse_servos
 from rtloop.io.servos.line import PortLine
 from rtloop.io.servos.protocol import (
@@ -70,12 +70,12 @@ class ServoBusDevice(Device):
         "port": Setting(str, doc="the serial device, e.g. /dev/ttyUSB0 (an FTDI adapter: latency_timer 1 ms)",
                         is_path=True),
         "baudrate": Setting(int, 1_000_000, "bits per second, as the servos are set",
-                            check=lambda v: None if v > 0 else "must be > 0", at_most=100_000_000),
+                            check=positive, at_most=100_000_000),
         "servos": Setting(list, doc="[{ name, id, model, zero_ticks, direction, range_rad }, ...]"),
         "command": Setting(str, "position", "what the task commands: position (rad), velocity (rad/s), "
                            "current (A), pwm (duty -1..1)"),
         "timeout_ms": Setting(float, 5.0, "how long a sync read waits for every servo's answer, in ms",
-                              check=lambda v: None if v > 0 else "must be > 0", at_most=HOUR_MS),
+                              check=positive, at_most=HOUR_MS),
         "on_missing": Setting(str, "fault", "a servo not answering within timeout_ms: \"fault\" or \"stale\" "
                               "(keep its last readings, count)", check=_one_of(ON_MISSING)),
         "max_stale_in_a_row": Setting(int, 10, "with on_missing = \"stale\": this many reads in a row without a "
