@@ -33,11 +33,17 @@ def _switch(ts: str, comm: str, pid: int, next_comm: str, next_pid: int, prio: i
 
 def test_trace_lines_are_parsed_into_switches_and_handlers() -> None:
     switch = trace.parse(_switch("100.000100", "<idle>", 0, "rtloop hog", 77, 9))
-    assert switch == trace.Event(100_000_100_000, "switch", "rtloop hog (pid 77, FIFO/RR 90)", 90)
+    assert switch == trace.Event(100_000_100_000, "switch", "rtloop hog (pid 77, FIFO/RR 90)", 90,
+                                 prev="<idle> (pid 0, other)", prev_priority=0, context_pid=0)
     irq = trace.parse("  <idle>-0 [001] d.h1. 100.000200: irq_handler_entry: irq=24 name=virtio0-input.0")
-    assert irq == trace.Event(100_000_200_000, "irq", "IRQ 24 (virtio0-input.0)")
+    assert irq == trace.Event(100_000_200_000, "irq", "IRQ 24 (virtio0-input.0)", context_pid=0)
     assert trace.parse("  <idle>-0 [001] d.h1. 100.000300: irq_handler_exit: irq=24 ret=handled") == trace.Event(
-        100_000_300_000, "irq_end", "IRQ 24")
+        100_000_300_000, "irq_end", "IRQ 24", context_pid=0)
+    wakeup = trace.parse("  <idle>-0 [001] dNh2. 100.000400: sched_wakeup: comm=rtloop hog pid=77 prio=9 "
+                         "target_cpu=001")
+    assert wakeup == trace.Event(100_000_400_000, "wakeup", "rtloop hog (pid 77, FIFO/RR 90)", 90, context_pid=0)
+    assert trace.parse("  <idle>-0 [001] dNh2. 100.000400: sched_wakeup: comm=x pid=8 prio=120 "
+                       "target_cpu=000") is None  # woken onto another CPU
     assert trace.parse("# tracer: nop") is None
 
 
@@ -112,6 +118,38 @@ while True:
 
 @pytest.mark.rt
 @pytest.mark.timeout(1200)
+def test_held_sees_a_thread_whose_switch_out_of_idle_went_untraced() -> None:
+    """Lines as a 6.18 VM kernel records them: never a ``swapper → thread`` switch, only the wake-up
+    (from the idle context) and the thread's own switch out. The hog ran from its wake-up."""
+    tracer = trace.MissTracer(Path("/nonexistent"), {1})
+    lines = [_switch("100.000000", "task", 10, "swapper/1", 0, 120),
+             "  <idle>-0 [001] dNh2. 100.000900: sched_wakeup: comm=rtloop-hog pid=77 prio=9 target_cpu=001",
+             # (idle → rtloop-hog, untraced)
+             "  <idle>-0 [001] dNh2. 100.001000: sched_wakeup: comm=task pid=10 prio=49 target_cpu=001",
+             "  rtloop-hog-77 [001] ..s1. 100.002000: softirq_entry: vec=1 [action=TIMER]",
+             "  rtloop-hog-77 [001] ..s1. 100.002010: softirq_exit: vec=1 [action=TIMER]",
+             "  rtloop-hog-77 [001] d..2. 100.004000: sched_switch: prev_comm=rtloop-hog prev_pid=77 prev_prio=9 "
+             "prev_state=S ==> next_comm=task next_pid=10 next_prio=49"]
+    for line in lines:
+        event = trace.parse(line)
+        assert event is not None
+        tracer.events[1].append(event)
+    held = tracer.held(1, 100_001_000_000, 100_004_050_000, frozenset({10}))
+    assert held[0] == {"who": "rtloop-hog (pid 77, FIFO/RR 90)", "kind": "thread", "ran_ns": 3_000_000,
+                       "priority": 90}
+    # from before the window: only the part inside counts; idle (swapper) is never a holder
+    wide = tracer.held(1, 100_000_000_000, 100_004_000_000, frozenset({10}))
+    assert wide[0]["ran_ns"] == 3_100_000 and not [item for item in wide if "swapper" in str(item["who"])]
+    # a switch out of a thread never seen before on the CPU (no wake-up, no event in its context): not credited
+    tracer.events[1].clear()
+    for line in (lines[0], lines[-1]):
+        event = trace.parse(line)
+        assert event is not None
+        tracer.events[1].append(event)
+    assert [item for item in tracer.held(1, 100_001_000_000, 100_004_050_000, frozenset({10}))
+            if "rtloop-hog" in str(item["who"])] == []
+
+
 def test_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -> None:
     """A process of this test, at FIFO 90 on the task's CPU, spins for 8 periods now and then: the
     task (FIFO 50) wakes late, and the trace names the thread (its comm, set here) as the holder.

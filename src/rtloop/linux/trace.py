@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 TRACEFS_PLACES = (Path("/sys/kernel/tracing"), Path("/sys/kernel/debug/tracing"))
-EVENTS = ("sched/sched_switch", "irq/irq_handler_entry", "irq/irq_handler_exit", "irq/softirq_entry",
-          "irq/softirq_exit")
+EVENTS = ("sched/sched_switch", "sched/sched_wakeup", "irq/irq_handler_entry", "irq/irq_handler_exit",
+          "irq/softirq_entry", "irq/softirq_exit")
 EVENTS_KEPT = 200_000
 """Events kept per CPU (a 1 kHz task makes ~2000 context switches a second: ~1 min at least)."""
 BUFFER_KB = 4096
@@ -40,10 +40,16 @@ _FIELD = re.compile(r"(\w+)=(\S+)")
 class Event:
     at_ns: int
     kind: str
-    """``switch`` (to ``who``), ``irq`` / ``softirq`` (``who`` its name), ``irq_end`` / ``softirq_end``."""
+    """``switch`` (from ``prev`` to ``who``), ``wakeup`` (of ``who``), ``irq`` / ``softirq`` (``who`` its
+    name), ``irq_end`` / ``softirq_end``."""
     who: str
     priority: int = -1
-    """A switch's real-time priority (1-99; 0 for SCHED_OTHER), -1 for a handler."""
+    """The real-time priority of ``who`` for a switch or a wake-up (1-99; 0 for SCHED_OTHER), -1 for a handler."""
+    prev: str = ""
+    """A switch's outgoing thread."""
+    prev_priority: int = -1
+    context_pid: int = -1
+    """The thread current on the CPU when the event was recorded (the line's ``comm-pid``)."""
 
 
 def find_tracefs() -> Path | None:
@@ -153,33 +159,58 @@ class MissTracer:
 
     def held(self, cpu: int, from_ns: int, to_ns: int, own_pids: frozenset[int]) -> list[dict[str, object]]:
         """Who had ``cpu`` in [from_ns, to_ns]: threads (not ``own_pids``, not idle) and IRQ handlers,
-        the longest first: ``{"who", "kind", "ran_ns"}``."""
+        the longest first: ``{"who", "kind", "ran_ns", "priority"}``.
+
+        Some kernels leave the switch out of idle untraced (seen on a 6.18 VM kernel: every
+        ``swapper → thread`` switch missing, every ``thread → swapper`` one there). A switch whose
+        outgoing thread is not the one last switched in therefore says a switch-in was missed: that
+        thread ran from its wake-up on this CPU, or from the first event recorded in its context,
+        whichever came first (nothing is credited when neither was seen)."""
         events = self.events.get(cpu)
         if not events:
             return []
         ran: dict[tuple[str, str], int] = collections.Counter()
         priorities: dict[str, int] = {}
-        running, since = "", from_ns
+
+        def credit(kind: str, who: str, start_ns: int, end_ns: int) -> None:
+            overlap = min(end_ns, to_ns) - max(start_ns, from_ns)
+            if overlap > 0:
+                ran[(kind, who)] += overlap
+
+        running, running_pid, since = "", -2, from_ns
+        seen_since: dict[int, int] = {}  # pid -> first sign of it on this CPU since the last switch
         entered: dict[str, int] = {}
         names: dict[str, str] = {}
         for event in events:
             if event.at_ns > to_ns:
                 break
-            if event.kind == "switch":
-                if event.at_ns >= from_ns and running:
-                    ran[("thread", running)] += event.at_ns - max(since, from_ns)
-                running, since = event.who, event.at_ns
+            if event.context_pid >= 0 and event.context_pid != running_pid:
+                seen_since.setdefault(event.context_pid, event.at_ns)
+            if event.kind == "wakeup":
+                seen_since.setdefault(_pid_of(event.who), event.at_ns)
+            elif event.kind == "switch":
+                prev_pid = _pid_of(event.prev)
+                if prev_pid != running_pid:  # its switch-in was not traced
+                    start = seen_since.get(prev_pid)
+                    if running and start is not None:
+                        credit("thread", running, since, start)
+                    running, running_pid, since = event.prev, prev_pid, start if start is not None else event.at_ns
+                    priorities[running] = event.prev_priority
+                if running:
+                    credit("thread", running, since, event.at_ns)
+                running, running_pid, since = event.who, _pid_of(event.who), event.at_ns
                 priorities[running] = event.priority
+                seen_since.clear()
             elif event.kind in ("irq", "softirq"):  # keyed by "IRQ 24": the exit event has no name
                 entered[event.kind + event.who.split(" (")[0]] = event.at_ns
                 names[event.kind + event.who.split(" (")[0]] = event.who
             elif event.kind in ("irq_end", "softirq_end"):
                 key = event.kind[:-4] + event.who
                 start = entered.pop(key, None)
-                if start is not None and event.at_ns >= from_ns:
-                    ran[(event.kind[:-4], names.get(key, event.who))] += event.at_ns - max(start, from_ns)
+                if start is not None:
+                    credit(event.kind[:-4], names.get(key, event.who), start, event.at_ns)
         if running:
-            ran[("thread", running)] += to_ns - max(since, from_ns)
+            credit("thread", running, since, to_ns)
         found: list[tuple[int, str, str, int]] = []
         for (kind, who), ran_ns in ran.items():
             if kind == "thread" and (who.startswith("swapper/") or _pid_of(who) in own_pids):
@@ -207,29 +238,50 @@ def _pid_of(who: str) -> int:
     return int(match.group(1)) if match else -1
 
 
+def _thread(name: str, pid: str, prio_text: str) -> tuple[str, int]:
+    """A thread's label (``name (pid N, FIFO/RR P)``) and real-time priority from a kernel prio (0-139)."""
+    prio = int(prio_text)
+    if prio < 100:
+        return f"{name} (pid {pid}, FIFO/RR {99 - prio})", 99 - prio
+    return f"{name} (pid {pid}, other)", 0
+
+
+def _between(text: str, start: str, end: str) -> str:
+    """The text between two field names (a thread's comm may hold spaces)."""
+    begin = text.find(start) + len(start)
+    return text[begin:text.find(end, begin)]
+
+
 def parse(line: str) -> Event | None:
     """One line of a trace pipe (the default text format), or None for anything else."""
     match = _LINE.match(line)
     if match is None:
         return None
     at_ns = round(float(match["ts"]) * 1e9)
-    fields = dict(_FIELD.findall(match["rest"]))
+    context_pid = int(match["pid"])
+    rest = match["rest"]
+    fields = dict(_FIELD.findall(rest))
     event = match["event"]
     if event == "sched_switch":
-        # next_comm may hold spaces: take the text between next_comm= and next_pid=
-        rest = match["rest"]
-        name = rest[rest.find("next_comm=") + 10:rest.find(" next_pid=")]
-        prio = int(fields.get("next_prio", "120"))
-        policy = f"FIFO/RR {99 - prio}" if prio < 100 else "other"
-        return Event(at_ns, "switch", f"{name} (pid {fields.get('next_pid', '?')}, {policy})",
-                     99 - prio if prio < 100 else 0)
+        who, priority = _thread(_between(rest, "next_comm=", " next_pid="), fields.get("next_pid", "?"),
+                                fields.get("next_prio", "120"))
+        prev, prev_priority = _thread(_between(rest, "prev_comm=", " prev_pid="), fields.get("prev_pid", "?"),
+                                      fields.get("prev_prio", "120"))
+        return Event(at_ns, "switch", who, priority, prev, prev_priority, context_pid)
+    if event == "sched_wakeup":
+        if fields.get("target_cpu", "").lstrip("0") != match["cpu"].lstrip("0"):
+            return None  # woken onto another CPU: not this CPU's story
+        who, priority = _thread(_between(rest, "comm=", " pid="), fields.get("pid", "?"), fields.get("prio", "120"))
+        return Event(at_ns, "wakeup", who, priority, context_pid=context_pid)
     if event == "irq_handler_entry":
-        return Event(at_ns, "irq", f"IRQ {fields.get('irq', '?')} ({fields.get('name', '?')})")
+        return Event(at_ns, "irq", f"IRQ {fields.get('irq', '?')} ({fields.get('name', '?')})",
+                     context_pid=context_pid)
     if event == "irq_handler_exit":
-        return Event(at_ns, "irq_end", f"IRQ {fields.get('irq', '?')}")
+        return Event(at_ns, "irq_end", f"IRQ {fields.get('irq', '?')}", context_pid=context_pid)
     if event in ("softirq_entry", "softirq_exit"):
         action = fields.get("action", "?").strip("[]")
-        return Event(at_ns, "softirq" if event == "softirq_entry" else "softirq_end", f"softirq {action}")
+        return Event(at_ns, "softirq" if event == "softirq_entry" else "softirq_end", f"softirq {action}",
+                     context_pid=context_pid)
     return None
 
 
