@@ -153,11 +153,6 @@ def test_the_examples_declare_units_and_pair_setpoints(tmp_path: Path) -> None:
 def test_a_setpoint_beside_a_device_reading_is_paired(tmp_path: Path) -> None:
     """The serial DC motor: the speed comes from a device, not a task; the setpoint port is drawn
     over the reading as the PI takes it in (a task input, recorded), and a sweep finds the pair."""
-    # Earlier tests of this process loaded these two module names from other folders (copies of the
-    # example in theirs); this test is about plots, not about one process loading several apps'
-    # same-named modules (seen once in a whole suite: the class to send was not the one named).
-    for name in ("serial_motor", "dcmotor"):
-        sys.modules.pop(name, None)
     app = load_app(EXAMPLES / "dcmotor_serial" / "dcmotor_serial.toml")
     rtloop.simulate(app, 0.3, tmp_path / "dc")
     run = rtloop.load(tmp_path / "dc")

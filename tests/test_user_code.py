@@ -190,3 +190,31 @@ def test_a_sibling_that_links_to_a_module_elsewhere_loads_that_file(tmp_path: Pa
     app = load_app(_app_toml(app_folder, f"link{os.getpid()}", f"{faulty}:Faulty"))
     assert sys.modules[motor].__file__ == str(elsewhere / f"{motor}.py")
     assert type(app.tasks["t"].runnable).__mro__[1].__name__ == "PiSpeed"
+
+
+def test_two_apps_with_a_same_named_module_run_each_its_own_in_one_process(tmp_path: Path) -> None:
+    """A notebook loads app A (``ctl.py`` beside it), then a variant B in another folder (its own
+    ``ctl.py``), then runs A again: A runs A's code, B runs B's (it used to fail to send A's class:
+    "it's not the same object as ctl.Const")."""
+    name = f"ctl_{secrets.token_hex(3)}"
+    apps = {}
+    for variant, value in (("a", 1.5), ("b", 2.5)):
+        folder = tmp_path / variant
+        folder.mkdir()
+        (folder / f"{name}.py").write_text(textwrap.dedent(f"""
+            from rtloop import Runnable
+
+            class Const(Runnable):
+                n_inputs, n_outputs = 0, 1
+
+                def step(self, u, y):
+                    y[0] = {value}
+        """))
+        apps[variant] = load_app(_app_toml(folder, f"twomod{variant}{os.getpid()}", f"{name}:Const"))
+    for variant, value in (("a", "1.5"), ("b", "2.5"), ("a", "1.5")):
+        out = tmp_path / f"{variant}-{len(list(tmp_path.glob('*-run*')))}-run"
+        rtloop.run(apps[variant], duration_s=0.05, out=out)
+        assert (out / "signals.csv").read_text().splitlines()[2].split(",")[1] == value, variant
+        sim = out.with_name(out.name + "-sim")
+        rtloop.simulate(apps[variant], 0.01, sim)
+        assert (sim / "signals.csv").read_text().splitlines()[2].split(",")[1] == value, variant

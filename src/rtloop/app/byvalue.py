@@ -26,6 +26,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from rtloop.app.modules import replaced_class_by_file
 from rtloop.errors import AppError
 from rtloop.text import clip
 
@@ -95,6 +96,8 @@ class _ByValuePickler(pickle.Pickler):
     def reducer_override(self, obj: Any) -> Any:
         if isinstance(obj, type) and sent_by_value(obj):
             return _reduce_class(obj)
+        if isinstance(obj, type) and (by_file := replaced_class_by_file(obj)) is not None:
+            return by_file
         if isinstance(obj, types.FunctionType) and sent_by_value(obj):
             return _reduce_function(obj)
         if isinstance(obj, types.ModuleType) and obj.__name__ not in ("__main__", "__mp_main__"):

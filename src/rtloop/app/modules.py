@@ -35,6 +35,7 @@ import importlib.util
 import os
 import stat
 import sys
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -209,10 +210,38 @@ def _forget_other_folders_siblings(folder: Path) -> None:
             del sys.modules[name]
 
 
+_FILE_OF_CLASS: weakref.WeakKeyDictionary[type, tuple[str, str]] = weakref.WeakKeyDictionary()
+"""A class defined by a module loaded by file → (that module's name, its file): what the class came
+from, even after another app's module of the same name took its place in ``sys.modules``."""
+
+
 def _send_classes_by_file(module: ModuleType) -> None:
     for value in vars(module).values():
-        if isinstance(value, type) and value.__module__ == module.__name__:
+        if isinstance(value, type) and value.__module__ == module.__name__ and module.__file__:
             copyreg.pickle(value, _reduce_by_file)
+            _FILE_OF_CLASS[value] = (module.__name__, module.__file__)
+
+
+def replaced_class_by_file(cls: type) -> tuple[Any, ...] | None:
+    """How to pickle ``cls`` when its module name now means another file's module (two apps of one
+    process with ``controller.py`` each, the first one run again): load its own file by name, or
+    None when pickling it by reference is right."""
+    made = _FILE_OF_CLASS.get(cls)
+    if made is None:
+        return None
+    current: Any = sys.modules.get(cls.__module__)
+    for part in cls.__qualname__.split("."):
+        current = getattr(current, part, None)
+    if current is cls:
+        return None
+    return _class_from_file, (*made, cls.__qualname__)
+
+
+def _class_from_file(module_name: str, path: str, qualname: str) -> Any:
+    found: Any = load_module_file(module_name, path)
+    for part in qualname.split("."):
+        found = getattr(found, part)
+    return found
 
 
 class SiblingFinder(importlib.abc.MetaPathFinder):
@@ -279,11 +308,11 @@ class _SourceOnlyLoader(importlib.machinery.SourceFileLoader):
 
 def _reduce_by_file(obj: Any) -> tuple[Any, ...]:
     """Pickle ``obj`` so that the receiving process loads its module by file first."""
-    module = sys.modules[type(obj).__module__]
+    made = _FILE_OF_CLASS.get(type(obj))  # its own module's file, whatever sys.modules holds now
     rebuild, args, *rest = obj.__reduce_ex__(4)
-    if module.__file__ is None:  # nothing to load by file: the receiver imports it by name
+    if made is None:  # nothing to load by file: the receiver imports it by name
         return (rebuild, args, *rest)
-    return (_rebuild, (_ModuleByFile(module.__name__, module.__file__), rebuild, args), *rest)
+    return (_rebuild, (_ModuleByFile(*made), rebuild, args), *rest)
 
 
 class _ModuleByFile:
