@@ -185,13 +185,19 @@ def _device_on(paired: PairedNode, **settings: object):  # type: ignore[no-untyp
     return device
 
 
-def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_stops() -> None:
+def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_stops(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from rtloop.io import compiled
+
     log: list[str] = []
     paired = PairedNode(CanopenNode(3, log=log.append))
     device = _device_on(paired)
     twin = device.default_twin()
     try:
         device.configure()
+        built_before_t0 = device.cycle._fast
+        looked_up: list[int] = []  # the C cycle is built in configure: the loop never builds it (nor looks for it)
+        monkeypatch.setattr(device.cycle, "_compiled", lambda y: looked_up.append(1))
         device.activate()
         twin.prerun()
         u, y, y_twin = np.zeros(device.n_inputs), np.zeros(device.n_outputs), np.zeros(device.n_outputs)
@@ -204,6 +210,7 @@ def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_sto
             twin.step(u, y_twin)
             assert y.tolist() == y_twin.tolist(), f"cycle {cycle}"  # bit for bit
         assert y[enabled] == 1.0 and y[velocity] > 0.0
+        assert looked_up == [] and (device.cycle._fast is built_before_t0 or compiled.why_python())
         device.write_safe(np.zeros(device.n_inputs))
         deadline = time.monotonic() + 5
         while "NMT enter pre-operational" not in log[-1] and time.monotonic() < deadline:
@@ -317,3 +324,17 @@ def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
     finally:
         device.close()
         paired.close()
+
+
+def test_io_list_canopen_finds_the_node_with_its_identity_and_state() -> None:
+    from rtloop.io.drives.canopen_scan import canopen_nodes, scan_nodes
+
+    paired = PairedNode(CanopenNode(3))
+    try:
+        found = scan_nodes(paired.ours, 0.3)
+    finally:
+        paired.close()
+        paired.ours.close()
+    assert found == [(3, "CANopen node: vendor 0x00000A7E, product 0x00402402, revision 0x00010000, pre-operational")]
+    problem, = canopen_nodes("nosuchcan0")  # this kernel has no CAN, the guest no such interface: one entry, a fix
+    assert not problem.usable and problem.fix and problem.path == "nosuchcan0"

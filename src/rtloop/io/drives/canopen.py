@@ -318,6 +318,8 @@ class Canopen402Device(Device):
         self._heartbeat_seen_ns = [0] * len(self.nodes)
         self._heartbeat_lost_ns = round(3 * self.heartbeat_ms * 1e6)
         self._commands = np.zeros(self.n_inputs)
+        self._readings = np.zeros(self.n_outputs)  # the cycle's own: its C build is made here, before T0
+        cycle.compile(self._commands, self._readings)
         self.cycle = cycle
 
     def activate(self) -> None:
@@ -375,7 +377,8 @@ class Canopen402Device(Device):
             if not fresh[at]:
                 raise DeviceFault(self._tpdo_problem(at))
             target[:] = source
-        cycle.take_inputs(y)
+        cycle.take_inputs(self._readings)
+        np.copyto(y, self._readings)
 
     def _where(self, n: _Node) -> str:
         return f"devices.{self.name}: joint {n.joint.name!r} (node {n.node})"

@@ -129,7 +129,7 @@ class DriveCycle:
         self._fast_y: Any = None
         self._fast_used = False
         self._last_u: Any = None
-        """Exchanges since activate (named in faults: the drive's cycle)."""
+        self._tried: tuple[Any, Any] = (None, None)  # the (u, y) the C cycle was last built for, or tried
 
     @property
     def output_bytes(self) -> int:
@@ -144,6 +144,7 @@ class DriveCycle:
         (SOEM's layout: every slave's outputs, then every slave's inputs)."""
         self.out_buffer, self.in_buffer = out_buffer, in_buffer
         self._fast = None
+        self._tried = (None, None)
         for joint in self.joints:
             joint.out_at, joint.in_at = out_at, in_at
             out_at += joint.rx.size
@@ -232,8 +233,9 @@ class DriveCycle:
         where the run needs it."""
         if check and self.enabled:
             fast = self._fast
-            if fast is None or y is not self._fast_y:
-                fast = self._compiled(y)
+            tried_u, tried_y = self._tried
+            if (fast is None or y is not self._fast_y) and (tried_u is not self._last_u or tried_y is not y):
+                fast = self._compiled(y)  # in the loop only where compile() was not called before T0
             if fast is not None and fast.take() < 0:
                 self._fast_used = True
                 self.exchanges += 1
@@ -247,10 +249,18 @@ class DriveCycle:
                 for i, joint in enumerate(self.joints):
                     state[2 * i], state[2 * i + 1] = joint.statusword, joint.position_raw
 
+    def compile(self, u: Any, y: Any) -> None:
+        """Build the running cycle in C for the commands ``u`` and readings ``y`` the device will pass
+        every cycle, before T0: built at the first enabled cycle instead, it takes that cycle long (the
+        build's source check reads and checksums the C files: tens of ms under emulation)."""
+        self._last_u = u
+        self._compiled(y)
+
     def _compiled(self, y: Any) -> Any:
         """The running cycle in C on these vectors and buffers (None where the Python reference runs)."""
         from rtloop.io.compiled import devio, refused
 
+        self._tried = (self._last_u, y)  # tried once per pair: no import or source check each cycle
         compiled, u = devio(), self._last_u
         self._fast = None
         if compiled is None or u is None or not isinstance(self.out_buffer, bytearray) or \
