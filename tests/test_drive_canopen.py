@@ -5,6 +5,7 @@ the bus (the same send, poll and receive calls as on SocketCAN). On vcan0 in the
 
 from __future__ import annotations
 
+import re
 import socket
 import struct
 import threading
@@ -338,3 +339,33 @@ def test_io_list_canopen_finds_the_node_with_its_identity_and_state() -> None:
     assert found == [(3, "CANopen node: vendor 0x00000A7E, product 0x00402402, revision 0x00010000, pre-operational")]
     problem, = canopen_nodes("nosuchcan0")  # this kernel has no CAN, the guest no such interface: one entry, a fix
     assert not problem.usable and problem.fix and problem.path == "nosuchcan0"
+
+
+def test_the_drive_quick_stops_when_rtloops_heartbeat_stops_for_its_consumer_time() -> None:
+    log: list[str] = []
+    paired = PairedNode(CanopenNode(3, log=log.append, sync_timeout_s=60.0))  # its SYNC watch out of the way
+    device = _device_on(paired, heartbeat_ms=20, master_node=5)
+    try:
+        device.configure()
+        assert paired.node.od[(0x1016, 1)] == 5 << 16 | 60  # written by configure: node 5 watched, 3 periods
+        device.activate()
+        u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
+        for _ in range(30):  # enabled, our heartbeat sent every 20 ms
+            device.write(u)
+            device.read(y)
+            time.sleep(0.002)
+        assert paired.node.drive.state == cia402.Cia402State.OPERATION_ENABLED
+        deadline = time.monotonic() + 5  # the task stops (a hung or killed task): neither SYNC nor heartbeat
+        while "NMT pre-operational (heartbeat lost)" not in "\n".join(log) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with pytest.raises(DeviceFault, match=r"EMCY 0x8130 \(heartbeat or life guard error\)"):
+            device.read(y)  # a task that comes back hears why
+    finally:
+        device.close()
+        paired.close()
+    said = "\n".join(log)
+    assert re.search(r"node 3: heartbeat consumer: none from node 5 for \d+ ms \(0x1016: 60 ms\): EMCY 0x8130, "
+                     r"quick stop, then pre-operational", said), said
+    assert said.index("heartbeat consumer") < said.index("drive quick stop") \
+        < said.index("drive switch on disabled") < said.index("NMT pre-operational (heartbeat lost)")
+    assert paired.node.drive.state == cia402.Cia402State.SWITCH_ON_DISABLED

@@ -44,6 +44,8 @@ from rtloop.runnable import Runnable
 __all__ = ["Canopen402Device"]
 
 SAFE_STEP_S = 0.001
+CONSUMER_PERIODS = 3
+"""Heartbeat periods either side waits without one before it stops (rtloop: a fault; a drive: 0x1016)."""
 DATA_AT = 8
 
 
@@ -51,6 +53,10 @@ def _tables(value: list[Any]) -> str | None:
     if not value or not all(isinstance(item, dict) for item in value):
         return "expected one table per drive: [{ name, node, vendor, product, revision, mode, ... }]"
     return None
+
+
+def _node_id(value: int) -> str | None:
+    return None if 1 <= value <= 127 else f"expected a node id 1..127, got {value}"
 
 
 def read_eds(path: Path, node: int, where: str) -> tuple[dict[str, int], set[int]]:
@@ -95,8 +101,10 @@ class Canopen402Device(Device):
                                      "NMT reset, ms", positive, at_most=60_000.0),
         "tpdo_timeout_ms": Setting(float, 1.0, "how long after SYNC the TPDOs may take to come, ms", positive,
                                    at_most=10_000.0),
-        "heartbeat_ms": Setting(float, 100.0, "the nodes' heartbeat period (0x1017); rtloop faults after three "
-                                "missed", positive, at_most=60_000.0),
+        "heartbeat_ms": Setting(float, 100.0, "the heartbeat period of the nodes (0x1017) and of rtloop's own; "
+                                "either side stops after three missed", positive, at_most=20_000.0),
+        "master_node": Setting(int, 127, "the node id rtloop's own heartbeat goes out as (0x700 + it), which "
+                               "each drive's heartbeat consumer (0x1016) watches", _node_id),
         "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
                                         "disable) before rtloop gives up on it", positive, at_most=60.0),
         "eds_dir": Setting(str, "", "the folder relative eds paths are taken from (in an app file, \".\" is the "
@@ -110,6 +118,7 @@ class Canopen402Device(Device):
         self.tpdo_timeout_ms: float = settings["tpdo_timeout_ms"]
         self.heartbeat_ms: float = settings["heartbeat_ms"]
         self.quick_stop_timeout_s: float = settings["quick_stop_timeout_s"]
+        self.master_node: int = settings["master_node"]
         base = Path(settings["eds_dir"]) if settings["eds_dir"] else None
         nodes = []
         try:
@@ -122,6 +131,9 @@ class Canopen402Device(Device):
         for key, values in (("name", [j.name for j in self.joints]), ("node", [n.node for n in self.nodes])):
             if len(set(values)) != len(values):
                 raise DeviceError(name, "", "joints", f"two joints share a {key}: {values}")
+        if self.master_node in [n.node for n in self.nodes]:
+            raise DeviceError(name, "", "master_node", f"{self.master_node} is also a joint's node id: rtloop's "
+                              "heartbeat would be taken for that drive's")
         self.input_names = tuple(n for joint in self.joints for n in command_names(joint))
         self.output_names = tuple(n for joint in self.joints for n in reading_names(joint))
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
@@ -179,7 +191,7 @@ class Canopen402Device(Device):
     def claims(self) -> tuple[Claim, ...]:
         """The bus's NMT master and SYNC producer, and each node's requests: a second master would
         reconfigure the nodes and interleave its SYNCs with ours."""
-        ids = [0x000, wire.SYNC_ID] + [cob for n in self.nodes for cob in
+        ids = [0x000, wire.SYNC_ID, wire.heartbeat_id(self.master_node)] + [cob for n in self.nodes for cob in
                                        (wire.sdo_request_id(n.node),
                                         *(wire.rpdo_id(n.node, i) for i in range(len(n.rx_chunks))))]
         return tuple(Claim(("can", self.interface, cob), "joints", f"CANopen id clash: 0x{cob:X} on "
@@ -289,6 +301,8 @@ class Canopen402Device(Device):
         for index, sub, value, size in wire.mapping_writes(n.node, n.joint.rx, n.joint.tx):
             self._sdo(n, wire.sdo_download(index, sub, value, size), index, sub)
         self._sdo(n, wire.sdo_download(0x1017, 0, round(self.heartbeat_ms), 2), 0x1017, 0)
+        consumer = self.master_node << 16 | round(CONSUMER_PERIODS * self.heartbeat_ms)
+        self._sdo(n, wire.sdo_download(0x1016, 1, consumer, 4), 0x1016, 1)  # watched from our first heartbeat
 
     def _bind(self) -> None:
         cycle = DriveCycle(self.name, self.joints)
@@ -316,7 +330,10 @@ class Canopen402Device(Device):
         self._emcy = [(n, self._index[wire.emcy_id(n.node)]) for n in self.nodes]
         self._heartbeats = [(n, self._index[wire.heartbeat_id(n.node)]) for n in self.nodes]
         self._heartbeat_seen_ns = [0] * len(self.nodes)
-        self._heartbeat_lost_ns = round(3 * self.heartbeat_ms * 1e6)
+        self._heartbeat_lost_ns = round(CONSUMER_PERIODS * self.heartbeat_ms * 1e6)
+        self._heartbeat = wire.wire_frame(wire.heartbeat_id(self.master_node), bytes([0x05]))  # operational
+        self._heartbeat_ns = round(self.heartbeat_ms * 1e6)
+        self._heartbeat_sent_ns = 0
         self._commands = np.zeros(self.n_inputs)
         self._readings = np.zeros(self.n_outputs)  # the cycle's own: its C build is made here, before T0
         cycle.compile(self._commands, self._readings)
@@ -341,6 +358,10 @@ class Canopen402Device(Device):
         for source, target in self._rpdo_copies:
             target[:] = source
         try:
+            now_ns = time.monotonic_ns()
+            if now_ns - self._heartbeat_sent_ns >= self._heartbeat_ns:  # ours, which the drives' consumers watch
+                self._heartbeat_sent_ns = now_ns
+                send(self._heartbeat)
             for frame in self._rpdos:
                 send(frame)
             send(self._sync)

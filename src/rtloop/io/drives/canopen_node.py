@@ -6,14 +6,15 @@ with the drive model (``io/drives/drive_model.py``) behind its PDOs.
 
 :class:`CanopenNode` is the node's logic, frame in → frames out, with no socket (the host's tests
 drive it in process); :func:`serve` puts it on a SocketCAN interface. The node keeps an object
-dictionary of the objects a master configures (identity 0x1018, heartbeat 0x1017, cycle period
-0x1006, PDO communication and mapping 0x1400-0x1A03) and learns its PDO mapping from the master's
-SDO writes. At each SYNC while operational it sends its TPDOs with the values the drive holds,
-then steps the drive once with the RPDO values last received: the order of the EtherCAT twin
-(``EthercatTwin``), so a run against this node equals ``rtloop simulate`` bit for bit.
+dictionary of the objects a master configures (identity 0x1018, heartbeat producer 0x1017 and
+consumer 0x1016, cycle period 0x1006, PDO communication and mapping 0x1400-0x1A03) and learns its
+PDO mapping from the master's SDO writes. At each SYNC while operational it sends its TPDOs with
+the values the drive holds, then steps the drive once with the RPDO values last received: the
+order of the EtherCAT twin (``EthercatTwin``), so a run against this node equals ``rtloop simulate`` bit for bit.
 
-Its safe reactions: NMT stop or pre-operational, or no SYNC for ``sync_timeout_s`` while the drive
-is enabled (the master's task killed): the drive quick-stops by itself. A drive fault
+Its safe reactions: NMT stop or pre-operational, no SYNC for ``sync_timeout_s`` while the drive
+is enabled, or the master's heartbeat missing for the consumer time of 0x1016 (the master's task
+killed): the drive quick-stops by itself (the last also sends EMCY 0x8130 and goes pre-operational). A drive fault
 sends an EMCY (its error code, error register 0x01). The log says every NMT and drive state change.
 """
 
@@ -83,6 +84,8 @@ class CanopenNode:
         od.clear()
         od[(0x1000, 0)] = 0x00020192  # device type: CiA 402 drive
         od[(0x1006, 0)] = 0  # communication cycle period, µs (0: not watched)
+        od[(0x1016, 0)] = 1
+        od[(0x1016, 1)] = 0  # heartbeat consumer: the watched node << 16 | its time, ms (0: not watched)
         od[(0x1017, 0)] = 0  # heartbeat producer time, ms (0: none)
         od[(0x1018, 0)] = 3
         od[(0x1018, 1)], od[(0x1018, 2)], od[(0x1018, 3)] = (self.identity.vendor, self.identity.product,
@@ -103,6 +106,7 @@ class CanopenNode:
         self.rx_values[cia402.MODES_OF_OPERATION] = self.drive.mode
         self.last_heartbeat_s = now_s
         self.last_sync_s = now_s
+        self.consumed_s = -1.0  # the watched node's last heartbeat (-1: none yet, the watch not armed)
 
     def _pdos(self, comm: int, mapping: int) -> list[tuple[int, tuple[int, ...]]]:
         """The valid PDOs: (COB-ID, objects) per PDO."""
@@ -132,6 +136,9 @@ class CanopenNode:
             return self._nmt_command(data[0], now_s)
         if can_id == sdo_request_id(self.node) and len(data) == 8 and self.nmt in (PRE_OPERATIONAL, OPERATIONAL):
             return [(sdo_answer_id(self.node), self._sdo(data))]
+        if can_id == heartbeat_id(self.od[(0x1016, 1)] >> 16 & 0x7F) and self.od[(0x1016, 1)] & 0xFFFF:
+            self.consumed_s = now_s  # CiA 301: the consumer watches from the first heartbeat it receives
+            return []
         if can_id == SYNC_ID and self.nmt == OPERATIONAL:
             self.last_sync_s = now_s
             return self._sync()
@@ -235,7 +242,23 @@ class CanopenNode:
         if (self.nmt == OPERATIONAL and self.drive.state == cia402.Cia402State.OPERATION_ENABLED
                 and now_s - self.last_sync_s > self.sync_timeout_s):
             self._outputs_lost(f"no SYNC for {(now_s - self.last_sync_s) * 1e3:.0f} ms (sync lost)")
+        consumer = self.od[(0x1016, 1)]
+        if consumer & 0xFFFF and self.consumed_s >= 0 and now_s - self.consumed_s > (consumer & 0xFFFF) / 1000.0:
+            frames += self._heartbeat_lost(consumer >> 16 & 0x7F, consumer & 0xFFFF, now_s)
         return frames
+
+    def _heartbeat_lost(self, producer: int, time_ms: int, now_s: float) -> list[Frame]:
+        """The heartbeat consumer's event (CiA 301): EMCY 0x8130, and the error behaviour 0x1029's
+        default, an operational node goes pre-operational: its enabled drive quick-stops, then disables."""
+        silent_ms = (now_s - self.consumed_s) * 1e3
+        self.consumed_s = -1.0  # one event per loss: armed again by the next heartbeat
+        if self.nmt != OPERATIONAL:
+            return []  # the master left operation itself (its last word was NMT): nothing to stop
+        self.log(f"node {self.node}: heartbeat consumer: none from node {producer} for {silent_ms:.0f} ms "
+                 f"(0x1016: {time_ms} ms): EMCY 0x8130, quick stop, then pre-operational")
+        self._outputs_lost("heartbeat lost")
+        self._set_nmt(PRE_OPERATIONAL, "heartbeat lost")
+        return [(emcy_id(self.node), struct.pack("<HB5x", 0x8130, 0x11))]  # error register: generic, communication
 
 
 # --- on a SocketCAN interface ---------------------------------------------------------------------------
