@@ -210,6 +210,35 @@ def test_no_module_is_over_600_lines() -> None:
     assert {name: n for name, n in long.items() if name not in BEING_SPLIT} == {}
 
 
+SUPERVISOR_MAX_LINES = 450
+SUPERVISOR_SIDE = ("rtloop.runtime.supervisor", "rtloop.runtime.session", "rtloop.runtime.task_watch",
+                   "rtloop.runtime.task_messages", "rtloop.runtime.run_view")
+"""The modules of the ``rtloop run`` process around the task processes (docs/architecture.md §1)."""
+
+
+def test_the_supervisor_keeps_only_the_processes_lifecycle() -> None:
+    """runtime/supervisor.py starts, watches and stops the task processes, and no more: what the tasks
+    say through their pipes is read by runtime/task_messages.py, what a person watching the run sees
+    (progress, notices, the Foxglove live view) is runtime/run_view.py's, the summary is built by
+    runtime/run_summary.py. A module that takes one of those jobs back grows past this bound."""
+    source = (PACKAGE / "runtime" / "supervisor.py").read_text()
+    assert len(source.splitlines()) <= SUPERVISOR_MAX_LINES
+    assert ".recv(" not in source, "the task pipes are read in runtime/task_messages.py"
+    assert "rtloop.record.foxglove_live" not in import_graph()["rtloop.runtime.supervisor"], "runtime/run_view.py"
+
+
+def test_the_task_process_imports_nothing_of_the_supervisor_side() -> None:
+    """A task process (runtime/task.py and all it imports, at any depth) loads neither the supervisor's
+    modules nor the recorder's: each would cost the real-time process memory it locks and never uses."""
+    graph, seen, todo = import_graph(), set(), ["rtloop.runtime.task"]
+    while todo:
+        for dep in graph[todo.pop()] - seen:
+            seen.add(dep)
+            todo.append(dep)
+    wrong = sorted(m for m in seen if m in SUPERVISOR_SIDE or m == "rtloop.record" or m.startswith("rtloop.record."))
+    assert not wrong, f"runtime/task.py imports {wrong} (directly or through what it imports)"
+
+
 def test_the_task_process_imports_everything_before_its_loop() -> None:
     """runtime/task.py imports at its top only: an import inside one of its functions could run
     inside the real-time loop (a file read, the import lock) the first time the loop calls it.

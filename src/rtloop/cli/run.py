@@ -14,7 +14,7 @@ from rtloop.stats import DEFAULT_TRIM
 
 if TYPE_CHECKING:
     from rtloop.record.summary import RunSummary
-    from rtloop.runtime.session import Progress
+    from rtloop.runtime.run_view import Progress
 
 DEFAULT_KEEP_S = 60.0  # --keep of a run without --duration
 ARTIFACTS = ("summary.json", "timing.csv", "signals.csv", "run.mcap")

@@ -250,19 +250,6 @@ def startup_allowance_s(default_s: float) -> float:
     return seconds
 
 
-@dataclass(frozen=True, slots=True)
-class Progress:
-    """What the console shows while a run goes on (the CLI formats it)."""
-
-    elapsed_s: float
-    duration_s: float | None
-    deadline_misses: int
-    latency_now_ns: int
-    recording_stopped: str
-    lost: int
-    """Timing records, signal rows and logged inputs lost so far (the supervisor fell behind)."""
-
-
 class RunState(enum.Enum):
     """Where a run is; once it leaves RUNNING, why it ended (``stopped_by`` in summary.json)."""
 

@@ -9,6 +9,10 @@ join → the session writes the artifacts and removes shared memory. Ctrl-C, SIG
 that raises, a task process that dies and a task the watchdog finds stuck all take the same
 way out, so nothing recorded is lost. Without a duration the run goes on until Ctrl-C or
 SIGTERM.
+
+This module is the processes' lifecycle only. Beside it: ``task_messages.py`` reads what the
+tasks say through their pipes, ``task_watch.py`` is the watchdog, ``run_view.py`` shows the run
+(progress, notices, the Foxglove live view), ``run_summary.py`` builds the summary.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from typing import Any
 
 from rtloop.app.builder import App
 from rtloop.app.byvalue import children_without_main, dumps_runnable
-from rtloop.errors import DeviceError, DeviceMismatch, DeviceNotReady, NotRealTimeWarning, TaskFailed
+from rtloop.errors import NotRealTimeWarning, TaskFailed
 from rtloop.io.device import check_device
 from rtloop.io.host import release_after_dead_task, safe_for_dead_task
 from rtloop.ipc.hotpath import announce_once
@@ -48,11 +52,11 @@ from rtloop.runtime.evidence import MissWatch
 from rtloop.runtime.layout import AppLayout, device_wiring
 from rtloop.runtime.memory_watch import MemoryWatch
 from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
+from rtloop.runtime.run_view import Progress, RunView
 from rtloop.runtime.session import (
     DEFAULT_LIMITS,
     STARTUP_ALLOWANCE_ENV,
     Limits,
-    Progress,
     RunSession,
     RunState,
     startup_allowance_s,
@@ -60,6 +64,7 @@ from rtloop.runtime.session import (
 )
 from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
+from rtloop.runtime.task_messages import TaskReports
 from rtloop.runtime.task_watch import TaskProcess, Watchdog, phase_of
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
@@ -82,16 +87,10 @@ class Supervisor:
                                   force=force, limits=limits)
         for device in app.devices.values():  # a missing interface or permission: exit 2, nothing started
             check_device(device.device, app.source)
-        self.refused: DeviceError | None = None  # a device that failed its configure (bad input, exit 2)
-        self.device_problems: list[str] = []
-        self.device_reads: dict[str, dict[str, Any]] = {}
-        self.input_limits: dict[str, dict[str, dict[str, int]]] = {}
-        """Per task with guarded connections: how often each guard acted (reported when the task ends)."""
-        """Per device, what its task reported of its reads at the end (stale reads: summary.json ``devices``)."""
+        self.notes: list[str] = []  # summary.json notes: the devices', the tasks', --trace-misses'
         self.held_for_dead_tasks: list[Any] = []  # devices the supervisor made safe for a killed task (GPIO lines held)
         self.app, self.duration_s, self.out, self.limits = app, duration_s, out, limits
-        self.on_progress = on_progress
-        self.on_notice = on_notice or _print_notice
+        self.view = RunView(app, on_progress, on_notice)  # the console's progress and notices, the live view
         self.stop_detail = ""  # the StopRequested text (task, cycle, reason) when state is REQUESTED
         self.failure: TaskFailed | None = None
         self.t0_ns = 0
@@ -100,15 +99,16 @@ class Supervisor:
         self.runs: dict[str, TaskProcess] = {}
         self.memory = MemoryWatch()
         """Each task's resident size at the summary rewrites (a step leaking reference cycles)."""
-        self.live: Any = None
         self.bridges: Bridges | None = None
         self.dma_latency_held = False
         self.snapshots = SnapshotRequests({}, [task.config.period_ns for task in app.tasks.values()])
         """--keep: the tasks' snapshots asked for and collected (runtime/snapshot.py)."""
         self.watchdog = Watchdog(app, limits)
         self.misses = MissWatch(app)
-        self.trace_misses = trace_misses
         """Every miss's cause, from evidence gathered between drains (runtime/evidence.py)."""
+        self.trace_misses = trace_misses
+        self.reports = TaskReports(self.misses, self.notes)
+        """What the task processes said through their pipes (runtime/task_messages.py)."""
 
     @property
     def state(self) -> RunState:
@@ -120,18 +120,15 @@ class Supervisor:
 
     # --- lifecycle -------------------------------------------------------------------------
     def run(self) -> RunSummary:
-        if self.app.live_view is not None:  # a missing foxglove-sdk stops the run before anything starts
-            from rtloop.record.foxglove_live import import_foxglove
-
-            import_foxglove()
+        self.view.check()  # a live view without foxglove-sdk stops the run before anything starts
         capabilities = rt.probe()
         announce_once()
         # The handlers are kept until the session has written everything.
         with stop_signals_handled(self._request_stop), self.session as session:
             session.summarise = lambda running: self._summary(capabilities, running=running)
             self._run_tasks(session, capabilities)
-        if self.refused is not None:
-            raise self.refused
+        if self.reports.refused is not None:
+            raise self.reports.refused
         if self.failure is not None:
             raise self.failure
         assert self.session.summary is not None
@@ -143,7 +140,7 @@ class Supervisor:
         self.snapshots.task_segments = {name: handles.segments.task for name, handles in layout.tasks.items()}
         self.misses.after_drain(rt.now_ns())  # the first sample: misses of the first cycles have one before them
         if self.trace_misses:  # the kernel's scheduler and IRQ events on the tasks' CPUs, or one line why not
-            self.device_problems += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
+            self.notes += [f"--trace-misses: {why}" for why in [self.misses.start_tracing()] if why]
         self.bridges = Bridges(self.app)
         configs = [task.config for task in self.app.tasks.values()]
         above = all(c.policy == "deadline" or (c.policy in ("fifo", "rr") and c.priority > SUPERVISOR_PRIORITY)
@@ -156,19 +153,18 @@ class Supervisor:
             resources.callback(release_after_dead_task, self.held_for_dead_tasks)
             resources.callback(self._end_processes, layout)
             self.dma_latency_held = resources.enter_context(rt.CpuDmaLatency()).held  # read now: for the summary
-            resources.callback(self._close_live_view)
+            resources.callback(self.view.close)
             resources.callback(self.bridges.stop)
             resources.callback(self.misses.close)
             resources.callback(self.snapshots.close)
-            self._open_live_view(session)
+            self.view.open_live_view(session)
             self._spawn(layout)
             assert layout.registry_path is not None
             self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
             self._wait_until_ready(layout)
             if self.failure is None and self.state is RunState.RUNNING:
                 self._start_epoch(layout, recorder)
-                if self.live is not None:
-                    self.live.start(self.t0_ns, self.wall_t0_ns)
+                self.view.start(self.t0_ns, self.wall_t0_ns)
                 self._drain_until_done(session)
             else:
                 layout.control[ControlWord.STOP] = 1
@@ -187,27 +183,9 @@ class Supervisor:
             task_run.process.join()
             _let_go_of_process(task_run)
 
-    def _close_live_view(self) -> None:
-        if self.live is not None:
-            self.live.close()
-
     def _ended_by_duration_unless_said(self) -> None:
         if self.state is RunState.RUNNING:
             self.state = RunState.DURATION
-
-    def _open_live_view(self, session: RunSession) -> None:
-        """Start the Foxglove server if the app asks for one (in this non-real-time process)."""
-        if self.app.live_view is None:
-            return
-        from rtloop.record.foxglove_live import LiveView
-
-        recorder = session.recorder
-        names = recorder.signals.names if recorder.signals is not None else []
-        assert session.layout.registry_path is not None
-        self.live = LiveView(self.app, self.app.live_view, names, session.layout.registry_path)
-        recorder.live = self.live
-        self.on_notice(f"Foxglove live view on {self.live.url} (Foxglove: Open connection → Foxglove WebSocket)"
-                       f"{self.live.reach}")
 
     def _spawn(self, layout: AppLayout) -> None:
         """Start a process per task into ``self.runs`` (each one there as soon as it started,
@@ -271,8 +249,6 @@ class Supervisor:
         layout, recorder = session.layout, session.recorder
         give_up_ns = self.end_ns + round(self.limits.stop_grace_s * 1e9)
         stale_reads = dict.fromkeys(self.runs, 0)
-        recording_stopped = ""
-        lost_reported = 0
         behind = False
         while not all(r.finished for r in self.runs.values()):
             if not behind:  # a supervisor that fell behind goes straight back to draining
@@ -292,15 +268,7 @@ class Supervisor:
                 if count != stale_reads[name]:
                     stale_reads[name] = count
                     recorder.mark_event()
-            if recorder.stopped != recording_stopped:
-                recording_stopped = recorder.stopped
-                self.on_notice(recording_stopped)
-            lost = session.losses.total()
-            if lost > lost_reported:
-                if not lost_reported:
-                    self.on_notice("the supervisor falls behind the recording: records are being lost "
-                                   "(counted in summary.json notes; signals.csv marks the gaps)")
-                lost_reported = lost
+            self.view.after_drain(session)
             if self.failure is not None or self.state is not RunState.RUNNING:
                 recorder.mark_event()
                 layout.control[ControlWord.STOP] = 1
@@ -309,8 +277,7 @@ class Supervisor:
                 layout.control[ControlWord.STOP] = 1
                 break
             session.write_summary_if_due()
-            if self.on_progress is not None:
-                self.on_progress(self._progress(layout, session))
+            self.view.show_progress(session, self.t0_ns, self.duration_s)
 
     def _keep_snapshots(self, layout: AppLayout, recorder: Any) -> None:
         """--keep: the snapshots the tasks wrote to the recorder; at a new recording segment, a new request."""
@@ -388,61 +355,17 @@ class Supervisor:
         wirings = device_wiring(self.app, task_run.name)
         if wirings:
             why = f"was {describe_exit(task_run.process.exitcode)}"
-            self.device_problems += safe_for_dead_task(task_run.name, wirings, why)
+            self.notes += safe_for_dead_task(task_run.name, wirings, why)
             self.held_for_dead_tasks += wirings
 
     def _read_messages(self, task_run: TaskProcess) -> None:
-        try:
-            while task_run.pipe.poll():
-                message = task_run.pipe.recv()
-                kind = message.get("kind")
-                if kind == "settings":
-                    task_run.settings = message["settings"]
-                elif kind == "locked":
-                    task_run.locked_bytes = message["bytes"]
-                elif kind == "finished":
-                    task_run.stop_request = f"task {task_run.name} at cycle {message['cycle']}: {message['reason']}"
-                    if message.get("edge_ns"):  # an E-stop: when its edge came, when this task's devices were safe
-                        edge_ns, safe_ns = message["edge_ns"], message.get("safe_ns") or 0
-                        self.device_problems.append(
-                            f"E-stop: edge at {edge_ns} ns (CLOCK_MONOTONIC, kernel timestamp); task {task_run.name}'s "
-                            f"devices safe at {safe_ns} ns, {(safe_ns - edge_ns) / 1e3:.0f} µs after the edge")
-                elif kind == "device_error":
-                    found = DeviceMismatch if message.get("mismatch") else DeviceError  # answered, not as declared
-                    self.refused = DeviceNotReady.of(found(message["device"], message["source"],
-                                                           message["key"], message["problem"]))
-                elif kind == "device_reads":
-                    self.device_reads.update({name: {"task": task_run.name, **report}
-                                              for name, report in message["devices"].items()})
-                elif kind == "input_limits":
-                    self.input_limits[task_run.name] = message["inputs"]
-                elif kind == "device_problems":
-                    self.device_problems += [f"task {task_run.name}: {p}" for p in message["problems"]]
-                elif kind in ("late", "stopped"):  # counters after a late cycle; a model's extra steps
-                    self.misses.from_task(task_run.name, message)
-                elif kind == "note":
-                    self.device_problems.append(f"task {task_run.name}: {message['text']}")
-                elif kind == "failed":
-                    task_run.failure = TaskFailed(
-                        task_run.name, message["cycle"], message["phase"], message["reason"],
-                        message["traceback"],
-                    )
-                    self._fail(task_run.failure)  # now, not when its process exits (its postrun may hang)
-        except (EOFError, OSError):
-            pass
+        """What the task said (runtime/task_messages.py): a failure stops every task now, not when its
+        process exits (its postrun may hang); a stop it asked for ends the run unless something did first."""
+        failure = self.reports.read(task_run)
+        if failure is not None:
+            self._fail(failure)
         if task_run.stop_request and self.state is RunState.RUNNING:
             self.state, self.stop_detail = RunState.REQUESTED, task_run.stop_request
-
-    def _progress(self, layout: AppLayout, session: RunSession) -> Progress:
-        elapsed_s = max(0.0, (rt.now_ns() - self.t0_ns) / 1e9)
-        if self.duration_s is not None:
-            elapsed_s = min(elapsed_s, self.duration_s)
-        return Progress(
-            elapsed_s=elapsed_s, duration_s=self.duration_s,
-            deadline_misses=sum(h.status[StatusWord.DEADLINE_MISSES] for h in layout.tasks.values()),
-            latency_now_ns=max(h.status[StatusWord.LATENCY_LAST_NS] for h in layout.tasks.values()),
-            recording_stopped=session.recorder.stopped, lost=session.losses.total(),
-        )
 
     # --- signals ------------------------------------------------------------------------------
     def _request_stop(self, _signum: int) -> None:
@@ -453,12 +376,6 @@ class Supervisor:
         self.session.stop_tasks()
 
     # --- results --------------------------------------------------------------------------------
-    def _input_limits(self, task: str) -> dict[str, dict[str, int]] | None:
-        """How often the guards of ``task``'s connections acted (None: it has no guarded connection)."""
-        if not any(c.guarded for c in self.app.connections if c.target.task == task):
-            return None
-        return self.input_limits.get(task, {})
-
     def _stopped_by(self, running: bool) -> str:
         if running:
             return "running"
@@ -475,15 +392,15 @@ class Supervisor:
                 self.memory.sample(name, task_run.process.pid, recorder.latest_ns)
             tasks[name] = TaskFacts(settings=task_run.settings if task_run else None,
                                     locked_bytes=task_run.locked_bytes if task_run else None,
-                                    resident_bytes=self.memory.to_json(name), input_limits=self._input_limits(name))
+                                    resident_bytes=self.memory.to_json(name),
+                                    input_limits=self.reports.input_limits_of(self.app, name))
         bridges = self.bridges.summary() if self.bridges is not None else {}
         run = RunFacts(
             mode="run", started_wall_ns=self.wall_t0_ns or time.time_ns(), duration_s=self.duration_s,
             stopped_by=self._stopped_by(running), failure=self.failure.to_json() if self.failure else None,
-            notes=[self.bridges.note if self.bridges is not None else "", *self.device_problems,
-                   *self.snapshots.problems],
-            more_notes=self.memory.notes(), devices=self.device_reads,
-            bridges={**bridges, **(self.live.summary() if self.live is not None else {})},
+            notes=[self.bridges.note if self.bridges is not None else "", *self.notes, *self.snapshots.problems],
+            more_notes=self.memory.notes(), devices=self.reports.device_reads,
+            bridges={**bridges, **self.view.summary()},
             machine={"cpu_dma_latency_held": self.dma_latency_held}, misses=self.misses.summary(final=not running))
         return build_summary(self.session, tasks, run, running=running)
 
@@ -499,13 +416,6 @@ def _let_go_of_process(task_run: TaskProcess) -> None:
     task_run.pipe.close()
     with contextlib.suppress(ValueError):  # not started (a spawn that failed)
         task_run.process.close()
-
-
-def _print_notice(text: str) -> None:
-    import sys
-
-    sys.stderr.write(f"\nrtloop: {text}\n")
-    sys.stderr.flush()
 
 
 def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, keep_s: float | None = None,
