@@ -212,28 +212,6 @@ def test_a_hardware_error_is_a_fault_or_a_reading(kind: str) -> None:
     assert not bus.servos[2].torque_on and bus.servos[1].torque_on  # the servo turned its own torque off
 
 
-def test_a_cycle_keeps_nothing_allocated() -> None:
-    import tracemalloc
-
-    device = bus_device(servos=[{"name": f"j{i}", "id": i, "model": "XM430-W350", "range_rad": [-1, 1]}
-                                for i in range(1, 7)])
-    attached(device)
-    y, u = np.zeros(device.n_outputs), np.full(6, 0.1)
-    for _ in range(50):
-        device.write(u)
-        device.read(y)
-    tracemalloc.start()
-    before = tracemalloc.take_snapshot().filter_traces([tracemalloc.Filter(True, "*rtloop/io/servos/*")])
-    for _ in range(300):
-        device.write(u)
-        device.read(y)
-    after = tracemalloc.take_snapshot().filter_traces([tracemalloc.Filter(True, "*rtloop/io/servos/bus.py"),
-                                                       tracemalloc.Filter(True, "*rtloop/io/servos/protocol.py")])
-    tracemalloc.stop()
-    grown = sum(stat.size_diff for stat in after.compare_to(before, "filename") if stat.size_diff > 0)
-    assert grown == 0
-
-
 def test_an_error_reading_clears_when_the_status_does() -> None:
     """Feetech's error bits are the status of the moment (a voltage dip passes): the reading follows them."""
     servos = [{**servo, "model": "STS3215"} for servo in PAN_TILT]

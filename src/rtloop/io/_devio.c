@@ -9,7 +9,8 @@
  * io/cansocket.py CanSocket._drain, CanCycle (can.c) <-> io/can.py CanDevice.write/read (with
  * CanSocket.receive_cycle), GpioLines (gpio.c) <-> io/gpio.py GpioDevice.write/read, SpiFrame
  * (spi.c) <-> io/spi.py SpiDevice with io/spiframe.py, DriveRun (drive.c) <-> io/drives/cycle.py
- * DriveCycle's running cycle. This file includes them all (one
+ * DriveCycle's running cycle, the servo_* functions (servo.c) <-> io/servos/protocol.py's CRC-16 and
+ * checksum (crc16, crc_matches, seal_crc, sum_matches, seal_sum). This file includes them all (one
  * translation unit) and makes the module. Same arithmetic in the same order, so the results are
  * bit for bit the Python ones. Every buffer a cycle touches is acquired once, when the
  * object is built; a cycle allocates nothing. Built by pip with the system compiler
@@ -39,6 +40,7 @@
 #include "devio_c/gpio.c"
 #include "devio_c/spi.c"
 #include "devio_c/drive.c"
+#include "devio_c/servo.c"
 
 /* crc16_ccitt(data) -> the frame's CRC (for the tests: the same as binascii.crc_hqx(data, 0xFFFF)). */
 static PyObject *devio_crc16_ccitt(PyObject *module, PyObject *data) {
@@ -53,6 +55,7 @@ static PyObject *devio_crc16_ccitt(PyObject *module, PyObject *data) {
 
 static PyMethodDef devio_functions[] = {
     {"crc16_ccitt", (PyCFunction)devio_crc16_ccitt, METH_O, "CRC-16/CCITT-FALSE of a buffer."},
+    SERVO_FUNCTIONS
     {NULL, NULL, 0, NULL},
 };
 
@@ -68,6 +71,7 @@ PyMODINIT_FUNC PyInit__devio(void) {
     const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame",
                            "DriveRun"};
     crc16_table_build();
+    dxl_crc_table_build();
     PyObject *errors = PyImport_ImportModule("rtloop.errors");
     if (errors == NULL) {
         return NULL;

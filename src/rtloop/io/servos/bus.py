@@ -9,6 +9,9 @@ Per cycle, for every servo on the bus at once (:mod:`.protocol`):
   ``NAME_velocity_rad_s``, ``NAME_current_A`` (``NAME_load``, a fraction, for a model that
   measures load) and ``NAME_error`` (its hardware error bits, 0 when well).
 
+The packets' CRC-16 (Dynamixel) or checksum (Feetech) is computed in C where ``io/_devio.c`` was built
+(``io/devio_c/servo.c``; ``io/compiled.py``), else by the Python references of :mod:`.protocol`.
+
 A servo whose answer does not come whole and good within ``timeout_ms`` keeps its last readings
 and is counted stale (``on_missing = "stale"``, at most ``max_stale_in_a_row`` in a row), or is a
 fault (``"fault"``). A hardware error (Dynamixel: the alert bit, then its error status read once;
@@ -45,6 +48,7 @@ from rtloop.io.servos.protocol import (
     Line,
     SyncRead,
     SyncWrite,
+    for_the_cycle,
     request,
 )
 from rtloop.io.servos.tables import FAMILIES, Family
@@ -152,7 +156,8 @@ class ServoBusDevice(Device):
     def attach(self, line: Line) -> None:
         """Check the servos on ``line`` and build the per-cycle packets (configure's work past opening)."""
         self.line = line
-        family, protocol = self.family, PROTOCOLS[self.protocol_name]
+        family = self.family
+        protocol = for_the_cycle(self.protocol_name)  # its CRC/checksum in C where built
         answered = [self._ping(spec) for spec in self.specs]
         if not any(answer is not None for answer in answered):
             raise DeviceNotReady(self.name, "", "port", f"no servo answered on {self.config['port']} at "

@@ -24,6 +24,8 @@ carries (address, length, IDs) and each servo answers one status packet, in ID o
 :class:`SyncWrite` and :class:`SyncRead` are the per-cycle packets: built once, their values
 written and read through numpy views on the packet's own bytes, so a cycle makes no object
 that stays. :meth:`Protocol.scan` decodes one packet in place; the servo model uses it too.
+The CRC-16 and the checksum are Python references here (:class:`Checks`), with compiled twins
+(``io/devio_c/servo.c``) that the per-cycle packets use where they were built (:func:`for_the_cycle`).
 """
 
 from __future__ import annotations
@@ -70,6 +72,51 @@ def crc16(data: Any, start: int = 0, end: int | None = None, crc: int = 0) -> in
     return crc
 
 
+def crc_matches(data: Any, start: int, end: int) -> bool:
+    """The CRC-16 of ``data[start:end]`` is the little-endian u16 at ``end`` (a packet's own)."""
+    return bool(crc16(data, start, end) == data[end] | data[end + 1] << 8)
+
+
+def seal_crc(data: Any, start: int, end: int, crc: int) -> None:
+    """Write the CRC-16 of ``data[start:end]`` (from ``crc``, that of the bytes before) at ``end``, little endian."""
+    crc = crc16(data, start, end, crc)
+    data[end], data[end + 1] = crc & 0xFF, crc >> 8
+
+
+def byte_sum(data: Any, start: int, end: int, total: int = 0) -> int:
+    """Feetech's checksum of ``data[start:end]``, after bytes that summed to ``total``."""
+    for index in range(start, end):
+        total += data[index]
+    return ~total & 0xFF
+
+
+def sum_matches(data: Any, start: int, end: int) -> bool:
+    """Feetech's checksum of ``data[start:end]`` is the byte at ``end``."""
+    return bool(byte_sum(data, start, end) == data[end])
+
+
+def seal_sum(data: Any, start: int, end: int, total: int) -> None:
+    """Write Feetech's checksum of ``data[start:end]``, after bytes that summed to ``total``, at ``end``."""
+    data[end] = byte_sum(data, start, end, total)
+
+
+class Checks:
+    """The per-packet checks a :class:`Protocol` calls: the Python references above, or their compiled
+    twins (``io/devio_c/servo.c``, the same bits) given the module ``io/_devio.c`` builds.
+
+    The per-cycle packets of a device use the compiled ones where they were built (:func:`for_the_cycle`);
+    the servo model and the set-up keep the references, so a run against the model checks one with the
+    other as well."""
+
+    def __init__(self, compiled: Any = None) -> None:
+        self.compiled = compiled is not None
+        self.crc16 = compiled.servo_crc16 if compiled is not None else crc16
+        self.crc_matches = compiled.servo_crc_matches if compiled is not None else crc_matches
+        self.seal_crc = compiled.servo_seal_crc if compiled is not None else seal_crc
+        self.sum_matches = compiled.servo_sum_matches if compiled is not None else sum_matches
+        self.seal_sum = compiled.servo_seal_sum if compiled is not None else seal_sum
+
+
 def stuff(body: bytes) -> bytes:
     """``FF FF FD`` → ``FF FF FD FD`` (Dynamixel 2.0's byte stuffing)."""
     return body.replace(STUFFING, STUFFED) if STUFFING in body else body
@@ -107,6 +154,9 @@ class Protocol:
     name = ""
     header_bytes = 0
     address_bytes = 1
+
+    def __init__(self, checks: Checks | None = None) -> None:
+        self.checks = checks or Checks()
 
     def packet(self, servo_id: int, instruction: int, params: bytes) -> bytearray:
         raise NotImplementedError
@@ -175,7 +225,7 @@ class Dynamixel2(Protocol):
             scan.needed = total
             return NEED_MORE
         crc_at = start + total - 2
-        if crc16(buffer, start, crc_at) != buffer[crc_at] | buffer[crc_at + 1] << 8:
+        if not self.checks.crc_matches(buffer, start, crc_at):
             scan.problem = "CRC mismatch"
             return BAD
         scan.servo_id, scan.instruction = buffer[start + 4], buffer[start + 7]
@@ -202,16 +252,14 @@ class Dynamixel2(Protocol):
     def seal(self, packet: bytearray, prefix_crc: int, prefix_end: int, stuffed: bytearray) -> memoryview:
         end = len(packet) - 2
         if packet.find(STUFFING, 7, end) < 0:  # the usual case: the packet as built
-            crc = crc16(packet, prefix_end, end, prefix_crc)
-            packet[end], packet[end + 1] = crc & 0xFF, crc >> 8
+            self.checks.seal_crc(packet, prefix_end, end, prefix_crc)
             return memoryview(packet)
         body = stuff(bytes(packet[7:end]))  # FF FF FD in the values: rare, may allocate
         size = 7 + len(body) + 2
         stuffed[:7] = packet[:7]
         stuffed[5], stuffed[6] = (len(body) + 2) & 0xFF, (len(body) + 2) >> 8
         stuffed[7:7 + len(body)] = body
-        crc = crc16(stuffed, 0, size - 2)
-        stuffed[size - 2], stuffed[size - 1] = crc & 0xFF, crc >> 8
+        self.checks.seal_crc(stuffed, 0, size - 2, 0)
         return memoryview(stuffed)[:size]
 
 
@@ -245,10 +293,7 @@ class Feetech(Protocol):
         if end - start < total:
             scan.needed = total
             return NEED_MORE
-        checked = 0
-        for index in range(start + 2, start + total - 1):
-            checked += buffer[index]
-        if ~checked & 0xFF != buffer[start + total - 1]:
+        if not self.checks.sum_matches(buffer, start + 2, start + total - 1):
             scan.problem = "checksum mismatch"
             return BAD
         scan.servo_id = buffer[start + 2]
@@ -258,21 +303,40 @@ class Feetech(Protocol):
         return int(total)
 
     def seal(self, packet: bytearray, prefix_crc: int, prefix_end: int, stuffed: bytearray) -> memoryview:
-        checked = prefix_crc
-        for index in range(prefix_end, len(packet) - 1):
-            checked += packet[index]
-        packet[-1] = ~checked & 0xFF
+        self.checks.seal_sum(packet, prefix_end, len(packet) - 1, prefix_crc)
         return memoryview(packet)
 
 
 PROTOCOLS: dict[str, Protocol] = {"dynamixel": Dynamixel2(), "feetech": Feetech()}
+"""With the Python checks: the set-up's instructions and the servo model."""
+_COMPILED: dict[str, Protocol] = {}
+
+
+def for_the_cycle(name: str) -> Protocol:
+    """The protocol ``name`` with the compiled checks where ``io/_devio.c`` was built (``io/compiled.py``:
+    ``RTLOOP_PURE_PYTHON=1`` or a stale build gives the references), read when a device builds its cycle."""
+    from rtloop.io.compiled import devio
+
+    compiled = devio()
+    if compiled is None:
+        return PROTOCOLS[name]
+    if name not in _COMPILED:
+        _COMPILED[name] = type(PROTOCOLS[name])(Checks(compiled))
+    return _COMPILED[name]
+
+
+SIGN_BIT = np.uint16(0x8000)
+MAGNITUDE_BITS = np.uint16(0x7FFF)
+ZERO = np.float64(0.0)
+"""Typed constants: a ufunc given a Python int or float spends microseconds deciding its type."""
 
 
 class Values:
     """Float64 values ↔ one field of every servo, through a strided view on packet bytes.
 
     ``encode`` takes integer-valued floats (rounded and clamped already); ``decode`` gives floats.
-    Sign and magnitude (``m15``) goes through preallocated temporaries, like the rest."""
+    Sign and magnitude (``m15``) goes through preallocated contiguous temporaries (a ufunc on the
+    strided, unaligned view is several times slower than one copy to or from it)."""
 
     def __init__(self, buffer: bytearray, first: int, stride: int, count: int, field: Field) -> None:
         kind = {("u", 1): "u1", ("u", 2): "<u2", ("u", 4): "<u4", ("s", 2): "<i2", ("s", 4): "<i4",
@@ -281,25 +345,30 @@ class Values:
         self.sign_magnitude = field.encoding == "m15"
         self._magnitude = np.zeros(count)
         self._bits = np.zeros(count, dtype=np.uint16)
+        self._sign = np.zeros(count, dtype=np.uint16)
         self._negative = np.zeros(count, dtype=bool)
 
     def encode(self, raw: np.ndarray) -> None:
         if not self.sign_magnitude:
             np.copyto(self.view, raw, casting="unsafe")
             return
+        bits = self._bits
         np.abs(raw, out=self._magnitude)
-        np.copyto(self.view, self._magnitude, casting="unsafe")
-        np.less(raw, 0.0, out=self._negative)
-        np.multiply(self._negative, 0x8000, out=self._bits, casting="unsafe")
-        np.bitwise_or(self.view, self._bits, out=self.view)
+        np.copyto(bits, self._magnitude, casting="unsafe")
+        np.less(raw, ZERO, out=self._negative)
+        np.multiply(self._negative, SIGN_BIT, out=self._sign)
+        np.bitwise_or(bits, self._sign, out=bits)
+        np.copyto(self.view, bits)
 
     def decode(self, out: np.ndarray) -> None:
         if not self.sign_magnitude:
             np.copyto(out, self.view)
             return
-        np.bitwise_and(self.view, 0x7FFF, out=self._bits)
-        np.copyto(out, self._bits)
-        np.greater_equal(self.view, 0x8000, out=self._negative)
+        bits = self._bits
+        np.copyto(bits, self.view)
+        np.greater_equal(bits, SIGN_BIT, out=self._negative)
+        np.bitwise_and(bits, MAGNITUDE_BITS, out=bits)
+        np.copyto(out, bits)
         np.negative(out, out=self._magnitude)
         np.copyto(out, self._magnitude, where=self._negative)
 

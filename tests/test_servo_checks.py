@@ -1,0 +1,239 @@
+"""The servo packets' CRC-16 (Dynamixel 2.0) and checksum (Feetech) in C (``io/devio_c/servo.c``) are their
+Python references' (``io/servos/protocol.py``) bit for bit: on the protocol documents' example packets, on
+random bytes, on whole packets scanned and sealed; the running cycle uses them; and a cycle of six servos
+keeps nothing allocated over 10,000 cycles (the references: 1,000)."""
+
+from __future__ import annotations
+
+import random
+import tracemalloc
+from typing import Any
+
+import numpy as np
+import pytest
+
+from rtloop.io.device import build_device
+from rtloop.io.servos import protocol as reference
+from rtloop.io.servos.line import ModelLine
+from rtloop.io.servos.model import build_bus
+from rtloop.io.servos.protocol import BAD, NEED_MORE, PROTOCOLS, Checks, Dynamixel2, Feetech, Scan, for_the_cycle
+
+devio = pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
+COMPILED = Checks(devio)
+PYTHON = Checks()
+
+# Packets as printed in the ROBOTIS e-manual's Protocol 2.0 page (instruction and status examples; the
+# last two bytes are the CRC, low byte first) and its Protocol 1.0 page (Feetech's frame; the last byte is
+# the checksum). Facts to check against, no code.
+DYNAMIXEL_EXAMPLES = [
+    "FF FF FD 00 01 03 00 01 19 4E",  # ping ID 1
+    "FF FF FD 00 01 07 00 55 00 06 04 26 65 5D",  # its status: model 1030, firmware 38
+    "FF FF FD 00 FE 03 00 01 31 42",  # broadcast ping
+    "FF FF FD 00 01 07 00 02 84 00 04 00 1D 15",  # read 4 bytes at 132 (present position)
+    "FF FF FD 00 01 08 00 55 00 A6 00 00 00 8C C0",  # its status: 166
+    "FF FF FD 00 01 09 00 03 74 00 00 02 00 00 CA 89",  # write 512 at 116 (goal position)
+    "FF FF FD 00 01 04 00 55 00 A1 0C",  # its status
+    "FF FF FD 00 01 04 00 06 01 A1 E6",  # factory reset
+    "FF FF FD 00 01 03 00 08 2F 4E",  # reboot
+    "FF FF FD 00 FE 09 00 82 84 00 04 00 01 02 CE FA",  # sync read 4 bytes at 132 of IDs 1, 2
+    "FF FF FD 00 FE 11 00 83 74 00 04 00 01 96 00 00 00 02 AA 00 00 00 82 87",  # sync write 150 / 170 at 116
+]
+FEETECH_EXAMPLES = [
+    "FF FF 01 02 01 FB",  # ping ID 1
+    "FF FF 01 04 02 2B 01 CC",  # read 1 byte at 0x2B
+    "FF FF 01 03 00 20 DB",  # its status: 32
+    "FF FF FE 04 03 03 01 F6",  # broadcast write of ID 1
+]
+
+
+def _bytes(text: str) -> bytearray:
+    return bytearray.fromhex(text)
+
+
+@pytest.mark.parametrize("checks", [COMPILED, PYTHON], ids=["compiled", "python"])
+def test_the_documented_packets_check_and_seal_to_their_own_bytes(checks: Checks) -> None:
+    assert checks.crc16(b"123456789", 0, 9, 0) == 0xFEE8  # CRC-16/UMTS's check value
+    for text in DYNAMIXEL_EXAMPLES:
+        packet = _bytes(text)
+        assert checks.crc_matches(packet, 0, len(packet) - 2), text
+        blank = packet[:-2] + b"\0\0"
+        checks.seal_crc(blank, 0, len(blank) - 2, 0)
+        assert blank == packet, text
+        assert bytes(PROTOCOLS["dynamixel"].packet(packet[4], packet[7], bytes(packet[8:-2]))) == packet, text
+    for text in FEETECH_EXAMPLES:
+        packet = _bytes(text)
+        assert checks.sum_matches(packet, 2, len(packet) - 1), text
+        blank = packet[:-1] + b"\0"
+        checks.seal_sum(blank, 2, len(blank) - 1, 0)
+        assert blank == packet, text
+    broken = _bytes(DYNAMIXEL_EXAMPLES[0])
+    broken[5] ^= 0x10
+    assert not checks.crc_matches(broken, 0, len(broken) - 2)
+    broken = _bytes(FEETECH_EXAMPLES[0])
+    broken[4] ^= 0x01
+    assert not checks.sum_matches(broken, 2, len(broken) - 1)
+
+
+def test_random_bytes_give_the_same_crc_checksum_and_verdicts_bit_for_bit() -> None:
+    generator = random.Random(32)
+    for _ in range(3_000):
+        size = generator.randrange(0, 300)
+        data = bytearray(generator.randbytes(size + 3))
+        start = generator.randrange(0, size + 1)
+        end = generator.randrange(start, size + 1)
+        crc = generator.randrange(0, 0x10000)
+        total = generator.choice([0, generator.randrange(0, 1 << 20)])
+        assert COMPILED.crc16(data, start, end, crc) == reference.crc16(data, start, end, crc)
+        assert COMPILED.crc_matches(data, start, end) is reference.crc_matches(data, start, end)
+        assert COMPILED.sum_matches(data, start, end) is reference.sum_matches(data, start, end)
+        ours, theirs = bytearray(data), bytearray(data)
+        COMPILED.seal_crc(ours, start, end, crc)
+        reference.seal_crc(theirs, start, end, crc)
+        assert ours == theirs
+        assert reference.crc_matches(ours, start, end) is (crc == 0)  # as sealed (from the bytes before: 0)
+        COMPILED.seal_sum(ours, start, end, total)
+        reference.seal_sum(theirs, start, end, total)
+        assert ours == theirs
+        assert reference.sum_matches(ours, start, end) is (total % 256 == 0)
+        view = memoryview(ours)  # the cycle hands over memoryviews and bytes as well
+        assert COMPILED.crc16(view, start, end, 0) == reference.crc16(bytes(ours), start, end, 0)
+
+
+def test_out_of_range_and_read_only_are_refused_not_read_past() -> None:
+    with pytest.raises(IndexError):
+        COMPILED.crc_matches(bytearray(10), 0, 9)  # the CRC's two bytes would be past the end
+    with pytest.raises(IndexError):
+        COMPILED.sum_matches(bytearray(4), 3, 2)
+    with pytest.raises(IndexError):
+        COMPILED.seal_sum(bytearray(4), 0, 4, 0)
+    with pytest.raises(ValueError):
+        COMPILED.seal_crc(bytearray(4), 0, 2, 0x10000)
+    with pytest.raises(BufferError):
+        COMPILED.seal_crc(b"\0\0\0\0", 0, 2, 0)  # bytes cannot be written
+    with pytest.raises(TypeError):
+        COMPILED.crc16(b"\0\0\0\0", 0, 2)
+
+
+def _random_packets(protocol: Any, generator: random.Random) -> bytearray:
+    stream = bytearray()
+    for _ in range(generator.randrange(1, 6)):
+        params = generator.randbytes(generator.randrange(0, 24))
+        if generator.random() < 0.3:
+            params += b"\xff\xff\xfd"  # Dynamixel stuffs it
+        servo_id = generator.randrange(0, 253)
+        if generator.random() < 0.5:
+            stream += protocol.status(servo_id, generator.randrange(0, 256), params)
+        else:
+            stream += protocol.packet(servo_id, generator.randrange(0, 256), params)
+    return stream
+
+
+@pytest.mark.parametrize("kind", [Dynamixel2, Feetech], ids=["dynamixel", "feetech"])
+def test_packets_scanned_with_either_give_the_same_results(kind: type) -> None:
+    """Whole packets, some with one byte changed, scanned as the cycle does: the same sizes, verdicts, fields."""
+    ours, theirs = kind(COMPILED), kind(PYTHON)
+    generator = random.Random(7)
+    results = {BAD: 0, NEED_MORE: 0, "good": 0}
+    for _ in range(600):
+        stream = _random_packets(theirs, generator)
+        if generator.random() < 0.5:
+            stream[generator.randrange(len(stream))] ^= 1 << generator.randrange(8)
+        for status in (True, False):
+            start = 0
+            while start < len(stream):
+                found = []
+                for protocol in (ours, theirs):
+                    scan = Scan()
+                    size = protocol.scan(stream, start, len(stream), scan, status)
+                    found.append((size, scan.servo_id, scan.instruction, scan.error, scan.first, scan.end,
+                                  scan.needed, scan.problem))
+                assert found[0] == found[1], (bytes(stream).hex(), start)
+                size = found[0][0]
+                results[size if size in (BAD, NEED_MORE) else "good"] += 1
+                if size == NEED_MORE:
+                    break
+                start += 1 if size == BAD else size
+    assert min(results.values()) > 0, results  # every outcome was met
+
+
+@pytest.mark.parametrize("kind", ["dynamixel", "feetech"])
+def test_sync_writes_sealed_with_either_are_the_same_bytes(kind: str) -> None:
+    from rtloop.io.servos.protocol import SyncWrite
+    from rtloop.io.servos.tables import FAMILIES
+
+    family = FAMILIES[kind]
+    field = family.fields[family.goals["position"]]
+    ids = [1, 2, 3, 4, 5, 6]
+    ours, theirs = SyncWrite(type(PROTOCOLS[kind])(COMPILED), field, ids), SyncWrite(PROTOCOLS[kind], field, ids)
+    generator = np.random.default_rng(3)
+    for _ in range(500):
+        raw = np.rint(generator.uniform(-3000, 4095, 6))
+        if kind == "dynamixel" and generator.random() < 0.2:
+            raw[2] = float(0xFDFFFF)  # FF FF FD in the values: the stuffed packet
+        ours.values.encode(raw)
+        theirs.values.encode(raw)
+        assert bytes(ours.seal()) == bytes(theirs.seal())
+
+
+def test_the_running_cycle_uses_the_compiled_checks_and_pure_python_the_references(monkeypatch: Any) -> None:
+    device = _six_servos("dynamixel")
+    assert device.goals.protocol.checks.compiled and device.state.protocol.checks.compiled
+    assert not PROTOCOLS["dynamixel"].checks.compiled  # the model and the set-up: the references
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+    assert not for_the_cycle("feetech").checks.compiled
+    assert not _six_servos("feetech").state.protocol.checks.compiled
+
+
+class _SameAnswers:
+    """A line whose servos answer each sync read with the same bytes, at once (no model in the loop: what
+    tracemalloc sees is the device's own)."""
+
+    def __init__(self, answers: bytes) -> None:
+        self.answers = answers
+
+    def send(self, data: Any) -> None:
+        pass
+
+    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
+        buffer[:len(self.answers)] = self.answers
+        return len(self.answers)
+
+    def flush_input(self) -> None:
+        pass
+
+
+def _six_servos(kind: str) -> Any:
+    model = "XM430-W350" if kind == "dynamixel" else "STS3215"
+    ids = [1, 2, 3, 4, 5, 6]
+    device = build_device(kind, "arm", {"port": "/dev/null", "servos": [
+        {"name": f"j{i}", "id": i, "model": model, "range_rad": [-1, 1]} for i in ids]}, "app.toml")
+    bus = build_bus(kind, ids, [model], 0.002)
+    device.attach(ModelLine(bus))
+    device.activate()
+    device.line = _SameAnswers(bytes(bus.receive(bytes(device.state.request))))
+    return device
+
+
+@pytest.mark.parametrize(("pure_python", "cycles"), [(False, 10_000), (True, 1_000)], ids=["compiled", "python"])
+@pytest.mark.parametrize("kind", ["dynamixel", "feetech"])
+def test_the_cycle_keeps_nothing_allocated(kind: str, pure_python: bool, cycles: int, monkeypatch: Any) -> None:
+    """10,000 cycles of the running cycle (1,000 of the Python references': tracemalloc slows them ~5x)."""
+    if pure_python:
+        monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+    device = _six_servos(kind)
+    assert device.state.protocol.checks.compiled is not pure_python
+    y, u = np.zeros(device.n_outputs), np.full(6, -0.1)
+    for _ in range(100):
+        device.write(u)
+        device.read(y)
+    servos = [tracemalloc.Filter(True, "*rtloop/io/servos/*")]
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot().filter_traces(servos)
+    for _ in range(cycles):
+        device.write(u)
+        device.read(y)
+    after = tracemalloc.take_snapshot().filter_traces(servos)
+    tracemalloc.stop()
+    grown = [stat for stat in after.compare_to(before, "lineno") if stat.size_diff > 0]
+    assert not grown, grown
+    assert device.stale_reads == 0 and np.all(np.abs(y[:6] - 0.0) < 1.0)
