@@ -10,18 +10,16 @@ with `struct`, not with rtloop.
 from __future__ import annotations
 
 import json
-import queue
-import signal
 import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from conftest import unique_name
+from foxglove_client import connect, handshake, run_with_live_view, subscribe
 from rtloop.app.builder import App
 from rtloop.errors import AppError
 
@@ -72,20 +70,6 @@ def decode_joint_state(data: bytes) -> tuple[list[str], list[float]]:
     return names, list(struct.unpack_from(f"<{count}d", data, offset))
 
 
-def url_from(stderr_lines: queue.Queue[str], timeout_s: float) -> str:
-    deadline = time.monotonic() + timeout_s
-    seen = []
-    while time.monotonic() < deadline:
-        try:
-            line = stderr_lines.get(timeout=0.2)
-        except queue.Empty:
-            continue
-        seen.append(line)
-        if "Foxglove live view on " in line:
-            return line.split("Foxglove live view on ", 1)[1].split()[0]
-    pytest.fail(f"no live view URL printed within {timeout_s} s: {seen}")
-
-
 @pytest.mark.rt
 @pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
 def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path: Path, rtloop_env,
@@ -93,32 +77,13 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
     app_file = tmp_path / "fox.toml"
     app_file.write_text(APP.format(suffix=unique_name("live")))
     out = tmp_path / "out"
-    run = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "12", "--out",
-                            str(out), "--quiet"], env=rtloop_env, stderr=subprocess.PIPE, text=True)
-    stderr_lines: queue.Queue[str] = queue.Queue()
-    pump = threading.Thread(target=lambda: [stderr_lines.put(line) for line in run.stderr], daemon=True)
-    pump.start()
-    try:
-        url = url_from(stderr_lines, 30)
+    with run_with_live_view(app_file, out, 12, rtloop_env) as (run, url):
         assert url.startswith("ws://localhost:")
-        # close_timeout: the server leaves the client's close frame unanswered while the run goes on
-        # (websockets waits 10 s by default for the answer before it drops the connection)
-        with websockets_sync.connect(url, subprotocols=[subprotocol], open_timeout=20, close_timeout=1) as client:
+        with connect(url, subprotocol) as client:
             assert client.subprotocol == subprotocol  # the name the client offered, answered as offered
-            channels: dict[str, int] = {}
-            deadline = time.monotonic() + 20
-            while len(channels) < 2 and time.monotonic() < deadline:
-                message = client.recv(timeout=20)
-                if isinstance(message, str):
-                    op = json.loads(message)
-                    if op["op"] == "serverInfo":
-                        assert "clientPublish" in op["capabilities"]
-                    if op["op"] == "advertise":
-                        channels.update({c["topic"]: c["id"] for c in op["channels"]})
-            assert {"/rtloop/signals", "/rtloop/timing/gain"} <= set(channels), channels
-            client.send(json.dumps({"op": "subscribe", "subscriptions": [
-                {"id": 1, "channelId": channels["/rtloop/signals"]},
-                {"id": 2, "channelId": channels["/rtloop/timing/gain"]}]}))
+            info, channels = handshake(client, {"/rtloop/signals", "/rtloop/timing/gain"})
+            assert "clientPublish" in info["capabilities"]
+            subscribe(client, {1: channels["/rtloop/signals"], 2: channels["/rtloop/timing/gain"]})
             client.send(json.dumps({"op": "advertise", "channels": [
                 {"id": 7, "topic": "/rtloop/ports/setpoint", "encoding": "json",
                  "schemaName": "std_msgs/msg/Float64MultiArray"}]}))
@@ -147,16 +112,6 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
             assert len(rows) > 100 and timing > 100, (len(rows), timing)
             assert followed, f"the task never followed the setpoint sent from Foxglove; last rows {rows[-3:]}"
             assert not any(v != v for row in rows for v in row), "a rejected NaN reached the task"
-    finally:
-        if run.poll() is None:  # seen all it had to see: Ctrl-C ends the run (12 s at most)
-            run.send_signal(signal.SIGINT)
-        try:
-            run.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            run.kill()
-            run.wait()
-        pump.join(10)
-        run.stderr.close()
     assert run.returncode == 0
     live = json.loads((out / "summary.json").read_text())["bridges"]["foxglove"]
     assert live["input_written"] >= 1

@@ -7,23 +7,18 @@ its replay, and a value outside the port's range is refused."""
 from __future__ import annotations
 
 import json
-import queue
-import signal
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from conftest import unique_name
+from foxglove_client import connect, handshake, run_with_live_view, subscribe
 from rtloop.record.csvfiles import read_inputs_csv
 from rtloop.runtime.replay import replay
-from test_foxglove_live import url_from
 
 pytest.importorskip("foxglove")
-websockets_sync = pytest.importorskip("websockets.sync.client")
+pytest.importorskip("websockets.sync.client")
 
 APP = """\
 name = "{name}"
@@ -58,20 +53,14 @@ def answer(client, op: str, request_id: str, timeout_s: float = 20.0) -> dict:
     pytest.fail(f"no {op} with id {request_id!r} within {timeout_s} s")
 
 
-def wait_for_rows(client, timeout_s: float = 30.0) -> None:
-    """Subscribe to the signals and wait for the first rows (they flow from T0 on)."""
+def wait_for_rows(client, timeout_s: float = 30.0) -> dict:
+    """Subscribe to the signals and wait for the first rows (they flow from T0 on); the server's info."""
+    info, channels = handshake(client, {"/rtloop/signals"})
+    subscribe(client, {1: channels["/rtloop/signals"]})
     deadline = time.monotonic() + timeout_s
-    subscribed = False
     while time.monotonic() < deadline:
-        message = client.recv(timeout=timeout_s)
-        if isinstance(message, bytes):
-            return
-        decoded = json.loads(message)
-        if decoded["op"] == "advertise" and not subscribed:
-            ids = [c["id"] for c in decoded["channels"] if c["topic"] == "/rtloop/signals"]
-            if ids:
-                client.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": ids[0]}]}))
-                subscribed = True
+        if isinstance(client.recv(timeout=timeout_s), bytes):
+            return info
     pytest.fail("no signal rows within the time")
 
 
@@ -80,41 +69,22 @@ def test_a_foxglove_client_tunes_a_live_parameter_and_the_replay_repeats_it(tmp_
     app_file = tmp_path / "tune.toml"
     app_file.write_text(APP.format(name=unique_name("fox_tune")))
     out = tmp_path / "out"
-    run = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "20", "--out",
-                            str(out), "--quiet"], env=rtloop_env, stderr=subprocess.PIPE, text=True)
-    stderr_lines: queue.Queue[str] = queue.Queue()
-    pump = threading.Thread(target=lambda: [stderr_lines.put(line) for line in run.stderr], daemon=True)
-    pump.start()
-    try:
-        url = url_from(stderr_lines, 30)
-        with websockets_sync.connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=20,
-                                     close_timeout=1) as client:
-            info = json.loads(client.recv(timeout=20))
-            assert info["op"] == "serverInfo" and "parameters" in info["capabilities"], info
-            wait_for_rows(client)  # the run is past T0: the tuning lands in the middle of it
-            client.send(json.dumps({"op": "getParameters", "parameterNames": [], "id": "all"}))
-            assert answer(client, "parameterValues", "all")["parameters"] == [{"name": "gain.k", "value": 2.0,
-                                                                                "type": "float64"}]
-            client.send(json.dumps({"op": "setParameters", "id": "far",
-                                    "parameters": [{"name": "gain.k", "value": 50.0}]}))  # outside range
-            assert [p["value"] for p in answer(client, "parameterValues", "far")["parameters"]] == [2.0]
-            time.sleep(0.3)
-            client.send(json.dumps({"op": "setParameters", "id": "tune",
-                                    "parameters": [{"name": "gain.k", "value": 3.5}]}))
-            assert [p["value"] for p in answer(client, "parameterValues", "tune")["parameters"]] == [3.5]
-            time.sleep(0.5)  # the task takes it at its next release
-            client.send(json.dumps({"op": "getParameters", "parameterNames": ["gain.k"], "id": "now"}))
-            assert [p["value"] for p in answer(client, "parameterValues", "now")["parameters"]] == [3.5]
-    finally:
-        if run.poll() is None:
-            run.send_signal(signal.SIGINT)
-        try:
-            run.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            run.kill()
-            run.wait()
-        pump.join(10)
-        run.stderr.close()
+    with run_with_live_view(app_file, out, 20, rtloop_env) as (run, url), connect(url) as client:
+        info = wait_for_rows(client)  # the run is past T0: the tuning lands in the middle of it
+        assert "parameters" in info["capabilities"], info
+        client.send(json.dumps({"op": "getParameters", "parameterNames": [], "id": "all"}))
+        assert answer(client, "parameterValues", "all")["parameters"] == [{"name": "gain.k", "value": 2.0,
+                                                                            "type": "float64"}]
+        client.send(json.dumps({"op": "setParameters", "id": "far",
+                                "parameters": [{"name": "gain.k", "value": 50.0}]}))  # outside range
+        assert [p["value"] for p in answer(client, "parameterValues", "far")["parameters"]] == [2.0]
+        time.sleep(0.3)
+        client.send(json.dumps({"op": "setParameters", "id": "tune",
+                                "parameters": [{"name": "gain.k", "value": 3.5}]}))
+        assert [p["value"] for p in answer(client, "parameterValues", "tune")["parameters"]] == [3.5]
+        time.sleep(0.5)  # the task takes it at its next release
+        client.send(json.dumps({"op": "getParameters", "parameterNames": ["gain.k"], "id": "now"}))
+        assert [p["value"] for p in answer(client, "parameterValues", "now")["parameters"]] == [3.5]
     assert run.returncode == 0
     taken = [(port, values) for _task, _cycle, port, values in read_inputs_csv(out / "inputs.csv")]
     assert taken == [("gains", [3.5])], taken  # logged like any port write; the refused 50 never reached it
