@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 
+from can_pair import attach_to_a_pair, wire_frame
 from conftest import scaled_ns, scaled_s
 from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by, guest_device
 from rtloop.errors import DeviceError, DeviceFault
@@ -30,10 +31,6 @@ def raw_socket(interface, fd=False):
     sock.bind((interface,))
     sock.settimeout(5.0)
     return sock
-
-
-def frame(can_id, data):
-    return struct.pack("=IB3x8s", can_id, len(data), data)
 
 
 def drive(interface, **settings):
@@ -59,7 +56,7 @@ def test_frames_go_out_every_cycle_with_the_heartbeat_and_come_in(bus):
             assert struct.unpack_from("<hB", command, 8) == (-150 + 100 * cycle, 3)
             beat = peer.recv(16)
             assert struct.unpack_from("=IB", beat) == (0x700, 1) and beat[8] == cycle
-            peer.send(frame(0x180, struct.pack("<i", 1234 + cycle)))
+            peer.send(wire_frame(0x180, struct.pack("<i", 1234 + cycle)))
             device.read(y)
             assert y[0] == pytest.approx(1.234 + cycle * 1e-3)
     finally:
@@ -82,7 +79,7 @@ def test_a_missing_frame_is_a_fault_or_a_stale_read():
     peer = raw_socket(entry["interface"])
     try:
         y = np.zeros(1)
-        peer.send(frame(0x180, struct.pack("<i", 42)))
+        peer.send(wire_frame(0x180, struct.pack("<i", 42)))
         stale.read(y)
         stale.read(y)  # nothing new: the last value stays, counted
         assert y[0] == pytest.approx(0.042) and stale.stale_reads == 1
@@ -99,8 +96,8 @@ def test_the_newest_frame_of_an_id_wins_and_other_ids_are_filtered_out():
     peer = raw_socket(entry["interface"])
     try:
         for value in (1, 2, 3):
-            peer.send(frame(0x180, struct.pack("<i", value)))
-        peer.send(frame(0x181, struct.pack("<i", 99)))
+            peer.send(wire_frame(0x180, struct.pack("<i", value)))
+        peer.send(wire_frame(0x181, struct.pack("<i", 99)))
         y = np.zeros(1)
         device.read(y)
         assert y[0] == pytest.approx(0.003)
@@ -143,7 +140,7 @@ def test_no_allocation_in_the_loop():
     device = drive(entry["interface"])
     device.configure()
     peer = raw_socket(entry["interface"])
-    answer = bytearray(frame(0x180, struct.pack("<i", 7)))
+    answer = bytearray(wire_frame(0x180, struct.pack("<i", 7)))
     incoming = bytearray(16)
     try:
         u, y = np.array([0.5, 1.0]), np.zeros(1)
@@ -165,12 +162,9 @@ def test_no_allocation_in_the_loop():
 def test_the_driver_loop_over_a_unix_socket_pair_allocates_nothing():
     """Anywhere: the driver's own per-cycle work, over the same socket calls (send, poll, recv_into)
     on a UNIX datagram pair in place of a CAN socket (this kernel may have no CAN)."""
-    from rtloop.io.cansocket import CanSocket
-
     device = drive("vcan0")
-    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
-    answer = bytearray(frame(0x180, struct.pack("<i", -9)))
+    peer = attach_to_a_pair(device)
+    answer = bytearray(wire_frame(0x180, struct.pack("<i", -9)))
     incoming = bytearray(72)
     try:
         u, y = np.array([0.5, 1.0]), np.zeros(1)
@@ -196,11 +190,8 @@ def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command(
     little later, as a separate process does. Nothing goes out before T0 (an answer to a frame sent
     at configure, arriving after activate, would be taken for cycle 0's reading and make every
     reading after it one cycle late); at the end the safe frame goes out with the heartbeat."""
-    from rtloop.io.cansocket import CanSocket
-
     device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 5000}])
-    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    peer = attach_to_a_pair(device)
     seen: list[tuple[int, bytes]] = []
 
     def answer_each_command() -> None:  # torque × 10 back as the position, after a moment
@@ -216,7 +207,7 @@ def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command(
             if can_id == 0x200:
                 time.sleep(0.02)
                 torque = struct.unpack_from("<h", data, 8)[0]
-                peer.send(frame(0x180, struct.pack("<i", torque * 10)))
+                peer.send(wire_frame(0x180, struct.pack("<i", torque * 10)))
 
     responder = threading.Thread(target=answer_each_command, daemon=True)
     responder.start()
@@ -240,22 +231,27 @@ def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command(
         responder.join(timeout=5)
 
 
+def task_devices_on_a_pair(device):
+    """A task's devices (``TaskDevices``) holding ``device`` alone, already on its socket pair: its
+    commands from the task's y[0:2] (torque, mode; limits wider than the tests drive them), its
+    position into the task's u[0] (returned with them)."""
+    from rtloop.io.device import CommandLimit
+    from rtloop.io.host import DeviceWiring, TaskDevices
+
+    device.configure = lambda: None  # attached to the pair already (this kernel may have no CAN)
+    limits = (CommandLimit(-100.0, 100.0, 0.0), CommandLimit(0.0, 255.0, 0.0))
+    task_u, task_y = np.zeros(1), np.zeros(2)
+    wiring = DeviceWiring(device, "let", limits, ((slice(0, 2), slice(0, 2)),), ((slice(0, 1), slice(0, 1)),))
+    return TaskDevices("ctl", 1_000_000, [wiring], task_u, task_y), task_u
+
+
 def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cycle_and_lag():
     """Anywhere (a UNIX socket pair in place of the bus): with on_missing = "stale", a cycle whose
     answer has not come within its timeout keeps the last values; the task's devices count the cycle,
     keep it among the first stale cycles, and the longest run of stale cycles in a row (the lag)."""
-    from rtloop.io.cansocket import CanSocket
-    from rtloop.io.device import CommandLimit
-    from rtloop.io.host import DeviceWiring, TaskDevices
-
     device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 1, "on_missing": "stale"}])
-    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
-    device.configure = lambda: None  # attached to the pair already (this kernel may have no CAN)
-    limits = (CommandLimit(-100.0, 100.0, 0.0), CommandLimit(0.0, 255.0, 0.0))
-    task_u, task_y = np.zeros(1), np.zeros(2)
-    devices = TaskDevices("ctl", 1_000_000, [DeviceWiring(device, "let", limits, ((slice(0, 2), slice(0, 2)),),
-                                                          ((slice(0, 1), slice(0, 1)),))], task_u, task_y)
+    peer = attach_to_a_pair(device)
+    devices, task_u = task_devices_on_a_pair(device)
     lost = {3, 4, 7}  # the drive's answers to these cycles never come
     seen = []
     try:
@@ -263,7 +259,7 @@ def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cyc
         devices.activate()
         for cycle in range(10):
             if cycle not in lost:
-                peer.send(frame(0x180, struct.pack("<i", 1000 * cycle)))  # the position this cycle reads
+                peer.send(wire_frame(0x180, struct.pack("<i", 1000 * cycle)))  # the position this cycle reads
             devices.at_release(cycle)
             seen.append(task_u[0])
     finally:
@@ -277,19 +273,10 @@ def test_a_frame_that_does_not_come_in_time_is_a_stale_read_counted_with_its_cyc
 
 def test_counting_stale_reads_allocates_nothing_that_stays():
     """10,000 cycles of TaskDevices.at_release with a CAN device that reads stale every other cycle."""
-    from rtloop.io.cansocket import CanSocket
-    from rtloop.io.device import CommandLimit
-    from rtloop.io.host import DeviceWiring, TaskDevices
-
     device = drive("vcan0", receive=[{**RECEIVE[0], "timeout_ms": 0.001, "on_missing": "stale"}])
-    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
-    device.configure = lambda: None
-    limits = (CommandLimit(-100.0, 100.0, 0.0), CommandLimit(0.0, 255.0, 0.0))
-    task_u, task_y = np.zeros(1), np.zeros(2)
-    devices = TaskDevices("ctl", 1_000_000, [DeviceWiring(device, "let", limits, ((slice(0, 2), slice(0, 2)),),
-                                                          ((slice(0, 1), slice(0, 1)),))], task_u, task_y)
-    answer, incoming, cycle = bytearray(frame(0x180, struct.pack("<i", 7))), bytearray(72), [0]
+    peer = attach_to_a_pair(device)
+    devices, _task_u = task_devices_on_a_pair(device)
+    answer, incoming, cycle = bytearray(wire_frame(0x180, struct.pack("<i", 7))), bytearray(72), [0]
 
     def one_cycle():
         if cycle[0] & 1:

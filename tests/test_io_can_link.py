@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from can_pair import attach_to_a_pair
 from conftest import guest_device, scaled_ns, scaled_s, unique_name
 from rtloop.errors import DeviceFault
 from rtloop.io.device import build_device
@@ -35,12 +35,9 @@ def twin(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str
 
 
 def drive_on_a_pair(twin: str, timeout_ms: float):
-    from rtloop.io.cansocket import CanSocket
-
     device = build_device("can", "drive", {"interface": "vcan0", "send": SEND,
                                            "receive": [{**RECEIVE, "timeout_ms": timeout_ms}]}, "app.toml")
-    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    device.attach(CanSocket("pair", False, device.received, "devices.drive", sock=ours))
+    peer = attach_to_a_pair(device)
     assert (device._cycle is not None) == (twin == "c")
     return device, peer
 

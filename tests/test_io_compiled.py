@@ -18,6 +18,7 @@ import threading
 import numpy as np
 import pytest
 
+from can_pair import attach_to_a_pair, wire_frame
 from rtloop.io.bytelayout import ByteLayout, Field
 from rtloop.io.device import CommandLimit
 from rtloop.io.host import DeviceWiring, TaskDevices
@@ -559,7 +560,6 @@ CAN_RECEIVE = [{"id": 0x180, "timeout_ms": 2, "signals": [{"name": "position", "
 def can_pair(monkeypatch, fd=False, **settings):
     """The same CAN device twice, each on a socket pair of its own: with the C cycle, and the Python
     reference. Returns [(device, peer), (device, peer)]."""
-    from rtloop.io.cansocket import CanSocket
     from rtloop.io.device import build_device
 
     pair = []
@@ -569,18 +569,12 @@ def can_pair(monkeypatch, fd=False, **settings):
         table = {"interface": "pair", "fd": fd, "send": CAN_SEND, "receive": CAN_RECEIVE, "heartbeat": {"id": 0x700},
                  **settings}
         device = build_device("can", "drive", table, "app.toml")
-        ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        peer = attach_to_a_pair(device, fd)
         peer.setblocking(False)
-        device.attach(CanSocket("pair", fd, device.received, "devices.drive", sock=ours))
         monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)
         assert (device._cycle is not None) == compiled
         pair.append((device, peer))
     return pair
-
-
-def can_wire(can_id: int, data: bytes, fd: bool) -> bytes:
-    """A wire frame as the kernel hands it to a CAN_RAW socket."""
-    return struct.pack("=IB3x64s" if fd else "=IB3x8s", can_id, len(data), data)
 
 
 def taken_off(peer) -> list[bytes]:
@@ -615,10 +609,10 @@ def test_can_frames_sent_readings_stale_counts_and_faults_are_the_references(fd,
             arriving = []
             for can_id in ids:
                 for _ in range(int(bus.integers(0, 3)) if cycle % 11 else 1):
-                    arriving.append(can_wire(can_id, bus.integers(0, 256, 8).astype(np.uint8).tobytes(), fd))
+                    arriving.append(wire_frame(can_id, bus.integers(0, 256, 8).astype(np.uint8).tobytes(), fd))
             if cycle % 7 == 3:
-                arriving.append(can_wire(0x222, bytes(8), fd))  # an id not declared
-                arriving.append(can_wire(0x181, bytes(8), not fd))  # a declared id of the other size
+                arriving.append(wire_frame(0x222, bytes(8), fd))  # an id not declared
+                arriving.append(wire_frame(0x181, bytes(8), not fd))  # a declared id of the other size
             results = []
             for device, peer in pair:
                 outcome = []
@@ -705,7 +699,7 @@ def test_can_a_frame_is_waited_for_within_its_timeout_counted_from_the_start_of_
     outcomes = []
     try:
         for device, peer in pair:
-            later = threading.Timer(0.1, peer.send, (can_wire(0x180, struct.pack("<i", 12345), False),))
+            later = threading.Timer(0.1, peer.send, (wire_frame(0x180, struct.pack("<i", 12345), False),))
             later.start()
             y = np.full(3, 7.0)
             device.read(y)  # waits for 0x180 (3 s allowed), 0x181 stays stale
@@ -722,7 +716,7 @@ def test_can_a_frame_is_waited_for_within_its_timeout_counted_from_the_start_of_
     messages = []
     try:
         for device, peer in pair:
-            later = threading.Timer(0.5, peer.send, (can_wire(0x180, bytes(8), False),))  # after the timeout
+            later = threading.Timer(0.5, peer.send, (wire_frame(0x180, bytes(8), False),))  # after the timeout
             later.start()
             with pytest.raises(DeviceFault) as caught:
                 device.read(np.zeros(1))
@@ -746,7 +740,7 @@ def test_the_can_cycle_in_c_keeps_nothing_allocated(monkeypatch):
     reference.close()
     reference_peer.close()
     u, y = np.array([1.0, 2.0, 3.0, 4.0]), np.zeros(3)
-    answer, stale_too = can_wire(0x180, struct.pack("<i", 5), False), can_wire(0x181, bytes(8), False)
+    answer, stale_too = wire_frame(0x180, struct.pack("<i", 5), False), wire_frame(0x181, bytes(8), False)
     incoming = bytearray(128)
     turn = [0]
 
