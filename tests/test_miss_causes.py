@@ -11,7 +11,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +20,7 @@ import pytest
 
 import rtloop
 from conftest import cli_env, unique_name
+from loaded_runs import JIWY_ON_ONE_CPU, stress_ng
 from rt_test_runnables import Noop, SpinFor
 from rtloop import App
 from rtloop.cli.main import main
@@ -199,25 +199,6 @@ def test_an_on_time_task_has_no_misses_to_explain(tmp_path: Path) -> None:
     assert summary["misses"]["total"] == summary["tasks"]["idle"]["deadline_misses"]
 
 
-JIWY_APP = """name = "{name}"
-[tasks.controller]
-runnable = "jiwy_models:JiwyController"
-period_ns = 1_000_000
-priority = 80
-cpu = {cpu}
-[tasks.plant]
-runnable = "jiwy_models:JiwyPlant"
-period_ns = 1_000_000
-priority = 81
-cpu = {cpu}
-[[connect]]
-from = "plant.y[0:2]"
-to = "controller.u[0:2]"
-[[connect]]
-from = "controller.y[0:2]"
-to = "plant.u[0:2]"
-"""
-
 HOG = """
 import ctypes, os, sys, time
 ctypes.CDLL(None).prctl(15, b"rtloop-hog", 0, 0, 0)  # PR_SET_NAME: what /proc calls the thread
@@ -248,7 +229,7 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced:
     cpu = other_cpu()
     name = unique_name("misses_hog")
     app_file = tmp_path / f"{name}.toml"
-    app_file.write_text(JIWY_APP.format(name=name, cpu=cpu))
+    app_file.write_text(JIWY_ON_ONE_CPU.format(name=name, cpu=cpu))
     hog = subprocess.Popen([sys.executable, "-c", HOG, str(cpu), "30"], stdout=subprocess.PIPE, text=True)
     try:
         assert hog.stdout is not None and hog.stdout.readline().strip() == "holding"
@@ -297,15 +278,10 @@ def test_under_stress_ng_at_sched_other_no_short_step_is_blamed(tmp_path: Path) 
     below the period is the step's; each names the run queue, the machine, another thread or says
     it is unexplained."""
     name = unique_name("misses_stress")
-    hogs = subprocess.Popen(["stress-ng", "--cpu", "2", "--timeout", "30s", "--quiet"], start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
+    with stress_ng("--cpu", "2", "--timeout", "30s"):
         app = App(name)
         app.add_task("quick", SpinFor(100_000), period_ns=MS, policy="other")
         summary = _run(app, tmp_path / "run", 2.0)
-    finally:
-        os.killpg(hogs.pid, signal.SIGTERM)
-        hogs.wait(timeout=30)
     misses = summary["misses"]
     assert misses["total"] == summary["tasks"]["quick"]["deadline_misses"]
     counted = sum(n for kinds in misses["counts"].values() for by in kinds.values() for n in by.values())

@@ -7,7 +7,6 @@ import json
 import os
 import pickle
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -19,6 +18,7 @@ import pytest
 
 import rtloop
 from conftest import other_cpu, scaled_ns, scaled_s, skip_in_rtkernel_guest, slowdown
+from loaded_runs import JIWY_ON_ONE_CPU, stress_ng
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
@@ -114,24 +114,7 @@ def test_a_read_that_found_no_sample_logs_no_stamp(monkeypatch) -> None:
 
 # --- whole runs, replayed ---------------------------------------------------------------------------
 
-JIWY_APP = """name = "{name}"
-[tasks.controller]
-runnable = "jiwy_models:JiwyController"
-period_ns = 1_000_000
-priority = 80
-cpu = {cpu}
-[tasks.plant]
-runnable = "jiwy_models:JiwyPlant"
-period_ns = 1_000_000
-priority = 81
-cpu = {cpu}
-[[connect]]
-from = "plant.y[0:2]"
-to = "controller.u[0:2]"
-[[connect]]
-from = "controller.y[0:2]"
-to = "plant.u[0:2]"
-[ports.setpoint]
+JIWY_APP = JIWY_ON_ONE_CPU + """[ports.setpoint]
 to = "controller.u[2:4]"
 [record]
 signals = ["plant.y", "controller.y", "controller.u"]
@@ -184,10 +167,8 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
     # Two CPU hogs on the tasks' core, real-time above them but busy only part of the time: the
     # tasks are held off in bursts, so they miss deadlines and read samples their writer had
     # not yet published. Only this process group is stopped afterwards.
-    hogs = subprocess.Popen(["stress-ng", "--cpu", "2", "--cpu-load", str(HOG_LOAD_PERCENT), "--taskset", str(cpu),
-                             "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s", "--quiet"],
-                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
+    with stress_ng("--cpu", "2", "--cpu-load", str(HOG_LOAD_PERCENT), "--taskset", str(cpu),
+                   "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s"):
         process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "8",
                                     "--out", str(run_dir), "-q"], env=rtloop_env,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -199,9 +180,6 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
                 app.write("setpoint", [0.4 * (-1) ** step, 0.1 * (step % 3)])
         finally:
             _out, err = process.communicate(timeout=120)
-    finally:
-        os.killpg(hogs.pid, signal.SIGTERM)
-        hogs.wait(timeout=30)
     assert process.returncode == 0, err
     misses, stale = _faults(run_dir)
     assert misses and stale, f"the run had {misses} misses and {stale} stale reads: nothing to prove"
