@@ -17,12 +17,16 @@ through the pty and the child. Contenders, interleaved in batches:
 - ``dynamixel-sdk``  ROBOTIS's Python SDK as its examples use it: ``changeParam`` for each servo,
                   ``GroupSyncWrite.txPacket()``, ``GroupSyncRead.txRxPacket()``, then ``getData`` of
                   the three fields of each servo (raw integers: no conversion to SI);
-- ``framework``   ``TaskDevices.at_release`` with the bus: the guard, the copies, then the cycle.
+- ``framework``   ``TaskDevices.at_release`` with the bus: the guard, the copies, then the cycle;
+- ``Python refs`` the rtloop contender with the packets' CRC-16 checked and sealed by the Python
+                  references instead of ``io/devio_c/servo.c`` (batches interleaved with the others);
+- ``host share``  the rtloop cycle on a line that hands back the six answers at once (no pty, no
+                  other process): the C checks against the Python references, the host's own work.
 
 Usage::
 
     python benchmarks/bench_servos.py                 # 5 x 2,000 cycles each
-    python benchmarks/bench_servos.py --cycles 300 --rounds 1 --json out.json
+    python benchmarks/bench_servos.py --cycles 300 --rounds 1 --without-sdk --json out.json
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from rtloop.io.device import build_device
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.io.servos.line import ModelLine, PortLine
 from rtloop.io.servos.model import build_bus
+from rtloop.io.servos.protocol import PROTOCOLS
 
 IDS = [1, 2, 3, 4, 5, 6]
 SERVOS = [{"name": f"joint{i}", "id": i, "model": "XM430-W350", "range_rad": [-1.5, 1.5]} for i in IDS]
@@ -67,6 +72,23 @@ def serve_answers(master: int, request: bytes, answers: bytes) -> None:
             del seen[:-len(request)]
 
 
+class AnswersAtOnce:
+    """A line whose servos answer each sync read at once, in process (the host's share alone)."""
+
+    def __init__(self, answers: bytes) -> None:
+        self.answers = answers
+
+    def send(self, data: object) -> None:
+        pass
+
+    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
+        buffer[:len(self.answers)] = self.answers
+        return len(self.answers)
+
+    def flush_input(self) -> None:
+        pass
+
+
 def nothing() -> None:
     """Between timed cycles: the servos answer by themselves (another process)."""
 
@@ -76,6 +98,7 @@ def main() -> int:
     parser.add_argument("--cycles", type=int, default=2_000, help="cycles per batch (and for tracemalloc)")
     parser.add_argument("--rounds", type=int, default=5, help="batches of each contender")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--without-sdk", action="store_true", help="leave dynamixel-sdk out (the test's quick run)")
     args = parser.parse_args()
     import serial
 
@@ -122,6 +145,8 @@ def main() -> int:
         import dynamixel_sdk as sdk
     except ImportError:
         sdk = None
+    if args.without_sdk:
+        sdk = None
     if sdk is not None:
         handler = sdk.PortHandler(path)
         handler.openPort()
@@ -161,8 +186,35 @@ def main() -> int:
         devices.at_release(cycle[0])
         cycle[0] += 1
 
-    results["rtloop vs os calls"] = compare(with_rtloop, os_calls, nothing, args.cycles, args.rounds)
+    compiled_protocol = device.state.protocol
+    checks_in_c = compiled_protocol is not PROTOCOLS["dynamixel"]
+
+    def python_references(python: bool) -> None:
+        device.goals.protocol = device.state.protocol = PROTOCOLS["dynamixel"] if python else compiled_protocol
+
+    results["rtloop vs os calls"] = compare(with_rtloop, os_calls, nothing, args.cycles, args.rounds,
+                                            python_references if checks_in_c else None)
     results["framework vs os calls"] = compare(framework, os_calls, nothing, args.cycles, args.rounds)
+    host = build_device("dynamixel", "host", {"port": path, "servos": SERVOS}, "bench")
+    host.attach(ModelLine(build_bus("dynamixel", IDS, ["XM430-W350"], 0.002)))
+    host.activate()
+    host.line = AnswersAtOnce(answers)
+    host_y = np.zeros(host.n_outputs)
+
+    def host_share() -> None:
+        host.write(u)
+        host.read(host_y)
+
+    def host_share_python() -> None:
+        host.goals.protocol = host.state.protocol = PROTOCOLS["dynamixel"]
+        try:
+            host_share()
+        finally:
+            host.goals.protocol = host.state.protocol = compiled_protocol
+
+    if checks_in_c:
+        results["host share: C checks vs Python references"] = compare(host_share, host_share_python, nothing,
+                                                                       args.cycles, args.rounds)
     assert abs(y[0] - 0.0) < 1.0 and np.all(np.isfinite(y)), y
 
     tracemalloc.start()
@@ -184,19 +236,23 @@ def main() -> int:
     where = f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"
     print(f"# bench_servos: {where}; {args.rounds} x {args.cycles} cycles each, fastest batch (medians); "
           "pty, responder untimed\n")
-    print("| contenders | ours µs | theirs µs | ratio | ours median µs | theirs median µs |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| contenders | ours µs | theirs µs | ratio | ours median µs | theirs median µs | Python refs µs (ratio) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for name, r in results.items():
+        python = f"{r['reference_us']:.1f} ({r['reference_ratio']:.2f})" if "reference_us" in r else ""
         print(f"| {name} | {r['driver_us']:.1f} | {r['bare_us']:.1f} | {r['ratio']:.2f} | "
-              f"{r['driver_median_us']:.1f} | {r['bare_median_us']:.1f} |")
+              f"{r['driver_median_us']:.1f} | {r['bare_median_us']:.1f} | {python} |")
     print(f"\nallocation over {args.cycles} cycles of at_release (guard + sync write + sync read + copies): "
           f"{grown} bytes kept by rtloop/io (tracemalloc)")
     print(f"sync reads that timed out: dynamixel-sdk {failures}, rtloop {device.stale_reads}")
+    if not checks_in_c:
+        print("the CRC-16 ran as the Python references (io/_devio.c not built, or RTLOOP_PURE_PYTHON=1)")
     if args.json:
         args.json.write_text(json.dumps({"where": where, "cycles": args.cycles, "results": results,
                                          "allocated_bytes_io": grown,
                                          "sdk_failures": failures,
-                                         "rtloop_stale_reads": device.stale_reads}, indent=1))
+                                         "rtloop_stale_reads": device.stale_reads,
+                                         "checks_in_c": checks_in_c}, indent=1))
     port.close()
     os.kill(responder, 9)
     os.waitpid(responder, 0)

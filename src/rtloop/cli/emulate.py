@@ -14,10 +14,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rtloop.errors import AppError
+    from rtloop.io.servos.emulator import bus_from_arguments
     from rtloop.io.servos.emulator import run as serve
 
-    if args.app is not None:
-        _from_app(args)
+    try:
+        if args.app is not None:
+            _from_app(args)
+        bus_from_arguments(args, lambda text: None)  # what the arguments describe, checked before the pty is made
+    except AppError:
+        raise
+    except ValueError as error:  # bad arguments: one line, exit 2 (not an internal error)
+        raise AppError(str(error)) from None
     return serve(args)
 
 

@@ -35,6 +35,16 @@ def _id_at(text: str, what: str) -> tuple[int, int, int]:
                                          f"got {text!r}") from None
 
 
+def _limits(text: str) -> tuple[int, int, int]:
+    """``ID:LOW..HIGH`` → (id, low, high), in ticks."""
+    try:
+        servo_id, _, bounds = text.partition(":")
+        low, _, high = bounds.partition("..")
+        return int(servo_id), int(low), int(high)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ID:LOW..HIGH (ticks), got {text!r}") from None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("protocol", nargs="?", choices=sorted(FAMILIES), help="the bus's protocol (or --app)")
     parser.add_argument("--link", required=True, type=Path, help="symbolic link to make to the pty (the app's port)")
@@ -50,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="servo ID answers N sync reads, then nothing (repeatable)")
     parser.add_argument("--hardware-error", action="append", default=[], metavar="ID@N[:BITS]",
                         help="servo ID reports a hardware error (default 0x20, overload) after N sync reads")
+    parser.add_argument("--position-limits", action="append", default=[], metavar="ID:LOW..HIGH", type=_limits,
+                        help="servo ID's min/max position limits in ticks (default the whole turn; repeatable)")
     parser.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (servos answer at once)")
 
 
@@ -84,6 +96,11 @@ def bus_from_arguments(args: argparse.Namespace, log: Any) -> tuple[str, BusMode
         faults[servo_id] = Faults(old.silent_after_reads, count, bits)
     bus = build_bus(protocol, ids, models, (period_ms or 2.0) / 1e3, faults=faults, log=log,
                     baud_rate=baud or 1_000_000)
+    for servo_id, low, high in args.position_limits:
+        if servo_id not in bus.servos:
+            raise ValueError(f"--position-limits: no servo {servo_id} on this bus (servos {', '.join(map(str, ids))})")
+        bus.servos[servo_id].set("min_position", low)
+        bus.servos[servo_id].set("max_position", high)
     return protocol, bus
 
 
