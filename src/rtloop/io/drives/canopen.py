@@ -12,9 +12,11 @@
 
 A joint's table is the EtherCAT device's (``io/drives/joints.py``) plus ``node`` (its node id) and
 optionally ``eds`` (its EDS file, read with the ``canopen`` package: identity, and that every
-mapped object is in its dictionary). Before T0, in the task's process (``configure``): NMT reset
-communication and the boot-up message, the identity (0x1018) read by SDO and checked, the PDO
-mapping written by SDO (each PDO synchronous), the heartbeat producer time (0x1017). At T0 NMT
+mapped object is in its dictionary) and ``sdo`` (the drive's own values, any length). Before T0, in
+the task's process (``configure``): NMT reset communication and the boot-up message, the identity
+(0x1018) read by SDO and checked, the PDO mapping written by SDO (each PDO synchronous), the
+heartbeat producer time (0x1017) and consumer (0x1016: rtloop's heartbeat, which the cycle sends),
+the ``sdo`` values (segmented beyond 4 bytes) read back; the drive cycle's C build. At T0 NMT
 start. Each cycle (``read``): the RPDOs, then SYNC; the node answers with its TPDOs, which are
 unpacked by the same :class:`~rtloop.io.drives.cycle.DriveCycle` as EtherCAT's (the CiA 402
 state machine, SI units). Frames go out on a raw SocketCAN socket and come in through rtloop's
@@ -29,13 +31,14 @@ from __future__ import annotations
 import importlib
 import time
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives import canopen_wire as wire
+from rtloop.io.drives.canopen_sdo import SdoDownload, SdoTransfer, SdoUpload
 from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
 from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
 from rtloop.io.drives.pdo import OBJECTS
@@ -44,6 +47,7 @@ from rtloop.runnable import Runnable
 __all__ = ["Canopen402Device"]
 
 SAFE_STEP_S = 0.001
+_Transfer = TypeVar("_Transfer", bound=SdoTransfer)
 CONSUMER_PERIODS = 3
 """Heartbeat periods either side waits without one before it stops (rtloop: a fault; a drive: 0x1016)."""
 DATA_AT = 8
@@ -80,12 +84,55 @@ def read_eds(path: Path, node: int, where: str) -> tuple[dict[str, int], set[int
     return {key: value for key, value in identity.items() if isinstance(value, int)}, indices
 
 
+def sdo_writes_from(value: Any, where: str) -> tuple[tuple[int, int, bytes], ...]:
+    """A joint's ``sdo`` list: ``{ index, sub (0), and one of text = "...", hex = "01 02 ...", or value = N
+    with size = 1, 2, 4 (default) or 8 bytes }`` each, as (index, subindex, bytes)."""
+    if not isinstance(value, list):
+        raise JointError(where, "expected a list of tables: [{ index = 0x2000, sub = 0, text = \"...\" }, ...]")
+    writes = []
+    for position, item in enumerate(value):
+        at = f"{where}[{position}]"
+        if not isinstance(item, dict):
+            raise JointError(at, "expected a table: { index = 0x2000, sub = 0, text = \"...\" }")
+        unknown = sorted(set(item) - {"index", "sub", "text", "hex", "value", "size"})
+        index, sub = item.get("index"), item.get("sub", 0)
+        kinds = [key for key in ("text", "hex", "value") if key in item]
+        if unknown or len(kinds) != 1:
+            raise JointError(at, f"unknown key {unknown[0]!r}" if unknown else
+                             "expected exactly one of text, hex or value (with size)")
+        if isinstance(index, bool) or not isinstance(index, int) or not 0x1000 <= index <= 0xFFFF:
+            raise JointError(f"{at}.index", f"expected an object index 0x1000..0xFFFF, got {index!r}")
+        if isinstance(sub, bool) or not isinstance(sub, int) or not 0 <= sub <= 0xFF:
+            raise JointError(f"{at}.sub", f"expected a subindex 0..255, got {sub!r}")
+        data, kind = b"", kinds[0]
+        if kind == "text" and isinstance(item["text"], str):
+            data = item["text"].encode()
+        elif kind == "hex" and isinstance(item["hex"], str):
+            try:
+                data = bytes.fromhex(item["hex"])
+            except ValueError:
+                raise JointError(f"{at}.hex", f"{item['hex']!r} is not bytes in hex (\"01 a0 ff\")") from None
+        elif kind == "value":
+            number, size = item["value"], item.get("size", 4)
+            if size not in (1, 2, 4, 8) or isinstance(size, bool):
+                raise JointError(f"{at}.size", f"expected 1, 2, 4 or 8 bytes, got {size!r}")
+            if isinstance(number, bool) or not isinstance(number, int) or \
+                    not -(1 << (8 * size - 1)) <= number < 1 << (8 * size):
+                raise JointError(f"{at}.value", f"expected a whole number that fits {size} bytes, got {number!r}")
+            data = (number & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
+        else:
+            raise JointError(f"{at}.{kind}", f"expected a string, got {item[kind]!r}")
+        writes.append((index, sub, data))
+    return tuple(writes)
+
+
 class _Node:
     """One joint's node: its id, its frames, where its TPDOs go in the inputs."""
 
-    def __init__(self, node: int, joint: JointConfig) -> None:
+    def __init__(self, node: int, joint: JointConfig, sdo_writes: tuple[tuple[int, int, bytes], ...] = ()) -> None:
         self.node = node
         self.joint = joint
+        self.sdo_writes = sdo_writes
         self.rx_chunks = wire.pdo_chunks(joint.rx)
         self.tx_chunks = wire.pdo_chunks(joint.tx)
 
@@ -146,6 +193,7 @@ class Canopen402Device(Device):
         if isinstance(node, bool) or not isinstance(node, int) or not 1 <= node <= 127:
             raise JointError(f"{where}.node", f"expected the drive's node id 1..127, got {node!r}")
         eds = table.pop("eds", None)
+        sdo_writes = sdo_writes_from(table.pop("sdo", []), f"{where}.sdo")
         indices: set[int] = set()
         if eds is not None:
             path = Path(str(eds))
@@ -164,7 +212,7 @@ class Canopen402Device(Device):
             if missing:
                 raise JointError(f"{where}.{key}", f"{', '.join(missing)} not in the EDS file {eds}: the drive "
                                  "does not have it")
-        return _Node(node, joint)
+        return _Node(node, joint, sdo_writes)
 
     def _reset_runtime(self) -> None:
         self.socket: Any = None
@@ -285,6 +333,23 @@ class Canopen402Device(Device):
                               "(answer_timeout_ms): is the drive powered, on this bus, with this node id?")
         return int(value)
 
+    def _transfer(self, n: _Node, transfer: _Transfer) -> _Transfer:
+        """One SDO transfer of any length (segmented beyond 4 bytes) to ``n``, done: request, answer, ..."""
+        where = f"joints[{n.joint.slave - 1}]"
+        what = f"SDO 0x{transfer.index:04X}:{transfer.subindex}"
+        while True:
+            self._send(wire.sdo_request_id(n.node), transfer.request)
+            try:
+                done = self._wait_for(wire.sdo_answer_id(n.node), transfer.take)
+            except wire.SdoAbort as abort:
+                raise DeviceMismatch(self.name, "", f"{where}.sdo", f"node {n.node} refused {what} (abort code "
+                                     f"0x{abort.code:08X})") from None
+            if done is None:
+                raise DeviceError(self.name, "", f"{where}.node", f"node {n.node} on {self.interface} did not answer "
+                                  f"{what} within {self.answer_timeout_s * 1e3:g} ms (answer_timeout_ms)")
+            if done:
+                return transfer
+
     def _configure_node(self, n: _Node) -> None:
         where = f"joints[{n.joint.slave - 1}]"
         self._send(0x000, bytes([wire.NMT_RESET_COMMUNICATION, n.node]))
@@ -303,6 +368,13 @@ class Canopen402Device(Device):
         self._sdo(n, wire.sdo_download(0x1017, 0, round(self.heartbeat_ms), 2), 0x1017, 0)
         consumer = self.master_node << 16 | round(CONSUMER_PERIODS * self.heartbeat_ms)
         self._sdo(n, wire.sdo_download(0x1016, 1, consumer, 4), 0x1016, 1)  # watched from our first heartbeat
+        for index, sub, data in n.sdo_writes:  # the app's own values, read back: a drive may clip or ignore one
+            self._transfer(n, SdoDownload(index, sub, data))
+            kept = self._transfer(n, SdoUpload(index, sub)).value
+            # a number may come back in more bytes than written (an expedited answer without its size)
+            if kept != data and (len(data) > 8 or int.from_bytes(kept, "little") != int.from_bytes(data, "little")):
+                raise DeviceMismatch(self.name, "", f"{where}.sdo", f"node {n.node} kept 0x{index:04X}:{sub} as "
+                                     f"{kept!r}, not the {data!r} written")
 
     def _bind(self) -> None:
         cycle = DriveCycle(self.name, self.joints)

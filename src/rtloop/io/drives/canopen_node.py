@@ -1,4 +1,4 @@
-"""An emulated CANopen CiA 402 drive node: NMT, expedited SDO, SYNC-driven PDOs, heartbeat, EMCY,
+"""An emulated CANopen CiA 402 drive node: NMT, SDO (expedited and segmented), SYNC-driven PDOs, heartbeat, EMCY,
 with the drive model (``io/drives/drive_model.py``) behind its PDOs.
 
     rtloop io emulate canopen --interface vcan0 --node 3 --log node.log
@@ -31,6 +31,7 @@ from collections.abc import Callable
 from typing import TextIO
 
 from rtloop.io.drives import cia402
+from rtloop.io.drives.canopen_sdo import SdoServer
 from rtloop.io.drives.canopen_wire import (
     HEARTBEAT_STATES,
     NMT_PRE_OPERATIONAL,
@@ -56,6 +57,10 @@ Frame = tuple[int, bytes]
 BOOT, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 DEFAULT_IDENTITY = Identity(0xA7E, 0x402402, 0x10000)
 ABORT_NO_OBJECT, ABORT_WRITE_ONLY_IN_PREOP = 0x06020000, 0x08000022
+POLL_S = 0.01
+"""How long the node waits for a frame before it looks at its heartbeat and SYNC watch again: often
+enough for both, seldom enough that a node at SCHED_FIFO leaves the CPU to others (under emulation a
+1 ms poll kept a whole guest CPU busy)."""
 
 
 class CanopenNode:
@@ -70,6 +75,8 @@ class CanopenNode:
         self.log = log
         self.sync_timeout_s = sync_timeout_s
         self.od: dict[tuple[int, int], int] = {}
+        self.od_bytes: dict[tuple[int, int], bytes] = {}  # strings and domains: any length, segmented beyond 4
+        self.sdo_server = SdoServer()
         self.drive = DriveModel(self.parameters)
         self.nmt = BOOT
         self.pending_fault = 0
@@ -87,6 +94,8 @@ class CanopenNode:
         od[(0x1016, 0)] = 1
         od[(0x1016, 1)] = 0  # heartbeat consumer: the watched node << 16 | its time, ms (0: not watched)
         od[(0x1017, 0)] = 0  # heartbeat producer time, ms (0: none)
+        self.od_bytes = {(0x1008, 0): b"rtloop emulated CiA 402 drive",  # manufacturer device name
+                         (0x2100, 0): b""}  # manufacturer-specific: the axis's label (a value of any length)
         od[(0x1018, 0)] = 3
         od[(0x1018, 1)], od[(0x1018, 2)], od[(0x1018, 3)] = (self.identity.vendor, self.identity.product,
                                                              self.identity.revision)
@@ -135,6 +144,9 @@ class CanopenNode:
         if can_id == 0x000 and len(data) >= 2 and data[1] in (0, self.node):
             return self._nmt_command(data[0], now_s)
         if can_id == sdo_request_id(self.node) and len(data) == 8 and self.nmt in (PRE_OPERATIONAL, OPERATIONAL):
+            if data[0] == 0x80:  # the client aborts its transfer: no answer
+                self.sdo_server = SdoServer()
+                return []
             return [(sdo_answer_id(self.node), self._sdo(data))]
         if can_id == heartbeat_id(self.od[(0x1016, 1)] >> 16 & 0x7F) and self.od[(0x1016, 1)] & 0xFFFF:
             self.consumed_s = now_s  # CiA 301: the consumer watches from the first heartbeat it receives
@@ -183,10 +195,31 @@ class CanopenNode:
             self._take_events()
 
     def _sdo(self, data: bytes) -> bytes:
+        server = self.sdo_server
+        if data[0] & 0xE0 == 0x60:  # upload segment
+            return server.upload_segment(data)
+        if data[0] & 0xE0 == 0x00:  # download segment
+            answer, value = server.download_segment(data)
+            if value is not None:
+                self.od_bytes[server.key] = value
+                self.log(f"node {self.node}: SDO 0x{server.key[0]:04X}:{server.key[1]} written, {len(value)} bytes "
+                         "(segmented)")
+            return answer
         command, index, sub = struct.unpack_from("<BHB", data, 0)
         key = (index, sub)
+        if key in self.od_bytes:
+            if command == 0x40:
+                return server.initiate_upload(index, sub, self.od_bytes[key])
+            if command & 0xE3 == 0x21:  # segmented download, size indicated
+                return server.initiate_download(index, sub, data)
+            if command & 0xE3 == 0x23:  # expedited
+                self.od_bytes[key] = bytes(data[4:8 - (command >> 2 & 3)])
+                return struct.pack("<BHB4x", 0x60, index, sub)
+            return struct.pack("<BHBI", 0x80, index, sub, 0x05040001)
         if key not in self.od:
             return struct.pack("<BHBI", 0x80, index, sub, ABORT_NO_OBJECT)
+        if command & 0xE3 == 0x21:  # segmented download of a number: more bytes than it has
+            return struct.pack("<BHBI", 0x80, index, sub, 0x06070012)
         if command == 0x40:  # upload
             return struct.pack("<BHBI", 0x43, index, sub, self.od[key] & 0xFFFFFFFF)
         if command & 0xE3 == 0x23:  # expedited download, size indicated
@@ -273,7 +306,7 @@ def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0, priority
         print(f"rtloop io emulate canopen: cannot open CAN interface {interface!r}: "
               f"{getattr(error, 'strerror', None) or error}", file=sys.stderr)
         return 3
-    sock.settimeout(0.001)
+    sock.settimeout(POLL_S)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
     signal.signal(signal.SIGINT, lambda *_: stopping.append(1))
