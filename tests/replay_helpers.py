@@ -1,12 +1,30 @@
-"""Test helpers about replays that no command needs: where a run stops equalling its plain
-simulation, and how far two signals.csv agree."""
+"""Test helpers about replays that no command needs: an app to replay, where a run stops equalling
+its plain simulation, and how far two signals.csv agree."""
 
 from __future__ import annotations
 
 import csv
 from pathlib import Path
 
+from rtloop import App, Runnable
 from rtloop.runtime.replay.logs import read_summary, read_timing
+
+PERIOD_NS = 1_000_000
+
+
+def pi_loop_app(name: str, plant: Runnable | None = None) -> App:
+    """A PI controller (1 ms) closing the loop round a plant (2 ms; an integrator unless given), a
+    live setpoint port into the controller, both tasks' outputs recorded: multi-rate, fed from outside."""
+    from rt_test_runnables import Integrator, PiController
+
+    app = App(name)
+    controller = app.add_task("controller", PiController(2), period_ns=PERIOD_NS)
+    plant_task = app.add_task("plant", plant or Integrator(2), period_ns=2 * PERIOD_NS)
+    app.connect(plant_task.y, controller.u[0:2])
+    app.connect(controller.y, plant_task.u)
+    app.port("setpoint", to=controller.u[2:4])
+    app.record(plant_task.y, controller.y)
+    return app
 
 
 def first_miss_s(run_dir: Path) -> float | None:

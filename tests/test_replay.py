@@ -19,6 +19,7 @@ import pytest
 import rtloop
 from conftest import other_cpu, scaled_ns, scaled_s, skip_in_rtkernel_guest, slowdown
 from loaded_runs import JIWY_ON_ONE_CPU, stress_ng
+from replay_helpers import pi_loop_app
 from rtloop import App
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import NO_STAMP, LetChannel
@@ -246,19 +247,6 @@ class Noisy(rtloop.Runnable):
         y[:] = u + np.random.default_rng().random()
 
 
-def _clean_app(name: str, runnable: rtloop.Runnable | None = None) -> App:
-    from rt_test_runnables import Integrator, PiController
-
-    app = App(name)
-    controller = app.add_task("controller", PiController(2), period_ns=P)
-    plant = app.add_task("plant", runnable or Integrator(2), period_ns=2 * P)
-    app.connect(plant.y, controller.u[0:2])
-    app.connect(controller.y, plant.u)
-    app.port("setpoint", to=controller.u[2:4])
-    app.record(plant.y, controller.y)
-    return app
-
-
 def _edit(path: Path, row: int, column: int, value: str) -> None:
     rows = _rows(path)
     rows[row][column] = value
@@ -269,12 +257,12 @@ def test_a_difference_is_reported_with_its_cycle_task_values_and_inputs(tmp_path
     from rtloop.runtime.replay import replay
 
     writes = {("controller", 30): [("setpoint", [1.0, -1.0])]}
-    rtloop.simulate(_clean_app("replay_div"), 0.2, tmp_path / "run", port_writes=writes)
+    rtloop.simulate(pi_loop_app("replay_div"), 0.2, tmp_path / "run", port_writes=writes)
     (tmp_path / "run" / "inputs.csv").write_text("task,cycle,port,values\ncontroller,30,setpoint,1.0 -1.0\n")
-    result = replay(tmp_path / "run", tmp_path / "same", app=_clean_app("replay_div"))
+    result = replay(tmp_path / "run", tmp_path / "same", app=pi_loop_app("replay_div"))
     assert result.equal and result.rows_compared == result.rows_in_run == 201 and result.port_inputs == 1
     _edit(tmp_path / "run" / "signals.csv", 101, 1, "0.125")  # plant.y[0] at t = 0.1 s: plant cycle 49
-    result = replay(tmp_path / "run", tmp_path / "diff", app=_clean_app("replay_div"))
+    result = replay(tmp_path / "run", tmp_path / "diff", app=pi_loop_app("replay_div"))
     assert not result.equal and result.rows_compared == 100
     divergence = result.divergence
     assert (divergence.t_s, divergence.task, divergence.cycle) == (0.1, "plant", 49)
@@ -286,8 +274,8 @@ def test_a_difference_is_reported_with_its_cycle_task_values_and_inputs(tmp_path
 def test_a_model_that_is_not_deterministic_diverges_and_says_where(tmp_path: Path) -> None:
     from rtloop.runtime.replay import replay
 
-    rtloop.simulate(_clean_app("replay_noisy", Noisy()), 0.05, tmp_path / "run")
-    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_noisy", Noisy()))
+    rtloop.simulate(pi_loop_app("replay_noisy", Noisy()), 0.05, tmp_path / "run")
+    result = replay(tmp_path / "run", tmp_path / "replay", app=pi_loop_app("replay_noisy", Noisy()))
     assert not result.equal and result.divergence is not None
     assert (result.divergence.t_s, result.divergence.task, result.divergence.cycle) == (0.002, "plant", 0)
 
@@ -295,11 +283,11 @@ def test_a_model_that_is_not_deterministic_diverges_and_says_where(tmp_path: Pat
 def test_a_lost_timing_record_is_named_never_called_equal(tmp_path: Path) -> None:
     from rtloop.runtime.replay import replay
 
-    rtloop.simulate(_clean_app("replay_gap"), 0.1, tmp_path / "run")
+    rtloop.simulate(pi_loop_app("replay_gap"), 0.1, tmp_path / "run")
     timing = tmp_path / "run" / "timing.csv"
     timing.write_text("".join(line for line in timing.read_text().splitlines(keepends=True)
                               if not line.startswith(("plant,20,", "plant,21,"))))
-    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_gap"))
+    result = replay(tmp_path / "run", tmp_path / "replay", app=pi_loop_app("replay_gap"))
     assert not result.equal
     assert result.cannot == ("from t = 0.04 s: timing.csv lacks plant cycles 20..21, which followed a cycle that "
                              "ended in time: the replay cannot know what they did")
@@ -309,10 +297,10 @@ def test_a_lost_timing_record_is_named_never_called_equal(tmp_path: Path) -> Non
 def test_a_run_with_no_signal_rows_is_never_called_equal(tmp_path: Path) -> None:
     from rtloop.runtime.replay import replay
 
-    rtloop.simulate(_clean_app("replay_empty"), 0.02, tmp_path / "run")
+    rtloop.simulate(pi_loop_app("replay_empty"), 0.02, tmp_path / "run")
     signals = tmp_path / "run" / "signals.csv"
     signals.write_text(signals.read_text().splitlines(keepends=True)[0])
-    result = replay(tmp_path / "run", tmp_path / "replay", app=_clean_app("replay_empty"))
+    result = replay(tmp_path / "run", tmp_path / "replay", app=pi_loop_app("replay_empty"))
     assert not result.equal and "holds no rows" in result.cannot
 
 

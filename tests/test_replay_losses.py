@@ -21,27 +21,14 @@ import pytest
 
 import rtloop
 from conftest import unique_name
-from rtloop import App
+from replay_helpers import PERIOD_NS, pi_loop_app
 
-P = 1_000_000
-
-
-def _app(name: str) -> App:
-    from rt_test_runnables import Integrator, PiController
-
-    app = App(name)
-    controller = app.add_task("controller", PiController(2), period_ns=P)
-    plant = app.add_task("plant", Integrator(2), period_ns=2 * P)
-    app.connect(plant.y, controller.u[0:2])
-    app.connect(controller.y, plant.u)
-    app.port("setpoint", to=controller.u[2:4])
-    app.record(plant.y, controller.y)
-    return app
+P = PERIOD_NS  # the controller's period (the plant's is 2 P)
 
 
 def _run(tmp_path: Path, name: str, seconds: float = 0.2) -> Path:
     writes = {("controller", 30): [("setpoint", [1.0, -1.0])]}
-    rtloop.simulate(_app(name), seconds, tmp_path / "run", port_writes=writes)
+    rtloop.simulate(pi_loop_app(name), seconds, tmp_path / "run", port_writes=writes)
     (tmp_path / "run" / "inputs.csv").write_text("task,cycle,port,values\ncontroller,30,setpoint,1.0 -1.0\n")
     return tmp_path / "run"
 
@@ -76,7 +63,7 @@ def _drop_timing(run: Path, task: str, cycles: set[int]) -> None:
 def test_without_losses_the_same_run_replays_equal(tmp_path: Path) -> None:
     from rtloop.runtime.replay import replay
 
-    result = replay(_run(tmp_path, "lost_none"), tmp_path / "replay", app=_app("lost_none"))
+    result = replay(_run(tmp_path, "lost_none"), tmp_path / "replay", app=pi_loop_app("lost_none"))
     assert result.equal and not result.lost and result.rows_compared == result.rows_in_run == 201
 
 
@@ -91,7 +78,7 @@ def test_lost_signal_rows_are_named_left_out_of_the_comparison_and_never_called_
             row[column] = ""
     _write_rows(run / "signals.csv", rows)
     _lose(run, signal_rows={"plant": 2})
-    result = replay(run, tmp_path / "replay", app=_app("lost_rows"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_rows"))
     assert not result.equal and result.divergence is None and result.cannot is None
     assert result.rows_compared == result.rows_in_run == 201, "every row compared, the lost cells left out"
     assert result.lost == ("signals.csv: 4 rows from t = 0.05 s to 0.053 s hold cells the run lost "
@@ -100,7 +87,7 @@ def test_lost_signal_rows_are_named_left_out_of_the_comparison_and_never_called_
 
     rows[151][columns[0]] = "0.125"  # a real difference after the gap is still found
     _write_rows(run / "signals.csv", rows)
-    later = replay(run, tmp_path / "again", app=_app("lost_rows"))
+    later = replay(run, tmp_path / "again", app=pi_loop_app("lost_rows"))
     assert later.divergence is not None and later.divergence.t_s == 0.15 and later.rows_compared == 150
     assert later.lost == result.lost
 
@@ -116,7 +103,7 @@ def test_a_gap_after_an_overrun_with_timing_records_lost_cannot_be_told_from_ski
     _write_rows(run / "timing.csv", rows)
     _drop_timing(run, "plant", {20, 21})
     _lose(run, timing_records={"plant": 2})
-    result = replay(run, tmp_path / "replay", app=_app("lost_gap"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_gap"))
     assert not result.equal
     assert result.cannot == ("from t = 0.04 s: timing.csv lacks plant cycles 20..21 after an overrun, and the run "
                              "lost 2 of plant's timing records (recording.lost): skipped releases or lost cycles, "
@@ -130,7 +117,7 @@ def test_timing_records_lost_after_the_last_one_kept_end_the_comparison_there(tm
     run = _run(tmp_path, "lost_end")
     _drop_timing(run, "plant", {97, 98, 99})
     _lose(run, timing_records={"plant": 3})
-    result = replay(run, tmp_path / "replay", app=_app("lost_end"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_end"))
     assert not result.equal
     assert result.cannot == ("from t = 0.194 s: the run lost 3 of plant's timing records (recording.lost) and "
                              "timing.csv shows no gap in its cycles: they were lost after its last record (cycle "
@@ -144,7 +131,7 @@ def test_unlogged_port_values_dropped_reads_and_a_stopped_recording_are_named(tm
     run = _run(tmp_path, "lost_inputs")
     (run / "inputs.csv").write_text("task,cycle,port,values\n")  # the write at cycle 30 was taken, not logged
     _lose(run, inputs={"controller": 1}, reads_dropped={"plant": 4}, stopped="disk full")
-    result = replay(run, tmp_path / "replay", app=_app("lost_inputs"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_inputs"))
     assert not result.equal
     assert result.lost == (
         "the run took 1 values from ports of controller that it did not log (recording.lost.inputs: its input log "
@@ -192,7 +179,7 @@ def test_a_garbled_recording_lost_is_one_clear_error(tmp_path: Path, garbled) ->
     run = _run(tmp_path, "lost_garbled", 0.02)
     _lose(run, timing_records=garbled)
     with pytest.raises(AppError, match=r"recording\.lost is not counts per kind and task"):
-        replay(run, tmp_path / "replay", app=_app("lost_garbled"))
+        replay(run, tmp_path / "replay", app=pi_loop_app("lost_garbled"))
 
 
 def test_timing_records_said_lost_where_timing_csv_shows_no_place_for_them_are_named(tmp_path: Path) -> None:
@@ -200,7 +187,7 @@ def test_timing_records_said_lost_where_timing_csv_shows_no_place_for_them_are_n
 
     run = _run(tmp_path, "lost_nowhere")
     _lose(run, timing_records={"plant": 1})  # every cycle in timing.csv, to the run's end: where was it lost?
-    result = replay(run, tmp_path / "replay", app=_app("lost_nowhere"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_nowhere"))
     assert not result.equal and result.cannot is None
     assert result.lost == ("the run says it lost 1 of plant's timing records (recording.lost), yet timing.csv shows "
                            "no place they could have been: the replay cannot tell what they were",)
@@ -218,7 +205,7 @@ def test_a_recording_stopped_by_a_full_disk_replays_what_it_holds_and_says_where
     (run / "timing.csv").write_text(timing[:cut_at + 20])  # the writer stopped in the middle of a line
     signals = (run / "signals.csv").read_text()
     (run / "signals.csv").write_text(signals[:signals.index("\n0.15,") + 9])
-    result = replay(run, tmp_path / "replay", app=_app("lost_enospc"))
+    result = replay(run, tmp_path / "replay", app=pi_loop_app("lost_enospc"))
     assert result.cannot is None and result.divergence is None, result
     assert not result.equal  # the rest of the run was never compared
     assert f"timing.csv line {timing[:cut_at].count(chr(10)) + 1}: its last line is cut short" in "\n".join(result.lost)
@@ -236,12 +223,12 @@ def test_a_run_killed_during_keep_is_said_to_have_never_finished(tmp_path: Path)
     (run / "segments").mkdir()  # what a kill -9 of the supervisor during --keep leaves
     with pytest.raises(AppError, match=r"the run never finished \(killed, or still running\): its recording is in "
                                        r"segments/"):
-        replay(run, tmp_path / "replay", app=_app("lost_killed"))
+        replay(run, tmp_path / "replay", app=pi_loop_app("lost_killed"))
     summary = json.loads((run / "summary.json").read_text())
     (run / "summary.json").unlink()  # killed before it wrote one
     with pytest.raises(AppError, match=r"the run never finished \(killed, or still running\)"):
-        replay(run, tmp_path / "replay", app=_app("lost_killed"))
+        replay(run, tmp_path / "replay", app=pi_loop_app("lost_killed"))
     (run / "segments").rmdir()
     (run / "summary.json").write_text(json.dumps({**summary, "running": True}))
     with pytest.raises(AppError, match=r"summary\.json still says running"):
-        replay(run, tmp_path / "replay", app=_app("lost_killed"))
+        replay(run, tmp_path / "replay", app=pi_loop_app("lost_killed"))

@@ -13,26 +13,12 @@ import pytest
 from matplotlib.lines import Line2D
 
 import rtloop
-from rtloop.app.builder import App
+from replay_helpers import pi_loop_app
 from rtloop.cli.main import main as cli_main
 from rtloop.record.load import load
 from rtloop.report import signals as signal_figures
 
-P = 1_000_000
 WRITES = {("controller", 30): [("setpoint", [1.0, -1.0])], ("controller", 120): [("setpoint", [0.5, 0.25])]}
-
-
-def _app(name: str) -> App:
-    from rt_test_runnables import Integrator, PiController
-
-    app = App(name)
-    controller = app.add_task("controller", PiController(2), period_ns=P)
-    plant = app.add_task("plant", Integrator(2), period_ns=2 * P)
-    app.connect(plant.y, controller.u[0:2])
-    app.connect(controller.y, plant.u)
-    app.port("setpoint", to=controller.u[2:4])
-    app.record(plant.y, controller.y)
-    return app
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +26,11 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     from rtloop.runtime.replay import replay
 
     base = tmp_path_factory.mktemp("overlay")
-    rtloop.simulate(_app("overlay_sim"), 0.2, base / "sim")
-    rtloop.simulate(_app("overlay_rt"), 0.2, base / "rt", port_writes=WRITES)
+    rtloop.simulate(pi_loop_app("overlay_sim"), 0.2, base / "sim")
+    rtloop.simulate(pi_loop_app("overlay_rt"), 0.2, base / "rt", port_writes=WRITES)
     (base / "rt" / "inputs.csv").write_text("task,cycle,port,values\ncontroller,30,setpoint,1.0 -1.0\n"
                                             "controller,120,setpoint,0.5 0.25\n")
-    result = replay(base / "rt", base / "rt-replay", app=_app("overlay_rt"))
+    result = replay(base / "rt", base / "rt-replay", app=pi_loop_app("overlay_rt"))
     assert result.equal and result.port_inputs == 2
     assert set(load(base / "rt-replay").inputs) == {"setpoint"}, "the replay carries the run's writes"
     return {"sim": base / "sim", "rt": base / "rt", "replay": base / "rt-replay"}
