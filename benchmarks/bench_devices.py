@@ -39,6 +39,7 @@ import socket
 import struct
 import sys
 import time
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
@@ -89,6 +90,34 @@ def compare(driver: Callable[[], None], bare: Callable[[], None], peer: Callable
         result.update({"reference_us": r / 1000, "reference_ratio": r / b, "reference_within_target":
                        r <= 1.3 * b + 1000, "reference_median_us": float(np.median(reference_ns)) / 1000})
     return result
+
+
+def pty_line() -> tuple[int, int, str]:
+    """A pseudo-terminal in a serial line's place: (master, slave, the slave's path for the device).
+    The master is the far end (a drive, a bus of servos): blocking, as firmware waits for a request."""
+    master, slave = os.openpty()
+    os.set_blocking(master, True)
+    return master, slave, os.ttyname(slave)
+
+
+def bytes_kept(cycle: Callable[[], None], warmup: int, cycles: int) -> tuple[int, int]:
+    """Bytes that ``cycles`` calls of ``cycle`` leave allocated (tracemalloc, after ``warmup`` calls
+    under it: the interpreter's one-time caches come first): (by rtloop/io's files, by the whole
+    process). Each line of rtloop/io that kept any is printed on stderr."""
+    tracemalloc.start()
+    for _ in range(warmup):
+        cycle()
+    before = tracemalloc.take_snapshot()
+    for _ in range(cycles):
+        cycle()
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    io_files = [tracemalloc.Filter(True, "*rtloop/io/*")]
+    kept = after.filter_traces(io_files).compare_to(before.filter_traces(io_files), "lineno")
+    for stat in kept:
+        if stat.size_diff:
+            print("kept:", stat, file=sys.stderr)
+    return sum(s.size_diff for s in kept), sum(s.size_diff for s in after.compare_to(before, "lineno"))
 
 
 def set_aside(device: object, attribute: str) -> Callable[[bool], None] | None:

@@ -28,13 +28,12 @@ import os
 import platform
 import select
 import sys
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_devices import compare
+from bench_devices import bytes_kept, compare, pty_line
 
 from rtloop.io.device import CommandLimit, build_device
 from rtloop.io.host import DeviceWiring, TaskDevices
@@ -67,9 +66,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=5, help="batches of each contender (medians)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
-    master, slave = os.openpty()
-    os.set_blocking(master, True)
-    path = os.ttyname(slave)
+    master, slave, path = pty_line()
     device = build_device("serial", "bench", {"port": path, "commands": COMMANDS, "readings": READINGS,
                                               "timeout_ms": 100.0}, "bench")
     device.check()
@@ -117,23 +114,11 @@ def main() -> int:
     }
     assert list(y) == [123.25, 1.5, 40.0] and list(task_u) == [123.25, 1.5, 40.0], (y, task_u)
 
-    tracemalloc.start()
-    for _ in range(2000):  # warm-up under tracemalloc: the interpreter's one-time caches come first
+    def framework_and_drive() -> None:
         framework()
         responder()
-    before = tracemalloc.take_snapshot()
-    for _ in range(args.cycles):
-        framework()
-        responder()
-    after = tracemalloc.take_snapshot()
-    tracemalloc.stop()
-    io_files = [tracemalloc.Filter(True, "*rtloop/io/*")]
-    kept = after.filter_traces(io_files).compare_to(before.filter_traces(io_files), "lineno")
-    grown = sum(s.size_diff for s in kept)
-    for stat in kept:
-        if stat.size_diff:
-            print("kept:", stat, file=sys.stderr)
-    grown_all = sum(s.size_diff for s in after.compare_to(before, "lineno"))
+
+    grown, grown_all = bytes_kept(framework_and_drive, 2000, args.cycles)
     devices.stop()
 
     where = f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"

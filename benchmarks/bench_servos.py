@@ -37,13 +37,12 @@ import os
 import platform
 import select
 import sys
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_devices import compare
+from bench_devices import bytes_kept, compare, pty_line
 
 from rtloop.io.device import build_device
 from rtloop.io.host import DeviceWiring, TaskDevices
@@ -102,9 +101,7 @@ def main() -> int:
     args = parser.parse_args()
     import serial
 
-    master, slave = os.openpty()
-    os.set_blocking(master, True)
-    path = os.ttyname(slave)
+    master, slave, path = pty_line()
     device = build_device("dynamixel", "bench", {"port": path, "servos": SERVOS, "timeout_ms": 100.0,
                                                    "on_missing": "stale", "max_stale_in_a_row": 1_000_000}, "bench")
     bus = build_bus("dynamixel", IDS, ["XM430-W350"], 0.002)
@@ -217,20 +214,7 @@ def main() -> int:
                                                                        args.cycles, args.rounds)
     assert abs(y[0] - 0.0) < 1.0 and np.all(np.isfinite(y)), y
 
-    tracemalloc.start()
-    for _ in range(500):  # warm-up under tracemalloc: the interpreter's one-time caches come first
-        framework()
-    before = tracemalloc.take_snapshot()
-    for _ in range(args.cycles):
-        framework()
-    after = tracemalloc.take_snapshot()
-    tracemalloc.stop()
-    io_files = [tracemalloc.Filter(True, "*rtloop/io/*")]
-    kept = after.filter_traces(io_files).compare_to(before.filter_traces(io_files), "lineno")
-    grown = sum(s.size_diff for s in kept)
-    for stat in kept:
-        if stat.size_diff:
-            print("kept:", stat, file=sys.stderr)
+    grown, _grown_all = bytes_kept(framework, 500, args.cycles)
 
     failures = sdk_failures[0] if sdk is not None else 0
     where = f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"
