@@ -176,6 +176,7 @@ def test_sync_writes_sealed_with_either_are_the_same_bytes(kind: str) -> None:
 
 
 def test_the_running_cycle_uses_the_compiled_checks_and_pure_python_the_references(monkeypatch: Any) -> None:
+    monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)  # (a suite run with it set for everything)
     device = _six_servos("dynamixel")
     assert device.goals.protocol.checks.compiled and device.state.protocol.checks.compiled
     assert not PROTOCOLS["dynamixel"].checks.compiled  # the model and the set-up: the references
@@ -220,6 +221,8 @@ def test_the_cycle_keeps_nothing_allocated(kind: str, pure_python: bool, cycles:
     """10,000 cycles of the running cycle (1,000 of the Python references': tracemalloc slows them ~5x)."""
     if pure_python:
         monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+    else:
+        monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)
     device = _six_servos(kind)
     assert device.state.protocol.checks.compiled is not pure_python
     y, u = np.zeros(device.n_outputs), np.full(6, -0.1)
