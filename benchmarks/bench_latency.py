@@ -15,6 +15,11 @@ state (other load, thermal, hypervisor noise). Each round runs, in a rotating or
 and then the fast blocks at ``--fast-period-us`` (default 100 µs = 10 kHz), rtloop vs
 cyclictest, for the miss rate (miss = a wake-up later than one period).
 
+Every block's own p99 is printed too, each rtloop block beside the cyclictest block of the
+same round (a block hit by something else on the machine shows there, not only in the pooled
+p99), and the real-time threads of other programs that may run on the measured CPU, seen
+before each block (another app's task, a test's FIFO hog: what makes a "quiet" run not quiet).
+
 It also measures the framework's own per-cycle cost: the median ``exec_ns`` (end − start)
 of the no-op task in the real runs, and, in-process, one whole loop iteration of
 ``RealtimeTask.run_loop`` with the sleep replaced by a no-op (read inputs, step, publish,
@@ -60,6 +65,10 @@ from _common import (
 )
 
 from rtloop.app.builder import App
+from rtloop.linux import cpustat
+
+P99_RATIO_TARGET = 1.1
+"""rtloop's p99 wake-up latency at most this many times cyclictest's in the same run (issue 33)."""
 
 CYCLICTEST_SAMPLE = re.compile(r"^\s*0:\s*\d+:\s*(\d+)\s*$")
 
@@ -78,6 +87,8 @@ class Samples:
     deadline_misses: int = 0
     lost: int = 0
     blocks: int = 0
+    block_p99_us: list[float] = field(default_factory=list)
+    """Each block's own p99 wake-up latency, in run order (one per round)."""
 
     def latency(self) -> np.ndarray:
         return np.concatenate(self.latency_ns) if self.latency_ns else np.empty(0)
@@ -102,6 +113,7 @@ def run_rtloop_block(args: argparse.Namespace, period_us: int, block_s: float, o
     core = trim(records, args.trim)
     into.latency_ns.append(core[:, 2] - core[:, 1])
     into.exec_ns.append(core[:, 3] - core[:, 2])
+    into.block_p99_us.append(block_p99_us(into.latency_ns[-1]))
     into.blocks += 1
 
 
@@ -124,6 +136,7 @@ def run_cyclictest_block(args: argparse.Namespace, period_us: int, block_s: floa
     into.skipped += int(np.sum(np.maximum(0, -(-everything // period_ns) - 1)))
     latency = trim(everything, args.trim)
     into.latency_ns.append(latency)
+    into.block_p99_us.append(block_p99_us(latency))
     into.blocks += 1
 
 
@@ -139,9 +152,28 @@ def run_naive_block(args: argparse.Namespace, period_us: int, block_s: float, ou
     ideal = first_top + (np.arange(len(woke)) + 1) * period_ns  # where an absolute timeline would wake
     drift = woke - ideal
     into.latency_ns.append(trim(woke - intended, args.trim))
+    into.block_p99_us.append(block_p99_us(into.latency_ns[-1]))
     into.drift_end_ns.append(float(drift[-1]))
     into.drift_ns_per_1k.append(float(np.polyfit(np.arange(len(drift)), drift, 1)[0]) * 1000)
     into.blocks += 1
+
+
+def block_p99_us(latency_ns: np.ndarray) -> float:
+    return float(np.percentile(latency_ns, 99)) / 1000 if len(latency_ns) else float("nan")
+
+
+def other_realtime_threads(cpu: int) -> set[str]:
+    """Real-time threads of other programs that may run on ``cpu`` now (a walk of /proc, ~15 ms: between blocks)."""
+    found = set()
+    for pid, tid in cpustat.realtime_threads(exclude_pids=frozenset({os.getpid()})):
+        info = cpustat.read_thread(pid, tid)
+        try:
+            allowed = os.sched_getaffinity(tid)
+        except OSError:
+            continue
+        if info is not None and cpu in allowed and info.priority > 1:  # an rtloop supervisor waits at FIFO 1
+            found.add(info.label().split(", tid")[0] + f", {info.policy.upper()} {info.priority})")
+    return found
 
 
 def naive_child(period_us: int, cycles: int, cpu: int, out: str) -> None:
@@ -227,6 +259,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     fast_order = [("rtloop", fast), ("cyclictest", fast)] if fast else []
     work = Path(tempfile.mkdtemp(prefix="rtloop-bench-latency-"))
     facts = machine_facts()
+    others: set[str] = set()
     started = time.monotonic()
     try:
         with PmQos(not args.no_pm_qos) as qos:
@@ -237,6 +270,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 plan += [(key, args.fast_block_s) for key in (fast_order[::-1] if round_index % 2 else fast_order)]
                 for (contender, period_us), block_s in plan:
                     into = results[(contender, period_us)]
+                    others |= other_realtime_threads(args.cpu)
                     out = work / f"r{round_index}-{contender}-{period_us}us"
                     if args.verbose:
                         print(f"round {round_index + 1}/{args.rounds}: {contender} @ {period_us} µs, {block_s} s",
@@ -250,6 +284,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         iteration_ns = measure_loop_iteration(args.loop_cycles, args.cpu)
     finally:
         facts["loadavg_at_end"] = Path("/proc/loadavg").read_text().split()[:3]
+        facts[f"other_realtime_threads_on_cpu_{args.cpu}"] = sorted(others) or "none seen (looked before each block)"
         if args.keep:
             print(f"artifacts kept in {work}", file=sys.stderr)
         else:
@@ -283,6 +318,7 @@ def summarise(
             else (0.0 if contender != "cyclictest" else float("nan")),
             "drift_at_block_end_ms": float(np.mean(samples.drift_end_ns)) / 1e6 if samples.drift_end_ns else None,
             "exec_us": stats_us(samples.executions()) if samples.exec_ns else None,
+            "block_p99_us": [round(v, 2) for v in samples.block_p99_us],
         }
     overhead = {
         "rtloop_exec_us": latency[f"rtloop@{args.period_us}us"]["exec_us"],
@@ -306,9 +342,9 @@ def targets(args: argparse.Namespace, latency: dict[str, Any], overhead: dict[st
     ct_p99 = latency[f"cyclictest@{slow}us"]["latency_us"]["p99"]
     checks = [
         {
-            "target": f"rtloop p99 wake-up latency ≤ 1.2 × cyclictest p99 (@{slow} µs)",
-            "measured": f"{rt_p99:.2f} µs vs {ct_p99:.2f} µs (×{rt_p99 / ct_p99:.2f})",
-            "met": bool(rt_p99 <= 1.2 * ct_p99),
+            "target": f"rtloop p99 wake-up latency ≤ {P99_RATIO_TARGET} × cyclictest p99 (@{slow} µs)",
+            "measured": f"{rt_p99:.2f} µs vs {ct_p99:.2f} µs (×{rt_p99 / ct_p99:.2f}, target ×{P99_RATIO_TARGET})",
+            "met": bool(rt_p99 <= P99_RATIO_TARGET * ct_p99),
         },
         {
             "target": "no-op step exec_ns median ≤ 5 µs",
@@ -350,6 +386,13 @@ def report_markdown(result: dict[str, Any]) -> str:
          *(overhead["loop_iteration_us"][c] for c in STAT_COLUMNS)],
     ]
     target_rows = [[t["target"], t["measured"], "met" if t["met"] else "**MISSED**"] for t in result["targets"]]
+    block_rows = []
+    for period_us in sorted({entry["period_us"] for entry in latency.values()}, reverse=True):
+        mine, theirs = latency.get(f"rtloop@{period_us}us"), latency.get(f"cyclictest@{period_us}us")
+        if mine is None or theirs is None:
+            continue
+        for index, (p99_mine, p99_theirs) in enumerate(zip(mine["block_p99_us"], theirs["block_p99_us"], strict=False)):
+            block_rows.append([period_us, index + 1, p99_mine, p99_theirs, f"×{p99_mine / p99_theirs:.2f}"])
     settings = result["settings"]
     return "\n\n".join([
         f"### Wake-up latency (µs), {settings['rounds']} rounds × blocks of {settings['block_s']} s "
@@ -362,6 +405,8 @@ def report_markdown(result: dict[str, Any]) -> str:
                         "skipped_releases", "deadline_misses"], miss_rows),
         "### Framework overhead per cycle (µs)",
         markdown_table(["measure", "min", "p50", "p99", "p99.9", "max"], overhead_rows),
+        "### p99 per block (µs): rtloop beside cyclictest in the same round",
+        markdown_table(["period_us", "round", "rtloop p99", "cyclictest p99", "ratio"], block_rows),
         "### Targets",
         markdown_table(["target", "measured", "result"], target_rows),
         "### Machine",

@@ -73,7 +73,11 @@ def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
     assert {row[0] for row in misses} == {"rtloop", "cyclictest"}
     overhead = table_rows(stdout, "| measure | min | p50 | p99 | p99.9 | max |")
     assert len(overhead) == 2
-    assert len(table_rows(stdout, "| target | measured | result |")) == 3
+    targets = table_rows(stdout, "| target | measured | result |")
+    assert len(targets) == 3
+    assert targets[0][0].startswith("rtloop p99 wake-up latency ≤ 1.1 × cyclictest p99")
+    blocks = table_rows(stdout, "| period_us | round | rtloop p99 | cyclictest p99 | ratio |")
+    assert [(row[0], row[1]) for row in blocks] == [("1000", "1"), ("100", "1")]
 
     result = json.loads(out.read_text())
     assert set(result["latency"]["rtloop@1000us"]["latency_us"]) == {"min", "p50", "p99", "p99.9", "max"}

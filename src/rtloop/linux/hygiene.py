@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 from rtloop.linux import rt
 
@@ -92,9 +92,10 @@ def serving_below_real_time_tasks(all_tasks_above: bool, may_use_rt: bool) -> It
 
     Busy real-time tasks leave the rest of the machine the crumbs (RT throttling: 5 %), shared
     with every SCHED_OTHER process: the supervisor then could not serve Ctrl-C, the watchdog or
-    the recording. At the lowest real-time priority it runs whenever the tasks sleep and never
-    delays one of them. Children (bridges) start as SCHED_OTHER (reset on fork). Not done when a
-    task is SCHED_OTHER (the supervisor would starve it) or shares priority 1.
+    the recording. At the lowest real-time priority it runs whenever the tasks sleep, and a waking
+    task preempts it at once, except inside a system call on a kernel that is not fully preemptible:
+    hence :func:`away_from_task_cpus` too. Children (bridges) start as SCHED_OTHER (reset on fork).
+    Not done when a task is SCHED_OTHER (the supervisor would starve it) or shares priority 1.
     """
     previous = None
     if may_use_rt and all_tasks_above:
@@ -108,6 +109,45 @@ def serving_below_real_time_tasks(all_tasks_above: bool, may_use_rt: bool) -> It
     finally:
         if previous is not None:
             os.sched_setscheduler(0, *previous)
+
+
+@contextlib.contextmanager
+def away_from_task_cpus(task_cpus: Iterable[int]) -> Iterator[frozenset[int]]:
+    """Keep every thread of this process off the CPUs the tasks are pinned to, in the block (yields the
+    CPUs it may use then; its own CPUs as before when no other CPU is left, or they cannot be changed).
+
+    A task woken while the supervisor runs on its CPU waits for it: a kernel that is not fully
+    preemptible (PREEMPT_NONE, VOLUNTARY, a PREEMPT_DYNAMIC "none") finishes the supervisor's system
+    call first (its reads of /proc, its writes of the recording: tens of µs each), and the switch
+    costs the task its caches. SCHED_FIFO 1 does not help there. cyclictest keeps its own main
+    thread off the measured CPUs the same way (``--mainaffinity``). Enter it once the task processes
+    and bridges have started: they inherit the mask at their start and keep the caller's CPUs. Each
+    thread gets its own CPUs back on the way out.
+    """
+    try:
+        before = {tid: os.sched_getaffinity(tid) for tid in _own_threads()}
+    except OSError:
+        before = {}
+    allowed = frozenset(os.sched_getaffinity(0))
+    away = allowed - set(task_cpus)
+    if not before or not away or away == allowed:
+        yield allowed
+        return
+    moved = {}
+    for tid, cpus in before.items():
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            os.sched_setaffinity(tid, away)
+            moved[tid] = cpus
+    try:
+        yield frozenset(away)
+    finally:
+        for tid, cpus in moved.items():
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(tid, cpus)
+
+
+def _own_threads() -> list[int]:
+    return [int(name) for name in os.listdir("/proc/self/task")]
 
 
 def why_stuck(pid: int) -> str:

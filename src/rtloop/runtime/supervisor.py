@@ -38,6 +38,7 @@ from rtloop.linux import rt
 from rtloop.linux.hygiene import (
     SUPERVISOR_PRIORITY,
     adopting_orphans,
+    away_from_task_cpus,
     describe_exit,
     marked_environment,
     serving_below_real_time_tasks,
@@ -161,6 +162,8 @@ class Supervisor:
             self._spawn(layout)
             assert layout.registry_path is not None
             self.bridges.start(layout.registry_path)  # while tasks prepare: bridges wait for T0 too
+            # off the tasks' CPUs now that every child has started with the caller's CPUs (linux/hygiene.py)
+            resources.enter_context(away_from_task_cpus(c.cpu for c in configs if c.cpu is not None))
             self._wait_until_ready(layout)
             if self.failure is None and self.state is RunState.RUNNING:
                 self._start_epoch(layout, recorder)
