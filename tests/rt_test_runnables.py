@@ -48,6 +48,13 @@ class RaiseAt(Runnable):
             1 / 0  # noqa: B018
 
 
+class RaiseAtThenInPostrun(RaiseAt):
+    """RaiseAt whose postrun raises too (a cleanup that trips over the state the fault left)."""
+
+    def postrun(self) -> None:
+        raise OSError("postrun could not close the port")
+
+
 class RaiseFrom(RaiseAt):
     """Raises ZeroDivisionError in the first step at or after a given cycle (a late task may skip it)."""
 

@@ -157,6 +157,25 @@ def test_simulate_calls_every_postrun_once_after_a_fault(tmp_path: Path) -> None
     assert (failing.postruns, healthy.postruns) == (1, 1)  # type: ignore[attr-defined]
 
 
+@pytest.mark.parametrize("mode", ["run", "simulate"])
+def test_a_postrun_that_fails_after_the_failure_is_a_note_not_lost(tmp_path: Path, mode: str) -> None:
+    """The step fails, then postrun raises as well: the run's failure stays the step's, and
+    summary.json's notes say the postrun failed too (the task's message was never read; simulate
+    dropped what finish returned)."""
+    import json
+
+    from rt_test_runnables import RaiseAtThenInPostrun
+
+    app = App(f"postrunfail_{mode}_{os.getpid()}")
+    app.add_task("failing", RaiseAtThenInPostrun(3), period_ns=PERIOD_NS, policy="other")
+    with pytest.raises(TaskFailed) as failed:
+        (rtloop.run if mode == "run" else rtloop.simulate)(app, 0.5, tmp_path / "out")
+    assert failed.value.task == "failing" and "ZeroDivisionError" in failed.value.reason
+    notes = json.loads((tmp_path / "out" / "summary.json").read_text())["notes"]
+    assert "task failing: its postrun failed too, after the failure: OSError: postrun could not close the port" \
+        in notes, notes
+
+
 def test_simulate_terminates_an_fmu_and_removes_its_folder_after_a_fault(tmp_path: Path, monkeypatch) -> None:
     import shutil
 

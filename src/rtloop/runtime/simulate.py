@@ -25,7 +25,7 @@ from rtloop.record.summary import (
 from rtloop.runtime.layout import READ_LOG_CAPACITY, RECORD_QUEUE_CAPACITY, AppLayout, device_wiring
 from rtloop.runtime.run_summary import RunFacts, TaskFacts, build_summary
 from rtloop.runtime.session import DEFAULT_LIMITS, Limits, RunSession
-from rtloop.runtime.taskrun import TaskRun
+from rtloop.runtime.taskrun import TaskRun, postrun_failed_note
 
 SIMULATION_T0_NS = 1_000_000_000  # any positive epoch works; stamps are relative to it
 
@@ -123,6 +123,8 @@ class _Outcome:
         """Per task, what its jobs cost on this host (never taken for timing)."""
         self.records: dict[str, list[tuple[int, int, int, int]]] = {}
         """Per task, its timing records since the last drain."""
+        self.notes: list[str] = []
+        """summary.json notes from the way out (a postrun that failed after the failure)."""
 
 
 def _let_go(tasks: dict[str, TaskRun]) -> None:
@@ -207,8 +209,10 @@ def _simulate(session: RunSession, duration_s: float, port_writes: PortWrites, t
     finally:
         for task in tasks.values():
             task.stop()  # the twins see the safe values on every way out too
-        for task in tasks.values():
-            task.finish(failed=True)  # postrun after a fault too (an FMU terminated), never twice
+        for name, task in tasks.items():  # postrun after a fault too (an FMU terminated), never twice
+            problem = task.finish(failed=True)
+            if problem:
+                outcome.notes.append(postrun_failed_note(name, problem))
         _drain(outcome, session)
 
 
@@ -251,6 +255,6 @@ def _summary(app: App, session: RunSession, duration_s: float, outcome: _Outcome
                for text in getattr(getattr(task.runnable, "model", None), "start_notes", ())]
     run = RunFacts(mode="simulate", started_wall_ns=outcome.started_ns, duration_s=duration_s,
                    stopped_by=outcome.stopped_by, failure=outcome.failure.to_json() if outcome.failure else None,
-                   notes=started, devices=devices)
+                   notes=[*started, *outcome.notes], devices=devices)
     return build_summary(session, {name: tasks.get(name, TaskFacts(simulated=True)) for name in app.tasks}, run,
                          running=running)

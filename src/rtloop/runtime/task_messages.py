@@ -16,6 +16,7 @@ from rtloop.app.builder import App
 from rtloop.errors import DeviceError, DeviceMismatch, DeviceNotReady, TaskFailed
 from rtloop.runtime.evidence import MissWatch
 from rtloop.runtime.task_watch import TaskProcess
+from rtloop.runtime.taskrun import postrun_failed_note
 
 
 class TaskReports:
@@ -72,6 +73,8 @@ class TaskReports:
             self.misses.from_task(name, message)
         elif kind == "note":
             self.notes.append(f"task {name}: {message['text']}")
+        elif kind == "postrun_failed":  # after the failure: its postrun raised too
+            self.notes.append(postrun_failed_note(name, message["traceback"]))
         elif kind == "failed":
             task_run.failure = TaskFailed(name, message["cycle"], message["phase"], message["reason"],
                                           message["traceback"])
@@ -83,3 +86,4 @@ class TaskReports:
         if not any(c.guarded for c in app.connections if c.target.task == task):
             return None
         return self.input_limits.get(task, {})
+

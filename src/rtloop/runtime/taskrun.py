@@ -146,6 +146,13 @@ class TaskRun:
                     self.wiring.held_nudges(), self.wiring.recent_outputs())
 
 
+def postrun_failed_note(task: str, traceback_text: str) -> str:
+    """summary.json's note for a postrun that raised after the task had failed already (the first
+    failure is the run's; this one would otherwise be lost): the exception's own line."""
+    lines = [line for line in traceback_text.strip().splitlines() if line.strip()]
+    return f"task {task}: its postrun failed too, after the failure: {lines[-1] if lines else '(no traceback)'}"
+
+
 def initial_inputs(runnable: Runnable) -> np.ndarray:
     """The task's ``u`` before anything writes it: the model's input start values, or zeros."""
     u = np.zeros(runnable.n_inputs)
