@@ -21,9 +21,9 @@ p99), and the real-time threads of other programs that may run on the measured C
 before each block (another app's task, a test's FIFO hog: what makes a "quiet" run not quiet).
 
 It also measures the framework's own per-cycle cost: the median ``exec_ns`` (end − start)
-of the no-op task in the real runs, and, in-process, one whole loop iteration of
-``RealtimeTask.run_loop`` with the sleep replaced by a no-op (read inputs, step, publish,
-the timing record and the status words: everything but the sleep system call).
+of the no-op task in the real runs, and, in-process, one whole iteration of the task's loop
+on the hot path a task uses (C when built) without its sleep (read inputs, the tick, step,
+publish, the timing record and the status words: everything but the sleep system call).
 
 Usage (as root, cyclictest installed)::
 
@@ -65,6 +65,7 @@ from _common import (
 )
 
 from rtloop.app.builder import App
+from rtloop.ipc.hotpath import hot_path
 from rtloop.linux import cpustat
 
 P99_RATIO_TARGET = 1.1
@@ -196,21 +197,16 @@ def naive_child(period_us: int, cycles: int, cpu: int, out: str) -> None:
 
 
 # --- the framework's own cost, in-process ------------------------------------------------------
-class _NoSleep:
-    """Stands in for AbsoluteSleeper: returns at once, so only the loop's own work is timed."""
-
-    def sleep_until(self, deadline_ns: int) -> None:
-        pass
-
-
 def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
-    """Per-iteration cost of the task loop (Python hot path) with a no-op sleep, in ns (start_k+1 − start_k).
+    """Per-iteration cost of the task loop without its sleep, in ns (start_k+1 − start_k), on the hot path
+    a task uses here (C when built, ``hotpath.hot_path()``).
 
-    Uses the real loop, status block and timing ring (shared memory); runs in this
-    process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
+    Uses the real cycle work, status block and timing ring (shared memory) through the seams that take
+    the clock instead of sleeping (``begin_at``/``finish_at``, each given ``time.monotonic_ns()``); runs
+    in this process, pinned to ``cpu``, so medians are meaningful even without SCHED_FIFO.
     """
     from rtloop.app.specs import TaskConfig
-    from rtloop.ipc.hotpath import PythonCycle
+    from rtloop.ipc.hotpath import cycle_work
     from rtloop.ipc.ring import Int64Ring
     from rtloop.ipc.schema import task_segment_size
     from rtloop.ipc.segments import Segment, new_run_token
@@ -230,16 +226,14 @@ def measure_loop_iteration(cycles: int, cpu: int) -> np.ndarray:
         timing = Int64Ring.initialise(task_segment, cycles + 8, 4, STATUS_WORDS * 8)
         period_ns = 1_000_000
         task = TaskRun(TaskConfig("noop", period_ns), NoOp(), TaskWiringPlan(), control, status, timing)
-        # The loop of the Python hot path (the readable twin; bench_hotpath.py times the C one),
-        # with a sleep that returns at once.
-        cycle = PythonCycle(task.tick, task.wiring, control, status, timing, period_ns, catch_up=False)
-        cycle.sleeper = _NoSleep()  # type: ignore[assignment]
-        cycle.sleep_until_release = lambda release_ns: True  # no sleep, no slicing of a far-future sleep
+        # The task's loop (runtime/task.py) with the clock read where begin() would wake up.
+        cycle = cycle_work(task.tick, task.wiring, control, status, timing, period_ns, catch_up=False)
         t0_ns = rt.now_ns() + 10**15  # releases in the far future: never an overrun path
         cycle.start(t0_ns, t0_ns + cycles * period_ns, 0)
-        while cycle.begin():
-            task.runnable.step(task.u, task.y)
-            cycle.finish()
+        job, tick, clock = task.job, task.tick, time.monotonic_ns
+        while cycle.begin_at(clock()):
+            job(tick.cycle)
+            cycle.finish_at(clock())
         records = timing.drain()
         return np.diff(records[:, 2])
     finally:
@@ -323,6 +317,7 @@ def summarise(
     overhead = {
         "rtloop_exec_us": latency[f"rtloop@{args.period_us}us"]["exec_us"],
         "loop_iteration_us": stats_us(iteration_ns),
+        "loop_iteration_hot_path": hot_path(),
     }
     return {
         "benchmark": "latency",
@@ -382,7 +377,7 @@ def report_markdown(result: dict[str, Any]) -> str:
     overhead_rows = [
         ["rtloop exec_ns of a no-op step (end − start, real runs)",
          *(overhead["rtloop_exec_us"][c] for c in STAT_COLUMNS)],
-        ["whole loop iteration excl. the sleep syscall (in-process)",
+        [f"whole loop iteration excl. the sleep syscall (in-process, {overhead['loop_iteration_hot_path']} hot path)",
          *(overhead["loop_iteration_us"][c] for c in STAT_COLUMNS)],
     ]
     target_rows = [[t["target"], t["measured"], "met" if t["met"] else "**MISSED**"] for t in result["targets"]]
