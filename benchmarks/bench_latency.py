@@ -90,6 +90,9 @@ class Samples:
     blocks: int = 0
     block_p99_us: list[float] = field(default_factory=list)
     """Each block's own p99 wake-up latency, in run order (one per round)."""
+    interrupts: dict[str, int] = field(default_factory=dict)
+    """Interrupts the measured CPU took during this contender's blocks, per /proc/interrupts line."""
+    seconds: float = 0.0
 
     def latency(self) -> np.ndarray:
         return np.concatenate(self.latency_ns) if self.latency_ns else np.empty(0)
@@ -163,6 +166,30 @@ def block_p99_us(latency_ns: np.ndarray) -> float:
     return float(np.percentile(latency_ns, 99)) / 1000 if len(latency_ns) else float("nan")
 
 
+def interrupts_on(cpu: int) -> dict[str, int]:
+    """The interrupts ``cpu`` has taken so far, per line of /proc/interrupts ("36 virtio1-req.0", "LOC Local timer")."""
+    counts: dict[str, int] = {}
+    try:
+        lines = Path("/proc/interrupts").read_text().splitlines()
+        column = lines[0].split().index(f"CPU{cpu}")
+    except (OSError, ValueError, IndexError):
+        return counts
+    for line in lines[1:]:
+        label, _, rest = line.partition(":")
+        fields = rest.split()
+        if len(fields) > column and fields[column].isdigit():
+            name = " ".join(word for word in fields if not word.isdigit())
+            counts[f"{label.strip()} {name.split()[-1] if label.strip().isdigit() else name}"] = int(fields[column])
+    return counts
+
+
+def _kernel_thread(pid: int) -> bool:
+    try:
+        return not Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return True
+
+
 def other_realtime_threads(cpu: int) -> set[str]:
     """Real-time threads of other programs that may run on ``cpu`` now (a walk of /proc, ~15 ms: between blocks)."""
     found = set()
@@ -172,8 +199,9 @@ def other_realtime_threads(cpu: int) -> set[str]:
             allowed = os.sched_getaffinity(tid)
         except OSError:
             continue
-        if info is not None and cpu in allowed and info.priority > 1:  # an rtloop supervisor waits at FIFO 1
-            found.add(info.label().split(", tid")[0] + f", {info.policy.upper()} {info.priority})")
+        if info is None or cpu not in allowed or info.priority <= 1 or _kernel_thread(pid):
+            continue  # an rtloop supervisor waits at FIFO 1; the kernel's own threads are always there
+        found.add(info.label().split(", tid")[0] + f", {info.policy.upper()} {info.priority})")
     return found
 
 
@@ -265,6 +293,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 for (contender, period_us), block_s in plan:
                     into = results[(contender, period_us)]
                     others |= other_realtime_threads(args.cpu)
+                    interrupts_before, started_s = interrupts_on(args.cpu), time.monotonic()
                     out = work / f"r{round_index}-{contender}-{period_us}us"
                     if args.verbose:
                         print(f"round {round_index + 1}/{args.rounds}: {contender} @ {period_us} µs, {block_s} s",
@@ -275,6 +304,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                         run_cyclictest_block(args, period_us, block_s, into)
                     else:
                         run_naive_block(args, period_us, block_s, out, into)
+                    into.seconds += time.monotonic() - started_s
+                    for name, count in interrupts_on(args.cpu).items():
+                        into.interrupts[name] = into.interrupts.get(name, 0) + count - interrupts_before.get(name, 0)
         iteration_ns = measure_loop_iteration(args.loop_cycles, args.cpu)
     finally:
         facts["loadavg_at_end"] = Path("/proc/loadavg").read_text().split()[:3]
@@ -313,6 +345,8 @@ def summarise(
             "drift_at_block_end_ms": float(np.mean(samples.drift_end_ns)) / 1e6 if samples.drift_end_ns else None,
             "exec_us": stats_us(samples.executions()) if samples.exec_ns else None,
             "block_p99_us": [round(v, 2) for v in samples.block_p99_us],
+            "interrupts_per_s_on_cpu": {name: round(count / samples.seconds, 1)
+                                        for name, count in sorted(samples.interrupts.items()) if count},
         }
     overhead = {
         "rtloop_exec_us": latency[f"rtloop@{args.period_us}us"]["exec_us"],
@@ -381,6 +415,11 @@ def report_markdown(result: dict[str, Any]) -> str:
          *(overhead["loop_iteration_us"][c] for c in STAT_COLUMNS)],
     ]
     target_rows = [[t["target"], t["measured"], "met" if t["met"] else "**MISSED**"] for t in result["targets"]]
+    busiest = sorted({name for entry in latency.values() for name in entry["interrupts_per_s_on_cpu"]},
+                     key=lambda name: -max(e["interrupts_per_s_on_cpu"].get(name, 0) for e in latency.values()))[:6]
+    interrupt_rows = [[key.split("@")[0], entry["period_us"], *(entry["interrupts_per_s_on_cpu"].get(name, 0)
+                                                                for name in busiest)]
+                      for key, entry in latency.items()]
     block_rows = []
     for period_us in sorted({entry["period_us"] for entry in latency.values()}, reverse=True):
         mine, theirs = latency.get(f"rtloop@{period_us}us"), latency.get(f"cyclictest@{period_us}us")
@@ -402,6 +441,9 @@ def report_markdown(result: dict[str, Any]) -> str:
         markdown_table(["measure", "min", "p50", "p99", "p99.9", "max"], overhead_rows),
         "### p99 per block (µs): rtloop beside cyclictest in the same round",
         markdown_table(["period_us", "round", "rtloop p99", "cyclictest p99", "ratio"], block_rows),
+        f"### Interrupts on CPU {settings['cpu']} per second during each contender's blocks (/proc/interrupts: "
+        "a device's interrupts and their softirq work delay a wake-up there whatever its priority)",
+        markdown_table(["contender", "period_us", *busiest], interrupt_rows),
         "### Targets",
         markdown_table(["target", "measured", "result"], target_rows),
         "### Machine",

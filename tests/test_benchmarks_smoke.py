@@ -78,6 +78,7 @@ def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
     assert targets[0][0].startswith("rtloop p99 wake-up latency ≤ 1.1 × cyclictest p99")
     blocks = table_rows(stdout, "| period_us | round | rtloop p99 | cyclictest p99 | ratio |")
     assert [(row[0], row[1]) for row in blocks] == [("1000", "1"), ("100", "1")]
+    assert "### Interrupts on CPU 1 per second during each contender's blocks" in stdout
 
     result = json.loads(out.read_text())
     assert set(result["latency"]["rtloop@1000us"]["latency_us"]) == {"min", "p50", "p99", "p99.9", "max"}
