@@ -4,6 +4,8 @@ release, SI readings, named faults, and no allocation that stays over 10,000 cyc
 from __future__ import annotations
 
 import math
+import socket
+import struct
 import tracemalloc
 
 import numpy as np
@@ -118,3 +120,67 @@ def test_the_compiled_cycle_equals_the_python_reference_bit_for_bit(monkeypatch:
     compiled, reference = _trajectory(monkeypatch, False), _trajectory(monkeypatch, True)
     assert compiled.tobytes() == reference.tobytes()
     assert np.ptp(compiled[:, 0]) > 0.1  # never vacuous: the joint moved
+
+
+def _linked(monkeypatch: pytest.MonkeyPatch, pure: bool):  # type: ignore[no-untyped-def]
+    """A device bound to one end of a socket pair (its frame, its cycle; no bus), its twin's drives
+    answering on the other end as the emulated slaves do, and a second twin stepping alone."""
+    from rtloop.io.drives.cycle import DriveCycle
+
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1" if pure else "0")
+    settings = {"interface": "ecm0", "timeout_us": 200_000, "joints": [{"name": "a", **JOINT, "mode": "csp"}]}
+    device = build_device("ethercat", "arm", settings, "t")
+    mine, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    mine.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("@ll", 0, 1))  # as open_raw: one tick
+    device._expected_wkc = 3
+    device._bind(DriveCycle("arm", device.joints), mine)
+    slaves, alone = device.default_twin(), device.default_twin()
+    slaves.prerun()
+    alone.prerun()
+    return device, slaves, alone, peer
+
+
+def _answer(device, slaves, peer, wkc: int = 3, index_delta: int = 0) -> None:  # type: ignore[no-untyped-def]
+    frame = bytearray(peer.recv(2048))
+    outputs = slaves.cycle.output_bytes
+    slaves.outputs[:] = frame[26:26 + outputs]
+    slaves._exchange()  # the inputs the drives hold as the frame passes, then their step
+    frame[26 + outputs:26 + outputs + len(slaves.inputs)] = slaves.inputs
+    frame[17] = (frame[17] + index_delta) & 0xFF
+    struct.pack_into("<H", frame, device._wkc_at, wkc)
+    peer.send(frame)
+
+
+@pytest.mark.parametrize("pure", [False, True])
+def test_the_frame_exchanged_on_a_socket_equals_the_twin_and_names_what_goes_wrong(
+        monkeypatch: pytest.MonkeyPatch, pure: bool) -> None:
+    if not pure:
+        pytest.importorskip("rtloop.io._devio")
+    device, slaves, alone, peer = _linked(monkeypatch, pure)
+    u, y, y_alone = np.zeros(device.n_inputs), np.zeros(device.n_outputs), np.zeros(device.n_outputs)
+    moved = 0.0
+    for k in range(300):
+        u[0] = 0.2 * math.sin(k * 0.02)
+        device.write(u)
+        device._send_outputs()
+        if k == 150:  # a late answer of an earlier frame is passed over
+            peer.send(bytes(device._frame[:17]) + bytes([(device._frame[17] - 1) & 0xFF]) + bytes(device._frame[18:]))
+        _answer(device, slaves, peer)
+        device._take_answer(y)
+        alone.step(u, y_alone)
+        assert y.tobytes() == y_alone.tobytes(), k
+        moved = max(moved, abs(y[0]))
+    assert device.cycle.enabled and moved > 0.05  # never vacuous: the joint followed its target
+    assert (device.cycle._fast is None) == pure and (pure or device.cycle.linked_sent_at() > 0)  # C ran, or not
+    device.write(u)
+    device._send_outputs()
+    _answer(device, slaves, peer, wkc=1)
+    with pytest.raises(DeviceFault, match=r"working counter 1, expected 3 .*not answering: joint 'a' \(slave 1\)"):
+        device._take_answer(y)
+    device.write(u)
+    device._send_outputs()
+    _answer(device, slaves, peer, index_delta=-1)  # only an answer to another frame: none to this one
+    with pytest.raises(DeviceFault, match=r"the LRW frame did not come back within 200000 µs"):
+        device._take_answer(y)
+    device.socket.close()
+    peer.close()

@@ -23,6 +23,14 @@ typedef struct {
     Py_buffer out, in, u, y, plan, scale, modes, state, table;
     Py_ssize_t joints;
     int held;
+    /* The EtherCAT link (link()): the frame sent, the buffer its answer comes into, on a blocking
+     * raw socket whose receive timeout (SO_RCVTIMEO) is one kernel tick: one send and one recv a
+     * cycle, no poll, the frame's own timeout checked on the clock (SOEM's way). */
+    Py_buffer frame, reply;
+    int linked, fd;
+    Py_ssize_t wkc_at;
+    long expected_wkc;
+    long long timeout_ns, sent_ns;
 } DriveRun;
 
 static void DriveRun_release(DriveRun *self) {
@@ -34,8 +42,17 @@ static void DriveRun_release(DriveRun *self) {
     self->held = 0;
 }
 
+static void DriveRun_unlink(DriveRun *self) {
+    if (self->linked) {
+        PyBuffer_Release(&self->frame);
+        PyBuffer_Release(&self->reply);
+        self->linked = 0;
+    }
+}
+
 static void DriveRun_dealloc(DriveRun *self) {
     DriveRun_release(self);
+    DriveRun_unlink(self);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -127,7 +144,7 @@ static int DriveRun_init(DriveRun *self, PyObject *args, PyObject *kwargs) {
 
 /* prepare() -> -1 when every joint's outputs are written; else the joint the Python side must do
  * (its mode command asks for another mode). */
-static PyObject *DriveRun_prepare(DriveRun *self, PyObject *unused) {
+static Py_ssize_t drive_prepare(DriveRun *self) {
     const int64_t *plan = self->plan.buf;
     const double *u = self->u.buf, *scale = self->scale.buf;
     const int64_t *modes = self->modes.buf, *state = self->state.buf;
@@ -136,7 +153,7 @@ static PyObject *DriveRun_prepare(DriveRun *self, PyObject *unused) {
         const int64_t *p = plan + j * D_PLAN;
         int64_t mode = modes[j];
         if (p[D_U_MODE] >= 0 && (int64_t)nearbyint(u[p[D_U_MODE]]) != mode) {
-            return PyLong_FromSsize_t(j);
+            return j;
         }
         double per_count = scale[2 * j], per_permille = scale[2 * j + 1];
         put_le(out + p[D_OUT_CW], 0x0F, 2);
@@ -154,12 +171,16 @@ static PyObject *DriveRun_prepare(DriveRun *self, PyObject *unused) {
             put_le(out + p[D_OUT_TQ], (uint32_t)value, 2);
         }
     }
-    return PyLong_FromLong(-1);
+    return -1;
+}
+
+static PyObject *DriveRun_prepare(DriveRun *self, PyObject *unused) {
+    return PyLong_FromSsize_t(drive_prepare(self));
 }
 
 /* take() -> -1 when every joint's inputs are in y and every drive is in Operation enabled in its
  * mode; else the first joint that is not (the Python side names it, or waits for its mode). */
-static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
+static Py_ssize_t drive_take(DriveRun *self) {
     const int64_t *plan = self->plan.buf, *modes = self->modes.buf, *table = self->table.buf;
     const double *scale = self->scale.buf;
     int64_t *state = self->state.buf;
@@ -172,10 +193,10 @@ static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
         state[2 * j] = statusword;
         state[2 * j + 1] = position;
         if (table[statusword & 0x6F] != DRIVE_ENABLED) {
-            return PyLong_FromSsize_t(j);
+            return j;
         }
         if (p[D_IN_MODE] >= 0 && (int8_t)in[p[D_IN_MODE]] != modes[j]) {
-            return PyLong_FromSsize_t(j);
+            return j;
         }
         double per_count = scale[2 * j], per_permille = scale[2 * j + 1];
         Py_ssize_t at = p[D_Y_AT];
@@ -201,13 +222,144 @@ static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
             y[at] = (double)(int8_t)in[p[D_IN_MODE]];
         }
     }
+    return -1;
+}
+
+static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
+    return PyLong_FromSsize_t(drive_take(self));
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* The EtherCAT link: the twin of io/drives/ethercat.py EthercatDevice._send and _receive.       */
+
+#define ECAT_COMMAND_AT 16 /* the first datagram's command, then its index (Ethernet 14 + EtherCAT 2) */
+#define ECAT_INDEX_AT 17
+#define ECAT_LRW 12
+
+/* link(fd, frame, reply, wkc_at, expected_wkc, timeout_ns): send() and receive() exchange ``frame``
+ * on the raw socket ``fd`` (blocking, its SO_RCVTIMEO one tick), the answer into ``reply``, whose
+ * working counter is at ``wkc_at``, due within ``timeout_ns`` of the send. The run's out and in
+ * buffers are places in them. */
+static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
+    int fd;
+    PyObject *frame, *reply;
+    Py_ssize_t wkc_at;
+    long expected_wkc;
+    long long timeout_ns;
+    if (!PyArg_ParseTuple(args, "iOOnlL", &fd, &frame, &reply, &wkc_at, &expected_wkc, &timeout_ns)) {
+        return NULL;
+    }
+    DriveRun_unlink(self);
+    if (PyObject_GetBuffer(frame, &self->frame, PyBUF_SIMPLE | PyBUF_WRITABLE) < 0) {
+        return NULL;
+    }
+    if (PyObject_GetBuffer(reply, &self->reply, PyBUF_SIMPLE | PyBUF_WRITABLE) < 0) {
+        PyBuffer_Release(&self->frame);
+        return NULL;
+    }
+    self->linked = 1;
+    if (self->frame.len <= ECAT_INDEX_AT || wkc_at <= ECAT_INDEX_AT || wkc_at + 2 > self->reply.len) {
+        DriveRun_unlink(self);
+        PyErr_SetString(PyExc_ValueError, "DriveRun.link: a frame without its datagram, or the working counter past the reply");
+        return NULL;
+    }
+    self->fd = fd;
+    self->wkc_at = wkc_at;
+    self->expected_wkc = expected_wkc;
+    self->timeout_ns = timeout_ns;
+    self->sent_ns = 0;
+    Py_RETURN_NONE;
+}
+
+/* send() -> -1 once the outputs are packed and the frame went out with the next index; else the
+ * joint the Python side must prepare (nothing was sent). A failed send is socket.send's OSError. */
+static PyObject *DriveRun_send(DriveRun *self, PyObject *unused) {
+    if (!self->linked) {
+        PyErr_SetString(PyExc_ValueError, "DriveRun.send: no link");
+        return NULL;
+    }
+    Py_ssize_t joint = drive_prepare(self);
+    if (joint >= 0) {
+        return PyLong_FromSsize_t(joint);
+    }
+    uint8_t *frame = self->frame.buf;
+    frame[ECAT_INDEX_AT] = (uint8_t)(frame[ECAT_INDEX_AT] + 1);
+    while (send(self->fd, frame, (size_t)self->frame.len, 0) < 0) {
+        if (errno != EINTR) {
+            return PyErr_SetFromErrno(PyExc_OSError);
+        }
+        if (PyErr_CheckSignals() < 0) {
+            return NULL;
+        }
+    }
+    self->sent_ns = monotonic_ns();
     return PyLong_FromLong(-1);
+}
+
+/* receive() -> -1 once the answer to the frame just sent came in time, with the working counter
+ * expected, and its inputs are in y with every drive in Operation enabled in its mode; -2 when it
+ * did not come within the timeout (a late answer is seen as it comes, a lost one at the first
+ * kernel tick after the timeout); else the answer's working counter, the inputs not taken (the
+ * Python side checks it and takes them, naming what is wrong). Up to 16 late answers of earlier
+ * frames are passed over. EthercatDevice._receive is the reference. */
+static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
+    if (!self->linked) {
+        PyErr_SetString(PyExc_ValueError, "DriveRun.receive: no link");
+        return NULL;
+    }
+    const uint8_t *frame = self->frame.buf;
+    uint8_t *reply = self->reply.buf;
+    long long deadline_ns = self->sent_ns + self->timeout_ns;
+    for (int passed = 0; passed < 16;) {
+        ssize_t size;
+        Py_BEGIN_ALLOW_THREADS /* as socket.recv_into gives the GIL away while it waits */
+        size = recv(self->fd, reply, (size_t)self->reply.len, 0);
+        Py_END_ALLOW_THREADS
+        int saved = errno;
+        if (monotonic_ns() > deadline_ns) {
+            return PyLong_FromLong(-2); /* nothing, or an answer come too late */
+        }
+        if (size < 0) {
+            if (saved == EAGAIN || saved == EWOULDBLOCK) {
+                continue; /* a kernel tick before the timeout: wait on */
+            }
+            if (saved != EINTR) {
+                errno = saved;
+                return PyErr_SetFromErrno(PyExc_OSError);
+            }
+            if (PyErr_CheckSignals() < 0) {
+                return NULL;
+            }
+            continue;
+        }
+        if (size < self->wkc_at + 2 || reply[ECAT_INDEX_AT] != frame[ECAT_INDEX_AT] ||
+            reply[ECAT_COMMAND_AT] != ECAT_LRW) {
+            passed++;
+            continue;
+        }
+        long wkc = (long)reply[self->wkc_at] | (long)reply[self->wkc_at + 1] << 8;
+        if (wkc != self->expected_wkc || drive_take(self) >= 0) {
+            return PyLong_FromLong(wkc);
+        }
+        return PyLong_FromLong(-1);
+    }
+    return PyLong_FromLong(-2);
 }
 
 static PyMethodDef DriveRun_methods[] = {
     {"prepare", (PyCFunction)DriveRun_prepare, METH_NOARGS, "Outputs of the running cycle; -1, or the joint for Python."},
     {"take", (PyCFunction)DriveRun_take, METH_NOARGS, "Inputs into y; -1, or the joint for Python."},
+    {"link", (PyCFunction)DriveRun_link, METH_VARARGS, "link(fd, frame, reply, wkc_at, expected_wkc): the EtherCAT link."},
+    {"send", (PyCFunction)DriveRun_send, METH_NOARGS, "Outputs packed, frame sent; -1, or the joint for Python."},
+    {"receive", (PyCFunction)DriveRun_receive, METH_NOARGS,
+     "The answer taken: -1; -2 none in time; else its working counter (not taken)."},
     {NULL, NULL, 0, NULL},
+};
+
+static PyMemberDef DriveRun_members[] = {
+    {"sent_ns", T_LONGLONG, offsetof(DriveRun, sent_ns), READONLY,
+     "When send() last sent the frame (CLOCK_MONOTONIC, ns; 0: never)."},
+    {NULL, 0, 0, 0, NULL},
 };
 
 static PyTypeObject DriveRunType = {
@@ -219,4 +371,5 @@ static PyTypeObject DriveRunType = {
     .tp_init = (initproc)DriveRun_init,
     .tp_dealloc = (destructor)DriveRun_dealloc,
     .tp_methods = DriveRun_methods,
+    .tp_members = DriveRun_members,
 };

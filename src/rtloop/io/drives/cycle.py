@@ -21,11 +21,13 @@ from rtloop.io.drives import cia402
 from rtloop.io.drives.cia402 import Cia402State, JointStateMachine, StatusBits, state_name, state_of, to_raw
 from rtloop.io.drives.joints import JointConfig
 
-__all__ = ["ENABLE_LIMIT", "DriveCycle", "command_names", "reading_names"]
+__all__ = ["ENABLE_LIMIT", "NOT_LINKED", "DriveCycle", "command_names", "reading_names"]
 
 ENABLE_LIMIT = 1000
 """Exchanges a drive may take from activate to *Operation enabled* before that is a fault."""
 MODE_LIMIT = 50
+NOT_LINKED = -3
+""":meth:`DriveCycle.receive_linked`: the C cycle does not run now; the transport receives and the reference takes."""
 """Exchanges a drive may take to show a mode it was asked for (0x6061) before that is a fault."""
 
 _COMMANDS = ((8, "target_position_rad"), (9, "target_velocity_rad_s"), (10, "target_torque_Nm"))
@@ -124,12 +126,18 @@ class DriveCycle:
         self.in_buffer: Any = None
         self.enabled = False
         self.exchanges = 0
+        """Exchanges since activate (named in faults: the drive's cycle)."""
         self._fast: Any = None  # the running cycle in C (io/devio_c/drive.c DriveRun), once every drive is enabled
         self._fast_u: Any = None
         self._fast_y: Any = None
         self._fast_used = False
         self._last_u: Any = None
         self._tried: tuple[Any, Any] = (None, None)  # the (u, y) the C cycle was last built for, or tried
+        self._link: tuple[Any, ...] | None = None  # what DriveRun.link takes (link())
+        self._sent_linked = False  # the last frame went out through send_linked (its answer is C's to take)
+        from rtloop.io.compiled import devio
+
+        self._devio = devio()  # looked up here, before T0: the lookup reads and checksums the C sources
 
     @property
     def output_bytes(self) -> int:
@@ -149,6 +157,43 @@ class DriveCycle:
             joint.out_at, joint.in_at = out_at, in_at
             out_at += joint.rx.size
             in_at += joint.tx.size
+
+    def link(self, fd: int, frame: bytearray, reply: bytearray, wkc_at: int, expected_wkc: int,
+             timeout_ns: int) -> None:
+        """The EtherCAT frame the buffers are places in, on the raw socket ``fd`` (blocking, its
+        receive timeout one tick), its answer due within ``timeout_ns`` of the send: the running
+        cycle then packs, sends, receives, checks and unpacks in one C call each way
+        (:meth:`send_linked`, :meth:`receive_linked`; ``EthercatDevice._send`` and ``_receive`` are
+        the reference)."""
+        self._link = (fd, frame, reply, wkc_at, expected_wkc, timeout_ns)
+
+    def send_linked(self, u: Any) -> bool:
+        """The running cycle's outputs packed and the frame sent, in C: True; False when the C
+        cycle does not run now (the enabling, a mode change): nothing was sent."""
+        fast = self._fast
+        if fast is not None and u is self._fast_u and self.enabled and self._link is not None and fast.send() < 0:
+            self._fast_used = self._sent_linked = True
+            return True
+        self._sent_linked = False
+        return False
+
+    def linked_sent_at(self) -> float:
+        """When :meth:`send_linked` last sent (``time.monotonic``'s clock; 0.0: never)."""
+        return self._fast.sent_ns * 1e-9 if self._fast is not None and self._link is not None else 0.0
+
+    def receive_linked(self, y: Any) -> int:
+        """The answer to the frame :meth:`send_linked` sent, checked and taken into ``y`` in C: -1.
+        -2: no answer within the timeout. ``NOT_LINKED``: the C cycle does not run now (the caller
+        receives). Else the answer's working counter, its inputs not taken (the caller checks it,
+        then :meth:`take_inputs` names what the C cycle did not take)."""
+        fast = self._fast
+        if not self._sent_linked or y is not self._fast_y:
+            return NOT_LINKED
+        got: int = fast.receive()
+        if got == -1:
+            self._fast_used = True
+            self.exchanges += 1
+        return got
 
     def where(self, joint: _Joint) -> str:
         config = joint.config
@@ -258,10 +303,10 @@ class DriveCycle:
 
     def _compiled(self, y: Any) -> Any:
         """The running cycle in C on these vectors and buffers (None where the Python reference runs)."""
-        from rtloop.io.compiled import devio, refused
+        from rtloop.io.compiled import refused
 
         self._tried = (self._last_u, y)  # tried once per pair: no import or source check each cycle
-        compiled, u = devio(), self._last_u
+        compiled, u = self._devio, self._last_u
         self._fast = None
         if compiled is None or u is None or not isinstance(self.out_buffer, bytearray) or \
                 not isinstance(self.in_buffer, bytearray):
@@ -286,6 +331,8 @@ class DriveCycle:
         except (TypeError, ValueError, BufferError) as error:
             refused("a drive device's cycle", error)
             return None
+        if self._link is not None:
+            fast.link(*self._link)
         self._fast, self._fast_u, self._fast_y = fast, u, y
         return fast
 

@@ -35,8 +35,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
+from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
-from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
+from rtloop.io.drives.cycle import NOT_LINKED, DriveCycle, command_names, reading_names
 from rtloop.io.drives.drive_model import DriveModel
 from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
 from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
@@ -45,7 +46,7 @@ from rtloop.runnable import Runnable
 
 __all__ = ["EthercatDevice", "EthercatTwin"]
 
-LRW, BWR = 12, 8
+LRW, BWR, FPRD = 12, 8, 4
 DATA_AT = 26  # Ethernet header 14, EtherCAT header 2, datagram header 10
 AL_SAFEOP, AL_OP, AL_ACK = 4, 8, 0x10
 SAFE_STEP_S = 0.001
@@ -113,7 +114,7 @@ class EthercatDevice(Device):
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        for key in ("socket", "cycle", "_frame", "_reply", "_commands"):
+        for key in ("socket", "cycle", "_frame", "_reply", "_commands", "_copy_commands", "_commands_from"):
             state.pop(key, None)
         return state
 
@@ -230,7 +231,9 @@ class EthercatDevice(Device):
                 raise DeviceError(self.name, "", "", f"the slaves did not reach SAFE-OP: {self._al_problems(master)}")
         finally:
             master.close()
-        self._bind(cycle)
+        # blocking, the kernel's receive timeout one tick: one send and one recv a cycle, the frame's
+        # timeout checked on the clock (a poll before each recv would cost a syscall a cycle)
+        self._bind(cycle, open_raw(self.interface, receive_timeout_us=1))
 
     @staticmethod
     def _al_problems(master: Any) -> str:
@@ -238,7 +241,8 @@ class EthercatDevice(Device):
         return "; ".join(f"slave {i} ({slave.name}) in state 0x{slave.state:02X}, AL status code "
                          f"0x{slave.al_status:04X}" for i, slave in enumerate(master.slaves, start=1)) or "no slaves"
 
-    def _bind(self, cycle: DriveCycle) -> None:
+    def _bind(self, cycle: DriveCycle, sock: Any) -> None:
+        """The cycle's frame, exchanged on ``sock`` (blocking, its receive timeout short: SO_RCVTIMEO)."""
         total_out, total = cycle.output_bytes, cycle.output_bytes + cycle.input_bytes
         self._frame = new_frame(12 + total)
         put_datagram(self._frame, 16, LRW, 0, 0, total)
@@ -247,8 +251,12 @@ class EthercatDevice(Device):
         cycle.bind(self._frame, DATA_AT, self._reply, DATA_AT + total_out)
         self.cycle = cycle
         self._commands = np.zeros(self.n_inputs)
-        self._index = 0
-        self.socket = open_raw(self.interface, self.timeout_s)
+        self._copy_commands: Any = None  # write(u) in C (io/_devio.c Copies), for the vector it was built for
+        self._commands_from: Any = None
+        self.socket = sock
+        self._sent_at = 0.0
+        cycle.link(self.socket.fileno(), self._frame, self._reply, self._wkc_at, self._expected_wkc,
+                   round(self.timeout_s * 1e9))
 
     def _exchange(self) -> int:
         """Send the frame, take its answer; the working counter (-1: it did not come back in time)."""
@@ -257,18 +265,32 @@ class EthercatDevice(Device):
 
     def _send(self) -> None:
         frame = self._frame
-        frame[17] = self._index = (self._index + 1) & 0xFF
+        frame[17] = (frame[17] + 1) & 0xFF  # the datagram's index: its answer carries it back
         self.socket.send(frame)
+        self._sent_at = time.monotonic()
 
-    def _receive(self) -> int:
-        reply, index = self._reply, self._index
-        for _ in range(16):  # a late answer of an earlier frame is passed over
+    def _receive(self, command: int = LRW, index: int = -1) -> int:
+        """The working counter of the answer to the frame just sent (``index``: its datagram's, by
+        default the cycle's frame's); -1 when it did not come within ``timeout_us`` of the send (a
+        late answer is seen as it comes, a lost one at the kernel's first tick after the timeout)."""
+        reply, wkc_at = self._reply, self._wkc_at if command == LRW else DATA_AT + 2
+        index = self._frame[17] if index < 0 else index
+        cycle = self.cycle
+        sent_at = max(self._sent_at, cycle.linked_sent_at()) if cycle is not None else self._sent_at  # the last send
+        deadline = sent_at + self.timeout_s
+        passed = 0
+        while passed < 16:  # late answers of earlier frames are passed over
             try:
-                self.socket.recv_into(reply)
-            except TimeoutError:
+                size = self.socket.recv_into(reply)
+            except BlockingIOError:  # a tick (SO_RCVTIMEO) before the timeout: wait on
+                size = -1
+            if time.monotonic() > deadline:
                 return -1
-            if reply[17] == index and reply[16] == LRW:
-                return int(reply[self._wkc_at] | reply[self._wkc_at + 1] << 8)
+            if size < 0:
+                continue
+            if size >= wkc_at + 2 and reply[17] == index and reply[16] == command:
+                return int(reply[wkc_at] | reply[wkc_at + 1] << 8)
+            passed += 1
         return -1
 
     def activate(self) -> None:
@@ -279,20 +301,41 @@ class EthercatDevice(Device):
 
     # --- the cycle ----------------------------------------------------------------------------------
     def write(self, u: FloatVector) -> None:
+        if u is self._commands_from:
+            self._copy_commands.run()
+            return
         np.copyto(self._commands, u)
+        self._commands_from = self._copy_commands = None
+        compiled = devio()
+        if compiled is not None:  # the task's vector is the same every cycle: copied in C from the next one on
+            try:
+                self._copy_commands = compiled.Copies([(u, self._commands)])
+                self._commands_from = u
+            except (TypeError, ValueError, BufferError):  # not a contiguous float64 vector: numpy copies
+                pass
 
     def read(self, y: FloatVector) -> None:
+        self._send_outputs()
+        self._take_answer(y)
+
+    def _send_outputs(self) -> None:
+        """The first half of :meth:`read`: the outputs packed, the frame sent (one C call while
+        every drive is enabled)."""
         cycle = self.cycle
         assert cycle is not None
-        cycle.prepare_outputs(self._commands)
-        self._send()
-        self._take_answer(y)
+        if not cycle.send_linked(self._commands):
+            cycle.prepare_outputs(self._commands)
+            self._send()
 
     def _take_answer(self, y: FloatVector) -> None:
         """The answer to the frame just sent, checked, into ``y`` (the second half of :meth:`read`)."""
         cycle = self.cycle
         assert cycle is not None
-        wkc = self._receive()
+        wkc = cycle.receive_linked(y)  # one C call while every drive is enabled
+        if wkc == -1:
+            return
+        if wkc == NOT_LINKED:
+            wkc = self._receive()
         # while the drives are enabled, every slave must exchange; before, a slave still on its way
         # to OP writes no outputs (the drives stay disabled: the enabling waits, within its limit)
         if wkc != self._expected_wkc and (cycle.enabled or wkc < 0):
@@ -316,11 +359,11 @@ class EthercatDevice(Device):
         lost = []
         for joint in self.joints:
             frame = new_frame(12 + 2)
-            put_datagram(frame, 16, 4, 0x5A, (0x1000 + joint.slave) | 0x0130 << 16, 2)  # FPRD AL status
+            put_datagram(frame, 16, FPRD, 0x5A, (0x1000 + joint.slave) | 0x0130 << 16, 2)  # its AL status
             try:
                 self.socket.send(frame)
-                self.socket.recv_into(self._reply)
-                answered = self._reply[17] == 0x5A and struct.unpack_from("<H", self._reply, 28)[0] == 1
+                self._sent_at = time.monotonic()
+                answered = self._receive(FPRD, 0x5A) == 1
             except OSError:
                 answered = False
             if not answered:

@@ -42,8 +42,12 @@ def interface_problem(name: str) -> str | None:
     return None
 
 
-def open_raw(name: str, timeout_s: float | None = None) -> socket.socket:
-    """A raw socket on ``name`` for EtherCAT frames only, that does not see its own frames."""
+def open_raw(name: str, timeout_s: float | None = None, receive_timeout_us: int | None = None) -> socket.socket:
+    """A raw socket on ``name`` for EtherCAT frames only, that does not see its own frames.
+
+    ``timeout_s``: Python's timeout (a poll before each call). ``receive_timeout_us`` instead: the
+    socket stays blocking and a receive ends with BlockingIOError after this long (SO_RCVTIMEO,
+    which the kernel counts in ticks, rounding up: 1 µs is one tick), one syscall per receive."""
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETHERTYPE_ECAT))
     try:
         sock.bind((name, ETHERTYPE_ECAT))
@@ -52,6 +56,9 @@ def open_raw(name: str, timeout_s: float | None = None) -> socket.socket:
         except OSError:
             pass  # older kernels: the kernel does not loop a socket's own frames back to it anyway
         sock.settimeout(timeout_s)
+        if receive_timeout_us is not None:
+            timeval = struct.pack("@ll", *divmod(max(1, receive_timeout_us), 1_000_000))
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, timeval)
     except BaseException:
         sock.close()
         raise
