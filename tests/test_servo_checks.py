@@ -175,14 +175,92 @@ def test_sync_writes_sealed_with_either_are_the_same_bytes(kind: str) -> None:
         assert bytes(ours.seal()) == bytes(theirs.seal())
 
 
+class _Chunks:
+    """A line handing over ``stream`` in the given chunk sizes, then nothing (a timeout)."""
+
+    def __init__(self, stream: bytes, sizes: list[int]) -> None:
+        self.stream, self.sizes, self.at = stream, list(sizes), 0
+
+    def send(self, data: Any) -> None:
+        pass
+
+    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
+        if self.at >= len(self.stream):
+            return 0
+        size = min(len(buffer), self.sizes.pop(0) if self.sizes else len(self.stream), len(self.stream) - self.at)
+        buffer[:size] = self.stream[self.at:self.at + size]
+        self.at += size
+        return size
+
+    def flush_input(self) -> None:
+        pass
+
+
+def _not_statuses(kind: str, servo_id: int) -> list[bytes]:
+    protocol = PROTOCOLS[kind]
+    if kind == "dynamixel":  # a status too short for its error byte; an instruction
+        return [bytes(protocol.packet(servo_id, 0x55, b"")),
+                bytes(protocol.packet(servo_id, 0x02, b"\x84\x00\x04\x00"))]
+    short = bytearray([0xFF, 0xFF, servo_id, 0x01, 0x00])  # a length of 1: shorter than the error byte allows
+    short[-1] = ~sum(short[2:-1]) & 0xFF
+    return [bytes(short)]
+
+
+@pytest.mark.parametrize("kind", ["dynamixel", "feetech"])
+def test_a_sync_reads_answers_taken_in_c_are_the_loops_in_python(kind: str) -> None:
+    """SyncRead.collect with its scanning loop in C (servo_take_answers) against the Python loop, on answers
+    that come whole, cut in pieces, late, twice, from other IDs, of other lengths, stuffed, with a bit flipped,
+    after noise, or too long for the buffer: the same servos taken, bytes, counts and problems."""
+    from rtloop.io.servos.protocol import SyncRead
+    from rtloop.io.servos.tables import FAMILIES
+
+    first, width = FAMILIES[kind].state_range()
+    python = PROTOCOLS[kind]
+    generator = random.Random(11)
+    outcomes: dict[str, int] = {}
+    for _ in range(800):
+        ids = generator.sample(range(0, 12), generator.randrange(1, 7))
+        ours = SyncRead(type(python)(COMPILED), first, width, ids)
+        theirs = SyncRead(python, first, width, ids)
+        assert ours.take is not None and theirs.take is None
+        stream = bytearray(generator.randbytes(generator.choice([0, 0, 1, 5])))  # noise before
+        for _ in range(generator.randrange(0, len(ids) + 3)):
+            servo_id = generator.choice([*ids, generator.randrange(0, 253)])
+            data = bytearray(generator.randbytes(width if generator.random() < 0.85 else generator.randrange(0, 30)))
+            if generator.random() < 0.2 and len(data) >= 3:
+                at = generator.randrange(len(data) - 2)
+                data[at:at + 3] = b"\xff\xff\xfd"  # stuffed on the wire by Dynamixel
+            stream += python.status(servo_id, generator.choice([0, 0, 0x80, 0x20]), bytes(data))
+            if generator.random() < 0.1:  # whole, its CRC or checksum good, yet no status of a servo
+                stream += generator.choice(_not_statuses(kind, servo_id))
+        if stream and generator.random() < 0.3:
+            stream[generator.randrange(len(stream))] ^= 1 << generator.randrange(8)
+        if generator.random() < 0.05:
+            stream += bytes(len(ours.raw))  # more than the buffer holds
+        sizes = [generator.randrange(1, 40) for _ in range(60)]
+        start_bytes = generator.randbytes(len(ours.clean))
+        ours.clean[:], theirs.clean[:] = start_bytes, start_bytes
+        counts = [read.collect(_Chunks(bytes(stream), sizes), 10**9) for read in (ours, theirs)]
+        assert counts[0] == counts[1], bytes(stream).hex()
+        assert ours.problem == theirs.problem, bytes(stream).hex()
+        assert ours.received.tolist() == theirs.received.tolist() and ours.clean == theirs.clean, bytes(stream).hex()
+        outcome = f"{counts[0] == len(ids)}:{ours.problem}"
+        outcomes[outcome] = outcomes.get(outcome, 0) + 1
+    for problem in ("True:", "True:bad packet", "False:no answer within timeout_ms",
+                    "False:no answer within timeout_ms (and a bad packet)", "False:answers longer than expected"):
+        assert outcomes.get(problem, 0) > 0, outcomes  # every way out was met
+
+
 def test_the_running_cycle_uses_the_compiled_checks_and_pure_python_the_references(monkeypatch: Any) -> None:
     monkeypatch.delenv("RTLOOP_PURE_PYTHON", raising=False)  # (a suite run with it set for everything)
     device = _six_servos("dynamixel")
     assert device.goals.protocol.checks.compiled and device.state.protocol.checks.compiled
+    assert device.state.take is not None  # the sync read's scanning loop in C too
     assert not PROTOCOLS["dynamixel"].checks.compiled  # the model and the set-up: the references
     monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
     assert not for_the_cycle("feetech").checks.compiled
-    assert not _six_servos("feetech").state.protocol.checks.compiled
+    python = _six_servos("feetech")
+    assert not python.state.protocol.checks.compiled and python.state.take is None
 
 
 class _SameAnswers:

@@ -4,8 +4,8 @@ pip builds ``_devio`` with the system compiler next to the task's C hot path; wi
 compiler, or with ``RTLOOP_PURE_PYTHON=1`` (the same switch as the hot path's), the Python
 references run: the guard of ``io/limits.py``, the layouts of ``io/bytelayout.py``, the drain
 of ``io/cansocket.py``, CAN's cycle in ``io/can.py``, GPIO's in ``io/gpio.py``, SPI's in
-``io/spi.py`` and ``io/spiframe.py``, the servo packets' CRC-16 and checksum in
-``io/servos/protocol.py``. Both give the same numbers, counts and errors (``tests/test_io_compiled.py``,
+``io/spi.py`` and ``io/spiframe.py``, the servo packets' CRC-16, checksum and the sync read's
+scan in ``io/servos/protocol.py``. Both give the same numbers, counts and errors (``tests/test_io_compiled.py``,
 ``tests/test_servo_checks.py``).
 The switch is read when a device builds its cycle (``configure``), so a task process inherits it.
 

@@ -1,5 +1,6 @@
 /* The compiled twin of the smart servos' per-packet checks in io/servos/protocol.py: Dynamixel 2.0's
- * CRC-16 (crc16, crc_matches, seal_crc) and Feetech's checksum (sum_matches, seal_sum).
+ * CRC-16 (crc16, crc_matches, seal_crc) and Feetech's checksum (sum_matches, seal_sum); and of the
+ * scanning loop of SyncRead.collect (servo_take_answers, below).
  *
  * Included by ../_devio.c (one translation unit). The per-cycle packets (SyncWrite.seal, SyncRead's
  * scan of each answer) call these through a Protocol built with the compiled checks
@@ -163,6 +164,173 @@ static PyObject *devio_servo_seal_sum(PyObject *module, PyObject *const *args, P
     Py_RETURN_NONE;
 }
 
+/* ------------------------------------------------------------------------------------------ */
+/* The sync read's answers taken as they come: the compiled twin of the scanning loop of        */
+/* io/servos/protocol.py SyncRead.collect (Protocol.scan of a status, then copy_params).        */
+
+/* One status packet at b[start:got]: its size, 0 (more bytes are needed: *needed from start) or -1 (not a
+ * good status packet: no header, too short, CRC or checksum wrong, not a status). */
+static Py_ssize_t servo_status_at(int dynamixel, const unsigned char *b, Py_ssize_t start, Py_ssize_t got,
+                                  Py_ssize_t *needed, Py_ssize_t *first, Py_ssize_t *end, int *servo_id) {
+    Py_ssize_t have = got - start, total;
+    if (dynamixel) {
+        if (have < 7) {
+            *needed = 7;
+            return 0;
+        }
+        if (b[start] != 0xFF || b[start + 1] != 0xFF || b[start + 2] != 0xFD || b[start + 3] != 0) {
+            return -1;
+        }
+        total = 7 + (b[start + 5] | b[start + 6] << 8);
+        if (total < 11) {
+            return -1;
+        }
+        if (have < total) {
+            *needed = total;
+            return 0;
+        }
+        Py_ssize_t crc_at = start + total - 2;
+        if (dxl_crc(b, start, crc_at, 0) != (b[crc_at] | b[crc_at + 1] << 8) || b[start + 7] != 0x55) {
+            return -1;
+        }
+        *servo_id = b[start + 4];
+        *first = start + 8;
+        *end = crc_at;
+        return total;
+    }
+    if (have < 4) {
+        *needed = 4;
+        return 0;
+    }
+    if (b[start] != 0xFF || b[start + 1] != 0xFF) {
+        return -1;
+    }
+    total = 4 + b[start + 3];
+    if (total < 6) {
+        return -1;
+    }
+    if (have < total) {
+        *needed = total;
+        return 0;
+    }
+    if (byte_sum(b, start + 2, start + total - 1, 0) != b[start + total - 1]) {
+        return -1;
+    }
+    *servo_id = b[start + 2];
+    *first = start + 4;
+    *end = start + total - 1;
+    return total;
+}
+
+/* b[first:end] into target[0:size], Dynamixel's FF FF FD FD back to FF FF FD (left to right, as
+ * bytes.replace): 0 when its size, unstuffed, is not ``size`` (nothing written). */
+static int servo_copy(int dynamixel, const unsigned char *b, Py_ssize_t first, Py_ssize_t end, unsigned char *target,
+                      Py_ssize_t size) {
+    Py_ssize_t stuffed = 0;
+    if (dynamixel) {
+        for (Py_ssize_t i = first; i + 4 <= end;) {
+            if (b[i] == 0xFF && b[i + 1] == 0xFF && b[i + 2] == 0xFD && b[i + 3] == 0xFD) {
+                stuffed++;
+                i += 4;
+            } else {
+                i++;
+            }
+        }
+    }
+    if (end - first - stuffed != size) {
+        return 0;
+    }
+    if (!stuffed) {
+        memcpy(target, b + first, (size_t)size);
+        return 1;
+    }
+    Py_ssize_t out = 0;
+    for (Py_ssize_t i = first; i < end;) {
+        if (i + 4 <= end && b[i] == 0xFF && b[i + 1] == 0xFF && b[i + 2] == 0xFD && b[i + 3] == 0xFD) {
+            target[out++] = 0xFF;
+            target[out++] = 0xFF;
+            target[out++] = 0xFD;
+            i += 4;
+        } else {
+            target[out++] = b[i++];
+        }
+    }
+    return 1;
+}
+
+enum { SERVO_STATE_START, SERVO_STATE_COUNT, SERVO_STATE_NEEDED, SERVO_STATE_BAD, SERVO_STATE_SIZE };
+enum { SERVO_ALL_IN, SERVO_NEED_MORE, SERVO_TOO_LONG };
+
+/* servo_take_answers(dynamixel, raw, got, wanted, clean, slot, index_of, received, state) -> 0 (``wanted``
+ * servos answered), 1 (more bytes are needed) or 2 (they would not fit in raw). ``state`` (int64: start,
+ * count, needed, bad) carries the scan from call to call; ``index_of`` (int16 × 256) maps an ID to its
+ * servo (-1: none); ``received`` (bool per servo) marks the answers taken, each copied into its slot. */
+static PyObject *devio_servo_take_answers(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 9) {
+        PyErr_Format(PyExc_TypeError, "servo_take_answers takes 9 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    int dynamixel = PyObject_IsTrue(args[0]);
+    Py_ssize_t got = PyLong_AsSsize_t(args[2]), wanted = PyLong_AsSsize_t(args[3]);
+    Py_ssize_t slot = PyLong_AsSsize_t(args[5]);
+    if (dynamixel < 0 || PyErr_Occurred()) {
+        return NULL;
+    }
+    Py_buffer raw, clean, index_of, received, state;
+    Py_buffer *views[5] = {&raw, &clean, &index_of, &received, &state};
+    PyObject *objects[5] = {args[1], args[4], args[6], args[7], args[8]};
+    int flags[5] = {PyBUF_SIMPLE, PyBUF_WRITABLE, PyBUF_SIMPLE, PyBUF_WRITABLE, PyBUF_WRITABLE};
+    int held = 0;
+    PyObject *result = NULL;
+    for (; held < 5; held++) {
+        if (PyObject_GetBuffer(objects[held], views[held], flags[held]) < 0) {
+            goto done;
+        }
+    }
+    Py_ssize_t servos = received.len;
+    if (index_of.len != 256 * (Py_ssize_t)sizeof(int16_t) || state.len != SERVO_STATE_SIZE * (Py_ssize_t)sizeof(int64_t)
+        || clean.len < servos * slot || got < 0 || got > raw.len || wanted > servos) {
+        PyErr_SetString(PyExc_ValueError, "servo_take_answers: buffers of the wrong sizes");
+        goto done;
+    }
+    const unsigned char *b = raw.buf;
+    const int16_t *index_by_id = index_of.buf;
+    unsigned char *taken = received.buf;
+    int64_t *s = state.buf;
+    Py_ssize_t start = (Py_ssize_t)s[SERVO_STATE_START], count = (Py_ssize_t)s[SERVO_STATE_COUNT];
+    long verdict = SERVO_ALL_IN;
+    while (count < wanted) {
+        Py_ssize_t needed = 0, first = 0, end = 0;
+        int servo_id = 0;
+        Py_ssize_t size = servo_status_at(dynamixel, b, start, got, &needed, &first, &end, &servo_id);
+        if (size == 0) {
+            s[SERVO_STATE_NEEDED] = needed;
+            verdict = start + needed > raw.len ? SERVO_TOO_LONG : SERVO_NEED_MORE;
+            break;
+        }
+        if (size < 0) {  /* the tail of a late answer, or noise: look for the next header */
+            s[SERVO_STATE_BAD] = 1;
+            start += 1;
+            continue;
+        }
+        int index = index_by_id[servo_id];
+        if (index >= 0 && index < servos && !taken[index]
+            && servo_copy(dynamixel, b, first, end, (unsigned char *)clean.buf + index * slot, slot)) {
+            taken[index] = 1;
+            count++;
+        }
+        start += size;
+    }
+    s[SERVO_STATE_START] = start;
+    s[SERVO_STATE_COUNT] = count;
+    result = PyLong_FromLong(verdict);  /* 0..2: the interpreter's own small ints, nothing allocated */
+done:
+    for (int i = 0; i < held; i++) {
+        PyBuffer_Release(views[i]);
+    }
+    return result;
+}
+
 #define SERVO_FUNCTIONS                                                                                          \
     {"servo_crc16", (PyCFunction)(void (*)(void))devio_servo_crc16, METH_FASTCALL,                               \
      "servo_crc16(data, start, end, crc): Dynamixel 2.0's CRC-16 of data[start:end] from crc."},                 \
@@ -174,4 +342,7 @@ static PyObject *devio_servo_seal_sum(PyObject *module, PyObject *const *args, P
          "servo_sum_matches(data, start, end): Feetech's checksum of data[start:end] is the byte at end."},      \
         {"servo_seal_sum", (PyCFunction)(void (*)(void))devio_servo_seal_sum, METH_FASTCALL,                     \
          "servo_seal_sum(data, start, end, total): Feetech's checksum of data[start:end] (after bytes summing "  \
-         "to total) written at end."},
+         "to total) written at end."},\
+        {"servo_take_answers", (PyCFunction)(void (*)(void))devio_servo_take_answers, METH_FASTCALL,             \
+         "servo_take_answers(dynamixel, raw, got, wanted, clean, slot, index_of, received, state): a sync "    \
+         "read's answers scanned, checked and copied (io/servos/protocol.py SyncRead.collect)."},

@@ -9,8 +9,9 @@ Per cycle, for every servo on the bus at once (:mod:`.protocol`):
   ``NAME_velocity_rad_s``, ``NAME_current_A`` (``NAME_load``, a fraction, for a model that
   measures load) and ``NAME_error`` (its hardware error bits, 0 when well).
 
-The packets' CRC-16 (Dynamixel) or checksum (Feetech) is computed in C where ``io/_devio.c`` was built
-(``io/devio_c/servo.c``; ``io/compiled.py``), else by the Python references of :mod:`.protocol`.
+The packets' CRC-16 (Dynamixel) or checksum (Feetech), and the sync read's scan of the answers, run in C
+where ``io/_devio.c`` was built (``io/devio_c/servo.c``; ``io/compiled.py``), else as the Python references
+of :mod:`.protocol`.
 
 A servo whose answer does not come whole and good within ``timeout_ms`` keeps its last readings
 and is counted stale (``on_missing = "stale"``, at most ``max_stale_in_a_row`` in a row), or is a

@@ -25,7 +25,8 @@ carries (address, length, IDs) and each servo answers one status packet, in ID o
 written and read through numpy views on the packet's own bytes, so a cycle makes no object
 that stays. :meth:`Protocol.scan` decodes one packet in place; the servo model uses it too.
 The CRC-16 and the checksum are Python references here (:class:`Checks`), with compiled twins
-(``io/devio_c/servo.c``) that the per-cycle packets use where they were built (:func:`for_the_cycle`).
+(``io/devio_c/servo.c``) that the per-cycle packets use where they were built (:func:`for_the_cycle`);
+so is the sync read's scanning loop (:meth:`SyncRead.collect`: ``servo_take_answers``).
 """
 
 from __future__ import annotations
@@ -115,6 +116,8 @@ class Checks:
         self.seal_crc = compiled.servo_seal_crc if compiled is not None else seal_crc
         self.sum_matches = compiled.servo_sum_matches if compiled is not None else sum_matches
         self.seal_sum = compiled.servo_seal_sum if compiled is not None else seal_sum
+        self.take_answers: Any = compiled.servo_take_answers if compiled is not None else None
+        """A sync read's scanning loop in C (:meth:`SyncRead.collect`'s twin), or None: the loop here runs."""
 
 
 def stuff(body: bytes) -> bytes:
@@ -415,6 +418,10 @@ class SyncRead:
         self.index_of = [-1] * 256
         for index, servo_id in enumerate(ids):
             self.index_of[servo_id] = index
+        self.take: Any = protocol.checks.take_answers  # the loop below in C, where built
+        self.dynamixel = isinstance(protocol, Dynamixel2)
+        self.index_by_id = np.array(self.index_of, dtype=np.int16)
+        self.take_state = np.zeros(4, dtype=np.int64)  # (start, count, needed, a bad packet seen), C's
         self.scan = Scan()
         self.problem = ""
         """Why the last exchange stopped short (a bad packet, a timeout), or ''."""
@@ -428,6 +435,8 @@ class SyncRead:
         return self.collect(line, timeout_ns)
 
     def collect(self, line: Line, timeout_ns: int) -> int:
+        if self.take is not None:
+            return self._collect_compiled(line, timeout_ns)
         protocol = self.protocol  # (one name a line: a tuple here would be kept by the interpreter's free list)
         scan = self.scan
         raw = self.raw
@@ -462,6 +471,34 @@ class SyncRead:
                 count += 1
             start += size
         return count
+
+
+    def _collect_compiled(self, line: Line, timeout_ns: int) -> int:
+        """:meth:`collect` with its scanning loop in C (``io/devio_c/servo.c`` servo_take_answers): the same
+        answers taken, the same counts and problems."""
+        take = self.take
+        raw = self.raw
+        state = self.take_state
+        state.fill(0)
+        self.received[:] = False
+        deadline_ns = time.monotonic_ns() + timeout_ns
+        got = 0
+        wanted = len(self.ids)
+        while True:
+            verdict = take(self.dynamixel, raw, got, wanted, self.clean, self.slot, self.index_by_id, self.received,
+                           state)
+            if verdict == 0:
+                self.problem = "bad packet" if state[3] else ""
+                break
+            if verdict == 2:
+                self.problem = "answers longer than expected"
+                break
+            came = line.receive(self.raw_view[got:], deadline_ns - time.monotonic_ns())
+            if came == 0:
+                self.problem = "no answer within timeout_ms" + (" (and a bad packet)" if state[3] else "")
+                break
+            got += came
+        return int(state[1])
 
 
 def request(protocol: Protocol, line: Line, servo_id: int, instruction: int, params: bytes,
