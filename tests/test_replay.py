@@ -170,13 +170,13 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
     # not yet published. Only this process group is stopped afterwards.
     with stress_ng("--cpu", "2", "--cpu-load", str(HOG_LOAD_PERCENT), "--taskset", str(cpu),
                    "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s"):
-        process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "8",
+        process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "6",
                                     "--out", str(run_dir), "-q"], env=rtloop_env,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             app = connect_app(name, timeout_s=30)
             wait_for_cycles(app, "controller", 1, process)  # the run is under way (start-up may take long)
-            for step in range(8):  # a new setpoint every 0.6 s, the first at about 1 s
+            for step in range(8):  # a new setpoint every 0.6 s, the first at about 1 s, the last at 5.2 s of 6
                 time.sleep(0.6 if step else 1.0)
                 app.write("setpoint", [0.4 * (-1) ** step, 0.1 * (step % 3)])
         finally:
