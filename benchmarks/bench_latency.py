@@ -66,7 +66,7 @@ from _common import (
 
 from rtloop.app.builder import App
 from rtloop.ipc.hotpath import hot_path
-from rtloop.linux import cpustat
+from rtloop.toolbox.bench import rt_neighbours
 
 P99_RATIO_TARGET = 1.1
 """rtloop's p99 wake-up latency at most this many times cyclictest's in the same run (issue 33)."""
@@ -183,26 +183,9 @@ def interrupts_on(cpu: int) -> dict[str, int]:
     return counts
 
 
-def _kernel_thread(pid: int) -> bool:
-    try:
-        return not Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return True
-
-
 def other_realtime_threads(cpu: int) -> set[str]:
-    """Real-time threads of other programs that may run on ``cpu`` now (a walk of /proc, ~15 ms: between blocks)."""
-    found = set()
-    for pid, tid in cpustat.realtime_threads(exclude_pids=frozenset({os.getpid()})):
-        info = cpustat.read_thread(pid, tid)
-        try:
-            allowed = os.sched_getaffinity(tid)
-        except OSError:
-            continue
-        if info is None or cpu not in allowed or info.priority <= 1 or _kernel_thread(pid):
-            continue  # an rtloop supervisor waits at FIFO 1; the kernel's own threads are always there
-        found.add(info.label().split(", tid")[0] + f", {info.policy.upper()} {info.priority})")
-    return found
+    """Real-time threads of other programs that may run on ``cpu`` now (a walk of /proc: between blocks)."""
+    return set(rt_neighbours({cpu}))
 
 
 def naive_child(period_us: int, cycles: int, cpu: int, out: str) -> None:
