@@ -18,10 +18,11 @@ through the pty and the child. Contenders, interleaved in batches:
                   ``GroupSyncWrite.txPacket()``, ``GroupSyncRead.txRxPacket()``, then ``getData`` of
                   the three fields of each servo (raw integers: no conversion to SI);
 - ``framework``   ``TaskDevices.at_release`` with the bus: the guard, the copies, then the cycle;
-- ``Python refs`` the rtloop contender with the packets' CRC-16 checked and sealed by the Python
-                  references instead of ``io/devio_c/servo.c`` (batches interleaved with the others);
+- ``Python refs`` the rtloop contender with the packets' CRC-16 sealed and the answers scanned and
+                  checked by the Python references instead of ``io/devio_c/servo.c`` (batches
+                  interleaved with the others);
 - ``host share``  the rtloop cycle on a line that hands back the six answers at once (no pty, no
-                  other process): the C checks against the Python references, the host's own work.
+                  other process): the C part against the Python references, the host's own work.
 
 Usage::
 
@@ -38,6 +39,7 @@ import platform
 import select
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -183,11 +185,16 @@ def main() -> int:
         devices.at_release(cycle[0])
         cycle[0] += 1
 
-    compiled_protocol = device.state.protocol
+    compiled_protocol, compiled_take = device.state.protocol, device.state.take
     checks_in_c = compiled_protocol is not PROTOCOLS["dynamixel"]
 
+    def use_python(bus: Any, python: bool) -> None:
+        """The bus's packets sealed and its answers scanned by the Python references, or in C again."""
+        bus.goals.protocol = bus.state.protocol = PROTOCOLS["dynamixel"] if python else compiled_protocol
+        bus.state.take = None if python else compiled_take
+
     def python_references(python: bool) -> None:
-        device.goals.protocol = device.state.protocol = PROTOCOLS["dynamixel"] if python else compiled_protocol
+        use_python(device, python)
 
     results["rtloop vs os calls"] = compare(with_rtloop, os_calls, nothing, args.cycles, args.rounds,
                                             python_references if checks_in_c else None)
@@ -203,14 +210,14 @@ def main() -> int:
         host.read(host_y)
 
     def host_share_python() -> None:
-        host.goals.protocol = host.state.protocol = PROTOCOLS["dynamixel"]
+        use_python(host, True)
         try:
             host_share()
         finally:
-            host.goals.protocol = host.state.protocol = compiled_protocol
+            use_python(host, False)
 
     if checks_in_c:
-        results["host share: C checks vs Python references"] = compare(host_share, host_share_python, nothing,
+        results["host share: C part vs Python references"] = compare(host_share, host_share_python, nothing,
                                                                        args.cycles, args.rounds)
     assert abs(y[0] - 0.0) < 1.0 and np.all(np.isfinite(y)), y
 

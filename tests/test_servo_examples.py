@@ -357,5 +357,5 @@ def test_the_servo_cycle_benchmark_runs_and_allocates_nothing_that_stays(tmp_pat
 
     assert results["checks_in_c"] is (devio() is not None)
     if results["checks_in_c"]:  # the Python references' batches ran too
-        assert "| host share: C checks vs Python references |" in result.stdout
+        assert "| host share: C part vs Python references |" in result.stdout
         assert "reference_us" in results["results"]["rtloop vs os calls"]
