@@ -180,8 +180,9 @@ class PairedNode:
 def _device_on(paired: PairedNode, **settings: object):  # type: ignore[no-untyped-def]
     from rtloop.io.cansocket import CanSocket
 
+    # the watches generous where a test is not about them: this machine's stalls are no lost drive
     device = build_device("canopen402", "axis", {"interface": "vcan0", "joints": [JOINT], "answer_timeout_ms": 200,
-                                                 "tpdo_timeout_ms": 200, **settings}, "app.toml")
+                                                 "tpdo_timeout_ms": 200, "heartbeat_ms": 1000, **settings}, "app.toml")
     device.open_socket = lambda frames: CanSocket("pair", False, frames, "devices.axis", sock=paired.ours)
     return device
 
@@ -191,7 +192,7 @@ def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_sto
     from rtloop.io import compiled
 
     log: list[str] = []
-    paired = PairedNode(CanopenNode(3, log=log.append))
+    paired = PairedNode(CanopenNode(3, log=log.append, sync_timeout_s=5.0))
     device = _device_on(paired)
     twin = device.default_twin()
     try:
@@ -226,7 +227,7 @@ def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_sto
 
 
 def test_an_emcy_is_a_named_fault() -> None:
-    paired = PairedNode(CanopenNode(3))
+    paired = PairedNode(CanopenNode(3, sync_timeout_s=5.0))
     device = _device_on(paired)
     try:
         device.configure()
@@ -300,8 +301,9 @@ def test_an_eds_gives_the_identity_and_a_broken_one_is_bad_input(tmp_path: Path)
 
 @pytest.mark.parametrize("lost", ["heartbeat", "tpdo"])
 def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
-    paired = PairedNode(CanopenNode(3))
-    device = _device_on(paired, heartbeat_ms=20, tpdo_timeout_ms=50)
+    paired = PairedNode(CanopenNode(3, sync_timeout_s=5.0))
+    # a short heartbeat only where it is the point (the node's watch of ours would race the TPDO's)
+    device = _device_on(paired, heartbeat_ms=20 if lost == "heartbeat" else 1000, tpdo_timeout_ms=50)
     try:
         device.configure()
         device.activate()
@@ -329,6 +331,7 @@ def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
 
 def test_io_list_canopen_finds_the_node_with_its_identity_and_state() -> None:
     from rtloop.io.drives.canopen_scan import canopen_nodes, scan_nodes
+    from rtloop.io.inventory import format_table
 
     paired = PairedNode(CanopenNode(3))
     try:
@@ -339,6 +342,7 @@ def test_io_list_canopen_finds_the_node_with_its_identity_and_state() -> None:
     assert found == [(3, "CANopen node: vendor 0x00000A7E, product 0x00402402, revision 0x00010000, pre-operational")]
     problem, = canopen_nodes("nosuchcan0")  # this kernel has no CAN, the guest no such interface: one entry, a fix
     assert not problem.usable and problem.fix and problem.path == "nosuchcan0"
+    assert format_table([problem]).splitlines()[1].startswith("canopen nosuchcan0 ")  # the kind stands apart
 
 
 def test_the_drive_quick_stops_when_rtloops_heartbeat_stops_for_its_consumer_time() -> None:

@@ -198,11 +198,12 @@ def format_table(interfaces: list[Interface]) -> str:
     if not interfaces:
         return ("no GPIO chip, CAN interface, spidev, serial line or I2C bus on this machine "
                 "(this kernel may lack them: see docs/devices.md for the test kernel's guest)")
-    lines = [f"{'kind':<7}{'interface':<22}{'may open':<10}detail"]
+    kind = max(7, *(len(item.kind) + 1 for item in interfaces))  # 'ethercat', 'canopen' and a space
+    lines = [f"{'kind':<{kind}}{'interface':<22}{'may open':<10}detail"]
     for item in interfaces:
-        lines.append(f"{item.kind:<7}{item.path:<22}{'yes' if item.usable else 'NO':<10}{item.detail}")
+        lines.append(f"{item.kind:<{kind}}{item.path:<22}{'yes' if item.usable else 'NO':<10}{item.detail}")
         if item.fix:
-            lines.append(f"{'':<29}fix: {item.fix}")
+            lines.append(f"{'':<{kind + 22}}fix: {item.fix}")
     missing = [kind for kind in KIND_ORDER if not any(i.kind == kind for i in interfaces)]
     if missing:
         lines.append(f"none of: {', '.join(missing)}")
