@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 import tracemalloc
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Any
 # the guest's device map, as the guest's conftest reads it (skips outside the guest, with the reason)
 from conftest import guest_device
 
-__all__ = ["KEPT_BYTES_ALLOWED", "SimLine", "bytes_kept_by", "guest_device"]
+__all__ = ["KEPT_BYTES_ALLOWED", "SimLine", "bytes_kept_by", "guest_device", "scope_values"]
 
 
 class SimLine:
@@ -51,3 +52,30 @@ def bytes_kept_by(cycle, cycles):
         return tracemalloc.get_traced_memory()[0] - before
     finally:
         tracemalloc.stop()
+
+
+# One line of ``strace -ff`` per GPIO_V2_LINE_SET_VALUES_IOCTL call: the request's values as set
+SET_VALUES = re.compile(r"^ioctl\((\d+), GPIO_V2_LINE_SET_VALUES_IOCTL, \{bits=(0x[0-9a-f]+|0), "
+                        r"mask=(0x[0-9a-f]+|0)\}\) = 0$")
+
+
+def scope_values(traces: Path) -> list[int]:
+    """The scope pin's values, in the order the task set them: from each traced process's
+    SET_VALUES ioctls with a one-bit mask (the pin's; the device's writes of its two outputs carry
+    both their bits and never the pin's, docs/devices.md). Only one process (the task) may set it."""
+    by_process = {}
+    masks = set()
+    for trace in traces.parent.glob(traces.name + ".*"):
+        values = []
+        for line in trace.read_text().splitlines():
+            match = SET_VALUES.match(line)
+            if match is None:
+                continue
+            bits, mask = int(match.group(2), 16), int(match.group(3), 16)
+            if mask.bit_count() == 1:
+                masks.add(mask)
+                values.append(1 if bits & mask else 0)
+        if values:
+            by_process[trace.name] = values
+    assert len(masks) <= 1 and len(by_process) <= 1, (masks, {name: len(v) for name, v in by_process.items()})
+    return next(iter(by_process.values()), [])

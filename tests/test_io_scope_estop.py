@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from io_guest_devices import SimLine, guest_device
+from io_guest_devices import SimLine, guest_device, scope_values
 
 APP = """name = "{name}"
 [tasks.ctl]
@@ -45,11 +45,6 @@ to = "panel.u[0:2]"
 """
 
 
-# One line of ``strace -ff`` per GPIO_V2_LINE_SET_VALUES_IOCTL call: the request's values as set
-SET_VALUES = re.compile(r"^ioctl\((\d+), GPIO_V2_LINE_SET_VALUES_IOCTL, \{bits=(0x[0-9a-f]+|0), "
-                        r"mask=(0x[0-9a-f]+|0)\}\) = 0$")
-
-
 def run_app(tmp_path: Path, text: str, *args: str, env: dict | None = None,
             wrapper: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
     app = tmp_path / "app.toml"
@@ -58,28 +53,6 @@ def run_app(tmp_path: Path, text: str, *args: str, env: dict | None = None,
     env = {**os.environ, **(env or {}), "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}
     return subprocess.run([*wrapper, sys.executable, "-m", "rtloop", "run", str(app), "--out", str(tmp_path / "run"),
                            "-q", *args], capture_output=True, text=True, timeout=600, env=env)
-
-
-def scope_values(traces: Path) -> list[int]:
-    """The scope pin's values, in the order the task set them: from each traced process's
-    SET_VALUES ioctls with a one-bit mask (the pin's; the device's writes of its two outputs carry
-    both their bits and never the pin's, docs/devices.md). Only one process (the task) may set it."""
-    by_process = {}
-    masks = set()
-    for trace in traces.parent.glob(traces.name + ".*"):
-        values = []
-        for line in trace.read_text().splitlines():
-            match = SET_VALUES.match(line)
-            if match is None:
-                continue
-            bits, mask = int(match.group(2), 16), int(match.group(3), 16)
-            if mask.bit_count() == 1:
-                masks.add(mask)
-                values.append(1 if bits & mask else 0)
-        if values:
-            by_process[trace.name] = values
-    assert len(masks) <= 1 and len(by_process) <= 1, (masks, {name: len(v) for name, v in by_process.items()})
-    return next(iter(by_process.values()), [])
 
 
 @pytest.mark.rtkernel

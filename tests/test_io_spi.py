@@ -78,6 +78,28 @@ def test_read_without_write_still_asks_the_device_each_cycle():
         device.close()
 
 
+@pytest.mark.parametrize("hot_path", ["c", "python"])
+def test_the_first_read_after_the_safe_values_transfers_again(hot_path, monkeypatch):
+    """Configure's safe frame goes out before T0; the first cycle asks the device anew (its answer
+    to the safe frame would be as old as the start-up), through the C cycle and its reference."""
+    spi = guest_device("spi")
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1" if hot_path == "python" else "0")
+    device = fpga(spi["devices"][0])
+    device.configure()
+    try:
+        assert (device._frame is not None) == (hot_path == "c")
+        y = np.zeros(3)
+        device.write_safe(np.zeros(3))
+        assert device._tx[0] == 0
+        device.read(y)  # a second transfer: the counter moved on
+        assert device._tx[0] == 1 and device._rx[0] == 1 and list(y) == [0.0, 0.0, 0.0]
+        device.write(np.array([0.5, 0.25, 1.0]))
+        device.read(y)  # answered since the last read: no transfer
+        assert device._tx[0] == 2 and list(y) == [0.5, 0.25, 1.0]
+    finally:
+        device.close()
+
+
 def test_a_missing_device_or_no_permission_is_one_line(tmp_path):
     spi = guest_device("spi")
     with pytest.raises(DeviceError, match=r"devices\.fpga\.device: no SPI device /dev/spidev9\.9 \(spidev devices "

@@ -102,6 +102,9 @@ class FpgaModel(JiwyPlant):
         """Whether the H-bridge is enabled (the last command's enable bit), seen from the model's side."""
         self.duty = (0.0, 0.0)
         """The last duties received, seen from the model's side."""
+        self.answer = bytearray(FRAME_LENGTH)
+        """The answer of the last step as the wire carries it (its signals' bytes; the counter and the
+        CRC are the server's, ``fpga_server.py``): what ``y`` was read from."""
 
     def _evaluate(self, u: Any, y: Any) -> None:
         commands = self._commands
@@ -114,7 +117,10 @@ class FpgaModel(JiwyPlant):
         angles = self._angles
         super()._evaluate(steering, angles)
         angles[2] = ENABLED if self.enabled else 0.0
-        self.receive.round_trip(angles, y)  # whole encoder counts, wrapped on the wire and unwrapped
+        # whole encoder counts, wrapped on the wire and unwrapped (the layout's round trip, through
+        # the frame the FPGA answers with, so a server sends the very bytes y was read from)
+        self.receive.pack_into(self.answer, 0, angles)
+        self.receive.unpack_from(self.answer, 0, y)
 
 
 class Panel(Runnable):

@@ -147,8 +147,12 @@ setup_spi() {
         wait_for "/dev/${spidev##*/}" 5 && devices+=("\"/dev/${spidev##*/}\"")
     done
     [ ${#devices[@]} -eq 2 ] || { missing spi "rtloop_spi_loopback loaded but spidev bound ${#devices[@]} of 2 devices"; return; }
-    present spi "$(IFS=' '; echo "${devices[*]//\"/}"), MOSI looped back to MISO (rtloop_spi_loopback)" \
-        "\"devices\": [$(IFS=,; echo "${devices[*]}")], \"loopback\": true, \"max_speed_hz\": 50000000, \"driver\": \"rtloop_spi_loopback\""
+    # chip select 1 is answered by the process holding /dev/rtloop_spi_serve open, if any (looped back otherwise)
+    local serve='' served='' device
+    for device in "${devices[@]}"; do [[ $device == *'.1"' ]] && served=$device; done
+    [ -n "$served" ] && wait_for /dev/rtloop_spi_serve 5 && serve=', "serve": "/dev/rtloop_spi_serve", "served_device": '"$served"
+    present spi "$(IFS=' '; echo "${devices[*]//\"/}"), MOSI looped back to MISO (rtloop_spi_loopback)${serve:+; ${served//\"/} served by /dev/rtloop_spi_serve}" \
+        "\"devices\": [$(IFS=,; echo "${devices[*]}")], \"loopback\": true, \"max_speed_hz\": 50000000, \"driver\": \"rtloop_spi_loopback\"$serve"
 }
 
 setup_serial() {

@@ -193,6 +193,16 @@ class SpiDevice(Device):
         if not valid:
             self._not_valid(frame.last_error)
 
+    def write_safe(self, u: FloatVector) -> None:
+        """The safe values in one transfer, whose answer no cycle reads: the next ``read`` asks the
+        device again. (Configure's safe frame goes out before T0; the first cycle reads the device
+        as it is at its release, and the twin, which steps on the safe values and again at that
+        read, sees as many exchanges as the device.)"""
+        self.write(u)
+        if self._frame is not None:
+            self._frame.read(None)  # takes the answer as read (no transfer: one came since the last read)
+        self._fresh = False
+
     def _not_valid(self, why: str) -> None:
         """The answer failed its CRC or counter check: counted as a stale read, or a fault, as declared."""
         if self.on_error == "stale":
