@@ -195,13 +195,13 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
 
 
 def _slow_step_app(name: str, overrun: str, profile: Path) -> App:
-    """A PI controller and a plant whose step takes 2.5 periods longer every 100th cycle (1 kHz here,
+    """A PI controller and a plant whose step takes 2.5 periods longer every 50th cycle (1 kHz here,
     stretched with its slow step where Python is slower: the emulated guest)."""
     from rt_test_runnables import PiController, SlowIntegrator
 
     app = App(name)
     controller = app.add_task("controller", PiController(2), period_ns=scaled_ns(P), cpu=other_cpu())
-    plant = app.add_task("plant", SlowIntegrator(2, slow_s=scaled_s(0.0025)), period_ns=scaled_ns(P),
+    plant = app.add_task("plant", SlowIntegrator(2, slow_s=scaled_s(0.0025), every=50), period_ns=scaled_ns(P),
                          cpu=other_cpu(), priority=81, overrun=overrun)
     app.connect(plant.y, controller.u[0:2])
     app.connect(controller.y, plant.u)
@@ -213,17 +213,18 @@ def _slow_step_app(name: str, overrun: str, profile: Path) -> App:
 @pytest.mark.rt
 @pytest.mark.timeout(240 if slowdown() == 1 else 900)
 @pytest.mark.parametrize("overrun", ["skip", "catch_up"])
-def test_a_run_with_a_slow_step_every_100th_cycle_replays_bit_for_bit(overrun: str, tmp_path: Path,
-                                                                      hot_path: str) -> None:
+def test_a_run_with_a_slow_step_every_50th_cycle_replays_bit_for_bit(overrun: str, tmp_path: Path,
+                                                                     hot_path: str) -> None:
     from rtloop.runtime.replay import replay
 
     profile = tmp_path / "setpoints.csv"
     stretch = slowdown()
-    profile.write_text(f"t_s,pan,tilt\n0,0.5,-0.25\n{0.7 * stretch},-0.3,0.4\n{1.6 * stretch},0.1,0.0\n")
+    profile.write_text(f"t_s,pan,tilt\n0,0.5,-0.25\n{0.35 * stretch},-0.3,0.4\n{0.8 * stretch},0.1,0.0\n")
     name = f"replay_slow_{overrun[0]}{hot_path[0]}_{os.getpid()}"
-    summary = rtloop.run(_slow_step_app(name, overrun, profile), scaled_s(2.5), tmp_path / "run")
+    # 25 slow steps in 1.25 s (as many as every 100th cycle gave in 2.5 s: the same faults in half the time)
+    summary = rtloop.run(_slow_step_app(name, overrun, profile), scaled_s(1.25), tmp_path / "run")
     plant = summary.tasks["plant"]
-    assert plant.timing.deadline_misses >= 20, "a slow step every 100th cycle overruns"
+    assert plant.timing.deadline_misses >= 20, "a slow step every 50th cycle overruns"
     if overrun == "skip":
         assert plant.timing.overruns >= 40, "each slow step skips about two releases"
     else:  # every release runs, late: the controller reads samples the plant has not published yet
@@ -232,7 +233,7 @@ def test_a_run_with_a_slow_step_every_100th_cycle_replays_bit_for_bit(overrun: s
     assert result.cannot is None and result.divergence is None, result
     assert result.equal and result.rows_compared == result.rows_in_run > 100  # fewer when the machine is loaded
     assert _rows(tmp_path / "run" / "signals.csv") == _rows(tmp_path / "replay" / "signals.csv")
-    lets = rtloop.simulate(_slow_step_app(name, overrun, profile), scaled_s(2.5), tmp_path / "let")
+    lets = rtloop.simulate(_slow_step_app(name, overrun, profile), scaled_s(1.25), tmp_path / "let")
     assert lets.tasks["plant"].timing.overruns == 0
     assert _rows(tmp_path / "let" / "signals.csv") != _rows(tmp_path / "run" / "signals.csv"), (
         "the overruns changed the signals (else this test proves nothing beyond simulation)")
