@@ -165,3 +165,19 @@ def test_bench_recorder_prints_rates_beside_numpy(tmp_path: Path) -> None:
 def test_bench_port_writer_puts_the_held_writer_beside_a_mapping_per_write() -> None:
     stdout = run_script("bench_port_writer.py", "--writes", "20", "--rounds", "1")
     assert "held PortWriter" in stdout and "RunningApp.write (map per write)" in stdout
+
+
+@pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
+def test_bench_wakeup_trace_splits_both_contenders_wake_ups(tmp_path: Path) -> None:
+    from rtloop.linux import trace
+
+    if not trace.availability()[0]:
+        pytest.skip(trace.availability()[1])
+    out = tmp_path / "wakeups.json"
+    stdout = run_script("bench_wakeup_trace.py", "--rounds", "1", "--block-s", "0.5", "--json", str(out))
+    parts = table_rows(stdout, "| contender | wake-ups | timer | to run | exit | user | total |")
+    assert [row[0] for row in parts] == ["rtloop", "cyclictest"]
+    assert all(int(row[1]) > 100 for row in parts)  # ~500 wake-ups each, some lost to the block's ends
+    assert [row[0] for row in table_rows(stdout, "| contender | wake-ups | held by |")] == ["rtloop", "cyclictest"]
+    result = json.loads(out.read_text())
+    assert set(result["contenders"]["rtloop"]["us"]) == {"timer", "to run", "exit", "user", "total"}
