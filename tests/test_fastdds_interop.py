@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+import signal
 import subprocess
 import tempfile
 from pathlib import Path
@@ -84,6 +85,8 @@ def test_fastdds_peer_with_ros2_default_qos_gets_angles_and_moves_the_gimbal(tmp
         peer = subprocess.run([str(fastdds_peer), str(domain), "rt/jiwy/angles", "rt/jiwy/setpoint", "450", "40",
                                "0.4", "-0.2"], capture_output=True, text=True, timeout=90)
     finally:
+        if run.poll() is None:  # the peer has its samples (or gave up): Ctrl-C ends the run, not its 8 s
+            run.send_signal(signal.SIGINT)
         code, stderr = finish(run, timeout_s=90)
     assert code == 0, stderr
     lines = peer.stdout.splitlines()

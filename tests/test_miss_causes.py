@@ -151,7 +151,7 @@ def test_a_2ms_step_in_a_1ms_task_is_a_step_overran_with_its_time(tmp_path: Path
                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     app = App(unique_name("misses_overrun"))
     app.add_task("slow", SpinFor(2 * MS), period_ns=MS, priority=60, cpu=1)
-    summary = _run(app, tmp_path / "run", 1.0)
+    summary = _run(app, tmp_path / "run", 0.5)
     misses = summary["misses"]
     assert misses["total"] == summary["tasks"]["slow"]["deadline_misses"] > 0  # every cycle overruns
     blamed = [m for m in misses["first"] if m["cause_class"] == STEP]
