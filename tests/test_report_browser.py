@@ -77,8 +77,9 @@ def test_jiwy_run_and_its_simulation_read_at_1366_px(tmp_path: Path, rtloop_env)
     app_file = jiwy_app_file(tmp_path, name)
     feed = ["--feed", f"setpoint={EXAMPLES / 'jiwy' / 'setpoints' / 'step.csv'}"]
     run_dir, sim_dir = tmp_path / "jiwy-run", tmp_path / "jiwy-sim"
-    # the run and its simulation at once (nothing here looks at the run's timing)
-    started = [subprocess.Popen([sys.executable, "-m", "rtloop.cli", command, str(app_file), "--duration", "3",
+    # the run and its simulation at once (nothing here looks at the run's timing); 2 s: the step at 0.5 s and
+    # its settling in the signals figure
+    started = [subprocess.Popen([sys.executable, "-m", "rtloop.cli", command, str(app_file), "--duration", "2",
                                  "--out", str(out), "-q", *feed], env=rtloop_env, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
                for command, out in (("run", run_dir), ("simulate", sim_dir))]

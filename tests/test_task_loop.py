@@ -132,10 +132,10 @@ def test_jiwy_on_one_core_ends_without_a_phantom_miss(tmp_path: Path) -> None:
     """The higher-priority task leaves SCHED_FIFO when its loop ends, so its teardown (gc, postrun,
     reporting) no longer delays the other task's last cycles (it used to, by 8-9 ms, in every run)."""
     # The end of a run looks the same in a run of any length, and each run costs two task
-    # processes' start-up (~1 s): 6 runs of 0.5 s here, the issue's 20 runs of 2 s with
+    # processes' start-up (~1 s): 6 runs of 0.25 s here, the issue's 20 runs of 2 s with
     # RTLOOP_LONG_TESTS=1. Before the fix every run had the phantom.
     long = os.environ.get("RTLOOP_LONG_TESTS") == "1"
-    runs, duration_s, last = (20, 2.0, 10) if long else (6, 0.5, 10)
+    runs, duration_s, last = (20, 2.0, 10) if long else (6, 0.25, 10)
     cycles = round(duration_s * 1e9) // P
     period_ns = scaled_ns(P)  # the same cycles, stretched where Python runs slower (the emulated guest)
     late_runs, phantom_runs = [], []
