@@ -163,10 +163,9 @@ def main() -> int:
         # emulator's Python: a wide timeout, so that a loaded host does not end the benchmark
         device = build_device("ethercat", "drives", {"interface": master_if, "joints": joints, "timeout_us": 1e6},
                               "bench")
-        configure_against_a_process(slave_if, device.configure)
+        configure_against_a_process(slave_if, device.configure)  # to OP, the process data kept flowing until T0
+        device.activate()  # T0: that thread stops (OP is asked for again: the inline slaves are in OP already)
         slaves = InlineSlaves(slave_if)
-        device.activate()
-        slaves.answer()  # the request for OP
         u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
         for _ in range(20):  # the slaves to OP, the drives enabled
             device.write(u)

@@ -52,6 +52,12 @@ def _wait_in_log(log: Path, text: str, timeout_s: float = 10) -> str:
     raise AssertionError(f"{text!r} not in the emulator's log:\n{log.read_text()}")
 
 
+def _logged_at(log: str, event: str) -> float:
+    """When the emulator's log says ``event`` first (its lines begin with CLOCK_MONOTONIC seconds)."""
+    line = next(line for line in log.splitlines() if event in line)
+    return float(line.split()[0])
+
+
 def _rows(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as rows:
         return list(csv.DictReader(rows))
@@ -66,6 +72,7 @@ MOVING_CYCLES = 150  # 1.5 s: the joints on their way to the waypoint
 
 def test_the_example_follows_its_trajectory_and_equals_its_simulation(veth: tuple[str, str], tmp_path: Path) -> None:
     from replay_helpers import compare_signals, first_miss_s
+    from rtloop.runtime.replay.logs import read_timing
 
     name = unique_name("jiwy_ecat")
     app = example_app(tmp_path, *veth, name, PERIOD_MS)
@@ -97,7 +104,13 @@ def test_the_example_follows_its_trajectory_and_equals_its_simulation(veth: tupl
     if best is None:
         pytest.fail(f"every run's frame came back late (the host starved the emulator): {spoilt}")
     compared, out, until_s, text = best
-    assert "slave 2: AL SAFE-OP -> OP" in text
+    # OP before T0 (the process data kept flowing, the drives disabled), the enabling from T0 on:
+    # the emulator's log is on the run's clock (CLOCK_MONOTONIC seconds)
+    _, t0_ns = read_timing(out, {"planner": PERIOD_MS * 1_000_000})
+    for slave in (1, 2):  # the drives disabled (controlword 0) in the outputs while waiting
+        assert _logged_at(text, f"slave {slave}: first process data in OP (controlword 0x0000)") < t0_ns / 1e9, text
+        assert _logged_at(text, f"slave {slave}: drive: ready to switch on") > t0_ns / 1e9, text
+    assert "left OP" not in text.split("drive: ready to switch on")[0]  # not dropped out while waiting for T0
     assert "slave 1: drive: operation enabled (csp)" in text and "slave 2: drive: operation enabled (csp)" in text
     assert "slave 1: drive: quick stop (controlword)" in text  # the safe transition at the end of the run
     assert compared >= 1, f"no row before the first miss at {until_s} s"  # equal up to it, whenever it came

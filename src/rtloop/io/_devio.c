@@ -41,6 +41,7 @@
 #include "devio_c/gpio.c"
 #include "devio_c/spi.c"
 #include "devio_c/drive.c"
+#include "devio_c/ecat_keeper.c"
 #include "devio_c/servo.c"
 
 /* crc16_ccitt(data) -> the frame's CRC (for the tests: the same as binascii.crc_hqx(data, 0xFFFF)). */
@@ -68,9 +69,10 @@ static struct PyModuleDef devio_module = {
 
 PyMODINIT_FUNC PyInit__devio(void) {
     PyTypeObject *types[] = {&GuardType,     &CopiesType,    &LayoutType,  &CanReceiverType,
-                             &CanCycleType,  &GpioLinesType, &SpiFrameType, &DriveRunType};
+                             &CanCycleType,  &GpioLinesType, &SpiFrameType, &DriveRunType,
+                             &FrameKeeperType};
     const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame",
-                           "DriveRun"};
+                           "DriveRun", "FrameKeeper"};
     crc16_table_build();
     dxl_crc_table_build();
     PyObject *errors = PyImport_ImportModule("rtloop.errors");
@@ -93,7 +95,7 @@ PyMODINIT_FUNC PyInit__devio(void) {
         Py_DECREF(module);
         return NULL;
     }
-    for (int i = 0; i < 8; i++) {
+    for (int i = 0; i < (int)(sizeof(types) / sizeof(types[0])); i++) {
         if (PyType_Ready(types[i]) < 0) {
             Py_DECREF(module);
             return NULL;

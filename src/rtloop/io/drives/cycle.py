@@ -213,6 +213,12 @@ class DriveCycle:
             self._pack(joint, word, joint.mode, joint.position_raw, 0, 0)
         return done
 
+    def waiting_outputs(self) -> None:
+        """The outputs while the slaves wait for T0 in OP: disable voltage (the drives stay disabled),
+        each joint's first mode, no target."""
+        for joint in self.joints:
+            self._pack(joint, cia402.CW_DISABLE_VOLTAGE, joint.mode, joint.position_raw, 0, 0)
+
     def prepare_outputs(self, u: Any) -> None:
         """Controlwords, modes and targets for this cycle's exchange (``u``: the device's commands)."""
         fast = self._fast

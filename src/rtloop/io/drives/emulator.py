@@ -139,10 +139,8 @@ class Emulator:
 
 
 def _logger(stream: TextIO) -> Callable[[str], None]:
-    start = time.monotonic()
-
-    def log(text: str) -> None:
-        stream.write(f"{time.monotonic() - start:10.6f} {text}\n")
+    def log(text: str) -> None:  # CLOCK_MONOTONIC seconds: the clock of a run's timing.csv (T0, releases)
+        stream.write(f"{time.monotonic():.6f} {text}\n")
         stream.flush()
     return log
 

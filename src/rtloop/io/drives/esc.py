@@ -249,6 +249,9 @@ class EmulatedSlave:
         def get(index: int, default: int) -> int:
             return int(values[rx[index]]) if index in rx else default
 
+        if in_op and self.exchanges_in_op == 1:  # when the master's outputs begin to count, and what they say
+            controlword = get(cia402.CONTROLWORD, 0)
+            self.log(f"slave {self.position}: first process data in OP (controlword 0x{controlword:04X})")
         drive.exchange(get(cia402.CONTROLWORD, 0), get(cia402.MODES_OF_OPERATION, drive.mode),
                        get(cia402.TARGET_POSITION, 0), get(cia402.TARGET_VELOCITY, 0), get(cia402.TARGET_TORQUE, 0),
                        outputs_valid=in_op)

@@ -49,6 +49,8 @@ __all__ = ["EthercatDevice", "EthercatTwin"]
 LRW, BWR, FPRD = 12, 8, 4
 DATA_AT = 26  # Ethernet header 14, EtherCAT header 2, datagram header 10
 AL_SAFEOP, AL_OP, AL_ACK = 4, 8, 0x10
+OP_WAIT_S = 10.0
+"""How long configure waits for every slave to reach OP."""
 SAFE_STEP_S = 0.001
 """The pace of the exchanges of the safe transition (outside the loop)."""
 
@@ -109,12 +111,14 @@ class EthercatDevice(Device):
 
     def _reset_runtime(self) -> None:
         self.socket: Any = None
+        self._keeper: Any = None  # the process data before T0 (io/devio_c/ecat_keeper.c FrameKeeper)
         self.cycle: DriveCycle | None = None
         self.active = False
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        for key in ("socket", "cycle", "_frame", "_reply", "_commands", "_copy_commands", "_commands_from"):
+        for key in ("socket", "cycle", "_frame", "_reply", "_commands", "_copy_commands", "_commands_from",
+                    "_keeper"):
             state.pop(key, None)
         return state
 
@@ -234,6 +238,48 @@ class EthercatDevice(Device):
         # blocking, the kernel's receive timeout one tick: one send and one recv a cycle, the frame's
         # timeout checked on the clock (a poll before each recv would cost a syscall a cycle)
         self._bind(cycle, open_raw(self.interface, receive_timeout_us=1))
+        self._to_op()
+
+    def _to_op(self) -> None:
+        """SAFE-OP → OP before T0, the process data kept flowing until T0 by a thread in C (the drives
+        disabled in it): the first exchange at T0 finds every slave in OP. Without the C build, OP is
+        asked for at T0 instead (a Python thread would wait on the GIL longer than a watchdog allows)."""
+        cycle, compiled = self.cycle, devio()
+        assert cycle is not None
+        if compiled is None:
+            return
+        cycle.waiting_outputs()
+        interval_ns = round(min(1e6, self.watchdog_ms * 1e6 / 4))  # well within the SM watchdog
+        keeper = self._keeper = compiled.FrameKeeper(self.socket.fileno(), self._frame, self._wkc_at, interval_ns,
+                                                     round(self.timeout_s * 1e9))
+        keeper.start()
+        self._request_state(AL_OP)
+        deadline = time.monotonic() + OP_WAIT_S
+        while keeper.state()[1] != self._expected_wkc:  # every slave exchanges both ways: every slave in OP
+            if time.monotonic() > deadline:
+                keeper.stop()
+                self._keeper = None
+                raise DeviceError(self.name, "", "interface", f"the slaves did not reach OP within {OP_WAIT_S:g} s "
+                                  f"(working counter {keeper.state()[1]}, expected {self._expected_wkc}): "
+                                  f"{self._al_states()}")
+            time.sleep(0.001)
+
+    def _al_states(self) -> str:
+        """Each slave's AL status and status code, read by FPRD (outside the loop)."""
+        states = []
+        for joint in self.joints:
+            frame = new_frame(12 + 6)
+            put_datagram(frame, 16, FPRD, 0x5A, (0x1000 + joint.slave) | 0x0130 << 16, 6)  # AL status .. code
+            try:
+                self.socket.send(frame)
+                self._sent_at = time.monotonic()
+                wkc = self._receive(FPRD, 0x5A, 6)
+            except OSError:
+                wkc = -1
+            status, _, code = struct.unpack_from("<HHH", self._reply, DATA_AT)
+            states.append(f"slave {joint.slave} in AL state 0x{status:02X}, AL status code 0x{code:04X}" if wkc == 1
+                          else f"slave {joint.slave} not answering")
+        return "; ".join(states)
 
     @staticmethod
     def _al_problems(master: Any) -> str:
@@ -269,11 +315,11 @@ class EthercatDevice(Device):
         self.socket.send(frame)
         self._sent_at = time.monotonic()
 
-    def _receive(self, command: int = LRW, index: int = -1) -> int:
+    def _receive(self, command: int = LRW, index: int = -1, data_bytes: int = 2) -> int:
         """The working counter of the answer to the frame just sent (``index``: its datagram's, by
         default the cycle's frame's); -1 when it did not come within ``timeout_us`` of the send (a
         late answer is seen as it comes, a lost one at the kernel's first tick after the timeout)."""
-        reply, wkc_at = self._reply, self._wkc_at if command == LRW else DATA_AT + 2
+        reply, wkc_at = self._reply, self._wkc_at if command == LRW else DATA_AT + data_bytes
         index = self._frame[17] if index < 0 else index
         cycle = self.cycle
         sent_at = max(self._sent_at, cycle.linked_sent_at()) if cycle is not None else self._sent_at  # the last send
@@ -294,9 +340,14 @@ class EthercatDevice(Device):
         return -1
 
     def activate(self) -> None:
-        """At T0: OP is asked for (with any error acknowledged); the first exchanges carry the
-        drives' outputs from then on, and the enabling waits for every slave to be in OP."""
-        self._request_state(AL_OP | AL_ACK)
+        """At T0: the thread that kept the process data flowing stops, the task's loop exchanges from
+        now on (the slaves in OP since configure). Without it (no C build), or where a slave left OP
+        meanwhile, OP is asked for now (with any error acknowledged) and the enabling waits for it."""
+        keeper, self._keeper = self._keeper, None
+        if keeper is not None:
+            keeper.stop()
+        if keeper is None or keeper.state()[1] != self._expected_wkc:
+            self._request_state(AL_OP | AL_ACK)
         self.active = True
 
     # --- the cycle ----------------------------------------------------------------------------------
@@ -408,6 +459,9 @@ class EthercatDevice(Device):
             pass
 
     def close(self) -> None:
+        keeper, self._keeper = self._keeper, None
+        if keeper is not None:
+            keeper.stop()
         if self.socket is not None:
             self._request_state(AL_SAFEOP)
             self.socket.close()
