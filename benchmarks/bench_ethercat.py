@@ -164,7 +164,8 @@ def main() -> int:
         device = build_device("ethercat", "drives", {"interface": master_if, "joints": joints, "timeout_us": 1e6},
                               "bench")
         configure_against_a_process(slave_if, device.configure)  # to OP, the process data kept flowing until T0
-        device.activate()  # T0: that thread stops (OP is asked for again: the inline slaves are in OP already)
+        device._stop_keeper()  # here, before the inline slaves listen (they are in OP already)
+        device.activate()
         slaves = InlineSlaves(slave_if)
         u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
         for _ in range(20):  # the slaves to OP, the drives enabled

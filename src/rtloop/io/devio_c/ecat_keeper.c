@@ -10,6 +10,7 @@
  * device asks for OP at T0 instead (io/drives/ethercat.py says so). */
 
 #include <pthread.h>
+#include <sched.h>
 #include <signal.h>
 
 #define KEEPER_REPLY_BYTES 1600
@@ -143,18 +144,35 @@ static int FrameKeeper_init(FrameKeeper *self, PyObject *args, PyObject *kwargs)
     return 0;
 }
 
-/* start(): the thread begins exchanging (signals stay the main thread's: all blocked in it). */
+/* start(): the thread begins exchanging (signals stay the main thread's: all blocked in it). Where
+ * the calling thread is real-time (SCHED_FIFO/RR, priority p), the keeper runs at SCHED_FIFO p + 1:
+ * the task's start-up work at p (locking its memory, a collection) would otherwise hold the CPU
+ * longer than the SM watchdog, and a thread of the same FIFO priority cannot preempt it. Its
+ * exchanges are short and it stops at T0. */
 static PyObject *FrameKeeper_start(FrameKeeper *self, PyObject *unused) {
     if (!self->sync_made || self->started) {
         PyErr_SetString(PyExc_ValueError, "FrameKeeper: not made, or started already");
         return NULL;
     }
+    pthread_attr_t attributes;
+    pthread_attr_init(&attributes);
+    int policy;
+    struct sched_param own;
+    if (pthread_getschedparam(pthread_self(), &policy, &own) == 0 && (policy == SCHED_FIFO || policy == SCHED_RR)) {
+        struct sched_param above = {.sched_priority = own.sched_priority < sched_get_priority_max(SCHED_FIFO)
+                                                          ? own.sched_priority + 1
+                                                          : own.sched_priority};
+        pthread_attr_setinheritsched(&attributes, PTHREAD_EXPLICIT_SCHED);
+        pthread_attr_setschedpolicy(&attributes, SCHED_FIFO);
+        pthread_attr_setschedparam(&attributes, &above);
+    }
     sigset_t all, previous;
     sigfillset(&all);
     pthread_sigmask(SIG_SETMASK, &all, &previous);
     self->stopping = 0;
-    int failed = pthread_create(&self->thread, NULL, keeper_run, self);
+    int failed = pthread_create(&self->thread, &attributes, keeper_run, self);
     pthread_sigmask(SIG_SETMASK, &previous, NULL);
+    pthread_attr_destroy(&attributes);
     if (failed) {
         errno = failed;
         return PyErr_SetFromErrno(PyExc_OSError);

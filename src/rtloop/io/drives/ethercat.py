@@ -14,13 +14,13 @@
 Before anything starts (``check``, in the supervisor) SOEM, through pysoem, scans the bus and
 each slave is checked against its joint: vendor, product, revision, and the PDO mapping its SII
 describes. In the task's process (``configure``) pysoem configures the slaves again, maps their
-process data (SII), and takes them INIT → PRE-OP → SAFE-OP. At T0 OP is asked for: a slave in OP
-must get process data within its SM watchdog time, and between configure and T0 a task process
-exchanges none (a thread for it would wait on the GIL behind the task's start-up work, longer than
-a watchdog allows). From T0 one LRW frame per cycle, built once and sent on rtloop's own raw
+process data (SII), and takes them INIT → PRE-OP → SAFE-OP; then to OP, a thread in C keeping the
+process data flowing with the drives disabled until T0 (a slave in OP must get process data within
+its SM watchdog time; a Python thread would wait on the GIL behind the task's start-up work, longer
+than a watchdog allows). From T0 one LRW frame per cycle, built once and sent on rtloop's own raw
 socket (``read``), carries every drive's controlword and target out and its statusword and
 actual values back; the CiA 402 state machine (``io/drives/cia402.py``) enables the drives on the
-first exchanges, once the slaves are in OP. On every way the run ends:
+first exchanges. On every way the run ends:
 quick stop, then disable voltage, then SAFE-OP. When the task process is killed, the slaves' SM
 watchdog (``watchdog_ms``) takes them out of OP and the drives quick-stop by themselves.
 """
@@ -250,9 +250,13 @@ class EthercatDevice(Device):
             return
         cycle.waiting_outputs()
         interval_ns = round(min(1e6, self.watchdog_ms * 1e6 / 4))  # well within the SM watchdog
-        keeper = self._keeper = compiled.FrameKeeper(self.socket.fileno(), self._frame, self._wkc_at, interval_ns,
-                                                     round(self.timeout_s * 1e9))
-        keeper.start()
+        keeper = compiled.FrameKeeper(self.socket.fileno(), self._frame, self._wkc_at, interval_ns,
+                                      round(self.timeout_s * 1e9))
+        try:
+            keeper.start()
+        except OSError:  # no thread here (a SCHED_DEADLINE task's process cannot make one): OP at T0
+            return
+        self._keeper = keeper
         self._request_state(AL_OP)
         deadline = time.monotonic() + OP_WAIT_S
         while keeper.state()[1] != self._expected_wkc:  # every slave exchanges both ways: every slave in OP
@@ -340,15 +344,22 @@ class EthercatDevice(Device):
         return -1
 
     def activate(self) -> None:
-        """At T0: the thread that kept the process data flowing stops, the task's loop exchanges from
-        now on (the slaves in OP since configure). Without it (no C build), or where a slave left OP
-        meanwhile, OP is asked for now (with any error acknowledged) and the enabling waits for it."""
+        """T0 is known (it may be some time away): the process data keeps flowing until the loop's
+        first exchange (:meth:`_stop_keeper`). Without the C build OP is asked for now (with any
+        error acknowledged) and the enabling waits for it."""
+        if self._keeper is None:
+            self._request_state(AL_OP | AL_ACK)
+        self.active = True
+
+    def _stop_keeper(self) -> None:
+        """The thread that kept the process data flowing since configure stops (at the loop's first
+        exchange, or on the way out). A slave that left OP meanwhile is asked again, an error
+        acknowledged, and the enabling waits for it."""
         keeper, self._keeper = self._keeper, None
         if keeper is not None:
             keeper.stop()
-        if keeper is None or keeper.state()[1] != self._expected_wkc:
-            self._request_state(AL_OP | AL_ACK)
-        self.active = True
+            if keeper.state()[1] != self._expected_wkc and self.socket is not None:
+                self._request_state(AL_OP | AL_ACK)
 
     # --- the cycle ----------------------------------------------------------------------------------
     def write(self, u: FloatVector) -> None:
@@ -374,7 +385,9 @@ class EthercatDevice(Device):
         every drive is enabled)."""
         cycle = self.cycle
         assert cycle is not None
-        if not cycle.send_linked(self._commands):
+        if not cycle.send_linked(self._commands):  # the C cycle runs once enabled: never with the keeper on
+            if self._keeper is not None:  # the loop's first exchange, at T0
+                self._stop_keeper()
             cycle.prepare_outputs(self._commands)
             self._send()
 
@@ -434,6 +447,7 @@ class EthercatDevice(Device):
         cycle = self.cycle
         if cycle is None or not self.active:
             return
+        self._stop_keeper()  # (stopped at the first exchange already, unless the run ended before it)
         self.active = False
         deadline = time.monotonic() + self.quick_stop_timeout_s
         scratch = np.zeros(self.n_outputs)
@@ -460,7 +474,7 @@ class EthercatDevice(Device):
 
     def close(self) -> None:
         keeper, self._keeper = self._keeper, None
-        if keeper is not None:
+        if keeper is not None:  # not _stop_keeper: no OP asked for on the way out
             keeper.stop()
         if self.socket is not None:
             self._request_state(AL_SAFEOP)
