@@ -9,7 +9,9 @@
  * io/cansocket.py CanSocket._drain, CanCycle (can.c) <-> io/can.py CanDevice.write/read (with
  * CanSocket.receive_cycle), GpioLines (gpio.c) <-> io/gpio.py GpioDevice.write/read, SpiFrame
  * (spi.c) <-> io/spi.py SpiDevice with io/spiframe.py, DriveRun (drive.c) <-> io/drives/cycle.py
- * DriveCycle's running cycle, the servo_* functions (servo.c) <-> io/servos/protocol.py's CRC-16 and
+ * DriveCycle's running cycle (with EthercatDevice._send/_receive for its link), FrameKeeper
+ * (ecat_keeper.c: the EtherCAT process data before T0, no reference: without it OP waits for T0),
+ * the servo_* functions (servo.c) <-> io/servos/protocol.py's CRC-16 and
  * checksum (crc16, crc_matches, seal_crc, sum_matches, seal_sum) and SyncRead.collect's scanning loop. This file includes them all (one
  * translation unit) and makes the module. Same arithmetic in the same order, so the results are
  * bit for bit the Python ones. Every buffer a cycle touches is acquired once, when the
