@@ -95,9 +95,10 @@ def spi_device_answered_by(server, monkeypatch):
 
 
 def test_the_server_answers_every_exchange_of_the_spi_device_as_the_twin_does(models, server_module, monkeypatch):
-    """The device's exchanges (configure's safe frame before T0, the first cycle's read, a write per
-    cycle, the safe frame at the stop) each step the served model once, as the twin steps in
-    ``rtloop simulate``: the readings are equal bit for bit, and so are the steps taken."""
+    """The device's exchanges (configure's safe frame before T0, the first cycle's read in a cycle
+    that reads before it writes, a write per cycle, the safe frame at the stop) each step the
+    served model once, as the twin steps in ``rtloop simulate``: the readings are equal bit for
+    bit, and so are the steps taken."""
     from rtloop.io.twin import TwinDevice
 
     server = server_module.FpgaServer(models.FpgaModel(step_size_s=0.005))
