@@ -21,12 +21,12 @@ import io
 import marshal
 import multiprocessing.spawn
 import pickle
+import sys
 import types
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from rtloop.app.modules import replaced_class_by_file
 from rtloop.errors import AppError
 from rtloop.text import clip
 
@@ -96,7 +96,7 @@ class _ByValuePickler(pickle.Pickler):
     def reducer_override(self, obj: Any) -> Any:
         if isinstance(obj, type) and sent_by_value(obj):
             return _reduce_class(obj)
-        if isinstance(obj, type) and (by_file := replaced_class_by_file(obj)) is not None:
+        if isinstance(obj, type) and (by_file := _replaced_class_by_file(obj)) is not None:
             return by_file
         if isinstance(obj, types.FunctionType) and sent_by_value(obj):
             return _reduce_function(obj)
@@ -107,6 +107,13 @@ class _ByValuePickler(pickle.Pickler):
         if isinstance(obj, property):
             return property, (obj.fget, obj.fset, obj.fdel, obj.__doc__)
         return NotImplemented
+
+
+def _replaced_class_by_file(cls: type) -> tuple[Any, ...] | None:
+    """``modules.replaced_class_by_file`` where modules were loaded by file at all (a task process,
+    which only unpickles, never imports the loader and what it needs: hashlib, tempfile, ...)."""
+    modules = sys.modules.get("rtloop.app.modules")
+    return None if modules is None else modules.replaced_class_by_file(cls)
 
 
 # --- classes -------------------------------------------------------------------------------
