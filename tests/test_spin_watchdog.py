@@ -64,7 +64,8 @@ def test_a_spinning_real_time_step_is_ended_when_it_starves_the_supervisor(tmp_p
         process.communicate()
         pytest.fail("the spinning step was not ended: the supervisor starved on its core")
     assert "FAILED" in stdout and "watchdog" in stdout and "RLIMIT_RTTIME" in stdout, (stdout, stderr)
-    assert int((tmp_path / "out.stuck").read_text()) == 5
+    # it spins from the first cycle it gets at or after 5 (a loaded machine may skip that release)
+    assert int((tmp_path / "out.stuck").read_text()) >= 5
     summary = json.loads((out / "summary.json").read_text())
     assert summary["stopped_by"] == "watchdog" and summary["failure"]["task"] == "spinner"
 
