@@ -30,10 +30,6 @@ by_hand=("$scope_test[toggle-python]" "$scope_test[step-python]")
 # The CANopen drive's ways out (Ctrl-C, a drive fault, SIGKILL of the task) against its emulated node
 # on vcan0: a run each, minutes under emulation; the example's run against the node is in the tier.
 by_hand+=(tests/test_io_canopen.py::test_every_way_out_leaves_the_drive_quick_stopped_then_disabled)
-# examples/jiwy_spi against its FPGA model served on the SPI bus (run == simulate, the E-stop's safe
-# frame at the model, the scope pin): whole runs under emulation, each test several minutes (a
-# simulation and up to four runs of 10 s; a run under strace), more than the tier's budget allows.
-by_hand+=(tests/test_io_jiwy_spi.py)
 for test in "${by_hand[@]}"; do
     echo "guest tier: by hand only (the reason above): $test"
 done
