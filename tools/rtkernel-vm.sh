@@ -118,9 +118,15 @@ prepare_kernel() {  # $kroot: vmlinuz, modules, headers, kbuild of $kver
     common=$(apt-cache depends "linux-headers-$kver" | awk '/Depends: linux-headers-/ { print $2; exit }')
     kbuild=$(apt-cache depends "linux-headers-$kver" | awk '/Depends: linux-kbuild-/ { print $2; exit }')
     [ -n "$common" ] && [ -n "$kbuild" ] || fail "apt-cache depends linux-headers-$kver names no common headers or kbuild"
-    say "downloading $kver ($kpkg_version): image, headers, kbuild"
+    # kbuild is asked for as ">= the kernel's version" and the archive keeps only its newest upload
+    # (seen: image 6.1.192-2 beside kbuild 6.1.192-3 only): take the registry's candidate if it is new enough.
+    local kbuild_version
+    kbuild_version=$(apt-cache policy "$kbuild" | awk '/Candidate:/ { print $2; exit }')
+    dpkg --compare-versions "${kbuild_version:-0}" ge "$kpkg_version" ||
+        fail "the registry's $kbuild is ${kbuild_version:-missing}, older than the kernel's $kpkg_version"
+    say "downloading $kver ($kpkg_version): image, headers, kbuild ($kbuild_version)"
     apt_download "linux-image-$kver-unsigned=$kpkg_version" "linux-headers-$kver=$kpkg_version" \
-        "$common=$kpkg_version" "$kbuild=$kpkg_version"
+        "$common=$kpkg_version" "$kbuild=$kbuild_version"
     rm -rf "$kroot" && mkdir -p "$kroot"
     local deb
     for deb in "$cache/debs/"*.deb; do
