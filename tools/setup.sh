@@ -16,9 +16,12 @@ if [ "${1:-}" != "--no-apt" ]; then
         exit 2
     fi
     echo "tools/setup.sh: installing system packages (apt-get): $packages"  # quiet below: one line per step
-    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get update -qq
-    # shellcheck disable=SC2086  # one word per package
-    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null
+    # Wait for another apt (a fresh Ubuntu's unattended-upgrades, a second setup) instead of failing on its lock.
+    apt_wait="-o DPkg::Lock::Timeout=300"
+    # shellcheck disable=SC2086  # one word per option and per package
+    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get $apt_wait update -qq
+    # shellcheck disable=SC2086
+    tools/as-root env DEBIAN_FRONTEND=noninteractive apt-get $apt_wait install -y -qq $packages >/dev/null
 fi
 
 echo "tools/setup.sh: creating .venv and installing rtloop[all,test] in it (a few minutes the first time)"
