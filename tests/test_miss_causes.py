@@ -254,8 +254,11 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced:
     for miss in misses["first"]:
         assert miss["cause_class"] != STEP, miss
         lost_ns = miss["latency_ns"] if miss["kind"] == "late wake-up" else miss["exec_ns"]
-        if lost_ns <= 4 * MS:  # the hog's reach: a thread held the CPU (the hog, or on this shared machine
-            assert miss["cause_class"] == THREAD, miss  # another engineer's task of the same priority)
+        stalled = miss["cause_class"] == MACHINE and miss["evidence"].get("steal_ns", 0) > 0
+        if lost_ns <= 4 * MS and not stalled:  # the hog's reach: a thread held the CPU (the hog, or on this
+            # shared machine another engineer's task of the same priority); a hypervisor stall in the same
+            # window (steal on the CPU, seen on a quiet machine: +10 ms) is said as the machine's, rightly
+            assert miss["cause_class"] == THREAD, miss
     assert re.search(r"^misses: (controller|plant): \d+ late wake-ups? .*\(rtloop-hog \(pid \d+, [^)]*\): \d+",
                      done.stdout, re.M), done.stdout
     # the models' catch-up account: once per task, its name, the true cause (not "its step overran")
