@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1] / "tests"))
 from bench_devices import bytes_kept, compare, pty_line
 
 from rtloop.io.device import build_device
@@ -51,6 +52,7 @@ from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.io.servos.line import ModelLine, PortLine
 from rtloop.io.servos.model import build_bus
 from rtloop.io.servos.protocol import PROTOCOLS
+from servo_lines import servos_answering_at_once
 
 IDS = [1, 2, 3, 4, 5, 6]
 SERVOS = [{"name": f"joint{i}", "id": i, "model": "XM430-W350", "range_rad": [-1.5, 1.5]} for i in IDS]
@@ -71,23 +73,6 @@ def serve_answers(master: int, request: bytes, answers: bytes) -> None:
             os.write(master, answers)
         elif len(seen) > 4 * len(request):
             del seen[:-len(request)]
-
-
-class AnswersAtOnce:
-    """A line whose servos answer each sync read at once, in process (the host's share alone)."""
-
-    def __init__(self, answers: bytes) -> None:
-        self.answers = answers
-
-    def send(self, data: object) -> None:
-        pass
-
-    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
-        buffer[:len(self.answers)] = self.answers
-        return len(self.answers)
-
-    def flush_input(self) -> None:
-        pass
 
 
 def nothing() -> None:
@@ -199,10 +184,7 @@ def main() -> int:
     results["rtloop vs os calls"] = compare(with_rtloop, os_calls, nothing, args.cycles, args.rounds,
                                             python_references if checks_in_c else None)
     results["framework vs os calls"] = compare(framework, os_calls, nothing, args.cycles, args.rounds)
-    host = build_device("dynamixel", "host", {"port": path, "servos": SERVOS}, "bench")
-    host.attach(ModelLine(build_bus("dynamixel", IDS, ["XM430-W350"], 0.002)))
-    host.activate()
-    host.line = AnswersAtOnce(answers)
+    host = servos_answering_at_once("dynamixel", "host", SERVOS)
     host_y = np.zeros(host.n_outputs)
 
     def host_share() -> None:

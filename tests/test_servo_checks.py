@@ -12,11 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from rtloop.io.device import build_device
 from rtloop.io.servos import protocol as reference
-from rtloop.io.servos.line import ModelLine
-from rtloop.io.servos.model import build_bus
 from rtloop.io.servos.protocol import BAD, NEED_MORE, PROTOCOLS, Checks, Dynamixel2, Feetech, Scan, for_the_cycle
+from servo_lines import servos_answering_at_once
 
 devio = pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
 COMPILED = Checks(devio)
@@ -263,34 +261,10 @@ def test_the_running_cycle_uses_the_compiled_checks_and_pure_python_the_referenc
     assert not python.state.protocol.checks.compiled and python.state.take is None
 
 
-class _SameAnswers:
-    """A line whose servos answer each sync read with the same bytes, at once (no model in the loop: what
-    tracemalloc sees is the device's own)."""
-
-    def __init__(self, answers: bytes) -> None:
-        self.answers = answers
-
-    def send(self, data: Any) -> None:
-        pass
-
-    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
-        buffer[:len(self.answers)] = self.answers
-        return len(self.answers)
-
-    def flush_input(self) -> None:
-        pass
-
-
 def _six_servos(kind: str) -> Any:
     model = "XM430-W350" if kind == "dynamixel" else "STS3215"
-    ids = [1, 2, 3, 4, 5, 6]
-    device = build_device(kind, "arm", {"port": "/dev/null", "servos": [
-        {"name": f"j{i}", "id": i, "model": model, "range_rad": [-1, 1]} for i in ids]}, "app.toml")
-    bus = build_bus(kind, ids, [model], 0.002)
-    device.attach(ModelLine(bus))
-    device.activate()
-    device.line = _SameAnswers(bytes(bus.receive(bytes(device.state.request))))
-    return device
+    return servos_answering_at_once(kind, "arm", [{"name": f"j{i}", "id": i, "model": model, "range_rad": [-1, 1]}
+                                                  for i in range(1, 7)])
 
 
 @pytest.mark.parametrize(("pure_python", "cycles"), [(False, 10_000), (True, 1_000)], ids=["compiled", "python"])
