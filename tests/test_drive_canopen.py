@@ -417,3 +417,19 @@ def test_the_apps_sdo_values_are_written_segmented_and_read_back_and_a_refused_o
     with pytest.raises(DeviceError, match=r"joints\[0\]\.sdo\[0\]: expected exactly one of text, hex or value"):
         build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**JOINT, "sdo": [{"index": 0x2000}]}]},
                      "app.toml")
+
+
+def test_both_drive_devices_share_the_joints_limits_table_check_and_quick_stop_setting() -> None:
+    joints = [{**{k: v for k, v in JOINT.items() if k != "mode"}, "modes": ["csv", "csp"],
+               "rxpdo": ["0x6040", "0x6060", "0x60FF", "0x607A"]}]
+    settings = {"interface": "vcan0", "joints": joints, "quick_stop_timeout_s": 0.5}
+    can = build_device("canopen402", "axis", settings, "t")
+    ecat = build_device("ethercat", "axis", {**settings, "joints": [{k: v for k, v in joints[0].items()
+                                                                      if k != "node"}]}, "t")
+    assert can.default_limits() == ecat.default_limits()
+    mode = can.default_limits()["wheel_target_mode"]
+    assert (mode.min, mode.max, mode.safe) == (8, 10, 9)  # CSP..CST, starting in the first mode (CSV)
+    assert can.quick_stop_timeout_s == ecat.quick_stop_timeout_s == 0.5
+    for kind in ("canopen402", "ethercat"):
+        with pytest.raises(DeviceError, match=r"devices\.axis\.joints: expected one table per drive, in bus order"):
+            build_device(kind, "axis", {"interface": "vcan0", "joints": ["wheel"]}, "t")

@@ -40,7 +40,14 @@ from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, 
 from rtloop.io.drives import canopen_wire as wire
 from rtloop.io.drives.canopen_sdo import SdoDownload, SdoTransfer, SdoUpload
 from rtloop.io.drives.cycle import DriveCycle, command_names, reading_names
-from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
+from rtloop.io.drives.joints import (
+    QUICK_STOP_TIMEOUT,
+    JointConfig,
+    JointError,
+    joint_from_table,
+    joint_limits,
+    joint_tables_check,
+)
 from rtloop.io.drives.pdo import OBJECTS
 from rtloop.runnable import Runnable
 
@@ -51,12 +58,6 @@ _Transfer = TypeVar("_Transfer", bound=SdoTransfer)
 CONSUMER_PERIODS = 3
 """Heartbeat periods either side waits without one before it stops (rtloop: a fault; a drive: 0x1016)."""
 DATA_AT = 8
-
-
-def _tables(value: list[Any]) -> str | None:
-    if not value or not all(isinstance(item, dict) for item in value):
-        return "expected one table per drive: [{ name, node, vendor, product, revision, mode, ... }]"
-    return None
 
 
 def _node_id(value: int) -> str | None:
@@ -143,7 +144,8 @@ class Canopen402Device(Device):
     kind: ClassVar[str] = "canopen402"
     settings: ClassVar[dict[str, Setting]] = {
         "interface": Setting(str, doc="the SocketCAN interface the drives are on (can0; vcan0 for the emulated node)"),
-        "joints": Setting(list, doc="one table per drive: its joint and its node id", check=_tables),
+        "joints": Setting(list, doc="one table per drive: its joint and its node id",
+                      check=joint_tables_check("name, node, vendor, product, revision, mode")),
         "answer_timeout_ms": Setting(float, 500.0, "how long a node may take to answer an SDO or to boot up after "
                                      "NMT reset, ms", positive, at_most=60_000.0),
         "tpdo_timeout_ms": Setting(float, 1.0, "how long after SYNC the TPDOs may take to come, ms", positive,
@@ -152,8 +154,7 @@ class Canopen402Device(Device):
                                 "either side stops after three missed", positive, at_most=20_000.0),
         "master_node": Setting(int, 127, "the node id rtloop's own heartbeat goes out as (0x700 + it), which "
                                "each drive's heartbeat consumer (0x1016) watches", _node_id),
-        "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
-                                        "disable) before rtloop gives up on it", positive, at_most=60.0),
+        "quick_stop_timeout_s": QUICK_STOP_TIMEOUT,
         "eds_dir": Setting(str, "", "the folder relative eds paths are taken from (in an app file, \".\" is the "
                            "app file's folder)", is_path=True),
     }
@@ -227,14 +228,7 @@ class Canopen402Device(Device):
 
     # --- description ----------------------------------------------------------------------------
     def default_limits(self) -> dict[str, CommandLimit]:
-        limits = {}
-        for joint in self.joints:
-            for command in command_names(joint):
-                if command.endswith("_target_mode"):
-                    limits[command] = CommandLimit(8, 10, joint.modes[0])
-                else:  # wide open: the app's limits say what the machine allows
-                    limits[command] = CommandLimit(-1e6, 1e6, 0.0)
-        return limits
+        return joint_limits(self.joints)
 
     def claims(self) -> tuple[Claim, ...]:
         """The bus's NMT master and SYNC producer, and each node's requests: a second master would

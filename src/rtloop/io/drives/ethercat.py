@@ -39,7 +39,14 @@ from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives.cycle import NOT_LINKED, DriveCycle, command_names, reading_names
 from rtloop.io.drives.drive_model import DriveModel
-from rtloop.io.drives.joints import JointConfig, JointError, joint_from_table
+from rtloop.io.drives.joints import (
+    QUICK_STOP_TIMEOUT,
+    JointConfig,
+    JointError,
+    joint_from_table,
+    joint_limits,
+    joint_tables_check,
+)
 from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
 from rtloop.io.drives.sii import parse_sii
 from rtloop.runnable import Runnable
@@ -55,12 +62,6 @@ SAFE_STEP_S = 0.001
 """The pace of the exchanges of the safe transition (outside the loop)."""
 
 
-def _tables(value: list[Any]) -> str | None:
-    if not value or not all(isinstance(item, dict) for item in value):
-        return "expected one table per drive, in bus order: [{ name, vendor, product, revision, mode, ... }]"
-    return None
-
-
 def _eeprom_reader(slave: Any) -> Any:
     return lambda word: bytes(slave.eeprom_read(word))
 
@@ -71,13 +72,13 @@ class EthercatDevice(Device):
     kind: ClassVar[str] = "ethercat"
     settings: ClassVar[dict[str, Setting]] = {
         "interface": Setting(str, doc="the network interface the slaves are on (eth1; a veth end for emulated drives)"),
-        "joints": Setting(list, doc="one table per drive, in bus order", check=_tables),
+        "joints": Setting(list, doc="one table per drive, in bus order",
+                      check=joint_tables_check("name, vendor, product, revision, mode")),
         "timeout_us": Setting(float, 1000.0, "how long a cycle's frame may take to come back, µs", positive,
                               at_most=1e6),
         "watchdog_ms": Setting(float, 100.0, "the slaves' SM watchdog: without process data this long, a slave "
                                "leaves OP and its drive stops", positive, at_most=6000.0),
-        "quick_stop_timeout_s": Setting(float, 2.0, "how long the safe transition may take (quick stop, then "
-                                        "disable) before rtloop gives up on it", positive, at_most=60.0),
+        "quick_stop_timeout_s": QUICK_STOP_TIMEOUT,
         "emulator_interface": Setting(str, "", "the veth end `rtloop emulate ethercat --app` answers on (tests, "
                                       "examples)"),
         "esi_dir": Setting(str, "", "the folder relative esi paths are taken from (in an app file, \".\" is the "
@@ -128,14 +129,7 @@ class EthercatDevice(Device):
 
     # --- description ------------------------------------------------------------------------------
     def default_limits(self) -> dict[str, CommandLimit]:
-        limits = {}
-        for joint in self.joints:
-            for command in command_names(joint):
-                if command.endswith("_target_mode"):
-                    limits[command] = CommandLimit(8, 10, joint.modes[0])
-                else:  # wide open: the app's limits say what the machine allows
-                    limits[command] = CommandLimit(-1e6, 1e6, 0.0)
-        return limits
+        return joint_limits(self.joints)
 
     def claims(self) -> tuple[Claim, ...]:
         """The whole segment: a second master on the interface would scan, reconfigure and exchange

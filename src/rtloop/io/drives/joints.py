@@ -21,16 +21,48 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rtloop.io.device import CommandLimit, Setting, positive
 from rtloop.io.drives import cia402
 from rtloop.io.drives.cia402 import MODES, JointScale
 from rtloop.io.drives.drive_model import DriveParameters
 from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO, OBJECTS, PdoLayout, parse_object
 from rtloop.io.drives.sii import Identity
 
-__all__ = ["JointConfig", "JointError", "joint_from_table"]
+__all__ = ["QUICK_STOP_TIMEOUT", "JointConfig", "JointError", "joint_from_table", "joint_limits", "joint_tables_check"]
 
 JOINT_KEYS = {"name", "vendor", "product", "revision", "mode", "modes", "counts_per_rev", "gear_ratio", "direction",
               "rated_torque_Nm", "rxpdo", "txpdo", "esi", "drive"}
+
+
+QUICK_STOP_TIMEOUT = Setting(float, 2.0, "how long the safe transition may take (quick stop, then disable) before "
+                             "rtloop gives up on it", positive, at_most=60.0)
+"""A drive device's ``quick_stop_timeout_s`` setting (EtherCAT and CANopen alike)."""
+
+
+def joint_tables_check(keys: str) -> Any:
+    """A ``joints`` setting's check: a non-empty list of tables (``keys`` shows what goes in one)."""
+
+    def check(value: list[Any]) -> str | None:
+        if not value or not all(isinstance(item, dict) for item in value):
+            return f"expected one table per drive, in bus order: [{{ {keys}, ... }}]"
+        return None
+
+    return check
+
+
+def joint_limits(joints: tuple[JointConfig, ...]) -> dict[str, CommandLimit]:
+    """A drive device's default command limits: a joint's mode command within CSP..CST, starting in
+    its first mode; the set points wide open (the app's limits say what the machine allows)."""
+    from rtloop.io.drives.cycle import command_names  # (the cycle module builds on this one)
+
+    limits = {}
+    for joint in joints:
+        for command in command_names(joint):
+            if command.endswith("_target_mode"):
+                limits[command] = CommandLimit(8, 10, joint.modes[0])
+            else:
+                limits[command] = CommandLimit(-1e6, 1e6, 0.0)
+    return limits
 
 
 class JointError(ValueError):
