@@ -228,7 +228,7 @@ class Canopen402Device(Device):
 
     # --- description ----------------------------------------------------------------------------
     def default_limits(self) -> dict[str, CommandLimit]:
-        return joint_limits(self.joints)
+        return joint_limits(self.joints, self.input_names or ())
 
     def claims(self) -> tuple[Claim, ...]:
         """The bus's NMT master and SYNC producer, and each node's requests: a second master would

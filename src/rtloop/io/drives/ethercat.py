@@ -129,7 +129,7 @@ class EthercatDevice(Device):
 
     # --- description ------------------------------------------------------------------------------
     def default_limits(self) -> dict[str, CommandLimit]:
-        return joint_limits(self.joints)
+        return joint_limits(self.joints, self.input_names or ())
 
     def claims(self) -> tuple[Claim, ...]:
         """The whole segment: a second master on the interface would scan, reconfigure and exchange

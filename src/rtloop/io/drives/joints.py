@@ -50,19 +50,13 @@ def joint_tables_check(keys: str) -> Any:
     return check
 
 
-def joint_limits(joints: tuple[JointConfig, ...]) -> dict[str, CommandLimit]:
-    """A drive device's default command limits: a joint's mode command within CSP..CST, starting in
-    its first mode; the set points wide open (the app's limits say what the machine allows)."""
-    from rtloop.io.drives.cycle import command_names  # (the cycle module builds on this one)
-
-    limits = {}
-    for joint in joints:
-        for command in command_names(joint):
-            if command.endswith("_target_mode"):
-                limits[command] = CommandLimit(8, 10, joint.modes[0])
-            else:
-                limits[command] = CommandLimit(-1e6, 1e6, 0.0)
-    return limits
+def joint_limits(joints: tuple[JointConfig, ...], input_names: tuple[str, ...]) -> dict[str, CommandLimit]:
+    """A drive device's default command limits (its ``input_names``): a joint's mode command within
+    CSP..CST, starting in its first mode; the set points wide open (the app's limits say what the
+    machine allows)."""
+    first_modes = {f"{joint.name}_target_mode": joint.modes[0] for joint in joints}
+    return {name: CommandLimit(8, 10, first_modes[name]) if name in first_modes else CommandLimit(-1e6, 1e6, 0.0)
+            for name in input_names}
 
 
 class JointError(ValueError):
