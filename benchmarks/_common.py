@@ -1,11 +1,13 @@
-"""Helpers shared by the benchmark scripts: statistics, tables, machine facts, a no-op task.
+"""Helpers shared by the benchmark scripts: statistics, tables, machine facts, a no-op task, and the
+options, result head, closing sections and output every table-printing benchmark ends with.
 
-Imported by ``bench_latency.py`` and ``bench_channels.py`` (both in the parent process
-and, through ``multiprocessing``'s spawn re-import, in the task processes).
+Imported by the benchmarks (in the parent process and, through ``multiprocessing``'s spawn
+re-import, in the task processes), so it imports nothing heavier than numpy and rtloop.
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import json
 import os
@@ -137,6 +139,63 @@ class PmQos:
 
 def write_json(path: str | Path, data: dict[str, Any]) -> None:
     Path(path).write_text(json.dumps(data, indent=2, default=float) + "\n")
+
+
+def where_measured() -> str:
+    """One line naming the host, its kernel and the Python that measured (the device benchmarks' heading)."""
+    return f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"
+
+
+QUICK_ROUNDS, QUICK_BLOCK_S = 2, 3.0
+
+
+def add_output_options(parser: argparse.ArgumentParser, quick_help: str | None = None) -> None:
+    """The options a benchmark's command line ends with: ``--quick`` (where ``quick_help`` says what it
+    runs: ``QUICK_ROUNDS`` rounds of ``QUICK_BLOCK_S`` s blocks) and ``--json PATH``."""
+    if quick_help is not None:
+        parser.add_argument("--quick", action="store_true", help=quick_help)
+    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+
+
+def parse_options(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """The parsed command line, with ``--quick`` (if the parser has it) setting rounds and block length."""
+    args = parser.parse_args(argv)
+    if getattr(args, "quick", False):
+        args.rounds, args.block_s = QUICK_ROUNDS, QUICK_BLOCK_S
+    return args
+
+
+def result_head(benchmark: str, args: argparse.Namespace, facts: dict[str, Any], started: float) -> dict[str, Any]:
+    """What every result starts with: its name, the command, the settings (not where the JSON went),
+    the machine and the time it took since ``started`` (``time.monotonic()``)."""
+    return {
+        "benchmark": benchmark,
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "settings": {k: v for k, v in vars(args).items() if k != "json"},
+        "machine": facts,
+        "elapsed_s": round(time.monotonic() - started, 1),
+    }
+
+
+TARGET_RESULT = {True: "met", False: "**MISSED**", None: "—"}  # None: a figure given for information
+
+
+def closing_sections(result: dict[str, Any]) -> list[str]:
+    """The "### Targets" table (where the result has targets) and the "### Machine" facts, as sections."""
+    sections = []
+    if "targets" in result:
+        sections += ["### Targets", markdown_table(["target", "measured", "result"],
+                                                   [[t["target"], t["measured"], TARGET_RESULT[t["met"]]]
+                                                    for t in result["targets"]])]
+    return [*sections, "### Machine", facts_markdown(result["machine"])]
+
+
+def print_and_save(markdown: str, result: dict[str, Any], json_path: str | None) -> int:
+    """Print the tables, write the result as JSON where ``--json`` asked; the exit status (0)."""
+    print(markdown)
+    if json_path:
+        write_json(json_path, result)
+    return 0
 
 
 def load_timing_csv(path: Path) -> dict[str, np.ndarray]:

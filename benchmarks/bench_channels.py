@@ -47,13 +47,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (
     NoOp,
     PmQos,
-    facts_markdown,
+    add_output_options,
+    closing_sections,
     load_timing_csv,
     machine_facts,
     markdown_table,
+    parse_options,
+    print_and_save,
+    result_head,
     stats_us,
     trim,
-    write_json,
 )
 
 from rtloop.app.builder import App
@@ -341,11 +344,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     let_p50 = hops["LetChannel"]["hop_us"]["p50"]
     zero, four = connections["0 connections"]["exec_us"]["p50"], connections["4 input connections"]["exec_us"]["p50"]
     return {
-        "benchmark": "channels",
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "settings": {k: v for k, v in vars(args).items() if k != "json"},  # not where it was written
-        "machine": facts,
-        "elapsed_s": round(time.monotonic() - started, 1),
+        **result_head("channels", args, facts, started),
         "hops": hops,
         "operations_us": operations,
         "connections": connections,
@@ -363,8 +362,6 @@ def report_markdown(result: dict[str, Any]) -> str:
                 for kind, e in result["hops"].items()]
     conn_rows = [[key, e["samples"], *(e["exec_us"][c] for c in ("min", "p50", "p99", "p99.9", "max"))]
                  for key, e in result["connections"].items()]
-    target_rows = [[t["target"], t["measured"], {True: "met", False: "**MISSED**", None: "—"}[t["met"]]]
-                   for t in result["targets"]]
     return "\n\n".join([
         f"### One-way hop latency (µs), writer CPU {settings['writer_cpu']} → reader CPU {settings['reader_cpu']}, "
         f"SCHED_FIFO {settings['priority']}, one sample per {settings['hop_period_us']} µs, "
@@ -374,10 +371,7 @@ def report_markdown(result: dict[str, Any]) -> str:
         markdown_table(["operation", "µs"], list(result["operations_us"].items())),
         f"### Per-cycle cost of connections: exec_ns of a no-op step (µs), period {settings['task_period_us']} µs",
         markdown_table(["task", "samples", "min", "p50", "p99", "p99.9", "max"], conn_rows),
-        "### Targets",
-        markdown_table(["target", "measured", "result"], target_rows),
-        "### Machine",
-        facts_markdown(result["machine"]),
+        *closing_sections(result),
     ])
 
 
@@ -397,21 +391,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--trim", type=int, default=20, help="cycles dropped at each end of every App block")
     parser.add_argument("--op-repeats", type=int, default=20_000, help="calls per timing of each channel operation")
     parser.add_argument("--no-pm-qos", action="store_true", help="do not hold /dev/cpu_dma_latency at 0 µs")
-    parser.add_argument("--quick", action="store_true", help="2 rounds × 3 s blocks: under a minute")
-    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
-    args = parser.parse_args(argv)
-    if args.quick:
-        args.rounds, args.block_s = 2, 3.0
-    return args
+    add_output_options(parser, quick_help="2 rounds × 3 s blocks: under a minute")
+    return parse_options(parser, argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     result = run(args)
-    print(report_markdown(result))
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return print_and_save(report_markdown(result), result, args.json)
 
 
 if __name__ == "__main__":

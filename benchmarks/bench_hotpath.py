@@ -34,7 +34,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import NoOp, PmQos, facts_markdown, machine_facts, markdown_table, stats_us, write_json
+from _common import (
+    NoOp,
+    PmQos,
+    add_output_options,
+    closing_sections,
+    machine_facts,
+    markdown_table,
+    parse_options,
+    print_and_save,
+    result_head,
+    stats_us,
+)
 from bench_channels import START_MARGIN_NS, _realtime, _wait_for_t0, decode, encode
 
 from rtloop.ipc import hotpath
@@ -387,11 +398,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     four = conn["4 connections"] - conn["0 connections"]
     noop = costs["iteration_us"]["rtloop C"]["iteration, wake-up → next sleep, measured in C (releases past)"]
     return {
-        "benchmark": "hotpath",
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "settings": {k: v for k, v in vars(args).items() if k != "json"},  # not where it was written
-        "machine": facts,
-        "elapsed_s": round(time.monotonic() - started, 1),
+        **result_head("hotpath", args, facts, started),
         "hops": hops,
         **costs,
         "task_process": lean,
@@ -435,12 +442,7 @@ def report_markdown(result: dict[str, Any]) -> str:
         f"### A task process from outside: {lean['threads']} thread(s), locked {lean['locked_MB']:.0f} MB "
         f"(its proportional share {lean['locked_proportional_MB']:.0f} MB), VmLck {lean['VmLck_MB']:.0f} MB "
         f"(whole mappings, touched or not), RSS {lean['VmRSS_MB']:.0f} MB",
-        "### Targets",
-        markdown_table(["target", "measured", "result"],
-                       [[t["target"], t["measured"], {True: "met", False: "**MISSED**"}[t["met"]]]
-                        for t in result["targets"]]),
-        "### Machine",
-        facts_markdown(result["machine"]),
+        *closing_sections(result),
     ])
 
 
@@ -454,12 +456,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--priority", type=int, default=80)
     parser.add_argument("--op-repeats", type=int, default=20_000)
     parser.add_argument("--no-pm-qos", action="store_true")
-    parser.add_argument("--quick", action="store_true", help="2 rounds × 3 s blocks")
-    parser.add_argument("--json", metavar="PATH")
-    args = parser.parse_args(argv)
-    if args.quick:
-        args.rounds, args.block_s = 2, 3.0
-    return args
+    add_output_options(parser, quick_help="2 rounds × 3 s blocks")
+    return parse_options(parser, argv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -467,10 +465,7 @@ def main(argv: list[str] | None = None) -> int:
     if not hotpath.c_built():
         raise SystemExit(f"bench_hotpath compares C with Python; {hotpath.why_python()}")
     result = run(args)
-    print(report_markdown(result))
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return print_and_save(report_markdown(result), result, args.json)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import facts_markdown, machine_facts, markdown_table, write_json
+from _common import add_output_options, closing_sections, machine_facts, markdown_table, print_and_save, result_head
 
 from rtloop.ipc.ports import connect_app
 from rtloop.ipc.schema import STATUS_WORDS
@@ -118,11 +118,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     index += 1
     worst = max(row["locked_resident_MB"] for row in results[list(MODES)[1]])
     return {
-        "benchmark": "locked_memory",
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-        "settings": {k: v for k, v in vars(args).items() if k != "json"},
-        "machine": facts,
-        "elapsed_s": round(time.monotonic() - started, 1),
+        **result_head("locked_memory", args, facts, started),
         "results": results,
         "targets": [{"target": f"memory locked (and resident) per task process ≤ {TARGET_MB:.0f} MB",
                      "measured": f"{worst:.1f} MB (largest task process)", "met": bool(worst <= TARGET_MB)}],
@@ -138,12 +134,7 @@ def report_markdown(result: dict[str, Any]) -> str:
         "### Memory per task process (MB), while its loop runs",
         markdown_table(["locking", "app", "task", "locked + resident", "its proportional share", "VmLck", "VmRSS",
                         "thread's page faults"], rows),
-        "### Targets",
-        markdown_table(["target", "measured", "result"],
-                       [[t["target"], t["measured"], {True: "met", False: "**MISSED**"}[t["met"]]]
-                        for t in result["targets"]]),
-        "### Machine",
-        facts_markdown(result["machine"]),
+        *closing_sections(result),
     ])
 
 
@@ -151,13 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--window-s", type=float, default=5.0, help="loop time over which faults are counted")
-    parser.add_argument("--json", metavar="PATH")
+    add_output_options(parser)
     args = parser.parse_args(argv)
     result = run(args)
-    print(report_markdown(result))
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return print_and_save(report_markdown(result), result, args.json)
 
 
 if __name__ == "__main__":

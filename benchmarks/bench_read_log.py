@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import NoOp, facts_markdown, machine_facts, markdown_table, write_json
+from _common import NoOp, add_output_options, facts_markdown, machine_facts, markdown_table, print_and_save
 
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
@@ -215,15 +215,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=4000, help="calls per batch (at most 65536)")
     parser.add_argument("--cpu", type=int, default=max(os.sched_getaffinity(0)))
     parser.add_argument("--priority", type=int, default=80)
-    parser.add_argument("--json", metavar="PATH")
+    add_output_options(parser)
     args = parser.parse_args(argv)
     if not 0 < args.repeats <= RING:
         parser.error(f"--repeats must be 1..{RING}")
     result = measure(args)
-    print(report_markdown(result))
-    if args.json:
-        write_json(args.json, result)
-    return 0
+    return print_and_save(report_markdown(result), result, args.json)
 
 
 if __name__ == "__main__":

@@ -23,9 +23,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import select
 import sys
 from pathlib import Path
@@ -33,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_output_options, where_measured, write_json
 from bench_devices import bytes_kept, compare, pty_line
 
 from rtloop.io.device import CommandLimit, build_device
@@ -64,7 +63,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=10_000, help="cycles per batch (and for tracemalloc)")
     parser.add_argument("--rounds", type=int, default=5, help="batches of each contender (medians)")
-    parser.add_argument("--json", type=Path, help="also write the results here")
+    add_output_options(parser)
     args = parser.parse_args()
     master, slave, path = pty_line()
     device = build_device("serial", "bench", {"port": path, "commands": COMMANDS, "readings": READINGS,
@@ -121,7 +120,7 @@ def main() -> int:
     grown, grown_all = bytes_kept(framework_and_drive, 2000, args.cycles)
     devices.stop()
 
-    where = f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"
+    where = where_measured()
     print(f"# bench_serial: {where}; {args.rounds} x {args.cycles} cycles each, medians; pty, responder untimed\n")
     print("| contenders | ours µs | bare µs | ratio | 1.3 x bare + 1 µs | within |")
     print("|---|---:|---:|---:|---:|---|")
@@ -131,8 +130,8 @@ def main() -> int:
     print(f"\nallocation over {args.cycles} cycles of at_release (guard + exchange + copies): "
           f"{grown} bytes kept by rtloop/io, {grown_all} bytes by everything in the process (tracemalloc)")
     if args.json:
-        args.json.write_text(json.dumps({"where": where, "cycles": args.cycles, "results": results,
-                                         "allocated_bytes_io": grown, "allocated_bytes_all": grown_all}, indent=1))
+        write_json(args.json, {"where": where, "cycles": args.cycles, "results": results,
+                               "allocated_bytes_io": grown, "allocated_bytes_all": grown_all})
     os.close(master)
     os.close(slave)
     return 0

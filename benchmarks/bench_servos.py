@@ -33,9 +33,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import select
 import sys
 from pathlib import Path
@@ -45,6 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1] / "tests"))
+from _common import add_output_options, where_measured, write_json
 from bench_devices import bytes_kept, compare, pty_line
 
 from rtloop.io.device import build_device
@@ -83,7 +82,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=2_000, help="cycles per batch (and for tracemalloc)")
     parser.add_argument("--rounds", type=int, default=5, help="batches of each contender")
-    parser.add_argument("--json", type=Path, help="also write the results here")
+    add_output_options(parser)
     parser.add_argument("--without-sdk", action="store_true", help="leave dynamixel-sdk out (the test's quick run)")
     args = parser.parse_args()
     import serial
@@ -206,7 +205,7 @@ def main() -> int:
     grown, _grown_all = bytes_kept(framework, 500, args.cycles)
 
     failures = sdk_failures[0] if sdk is not None else 0
-    where = f"{platform.node()}: {platform.release()}, Python {sys.version.split()[0]}"
+    where = where_measured()
     print(f"# bench_servos: {where}; {args.rounds} x {args.cycles} cycles each, fastest batch (medians); "
           "pty, responder untimed\n")
     print("| contenders | ours µs | theirs µs | ratio | ours median µs | theirs median µs | Python refs µs (ratio) |")
@@ -221,11 +220,9 @@ def main() -> int:
     if not checks_in_c:
         print("the CRC-16 ran as the Python references (io/_devio.c not built, or RTLOOP_PURE_PYTHON=1)")
     if args.json:
-        args.json.write_text(json.dumps({"where": where, "cycles": args.cycles, "results": results,
-                                         "allocated_bytes_io": grown,
-                                         "sdk_failures": failures,
-                                         "rtloop_stale_reads": device.stale_reads,
-                                         "checks_in_c": checks_in_c}, indent=1))
+        write_json(args.json, {"where": where, "cycles": args.cycles, "results": results, "allocated_bytes_io": grown,
+                               "sdk_failures": failures, "rtloop_stale_reads": device.stale_reads,
+                               "checks_in_c": checks_in_c})
     port.close()
     os.kill(responder, 9)
     os.waitpid(responder, 0)
