@@ -11,8 +11,11 @@ from rtloop.io.drives.esc import (
     AL_PREOP,
     AL_SAFEOP,
     BRD,
+    BWR,
     FPRD,
+    FPRW,
     FPWR,
+    FRMW,
     LRW,
     EmulatedSlave,
     Segment,
@@ -30,11 +33,12 @@ class Clock:
         return self.ns
 
 
-def _segment(count: int = 2) -> tuple[Segment, list[str], Clock]:
+def _segment(count: int = 2, dc: tuple[bool, ...] = ()) -> tuple[Segment, list[str], Clock]:
     log: list[str] = []
     clock = Clock()
     slaves = [EmulatedSlave(i + 1, Identity(0xA7E, 0x402402 + i, 3), PdoLayout(DEFAULT_RXPDO),
-                            PdoLayout(DEFAULT_TXPDO), DriveModel(), log=log.append, clock=clock) for i in range(count)]
+                            PdoLayout(DEFAULT_TXPDO), DriveModel(), log=log.append, clock=clock,
+                            dc=dc[i] if dc else True) for i in range(count)]
     return Segment(slaves, clock), log, clock
 
 
@@ -78,6 +82,76 @@ def test_the_sii_reads_back_as_it_was_built() -> None:
     assert [entry.index for entry in info.txpdo] == list(DEFAULT_TXPDO)
     assert info.name == "rtloop emulated CiA 402 drive"
     assert [sm.kind for sm in info.sync_managers] == [3, 4]
+    assert info.dc_assign_activate == 0x0300  # cyclic operation and SYNC0
+
+
+def test_a_slave_without_distributed_clocks_says_so_in_its_sii_and_its_esc_features() -> None:
+    segment, _, _ = _segment(1, dc=(False,))
+    slave = segment.slaves[0]
+    _one(segment, 2, 0x0010 << 16, struct.pack("<H", 0x1001))
+
+    def read(word: int) -> bytes:
+        _one(segment, FPWR, _fp(0x1001, 0x0502), struct.pack("<HI", 0x0100, word))
+        return _one(segment, FPRD, _fp(0x1001, 0x0508), 8)[0]
+
+    assert parse_sii(read).dc_assign_activate == 0
+    assert struct.unpack("<H", _one(segment, FPRD, _fp(0x1001, 0x0008), 2)[0])[0] & 0x0004 == 0
+    assert slave.dc is None
+
+
+def _stations(segment: Segment) -> None:
+    for slave in segment.slaves:
+        slave.memory[0x0010:0x0012] = struct.pack("<H", 0x1000 + slave.position)
+
+
+def test_the_dc_unit_latches_receive_times_keeps_an_offset_and_starts_sync0_where_told() -> None:
+    segment, log, clock = _segment(3)
+    _stations(segment)
+    clock.ns = 5_000_000_000
+    assert struct.unpack("<H", _one(segment, FPRD, _fp(0x1001, 0x0008), 2)[0])[0] & 0x0004  # ESC feature: DC
+    _, wkc, _ = _one(segment, BWR, 0x0900 << 16, 4)  # latch every slave's receive times
+    assert wkc == 3
+    port0 = [struct.unpack("<I", _one(segment, FPRD, _fp(0x1001 + i, 0x0900), 4)[0])[0] for i in range(3)]
+    port1 = [struct.unpack("<I", _one(segment, FPRD, _fp(0x1001 + i, 0x0904), 4)[0])[0] for i in range(3)]
+    local = [slave.dc.local_ns() for slave in segment.slaves if slave.dc is not None]
+    assert len(set(local)) == 3  # each its own local clock
+    # the frame comes back through port 1 later the more slaves stand behind: the delays a master finds
+    assert [port1[i] - port0[i] for i in range(2)] == [4 * 250, 2 * 250] and port1[2] == 0
+    # the offset makes every system time one: the master's (here 123 s since 2000)
+    for i in range(3):
+        unit_time, = struct.unpack("<Q", _one(segment, FPRD, _fp(0x1001 + i, 0x0918), 8)[0])
+        _one(segment, FPWR, _fp(0x1001 + i, 0x0920), struct.pack("<Q", (123_000_000_000 - unit_time) % (1 << 64)))
+    clock.ns += 1_000_000
+    times = [struct.unpack("<Q", _one(segment, FPRD, _fp(0x1001 + i, 0x0910), 8)[0])[0] for i in range(3)]
+    assert [t - 123_001_000_000 for t in times] == [0, -250, -500]  # (each latched later down the line)
+    # the per-cycle FRMW: the reference reads its system time, the others take it (+1 each)
+    data, wkc, _ = _one(segment, FRMW, _fp(0x1001, 0x0910), 8)
+    assert wkc == 3 and struct.unpack("<Q", data)[0] == times[0]
+    # SYNC0 at a start time and a cycle: logged as activated, then its first pulse when it comes
+    start = 123_010_000_000
+    _one(segment, FPWR, _fp(0x1002, 0x0990), struct.pack("<Q", start))
+    _one(segment, FPWR, _fp(0x1002, 0x09A0), struct.pack("<I", 2_000_000))
+    _one(segment, FPWR, _fp(0x1002, 0x0981), bytes([0x03]))
+    assert f"slave 2: DC SYNC0 activated: start at system time {start} ns, cycle 2000000 ns" in log
+    assert not any("first pulse" in line for line in log)
+    clock.ns += 9_000_249  # 1 ns before the start on slave 2's system time
+    segment.slaves[1].tick(clock.ns)
+    assert not any("first pulse" in line for line in log)
+    clock.ns += 1
+    segment.slaves[1].tick(clock.ns)
+    assert f"slave 2: DC SYNC0 first pulse at system time {start} ns (cycle 2000000 ns)" in log
+    clock.ns += 3_000_000
+    next_pulse, = struct.unpack("<Q", _one(segment, FPRD, _fp(0x1002, 0x0990), 8)[0])
+    assert next_pulse == start + 2 * 2_000_000  # read back: the next SYNC0 pulse
+    _one(segment, FPRW, _fp(0x1002, 0x0981), bytes([0x00]))
+    assert "slave 2: DC SYNC0 deactivated" in log
+
+
+def test_a_slave_without_dc_does_not_take_the_reference_time_nor_count_it() -> None:
+    segment, _, _ = _segment(3, dc=(True, False, True))
+    _stations(segment)
+    _, wkc, _ = _one(segment, FRMW, _fp(0x1001, 0x0910), 8)
+    assert wkc == 2
 
 
 def _to_op(segment: Segment) -> None:

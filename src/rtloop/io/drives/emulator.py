@@ -47,6 +47,8 @@ class DriveSpec:
     txpdo: tuple[int, ...] = DEFAULT_TXPDO
     parameters: DriveParameters = field(default_factory=DriveParameters)
     name: str = "rtloop emulated CiA 402 drive"
+    dc: bool = True
+    """Whether it has distributed clocks (its ESI's Dc element; a slave without runs free on the frames)."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +75,7 @@ class Emulator:
         self.interface = interface
         self.log = log
         self.slaves = [EmulatedSlave(position, spec.identity, PdoLayout(spec.rxpdo), PdoLayout(spec.txpdo),
-                                     DriveModel(spec.parameters), spec.name, log)
+                                     DriveModel(spec.parameters), spec.name, log, dc=spec.dc)
                        for position, spec in enumerate(drives, start=1)]
         self.segment = Segment(self.slaves)
         self.injections = list(injections)
@@ -109,7 +111,8 @@ class Emulator:
         sock = open_raw(self.interface, timeout_s=0.001)
         buffer = bytearray(FRAME_BYTES + 64)
         self.log(f"emulating {len(self.slaves)} EtherCAT slave(s) on {self.interface}: " +
-                 "; ".join(f"{s.position}: {s.identity.describe()}" for s in self.slaves))
+                 "; ".join(f"{s.position}: {s.identity.describe()}{'' if s.dc else ', no distributed clocks'}"
+                           for s in self.slaves))
         try:
             while not self.stopped:
                 try:

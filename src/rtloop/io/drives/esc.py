@@ -4,7 +4,9 @@ Each :class:`EmulatedSlave` holds 64 KiB of ESC memory (registers below 0x1000, 
 RAM above), its SII EEPROM (served through registers 0x0502-0x050F), its FMMUs (0x0600) and
 sync managers (0x0800), its AL state machine (control 0x0120, status 0x0130, status code
 0x0134) and the sync manager watchdog (0x0400, 0x0420) that drops it from OP to SAFE-OP when the
-master stops writing its outputs. A CiA 402 :class:`~rtloop.io.drives.drive_model.DriveModel`
+master stops writing its outputs, and unless built without, a distributed clocks unit
+(``io/drives/esc_dc.py``: 0x0900-0x09AF; ESC feature bit 2 and the SII's DC category say it has
+one). A CiA 402 :class:`~rtloop.io.drives.drive_model.DriveModel`
 stands behind its process data.
 
 :class:`Segment` is a line of slaves on one port: :meth:`Segment.process` passes an EtherCAT
@@ -21,6 +23,7 @@ from collections.abc import Callable
 
 from rtloop.io.drives import cia402
 from rtloop.io.drives.drive_model import DriveModel
+from rtloop.io.drives.esc_dc import DC_END, DC_FIRST, REG_DC_SYSTEM_TIME, DcUnit
 from rtloop.io.drives.pdo import PdoLayout
 from rtloop.io.drives.sii import Identity, build_sii
 
@@ -61,15 +64,17 @@ class EmulatedSlave:
 
     def __init__(self, position: int, identity: Identity, rx: PdoLayout, tx: PdoLayout, drive: DriveModel,
                  name: str = "rtloop emulated CiA 402 drive", log: Callable[[str], None] | None = None,
-                 clock: Callable[[], int] = time.monotonic_ns) -> None:
+                 clock: Callable[[], int] = time.monotonic_ns, dc: bool = True) -> None:
         self.position = position
         self.identity = identity
         self.rx, self.tx = rx, tx
         self.drive = drive
         self.memory = bytearray(0x10000)
-        self.sii = build_sii(identity, name, rx.entries(), tx.entries(), OUTPUTS_AT, INPUTS_AT)
+        self.sii = build_sii(identity, name, rx.entries(), tx.entries(), OUTPUTS_AT, INPUTS_AT, dc=dc)
         self.log = log or (lambda text: None)
         self.clock = clock
+        self.dc = DcUnit(self.memory, position, position, clock, self.log) if dc else None
+        """The distributed clocks unit (None: a slave without DC, free-running on the frames)."""
         self.dropped = False
         """Fault injection: a slave that dropped out (a broken cable, power lost) answers nothing."""
         self.outputs_written = False
@@ -84,7 +89,7 @@ class EmulatedSlave:
         m[0x0004], m[0x0005] = 8, 8  # FMMUs, sync managers
         m[0x0006] = 8  # RAM KiB
         m[0x0007] = 0x0F  # ports 0 and 1: MII
-        struct.pack_into("<H", m, 0x0008, 0x0000)  # features: no distributed clocks
+        struct.pack_into("<H", m, 0x0008, 0x000C if dc else 0x0000)  # features: distributed clocks, 64 bits
         struct.pack_into("<H", m, REG_AL_STATUS, AL_INIT)
         struct.pack_into("<H", m, REG_EEP_CONTROL, EEP_READ_8_BYTES)
         struct.pack_into("<H", m, REG_WD_DIVIDER, 2498)  # 100 µs units
@@ -123,7 +128,10 @@ class EmulatedSlave:
         return int((divider + 2) * 40 * time_units)
 
     def tick(self, now_ns: int) -> None:
-        """The SM watchdog: in OP, outputs not written for longer than its time → SAFE-OP with an error."""
+        """The SM watchdog: in OP, outputs not written for longer than its time → SAFE-OP with an error;
+        the DC unit's SYNC0."""
+        if self.dc is not None:
+            self.dc.tick()
         if self.al_status & 0x0F == AL_OP and not self.dropped:
             limit = self.watchdog_ns()
             if limit and now_ns - self.last_outputs_ns > limit:
@@ -168,6 +176,8 @@ class EmulatedSlave:
     def read(self, address: int, data: memoryview, mode: str) -> None:
         """Registers into ``data``: ``copy`` (a read) or ``or`` (a broadcast read)."""
         end = min(address + len(data), 0x10000)
+        if self.dc is not None and address < DC_END and end > DC_FIRST:
+            self.dc.refresh()
         if mode == "or":
             for i in range(end - address):
                 data[i] |= self.memory[address + i]
@@ -184,6 +194,8 @@ class EmulatedSlave:
                 break
         else:
             self.memory[address:end] = data[:end - address]
+        if self.dc is not None and address < DC_END and end > DC_FIRST:
+            self.dc.written(address, end)
         if address <= REG_AL_CONTROL < end:
             control, = struct.unpack_from("<H", self.memory, REG_AL_CONTROL)
             self._request_state(control)
@@ -284,6 +296,8 @@ class Segment:
         self.clock = clock
         for slave in slaves:
             slave.set_link(last=slave is slaves[-1])
+            if slave.dc is not None:
+                slave.dc.slaves = len(slaves)
 
     def process(self, frame: bytearray, offset: int = 14) -> bool:
         """Pass the EtherCAT frame (Ethernet header at 0, EtherCAT header at ``offset``) through every
@@ -339,7 +353,8 @@ class Segment:
         else:
             return wkc, adp
         if not addressed:
-            if command in (ARMW, FRMW):  # the others write what the reference slave read
+            # the others write what the reference slave read (a slave without DC has no system time to set)
+            if command in (ARMW, FRMW) and (slave.dc is not None or ado != REG_DC_SYSTEM_TIME):
                 slave.write(ado, data)
                 wkc += 1
             return wkc, adp

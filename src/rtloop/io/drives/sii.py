@@ -19,7 +19,10 @@ __all__ = ["Identity", "SiiInfo", "SyncManagerSpec", "build_sii", "parse_sii"]
 VENDOR_WORD, PRODUCT_WORD, REVISION_WORD, SERIAL_WORD = 0x08, 0x0A, 0x0C, 0x0E
 MAILBOX_WORD = 0x18
 FIRST_CATEGORY_WORD = 0x40
-CAT_STRINGS, CAT_GENERAL, CAT_FMMU, CAT_SYNCM, CAT_TXPDO, CAT_RXPDO, CAT_END = 10, 30, 40, 41, 50, 51, 0xFFFF
+CAT_STRINGS, CAT_GENERAL, CAT_FMMU, CAT_SYNCM, CAT_TXPDO, CAT_RXPDO, CAT_DC, CAT_END = 10, 30, 40, 41, 50, 51, 60, \
+    0xFFFF
+DC_ASSIGN_ACTIVATE_SYNC0 = 0x0300
+"""A DC operation mode's AssignActivate: cyclic operation and SYNC0 (register 0x0980-0x0981)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,6 +56,8 @@ class SiiInfo:
     """Entries of the RxPDOs assigned to a sync manager, in order (master → slave)."""
     txpdo: list[PdoEntry] = field(default_factory=list)
     has_mailbox: bool = False
+    dc_assign_activate: int = 0
+    """The first DC operation mode's AssignActivate (category 60); 0: the slave describes no DC mode."""
 
 
 def _category(kind: int, data: bytes) -> bytes:
@@ -69,9 +74,10 @@ def _pdo_category(pdo_index: int, sync_manager: int, entries: tuple[PdoEntry, ..
 
 
 def build_sii(identity: Identity, name: str, rx: tuple[PdoEntry, ...], tx: tuple[PdoEntry, ...],
-              outputs_at: int = 0x1000, inputs_at: int = 0x1200) -> bytes:
+              outputs_at: int = 0x1000, inputs_at: int = 0x1200, dc: bool = False) -> bytes:
     """The EEPROM of a CiA 402 slave without a mailbox: its process data on SM0 (outputs) and SM1
-    (inputs), FMMU0 outputs and FMMU1 inputs."""
+    (inputs), FMMU0 outputs and FMMU1 inputs; with ``dc``, a DC category with one operation mode
+    (SYNC0: cycle time 0, that is the master's, no shift)."""
     words = bytearray(FIRST_CATEGORY_WORD * 2)
     struct.pack_into("<IIII", words, VENDOR_WORD * 2, identity.vendor, identity.product, identity.revision,
                      identity.serial)
@@ -87,7 +93,10 @@ def build_sii(identity: Identity, name: str, rx: tuple[PdoEntry, ...], tx: tuple
     image = (bytes(words) + _category(CAT_STRINGS, bytes([1, len(text)]) + text)
              + _category(CAT_GENERAL, bytes(general)) + _category(CAT_FMMU, bytes([1, 2]))
              + _category(CAT_SYNCM, syncm) + _category(CAT_TXPDO, _pdo_category(0x1A00, 1, tx))
-             + _category(CAT_RXPDO, _pdo_category(0x1600, 0, rx)) + struct.pack("<HH", CAT_END, 0))
+             + _category(CAT_RXPDO, _pdo_category(0x1600, 0, rx))
+             + (_category(CAT_DC, struct.pack("<IIIhHhBB4x", 0, 0, 0, 0, DC_ASSIGN_ACTIVATE_SYNC0, 0, 0, 0))
+                if dc else b"")
+             + struct.pack("<HH", CAT_END, 0))
     return image + b"\xff" * (-len(image) % 8)
 
 
@@ -129,6 +138,8 @@ def parse_sii(read: Callable[[int], bytes], limit_words: int = 4096) -> SiiInfo:
             for pos in range(0, len(data) - 7, 8):
                 start, size, control, _status, enable, sm_kind = struct.unpack_from("<HHBBBB", data, pos)
                 info.sync_managers.append(SyncManagerSpec(start, size, control, enable, sm_kind))
+        elif kind == CAT_DC and len(data) >= 24 and not info.dc_assign_activate:
+            info.dc_assign_activate = struct.unpack_from("<H", data, 14)[0]
         elif kind in (CAT_TXPDO, CAT_RXPDO):
             target = info.txpdo if kind == CAT_TXPDO else info.rxpdo
             pos = 0
