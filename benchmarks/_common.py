@@ -107,34 +107,23 @@ def facts_markdown(facts: dict[str, Any]) -> str:
     return "\n".join(f"- {key}: {value}" for key, value in facts.items())
 
 
-class PmQos:
-    """Hold /dev/cpu_dma_latency at 0 µs while open, as cyclictest does for itself.
-
-    Held for the whole benchmark, so every contender runs under the same power
-    management setting (not only cyclictest's blocks).
-    """
+class PmQos(rt.CpuDmaLatency):
+    """rtloop's own hold on /dev/cpu_dma_latency at 0 µs (as cyclictest holds it for itself), held for the
+    whole benchmark so that every contender runs under the same power management setting (not only
+    cyclictest's blocks); ``enabled=False`` (``--no-pm-qos``) leaves it alone."""
 
     def __init__(self, enabled: bool) -> None:
+        super().__init__()
         self.enabled = enabled
-        self.fd: int | None = None
 
     def __enter__(self) -> PmQos:
         if self.enabled:
-            try:
-                self.fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
-                os.write(self.fd, (0).to_bytes(4, sys.byteorder))
-            except OSError:
-                self.fd = None
+            super().__enter__()
         return self
 
     @property
     def active(self) -> bool:
-        return self.fd is not None
-
-    def __exit__(self, *exc: object) -> None:
-        if self.fd is not None:
-            os.close(self.fd)
-            self.fd = None
+        return self.held
 
 
 def write_json(path: str | Path, data: dict[str, Any]) -> None:

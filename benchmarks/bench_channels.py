@@ -35,6 +35,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -205,36 +206,50 @@ def hop_reader(names: dict[str, str], plan: list[str], block_cycles: int, period
     pipe.send({"hops": {kind: np.array(v, dtype=np.int64) for kind, v in hops.items()}, "lost": lost})
 
 
+def run_hop_processes(reader: tuple[Callable[..., None], tuple[Any, ...]],
+                      writer: tuple[Callable[..., None], tuple[Any, ...]], control_segment: Segment,
+                      duration_s: float) -> Any:
+    """Start the hop reader (the sending end of a pipe after its arguments) and writer in spawned
+    processes, set T0 in ``control_segment`` once both say they are ready, and return what the reader
+    sends back; neither process outlives this call."""
+    context = multiprocessing.get_context("spawn")
+    receive, send = context.Pipe(duplex=False)
+    processes = [context.Process(target=reader[0], args=(*reader[1], send)),
+                 context.Process(target=writer[0], args=writer[1])]
+    try:
+        for process in processes:
+            process.start()
+        control = control_segment.buffer.cast("q")
+        while not (control[WRITER_READY] and control[READER_READY]):
+            if not all(process.is_alive() for process in processes):
+                raise SystemExit("a hop benchmark process died while starting")
+            time.sleep(0.005)
+        control[T0_WORD] = rt.now_ns() + START_MARGIN_NS
+        del control
+        if not receive.poll(duration_s + 30):
+            raise SystemExit("the hop reader did not report (died or stalled)")
+        result = receive.recv()
+        for process in processes:
+            process.join()
+        return result
+    finally:
+        for process in processes:
+            if process.is_alive():
+                process.kill()
+
+
 def run_hops(args: argparse.Namespace) -> dict[str, Any]:
     period_ns = args.hop_period_us * 1000
     block_cycles = max(1, round(args.block_s * 1e9 / period_ns))
     plan = [TRANSPORTS[(i + r) % 3] for r in range(args.rounds) for i in range(3)]
     names, segments = Transports.create(n_slots=4, capacity=4096)
-    context = multiprocessing.get_context("spawn")
-    receive, send = context.Pipe(duplex=False)
-    reader = context.Process(target=hop_reader, args=(names, plan, block_cycles, period_ns, args.reader_cpu,
-                                                      args.priority, send))
-    writer = context.Process(target=hop_writer, args=(names, plan, block_cycles, period_ns, args.offset_us * 1000,
-                                                      args.writer_spin_us * 1000, args.writer_cpu, args.priority))
     try:
-        reader.start()
-        writer.start()
-        control = segments[-1].buffer.cast("q")
-        while not (control[WRITER_READY] and control[READER_READY]):
-            if not (reader.is_alive() and writer.is_alive()):
-                raise SystemExit("a hop benchmark process died while starting")
-            time.sleep(0.005)
-        control[T0_WORD] = rt.now_ns() + START_MARGIN_NS
-        if not receive.poll(len(plan) * block_cycles * period_ns / 1e9 + 30):
-            raise SystemExit("the hop reader did not report (died or stalled)")
-        result = receive.recv()
-        reader.join()
-        writer.join()
-        del control
+        result = run_hop_processes(
+            (hop_reader, (names, plan, block_cycles, period_ns, args.reader_cpu, args.priority)),
+            (hop_writer, (names, plan, block_cycles, period_ns, args.offset_us * 1000, args.writer_spin_us * 1000,
+                          args.writer_cpu, args.priority)),
+            segments[-1], len(plan) * block_cycles * period_ns / 1e9)
     finally:
-        for process in (reader, writer):
-            if process.is_alive():
-                process.kill()
         for segment in segments:
             segment.unlink()
     return {

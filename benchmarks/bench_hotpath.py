@@ -21,7 +21,6 @@ Usage (as root)::
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import os
 import subprocess
 import sys
@@ -46,7 +45,7 @@ from _common import (
     result_head,
     stats_us,
 )
-from bench_channels import START_MARGIN_NS, _realtime, _wait_for_t0, decode, encode
+from bench_channels import READER_READY, WRITER_READY, _realtime, _wait_for_t0, decode, encode, run_hop_processes
 
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
@@ -60,7 +59,6 @@ from rtloop.runnable import TickInfo
 
 KINDS = ("raw numpy", "rtloop python", "rtloop C")
 NEWEST = 2**61
-WRITER_READY, READER_READY = 1, 2
 CHANNEL_OF = {"rtloop python": 0, "rtloop C": 1}  # each its own writer channel
 
 
@@ -197,33 +195,14 @@ def collect_hops(args: argparse.Namespace) -> dict[str, np.ndarray]:
     block_cycles = max(1, round(args.block_s * 1e9 / period_ns))
     plan = [KINDS[(i + r) % 3] for r in range(args.rounds) for i in range(3)]
     rig = Rig(2)
-    context = multiprocessing.get_context("spawn")
-    receive, send = context.Pipe(duplex=False)
-    reader = context.Process(target=hop_reader, args=(rig.names(), plan, block_cycles, period_ns, args.reader_cpu,
-                                                      args.priority, send))
-    writer = context.Process(target=hop_writer, args=(rig.names(), plan, block_cycles, period_ns, 200_000, 50_000,
-                                                      args.writer_cpu, args.priority))
     try:
-        reader.start()
-        writer.start()
-        control = rig.control.buffer.cast("q")
-        while not (control[WRITER_READY] and control[READER_READY]):
-            if not (reader.is_alive() and writer.is_alive()):
-                raise SystemExit("a hop benchmark process died while starting")
-            time.sleep(0.005)
-        control[0] = rt.now_ns() + START_MARGIN_NS
-        if not receive.poll(len(plan) * block_cycles * period_ns / 1e9 + 30):
-            raise SystemExit("the hop reader did not report")
-        hops = receive.recv()
-        reader.join()
-        writer.join()
-        del control
+        return run_hop_processes(
+            (hop_reader, (rig.names(), plan, block_cycles, period_ns, args.reader_cpu, args.priority)),
+            (hop_writer, (rig.names(), plan, block_cycles, period_ns, 200_000, 50_000, args.writer_cpu,
+                          args.priority)),
+            rig.control, len(plan) * block_cycles * period_ns / 1e9)
     finally:
-        for process in (reader, writer):
-            if process.is_alive():
-                process.kill()
         rig.close()
-    return hops
 
 
 # --- 2.–4. costs in one process ----------------------------------------------------------------------
