@@ -199,6 +199,19 @@ def wait_for_cycles(app, task: str, cycles: int, process: subprocess.Popen, time
     return done
 
 
+def layout_twins(fields: list, size: int, monkeypatch: pytest.MonkeyPatch) -> tuple:
+    """The same ``ByteLayout`` twice: compiled (io/devio_c/bytelayout.c), and the Python reference."""
+    from rtloop.io.bytelayout import ByteLayout
+
+    pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
+    compiled = ByteLayout(fields, size, "frame")
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
+    reference = ByteLayout(fields, size, "frame")
+    monkeypatch.delenv("RTLOOP_PURE_PYTHON")
+    assert compiled._compiled is not None and reference._compiled is None
+    return compiled, reference
+
+
 def other_cpu() -> int:
     """A CPU to pin test tasks to: the last one."""
     return max(os.sched_getaffinity(0))

@@ -9,6 +9,12 @@ from pathlib import Path
 from rtloop import Runnable
 
 
+def busy_until(end_ns: int) -> None:
+    """Spin on the CPU (no sleep: the task keeps its CPU) until CLOCK_MONOTONIC reaches ``end_ns``."""
+    while time.monotonic_ns() < end_ns:
+        pass
+
+
 class Noop(Runnable):
     n_inputs = 0
     n_outputs = 0
@@ -268,9 +274,7 @@ class LateFrom(Runnable):
 
     def step(self, u, y) -> None:
         if self.tick.cycle >= self.late_cycle:
-            end_ns = self.tick.release_ns + self.tick.period_ns * 3 // 2
-            while time.monotonic_ns() < end_ns:
-                pass
+            busy_until(self.tick.release_ns + self.tick.period_ns * 3 // 2)
 
 
 class LateOnce(Runnable):
@@ -287,9 +291,7 @@ class LateOnce(Runnable):
         y[0] = self.tick.cycle
         if self.tick.cycle >= self.late_cycle and not self.done:
             self.done = True
-            end_ns = self.tick.release_ns + self.tick.period_ns * 3
-            while time.monotonic_ns() < end_ns:
-                pass
+            busy_until(self.tick.release_ns + self.tick.period_ns * 3)
 
 
 class MatrixProduct(Runnable):
@@ -389,9 +391,7 @@ class SpinFor(Runnable):
         self.spin_ns = spin_ns
 
     def step(self, u, y) -> None:
-        end_ns = time.monotonic_ns() + self.spin_ns
-        while time.monotonic_ns() < end_ns:
-            pass
+        busy_until(time.monotonic_ns() + self.spin_ns)
 
 
 class TunedGain(Runnable):

@@ -9,6 +9,7 @@ import pickle
 import numpy as np
 import pytest
 
+from conftest import layout_twins
 from rtloop.io.bytelayout import ByteLayout, LayoutError, field_from_table
 
 ENCODER = {"name": "pan_rad", "start_byte": 0, "type": "u16", "encoder": {"counts_per_rev": 1024, "gear_ratio": 4}}
@@ -99,15 +100,8 @@ def test_an_spi_device_takes_them_and_runs_them_in_c_where_built() -> None:
 
 
 def twins(tables: list[dict], size: int, monkeypatch: pytest.MonkeyPatch) -> tuple[ByteLayout, ByteLayout]:
-    """The same layout twice: compiled (io/devio_c/bytelayout.c), and the Python reference."""
-    pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
-    fields = [field_from_table(t, f"frame[{i}]") for i, t in enumerate(tables)]
-    compiled = ByteLayout(fields, size, "frame")
-    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
-    reference = ByteLayout(fields, size, "frame")
-    monkeypatch.delenv("RTLOOP_PURE_PYTHON")
-    assert compiled._compiled is not None and reference._compiled is None
-    return compiled, reference
+    """The layout of ``tables`` twice: compiled, and the Python reference."""
+    return layout_twins([field_from_table(t, f"frame[{i}]") for i, t in enumerate(tables)], size, monkeypatch)
 
 
 @pytest.mark.parametrize("kind", ["u8", "i8", "u16", "i16", "u32", "i32"])

@@ -19,21 +19,12 @@ import numpy as np
 import pytest
 
 from can_pair import attach_to_a_pair, wire_frame
-from rtloop.io.bytelayout import ByteLayout, Field
+from conftest import layout_twins
+from rtloop.io.bytelayout import Field
 from rtloop.io.device import CommandLimit
 from rtloop.io.host import DeviceWiring, TaskDevices
 
 devio = pytest.importorskip("rtloop.io._devio", reason="the devices' C part was not built (no compiler)")
-
-
-def layouts(fields, size, monkeypatch):
-    """The same layout twice: compiled, and the Python reference."""
-    compiled = ByteLayout(fields, size, "frame")
-    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1")
-    reference = ByteLayout(fields, size, "frame")
-    monkeypatch.delenv("RTLOOP_PURE_PYTHON")
-    assert compiled._compiled is not None and reference._compiled is None
-    return compiled, reference
 
 
 TYPES = ["u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64"]
@@ -46,7 +37,7 @@ VALUES = [0.0, -0.0, 0.5, 1.5, 2.5, -0.5, -1.5, 0.49999999999999994, 1e-300, 123
 @pytest.mark.parametrize("order", ["little", "big"])
 def test_packing_and_unpacking_are_the_references_bit_for_bit(kind, order, monkeypatch):
     fields = [Field("a", 0, kind, 1.0, 0.0, order), Field("b", 8, kind, 0.01, -3.0, order)]
-    compiled, reference = layouts(fields, 16, monkeypatch)
+    compiled, reference = layout_twins(fields, 16, monkeypatch)
     for value in VALUES:
         values = np.array([value, value / 7])
         ours, theirs = bytearray(16), bytearray(16)
@@ -67,7 +58,7 @@ def test_packing_and_unpacking_are_the_references_bit_for_bit(kind, order, monke
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_a_non_finite_value_is_refused_by_both_naming_the_field(bad, monkeypatch):
-    compiled, reference = layouts([Field("torque", 2, "i16"), Field("speed", 4, "f32")], 8, monkeypatch)
+    compiled, reference = layout_twins([Field("torque", 2, "i16"), Field("speed", 4, "f32")], 8, monkeypatch)
     for index in (0, 1):
         values = np.array([1.0, 2.0])
         values[index] = bad
@@ -81,7 +72,7 @@ def test_a_non_finite_value_is_refused_by_both_naming_the_field(bad, monkeypatch
 
 
 def test_packing_from_an_offset_and_into_a_memoryview(monkeypatch):
-    compiled, reference = layouts([Field("x", 0, "i32", 1e-3, 0.0, "big")], 4, monkeypatch)
+    compiled, reference = layout_twins([Field("x", 0, "i32", 1e-3, 0.0, "big")], 4, monkeypatch)
     vector = np.array([9.0, -1.2345, 7.0])
     ours, theirs = bytearray(12), bytearray(12)
     compiled.pack_into(ours, 8, memoryview(vector), 1)
