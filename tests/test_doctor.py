@@ -51,6 +51,15 @@ READY_PI: dict[str, str] = {
     "sys/devices/system/clocksource/clocksource0/current_clocksource": "arch_sys_counter",
     "sys/devices/system/clocksource/clocksource0/available_clocksource": "arch_sys_counter",
     "proc/1/comm": "systemd",
+    # the isolated CPU 3 takes no device interrupt: the SD card's and the Ethernet's are on CPU 0
+    "proc/interrupts": ("           CPU0       CPU1       CPU2       CPU3\n"
+                        " 33:     981235          0          0          0     GICv2 158 Level     mmc1, mmc0\n"
+                        " 39:      40211          0          0          0     GICv2 189 Level     eth0\n"
+                        "IPI0:      1200       1300       1100         12       Rescheduling interrupts\n"),
+    "proc/irq/33/smp_affinity_list": "0-3",
+    "proc/irq/33/effective_affinity_list": "0",
+    "proc/irq/39/smp_affinity_list": "0-3",
+    "proc/irq/39/effective_affinity_list": "0",
 }
 
 
@@ -309,3 +318,60 @@ def test_the_preemption_model_under_a_tree_reads_the_boot_log(tmp_path: Path) ->
     tree = make_tree(tmp_path, {"sys/kernel/realtime": None, "proc/sys/kernel/version": "#1 SMP PREEMPT_DYNAMIC @0",
                                 "dev/kmsg": "6,1,0,-;Dynamic Preempt: voluntary\n"})
     assert preemption_model(tree) == "PREEMPT_DYNAMIC (voluntary)"
+
+
+# --- device interrupts on the tasks' CPUs (issue 33: the disk's completion interrupt on the task's CPU) ---
+DISK_ON_CPU_3 = {
+    "proc/interrupts": ("           CPU0       CPU1       CPU2       CPU3\n"
+                        " 33:     981235          0          0    2500000     GICv2 158 Level     mmc0\n"
+                        " 39:      40211          0          0       9000     GICv2 189 Level     eth0\n"
+                        " 40:          0          0          0         12     GICv2 190 Level     ttyS0\n"),
+    "proc/irq/33/effective_affinity_list": "3",
+    "proc/irq/39/effective_affinity_list": "3",
+    "proc/irq/40/effective_affinity_list": "3",
+}
+
+
+def test_device_interrupts_on_the_task_cpu_are_named_with_the_fix(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(doctor, "affinity_refused", lambda root, irq: "")
+    check = check_named(run_checks(make_tree(tmp_path, DISK_ON_CPU_3)), "device_irqs")
+    assert check.status == "warn"
+    assert "task CPU(s) 3" in check.detail
+    assert "IRQ 33 mmc0 (2.5 million so far)" in check.detail and "IRQ 39 eth0 (9000 so far)" in check.detail
+    assert "ttyS0" not in check.detail  # a dozen since boot delays nothing
+    assert check.fix == "sudo sh -c 'for irq in 33 39; do echo 0,1,2 > /proc/irq/$irq/smp_affinity_list; done'"
+
+
+def test_an_interrupt_the_kernel_will_not_move_says_so_and_how_to_keep_it_away(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(doctor, "affinity_refused",
+                        lambda root, irq: "Operation not permitted" if irq == "33" else "")
+    check = check_named(run_checks(make_tree(tmp_path, DISK_ON_CPU_3)), "device_irqs")
+    assert "IRQ 33 mmc0 (2.5 million so far, cannot be moved: Operation not permitted)" in check.detail
+    first, second = check.fix.splitlines()
+    assert "for irq in 39;" in first
+    assert "isolcpus=managed_irq,domain,3" in second and "--out /dev/shm" in second
+
+
+def test_the_task_cpus_can_be_named(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(doctor, "affinity_refused", lambda root, irq: "")
+    tree = make_tree(tmp_path)
+    assert check_named(run_checks(tree), "device_irqs").status == "ok"  # CPU 3, the isolated one
+    on_0 = check_named(run_checks(tree, task_cpus=[0]), "device_irqs")
+    assert on_0.status == "warn" and "IRQ 33 mmc1, mmc0" not in on_0.detail and "IRQ 33 mmc0" in on_0.detail
+    assert "echo 1,2,3 >" in on_0.fix
+
+
+def test_the_affinity_probe_writes_the_interrupts_own_affinity_back(tmp_path: Path, monkeypatch) -> None:
+    tree = make_tree(tmp_path, DISK_ON_CPU_3)
+    affinity = tree / "proc/irq/33/smp_affinity_list"
+    monkeypatch.setattr(doctor.os, "geteuid", lambda: 0)
+    assert doctor.affinity_refused(tree, "33") == ""
+    assert affinity.read_text() == "0-3"  # what it was: nothing moved
+    assert doctor.affinity_refused(tree, "77") == "No such file or directory"  # not moved, and why
+    monkeypatch.setattr(doctor.os, "geteuid", lambda: 1000)
+    assert doctor.affinity_refused(tree, "77") == ""  # only root may ask: nothing said
+
+
+def test_doctor_refuses_a_cpu_list_it_cannot_read(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["doctor", "--cpu", "one"]) == 2
+    assert "--cpu 'one' is not a CPU list" in capsys.readouterr().err

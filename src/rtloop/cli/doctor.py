@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = "Check whether this machine is ready for real-time loops, and how to fix it (exit 1 when " \
                          "a check fails)."
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    parser.add_argument("--cpu", metavar="LIST", default=None,
+                        help="the CPUs your tasks are pinned to, e.g. 1 or 2-3 (default: the isolated CPUs, else "
+                             "the last CPU): device interrupts handled there are named")
     parser.add_argument("--root", type=Path, default=None,
                         help="read /proc, /sys and /etc under this directory (for testing; default /)")
 
@@ -30,7 +34,18 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.toolbox.doctor import LIVE_ROOT, format_human, run_checks, to_json, verdict
 
     root = LIVE_ROOT if args.root is None else args.root
-    checks = run_checks(root, more=[("devices", lambda: check_devices(root))])
+    task_cpus: tuple[int, ...] | None = None
+    if args.cpu is not None:
+        from rtloop.linux.rt import parse_cpu_list
+
+        try:
+            task_cpus = parse_cpu_list(args.cpu)
+        except ValueError:
+            task_cpus = ()
+        if not task_cpus:
+            print(f"rtloop doctor: --cpu {args.cpu!r} is not a CPU list (e.g. 1, 2-3 or 0,2)", file=sys.stderr)
+            return 2
+    checks = run_checks(root, more=[("devices", lambda: check_devices(root))], task_cpus=task_cpus)
     if args.json:
         print(json.dumps(to_json(checks), indent=2, ensure_ascii=False))
     else:

@@ -437,7 +437,7 @@ class RunSession:
         if self.summarise is None or now_s < self._next_summary_s:
             return
         self._next_summary_s = now_s + self.limits.summary_interval_s
-        self.summary_file.write(self.summarise(True))
+        self.summary_file.write(self.summarise(True), durable=False)  # the final one is synced
         give_back_free_heap()  # what the drains freed: the supervisor's resident size stays what it uses
 
     def drain(self, budget_s: float | None = None) -> bool:

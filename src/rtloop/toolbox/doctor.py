@@ -4,7 +4,9 @@ Each check reads files under ``/proc``, ``/sys`` and ``/etc`` below a *root*
 directory (``/`` on a live system, a fake tree in the tests) through the OS primitives of
 :mod:`rtloop.linux.machine` (the same ones the engine's probe uses) and returns a
 :class:`Check` with a verdict, what it saw and, when it is not ``ok``, the fix.
-Only the standard library is used, so the doctor runs before anything else is
+One check writes, as root only: ``device_irqs`` writes a device interrupt's own affinity back to
+learn whether the kernel lets it be moved (:func:`affinity_refused`). Only the standard library
+is used, so the doctor runs before anything else is
 installed. ``rtloop doctor`` (:mod:`rtloop.cli.doctor`) adds the device interfaces and prints them.
 """
 
@@ -359,6 +361,78 @@ def _check_irqbalance(root: Path) -> Check:
                  "IRQBALANCE_BANNED_CPULIST in /etc/default/irqbalance", "")
 
 
+def default_task_cpus(root: Path) -> list[int]:
+    """The CPUs tasks are meant for when none are named: the isolated ones, else the last (what
+    ``isolated_cpus``' fix suggests for ``--cpu``)."""
+    isolated = parse_cpu_list(read_text(root, "sys/devices/system/cpu/isolated") or "")
+    return list(isolated) or [max(parse_cpu_list(read_text(root, "sys/devices/system/cpu/present") or "0"))]
+
+
+def affinity_refused(root: Path, irq: str) -> str:
+    """Why the kernel will not move ``irq`` ('' if it will, or if this user may not ask): the interrupt's
+    own affinity written back, which moves nothing where it is allowed (x86 keeps an interrupt on its
+    CPU while that CPU stays in the mask), EPERM where its driver's affinity is managed by the kernel."""
+    path = Path(root) / "proc" / "irq" / irq / "smp_affinity_list"
+    if os.geteuid() != 0:
+        return ""
+    try:
+        current = path.read_text().strip()
+        with open(path, "w") as file:
+            file.write(current)
+    except OSError as error:
+        return f"{os.strerror(error.errno) if error.errno else error}"
+    return ""
+
+
+IRQS_WORTH_NAMING = 100
+"""Interrupts a device has raised on a task CPU since boot before the check names it (a serial console's
+dozen at boot delays nothing)."""
+
+
+def _how_many(count: int) -> str:
+    return f"{count / 1e6:.1f} million" if count >= 1_000_000 else str(count)
+
+
+def _check_device_interrupts(root: Path, task_cpus: Sequence[int] | None) -> Check:
+    cpus = sorted(set(task_cpus)) if task_cpus else default_task_cpus(root)
+    text = read_text(root, "proc/interrupts")
+    if not text:
+        return Check("device_irqs", "ok", "/proc/interrupts not readable: device interrupts not checked", "")
+    header, *rows = text.splitlines()
+    column_cpus = [int(name[3:]) for name in header.split() if name.startswith("CPU")]
+    named = ", ".join(map(str, cpus))
+    found: list[tuple[int, str, str, str]] = []  # count on the task CPUs, irq, name, why it cannot move
+    for row in rows:
+        label, _, rest = row.partition(":")
+        irq, fields = label.strip(), rest.split()
+        if not irq.isdigit() or len(fields) <= len(column_cpus):
+            continue  # LOC, RES, ...: every CPU has its own
+        counts = dict(zip(column_cpus, fields, strict=False))
+        affinity = (read_text(root, f"proc/irq/{irq}/effective_affinity_list")
+                    or read_text(root, f"proc/irq/{irq}/smp_affinity_list") or "")
+        on_tasks = set(parse_cpu_list(affinity)) & set(cpus)
+        fired = sum(int(counts.get(cpu, "0")) for cpu in on_tasks if counts.get(cpu, "0").isdigit())
+        if on_tasks and fired >= IRQS_WORTH_NAMING:
+            found.append((fired, irq, fields[-1], affinity_refused(root, irq)))
+    if not found:
+        return Check("device_irqs", "ok", f"no device interrupt is handled on the task CPU(s) {named}", "")
+    found.sort(reverse=True)
+    said = "; ".join(f"IRQ {irq} {name} ({_how_many(fired)} so far" + (f", cannot be moved: {why}" if why else "")
+                     + ")" for fired, irq, name, why in found)
+    others = sorted(set(parse_cpu_list(read_text(root, "sys/devices/system/cpu/present") or "0")) - set(cpus))
+    movable = [irq for _, irq, _, why in found if not why]
+    fixes = []
+    if movable and others:
+        fixes.append(f"sudo sh -c 'for irq in {' '.join(movable)}; do echo {','.join(map(str, others))} "
+                     "> /proc/irq/$irq/smp_affinity_list; done'")
+    if any(why for *_, why in found):
+        fixes.append(f"an interrupt the kernel will not move: boot with isolcpus=managed_irq,domain,{named}, or run "
+                     "the tasks on a CPU it does not use (--cpu); a disk's: record to another disk or to RAM "
+                     "(--out /dev/shm/...)")
+    return Check("device_irqs", "warn", f"device interrupts on the task CPU(s) {named} delay a wake-up there "
+                 f"whatever its priority: {said}", "\n".join(fixes))
+
+
 # --------------------------------------------------------------------------- driver
 
 
@@ -371,9 +445,11 @@ def _guarded(name: str, check: Callable[[], Check]) -> Check:
                      "please report this with the file named above")
 
 
-def run_checks(root: Path = LIVE_ROOT, more: Sequence[tuple[str, Callable[[], Check]]] = ()) -> list[Check]:
+def run_checks(root: Path = LIVE_ROOT, more: Sequence[tuple[str, Callable[[], Check]]] = (),
+               task_cpus: Sequence[int] | None = None) -> list[Check]:
     """Run every readiness check against the system whose /proc, /sys and /etc are under root,
-    then ``more`` (name, check) pairs, each guarded alike."""
+    then ``more`` (name, check) pairs, each guarded alike. ``task_cpus``: the CPUs the tasks will be
+    pinned to (default: :func:`default_task_cpus`)."""
     root = Path(root)
     virt = detect_virtualisation(root)
     checks: list[tuple[str, Callable[[], Check]]] = [
@@ -390,6 +466,7 @@ def run_checks(root: Path = LIVE_ROOT, more: Sequence[tuple[str, Callable[[], Ch
         ("swap", lambda: _check_swap(root)),
         ("clocksource", lambda: _check_clocksource(root)),
         ("irqbalance", lambda: _check_irqbalance(root)),
+        ("device_irqs", lambda: _check_device_interrupts(root, task_cpus)),
         *more,
     ]
     return [_guarded(name, check) for name, check in checks]
