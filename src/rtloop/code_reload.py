@@ -154,15 +154,7 @@ class CodeReloader:
         owner = self.owner
         name = owner.names[index]
         try:
-            source = self._read(code_file_name(name, code_id), code_id)
-            old = owner.alternatives[index]
-            module_name = type(old).__module__
-            if module_name == "__main__":
-                raise ReloadRefused(f"{type(old).__name__} is defined in the script that started the app; "
-                                    "put it in a module of its own to reload it")
-            module = types.ModuleType(module_name)
-            module.__file__ = str(self.code_dir / code_file_name(name, code_id))
-            exec(compile(source, module.__file__, "exec"), module.__dict__)
+            module = self._module(index, name, code_id, self._read(code_file_name(name, code_id), code_id))
             built = self._build(index, module)
             dry = self._build(index, module)
             dry_ns = self._dry_step(dry, index)
