@@ -64,6 +64,10 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.app.appfile import load_app
     from rtloop.app.specs import check_duration
 
+    if args.command == "run":  # the task server's imports overlap this process's own (runtime/task_start.py)
+        from rtloop.runtime.task_start import start_server
+
+        start_server()
     if args.duration is not None:  # without one, a run lasts until SIGINT or SIGTERM
         check_duration(args.duration)
     elif args.command == "simulate":

@@ -35,7 +35,7 @@ def adopting_orphans(token: str) -> Iterator[None]:
     try:
         yield
     finally:
-        end_marked_strays(token, keep=children_before | _resource_tracker())
+        end_marked_strays(token, keep=children_before | _multiprocessing_helpers())
         if not was_subreaper:  # a library's caller does not stay a subreaper after a run
             with contextlib.suppress(OSError):
                 rt.become_subreaper(False)
@@ -59,29 +59,38 @@ def marked_environment(token: str) -> Iterator[None]:
             os.environ[TASK_MARK_ENV] = previous
 
 
+def server_mark() -> str:
+    """The mark in the environment of the task server (runtime/task_start.py) this process starts.
+    A task forked from it that forks without exec shows that environment in /proc, not the run's."""
+    return f"{os.getpid()}-task-server"
+
+
 def end_marked_strays(token: str, keep: set[int]) -> None:
     """SIGKILL what the tasks left running (orphans adopted here), never a child the caller started itself.
 
     Only children that carry this run's mark in their environment are ended: the task processes
     and whatever they started (a program started with a wiped environment escapes this and
-    is reparented to init, as without rtloop).
+    is reparented to init, as without rtloop). What carries the task server's mark counts too:
+    the server itself is kept (it serves the next run), whatever else carries it came from a task.
     """
-    mark = f"{TASK_MARK_ENV}={task_mark(token)}".encode()
-    rt.end_strays(keep, only=lambda pid: _carries_mark(pid, mark))
+    marks = {f"{TASK_MARK_ENV}={mark}".encode() for mark in (task_mark(token), server_mark())}
+    rt.end_strays(keep, only=lambda pid: _carries_mark(pid, marks))
 
 
-def _resource_tracker() -> set[int]:
-    """multiprocessing's helper process (a child of ours, started with the first task: it carries the mark)."""
-    from multiprocessing import resource_tracker
+def _multiprocessing_helpers() -> set[int]:
+    """multiprocessing's helper processes (children of ours, started with the first task: they may carry
+    a mark): the resource tracker and the task server (runtime/task_start.py), kept for the next run."""
+    from multiprocessing import forkserver, resource_tracker
 
-    pid = getattr(resource_tracker._resource_tracker, "_pid", None)
-    return {pid} if pid else set()
+    pids = (getattr(resource_tracker._resource_tracker, "_pid", None),
+            getattr(forkserver._forkserver, "_forkserver_pid", None))
+    return {pid for pid in pids if pid}
 
 
-def _carries_mark(pid: int, mark: bytes) -> bool:
+def _carries_mark(pid: int, marks: set[bytes]) -> bool:
     try:
         with open(f"/proc/{pid}/environ", "rb") as file:
-            return mark in file.read().split(b"\0")
+            return not marks.isdisjoint(file.read().split(b"\0"))
     except OSError:
         return False
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import multiprocessing
 import os
 import time
 import warnings
@@ -66,6 +65,7 @@ from rtloop.runtime.session import (
 from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
 from rtloop.runtime.task_messages import TaskReports
+from rtloop.runtime.task_start import child_start, start_server, task_context
 from rtloop.runtime.task_watch import TaskProcess, Watchdog, phase_of
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
@@ -193,8 +193,9 @@ class Supervisor:
     def _spawn(self, layout: AppLayout) -> None:
         """Start a process per task into ``self.runs`` (each one there as soon as it started,
         so the cleanup joins and closes it even when a later one fails to start)."""
-        # spawn, not fork: a forked child of a threaded parent can inherit held locks.
-        context = multiprocessing.get_context("spawn")
+        # Forked from the task server (single-threaded, the task's modules loaded), or spawned: never
+        # forked from here (a forked child of a threaded parent can inherit held locks): runtime/task_start.py
+        context, server = task_context()
         # Pickled here, unpickled by the task (a failure there is reported as "loading");
         # classes from a script, notebook or stdin travel by value (app/byvalue.py).
         runnables = {name: dumps_runnable(spec.runnable, name) for name, spec in self.app.tasks.items()}
@@ -202,15 +203,15 @@ class Supervisor:
         for name, spec in self.app.tasks.items():
             reader, writer = context.Pipe(duplex=False)
             handles = layout.tasks[name]
-            process = context.Process(
-                target=task_process_main,
-                args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name],
-                      self.watchdog.spin_limit_s(spec.config)),
-                name=f"rtloop-{self.app.name}-{name}",
-            )
             # no BLAS pool in an RT process; the mark lets the cleanup end what the task starts
             try:
                 with single_threaded_children(), children_without_main(), marked_environment(layout.token):
+                    process = context.Process(
+                        target=task_process_main,
+                        args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name],
+                              self.watchdog.spin_limit_s(spec.config), child_start(server)),
+                        name=f"rtloop-{self.app.name}-{name}",
+                    )
                     process.start()
             except BaseException:
                 reader.close()
@@ -433,6 +434,7 @@ def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, 
     with a :class:`Progress` at every drain (the CLI draws its progress line with it). ``trace_misses``:
     record the kernel's scheduler and IRQ events on the tasks' CPUs, to name who held a late cycle's CPU.
     """
+    start_server()  # the task server imports the tasks' modules while the run is set up (runtime/task_start.py)
     summary = Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
                          on_progress=on_progress, trace_misses=trace_misses).run()
     # a notebook sees it (the summary's notes say it too); rtloop run prints its own WARNING line

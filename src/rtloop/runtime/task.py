@@ -11,6 +11,7 @@ import gc
 import multiprocessing
 import multiprocessing.util
 import os
+import select
 import signal
 import time
 import traceback
@@ -31,6 +32,7 @@ from rtloop.linux.cpustat import own_thread_counters
 from rtloop.linux.lean import lock_what_the_loop_touches, unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable
 from rtloop.runtime.snapshot import snapshot_file_name, write_snapshot
+from rtloop.runtime.task_start import ChildStart
 from rtloop.runtime.taskrun import TaskRun  # its snapshot's imports too: none inside the loop
 from rtloop.text import counted
 
@@ -166,9 +168,13 @@ def task_process_main(
     pipe: Any,
     devices: tuple[DeviceWiring, ...] | bytes = (),
     spin_limit_s: tuple[float, float] | None = None,
+    start: ChildStart | None = None,
 ) -> None:
-    """Entry point of a task process (spawned by the supervisor). ``spin_limit_s``: how long the
-    loop may run at a real-time priority without sleeping before it fails, then is killed."""
+    """Entry point of a task process (started by the supervisor, forked from its task server or
+    spawned: runtime/task_start.py). ``spin_limit_s``: how long the loop may run at a real-time
+    priority without sleeping before it fails, then is killed. ``start``: what it puts back first."""
+    if start is not None:  # forked: the supervisor's environment and CPUs, not the server's
+        start.adopt()
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closing terminal too: it stops the app through the supervisor
@@ -180,14 +186,13 @@ def task_process_main(
     stop_in_order = StopRequests(control)
     for signum in STOP_SIGNALS:
         signal.signal(signum, stop_in_order)
-    rt.die_with_parent(SUPERVISOR_GONE)
+    rt.die_with_parent(SUPERVISOR_GONE)  # the parent: the task server when forked, which ends with the supervisor
     try:
         rt.become_subreaper()  # whatever step() forks, however it detaches, ends with this task:
     except OSError:
         pass  # refused (an old kernel, qemu-user 7.2): its direct children still end here
     multiprocessing.util.Finalize(None, rt.end_strays, exitpriority=100)
-    parent = multiprocessing.parent_process()
-    if parent is not None and os.getppid() != parent.pid:  # the supervisor died before we could ask
+    if _supervisor_gone(start):  # it died before we could ask
         return
     status = WordBlock(task_segment, 0, STATUS_WORDS)
     timing = Int64Ring(task_segment, TASK_TIMING_OFFSET_BYTES)
@@ -287,6 +292,18 @@ def task_process_main(
     run.stop()  # done already unless the stop came before T0
     _report_devices(pipe, run)
     _report(pipe, kind="stopped", cycles=task.cycle + 1, catch_up_steps=getattr(runnable, "catch_up_steps", 0))
+
+
+def _supervisor_gone(start: ChildStart | None) -> bool:
+    """Whether the supervisor (or the task server between us) is gone: then no parent-death signal comes."""
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return False
+    expected = start.parent_pid if start is not None else parent.pid
+    if os.getppid() != expected:
+        return True
+    # forked: the server is our parent; the supervisor's end of the data pipe says whether it lives
+    return bool(start is not None and start.forked and select.select([parent.sentinel], [], [], 0)[0])
 
 
 def _take_back_stop_signals(handler: Any, pipe: Any) -> None:
