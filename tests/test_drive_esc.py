@@ -132,7 +132,10 @@ def test_the_dc_unit_latches_receive_times_keeps_an_offset_and_starts_sync0_wher
     _one(segment, FPWR, _fp(0x1002, 0x0990), struct.pack("<Q", start))
     _one(segment, FPWR, _fp(0x1002, 0x09A0), struct.pack("<I", 2_000_000))
     _one(segment, FPWR, _fp(0x1002, 0x0981), bytes([0x03]))
-    assert f"slave 2: DC SYNC0 activated: start at system time {start} ns, cycle 2000000 ns" in log
+    # the start in the emulator's own clock: 10 ms after the offset was set, less slave 2's 250 ns down the line
+    monotonic = 5_000_000_000 + 10_000_000 + 250
+    assert f"slave 2: DC SYNC0 activated: start at system time {start} ns (CLOCK_MONOTONIC {monotonic} ns here), " \
+           "cycle 2000000 ns" in log
     assert not any("first pulse" in line for line in log)
     clock.ns += 9_000_249  # 1 ns before the start on slave 2's system time
     segment.slaves[1].tick(clock.ns)

@@ -216,6 +216,10 @@ class Device(ABC):
     def configure(self) -> None:
         """Open the interface and check the device answers (before T0)."""
 
+    def timeline(self, t0_ns: int, period_ns: int) -> None:
+        """T0 and the period (CLOCK_MONOTONIC, ns), told just before :meth:`activate`: for a device
+        whose hardware keeps time on rtloop's releases itself (EtherCAT distributed clocks' SYNC0)."""
+
     def activate(self) -> None:
         """At T0, before the first write: enable the outputs."""
 
@@ -256,6 +260,11 @@ class Device(ABC):
     def stale_sources(self) -> dict[str, int]:
         """Stale reads per source (a received frame) where the driver tells them apart."""
         return {}
+
+    def run_notes(self) -> list[str]:
+        """Sentences for the run's summary and console on how the device ran (which slaves ran on
+        distributed clocks); asked at the end of the run."""
+        return []
 
     # --- names ----------------------------------------------------------------------------------
     def command_names(self) -> tuple[str, ...]:

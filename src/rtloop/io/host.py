@@ -242,10 +242,13 @@ class TaskDevices:
                 raise DeviceError(device.name, self.sources[device.name], "",
                                   f"configure failed: {type(error).__name__}: {error}") from None
 
-    def activate(self) -> None:
-        """At T0: enable the outputs (the first write follows at once), and the scope pin."""
+    def activate(self, t0_ns: int = 0, period_ns: int = 0) -> None:
+        """At T0: enable the outputs (the first write follows at once), and the scope pin. Each
+        device is told T0 and the period first (``period_ns`` 0: not known, a twin's run)."""
         self.active = True
         for slot in self.configured:
+            if period_ns:
+                slot.device.timeline(t0_ns, period_ns)
             slot.device.activate()
         pin = self.scope_output()
         self.scope = ScopePin(*pin) if pin is not None else None

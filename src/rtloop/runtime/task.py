@@ -340,5 +340,8 @@ def _report_devices(pipe: Any, run: TaskRun) -> None:
         _report(pipe, kind="input_limits", inputs=wiring.guards.counts(devices.task, run.runnable.input_names))
     if devices.problems:
         _report(pipe, kind="device_problems", problems=devices.problems)
+    for slot in devices.slots:  # (configured ones: stop() has let go of them)
+        for text in slot.device.run_notes():
+            _report(pipe, kind="note", text=f"devices.{slot.device.name}: {text}")
     if devices:
         _report(pipe, kind="device_reads", devices=devices.stale_report())

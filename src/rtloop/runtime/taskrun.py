@@ -84,7 +84,7 @@ class TaskRun:
                                         config.period_ns, catch_up=config.overrun == "catch_up",
                                         max_misses=config.max_consecutive_misses)
         cycle.start(t0_ns, end_ns, self.wiring.stale_reads)
-        self.devices.activate()
+        self.devices.activate(t0_ns, config.period_ns)
         return cycle
 
     def job(self, cycle: int) -> None:

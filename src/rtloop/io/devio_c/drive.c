@@ -30,6 +30,10 @@ typedef struct {
     int linked, fd;
     Py_ssize_t wkc_at;
     long expected_wkc;
+    /* Distributed clocks: the working counter of the FRMW datagram after the LRW, which carries the
+     * reference clock's system time to the other slaves (0: no DC datagram), and the one expected. */
+    Py_ssize_t dc_wkc_at;
+    long expected_dc_wkc;
     long long timeout_ns, sent_ns;
 } DriveRun;
 
@@ -236,9 +240,10 @@ static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
 #define ECAT_INDEX_AT 17
 #define ECAT_LRW 12
 
-/* link(fd, frame, reply, wkc_at, expected_wkc, timeout_ns): send() and receive() exchange ``frame``
- * on the raw socket ``fd`` (blocking, its SO_RCVTIMEO one tick), the answer into ``reply``, whose
- * working counter is at ``wkc_at``, due within ``timeout_ns`` of the send. The run's out and in
+/* link(fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at=0, expected_dc_wkc=0): send()
+ * and receive() exchange ``frame`` on the raw socket ``fd`` (blocking, its SO_RCVTIMEO one tick),
+ * the answer into ``reply``, whose working counter is at ``wkc_at``, due within ``timeout_ns`` of
+ * the send; the DC datagram's working counter at ``dc_wkc_at`` (0: none). The run's out and in
  * buffers are places in them. */
 static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     int fd;
@@ -246,7 +251,10 @@ static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     Py_ssize_t wkc_at;
     long expected_wkc;
     long long timeout_ns;
-    if (!PyArg_ParseTuple(args, "iOOnlL", &fd, &frame, &reply, &wkc_at, &expected_wkc, &timeout_ns)) {
+    Py_ssize_t dc_wkc_at = 0;
+    long expected_dc_wkc = 0;
+    if (!PyArg_ParseTuple(args, "iOOnlL|nl", &fd, &frame, &reply, &wkc_at, &expected_wkc, &timeout_ns, &dc_wkc_at,
+                          &expected_dc_wkc)) {
         return NULL;
     }
     DriveRun_unlink(self);
@@ -258,7 +266,8 @@ static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
         return NULL;
     }
     self->linked = 1;
-    if (self->frame.len <= ECAT_INDEX_AT || wkc_at <= ECAT_INDEX_AT || wkc_at + 2 > self->reply.len) {
+    if (self->frame.len <= ECAT_INDEX_AT || wkc_at <= ECAT_INDEX_AT || wkc_at + 2 > self->reply.len ||
+        dc_wkc_at < 0 || (dc_wkc_at && (dc_wkc_at <= wkc_at || dc_wkc_at + 2 > self->frame.len))) {
         DriveRun_unlink(self);
         PyErr_SetString(PyExc_ValueError, "DriveRun.link: a frame without its datagram, or the working counter past the reply");
         return NULL;
@@ -266,6 +275,8 @@ static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     self->fd = fd;
     self->wkc_at = wkc_at;
     self->expected_wkc = expected_wkc;
+    self->dc_wkc_at = dc_wkc_at;
+    self->expected_dc_wkc = expected_dc_wkc;
     self->timeout_ns = timeout_ns;
     self->sent_ns = 0;
     Py_RETURN_NONE;
@@ -300,8 +311,10 @@ static PyObject *DriveRun_send(DriveRun *self, PyObject *unused) {
  * expected, and its inputs are in y with every drive in Operation enabled in its mode; -2 when it
  * did not come within the timeout (a late answer is seen as it comes, a lost one at the first
  * kernel tick after the timeout); else the answer's working counter, the inputs not taken (the
- * Python side checks it and takes them, naming what is wrong). Up to 16 late answers of earlier
- * frames are passed over. EthercatDevice._receive is the reference. */
+ * Python side checks it and takes them, naming what is wrong); -4 when every slave exchanged but
+ * the DC datagram's working counter is not the one expected (the reference clock's time did not
+ * come back to the others; the inputs not taken). Up to 16 late answers of earlier frames are
+ * passed over. EthercatDevice._receive and _take_answer are the reference. */
 static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
     if (!self->linked) {
         PyErr_SetString(PyExc_ValueError, "DriveRun.receive: no link");
@@ -338,7 +351,15 @@ static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
             continue;
         }
         long wkc = (long)reply[self->wkc_at] | (long)reply[self->wkc_at + 1] << 8;
-        if (wkc != self->expected_wkc || drive_take(self) >= 0) {
+        if (wkc != self->expected_wkc) {
+            return PyLong_FromLong(wkc);
+        }
+        if (self->dc_wkc_at && (size < self->dc_wkc_at + 2 ||
+                                ((long)reply[self->dc_wkc_at] | (long)reply[self->dc_wkc_at + 1] << 8) !=
+                                    self->expected_dc_wkc)) {
+            return PyLong_FromLong(-4);
+        }
+        if (drive_take(self) >= 0) {
             return PyLong_FromLong(wkc);
         }
         return PyLong_FromLong(-1);

@@ -193,6 +193,8 @@ class Canopen402Device(Device):
         node = table.pop("node", None)
         if isinstance(node, bool) or not isinstance(node, int) or not 1 <= node <= 127:
             raise JointError(f"{where}.node", f"expected the drive's node id 1..127, got {node!r}")
+        if "dc" in table:
+            raise JointError(f"{where}.dc", "distributed clocks are EtherCAT's: a CANopen drive follows SYNC")
         eds = table.pop("eds", None)
         sdo_writes = sdo_writes_from(table.pop("sdo", []), f"{where}.sdo")
         indices: set[int] = set()

@@ -27,6 +27,8 @@ ENABLE_LIMIT = 1000
 """Exchanges a drive may take from activate to *Operation enabled* before that is a fault."""
 MODE_LIMIT = 50
 NOT_LINKED = -3
+DC_LOST = -4
+""":meth:`DriveCycle.receive_linked`: every slave exchanged, but the DC datagram's working counter is wrong."""
 """:meth:`DriveCycle.receive_linked`: the C cycle does not run now; the transport receives and the reference takes."""
 """Exchanges a drive may take to show a mode it was asked for (0x6061) before that is a fault."""
 
@@ -159,13 +161,14 @@ class DriveCycle:
             in_at += joint.tx.size
 
     def link(self, fd: int, frame: bytearray, reply: bytearray, wkc_at: int, expected_wkc: int,
-             timeout_ns: int) -> None:
+             timeout_ns: int, dc_wkc_at: int = 0, expected_dc_wkc: int = 0) -> None:
         """The EtherCAT frame the buffers are places in, on the raw socket ``fd`` (blocking, its
         receive timeout one tick), its answer due within ``timeout_ns`` of the send: the running
         cycle then packs, sends, receives, checks and unpacks in one C call each way
         (:meth:`send_linked`, :meth:`receive_linked`; ``EthercatDevice._send`` and ``_receive`` are
-        the reference)."""
-        self._link = (fd, frame, reply, wkc_at, expected_wkc, timeout_ns)
+        the reference). ``dc_wkc_at``: where the DC datagram's working counter is (0: none), checked
+        against ``expected_dc_wkc`` once every slave exchanged (:data:`DC_LOST` when it differs)."""
+        self._link = (fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at, expected_dc_wkc)
 
     def send_linked(self, u: Any) -> bool:
         """The running cycle's outputs packed and the frame sent, in C: True; False when the C
@@ -184,8 +187,9 @@ class DriveCycle:
     def receive_linked(self, y: Any) -> int:
         """The answer to the frame :meth:`send_linked` sent, checked and taken into ``y`` in C: -1.
         -2: no answer within the timeout. ``NOT_LINKED``: the C cycle does not run now (the caller
-        receives). Else the answer's working counter, its inputs not taken (the caller checks it,
-        then :meth:`take_inputs` names what the C cycle did not take)."""
+        receives). ``DC_LOST``: the DC datagram's working counter is wrong (inputs not taken). Else
+        the answer's working counter, its inputs not taken (the caller checks it, then
+        :meth:`take_inputs` names what the C cycle did not take)."""
         fast = self._fast
         if not self._sent_linked or y is not self._fast_y:
             return NOT_LINKED

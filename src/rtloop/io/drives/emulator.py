@@ -12,7 +12,9 @@ own state changes ("quick stop (controlword)", "fault 0x5530: ..."), injected fa
 
 Fault injection, counted in process-data exchanges with the drive enabled (``--inject``,
 repeatable): ``fault:SLAVE@N`` (the drive faults), ``drop:SLAVE@N`` (the slave drops out: answers
-nothing more, a cable pulled), ``lose@N`` (that one frame is not answered: lost on the wire).
+nothing more, a cable pulled), ``lose@N`` (that one frame is not answered: lost on the wire),
+``clock:SLAVE@N`` (the slave's distributed clocks unit stops: as reference clock its time no
+longer goes out).
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ class DriveSpec:
 @dataclass(frozen=True)
 class Injection:
     what: str
-    """``fault``, ``drop`` or ``lose``."""
+    """``fault``, ``drop``, ``lose`` or ``clock``."""
     slave: int
     at_exchange: int
 
@@ -62,8 +64,9 @@ class Injection:
 def parse_injection(text: str) -> Injection:
     what, _, rest = text.partition(":") if ":" in text else (text.partition("@")[0], "", "@" + text.partition("@")[2])
     slave_text, _, at_text = rest.partition("@")
-    if what not in ("fault", "drop", "lose") or not at_text.isdigit() or (what != "lose" and not slave_text.isdigit()):
-        raise ValueError(f"--inject {text!r}: expected fault:SLAVE@N, drop:SLAVE@N or lose@N")
+    if what not in ("fault", "drop", "lose", "clock") or not at_text.isdigit() or \
+            (what != "lose" and not slave_text.isdigit()):
+        raise ValueError(f"--inject {text!r}: expected fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N or lose@N")
     return Injection(what, int(slave_text or 1), int(at_text))
 
 
@@ -97,6 +100,10 @@ class Emulator:
                 self.log(f"slave {slave.position}: injected drop-out at exchange {slave.exchanges_enabled}: "
                          "it answers nothing from now on")
                 slave.dropped = True
+            elif injection.what == "clock":
+                self.log(f"slave {slave.position}: injected loss of its distributed clocks unit at exchange "
+                         f"{slave.exchanges_enabled}")
+                slave.dc = None
             else:
                 self.log(f"injected lost frame at exchange {slave.exchanges_enabled}: not answered")
                 answer = False
@@ -190,7 +197,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slaves", type=int, default=0, help="this many default drives")
     parser.add_argument("--log", help="append the log here (default: standard output)")
     parser.add_argument("--inject", action="append", default=[], metavar="WHAT",
-                        help="fault:SLAVE@N, drop:SLAVE@N or lose@N (N: exchanges with the drive enabled)")
+                        help="fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N or lose@N (N: exchanges with the drive "
+                        "enabled)")
     parser.add_argument("--priority", type=int, default=0,
                         help="run at SCHED_FIFO this priority (a drive must answer within the master's timeout)")
 

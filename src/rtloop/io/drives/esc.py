@@ -358,6 +358,8 @@ class Segment:
                 slave.write(ado, data)
                 wkc += 1
             return wkc, adp
+        if command in (ARMW, FRMW) and slave.dc is None and ado == REG_DC_SYSTEM_TIME:
+            return wkc, adp  # no system time to read: the reference clock's time does not go out
         if command in (BRD,):
             slave.read(ado, data, "or")
             wkc += 1

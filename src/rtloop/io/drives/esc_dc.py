@@ -113,8 +113,10 @@ class DcUnit:
             self.sync0_pulsed = False
             now = self.system_ns()
             late = " (in the past: no pulse until the start time comes round)" if start < now else ""
-            self.log(f"slave {self.position}: DC SYNC0 activated: start at system time {start} ns, cycle "
-                     f"{cycle} ns{late}")
+            offset, = struct.unpack_from("<Q", self.memory, REG_DC_OFFSET)
+            monotonic = (start - offset - self.local_start_ns) & U64  # this slave's clocks are the emulator's
+            self.log(f"slave {self.position}: DC SYNC0 activated: start at system time {start} ns (CLOCK_MONOTONIC "
+                     f"{monotonic} ns here), cycle {cycle} ns{late}")
         elif not active and self.sync0_active:
             self.log(f"slave {self.position}: DC SYNC0 deactivated")
         self.sync0_active = active

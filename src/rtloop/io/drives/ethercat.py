@@ -20,7 +20,10 @@ its SM watchdog time; a Python thread would wait on the GIL behind the task's st
 than a watchdog allows). From T0 one LRW frame per cycle, built once and sent on rtloop's own raw
 socket (``read``), carries every drive's controlword and target out and its statusword and
 actual values back; the CiA 402 state machine (``io/drives/cia402.py``) enables the drives on the
-first exchanges. On every way the run ends:
+first exchanges. Where a slave has distributed clocks (``io/drives/ethercat_dc.py``, docs/drives.md),
+SOEM configures them before SAFE-OP, the frame carries the reference clock's time to the others
+(an FRMW after the LRW, its working counter checked), and each slave rtloop runs on DC gets SYNC0
+started on a release T0 + kP, cycling with the period. On every way the run ends:
 quick stop, then disable voltage, then SAFE-OP. When the task process is killed, the slaves' SM
 watchdog (``watchdog_ms``) takes them out of OP and the drives quick-stop by themselves.
 """
@@ -37,7 +40,8 @@ import numpy as np
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
 from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
-from rtloop.io.drives.cycle import NOT_LINKED, DriveCycle, command_names, reading_names
+from rtloop.io.drives import ethercat_dc as dc
+from rtloop.io.drives.cycle import DC_LOST, NOT_LINKED, DriveCycle, command_names, reading_names
 from rtloop.io.drives.drive_model import DriveModel
 from rtloop.io.drives.joints import (
     QUICK_STOP_TIMEOUT,
@@ -115,6 +119,10 @@ class EthercatDevice(Device):
         self._keeper: Any = None  # the process data before T0 (io/devio_c/ecat_keeper.c FrameKeeper)
         self.cycle: DriveCycle | None = None
         self.active = False
+        self._dc = dc.DcPlan()
+        self._dc_wkc_at = 0
+        self._t0_ns = self._period_ns = 0
+        self._sync0_note = ""
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -144,7 +152,9 @@ class EthercatDevice(Device):
         """The emulated drives this device expects (for ``rtloop emulate ethercat --app``)."""
         from rtloop.io.drives.emulator import DriveSpec
 
-        return [DriveSpec(j.identity, j.rx.objects, j.tx.objects, j.drive) for j in self.joints]
+        # a joint's ESI says whether its emulated slave has distributed clocks (without one: it has)
+        return [DriveSpec(j.identity, j.rx.objects, j.tx.objects, j.drive, dc=j.esi_dc is not False)
+                for j in self.joints]
 
     # --- supervisor: the bus is there and carries the slaves the app file declares ------------------
     def _master(self) -> Any:
@@ -181,6 +191,7 @@ class EthercatDevice(Device):
         if found != len(self.joints):
             raise DeviceMismatch(self.name, "", "joints", f"{found} slave(s) on {self.interface}, the app file "
                                  f"declares {len(self.joints)} joints (one drive each, in bus order)")
+        assign_activate = []
         for joint, slave in zip(self.joints, master.slaves, strict=True):
             where = f"joints[{joint.slave - 1}]"
             for key, value in (("vendor", slave.man), ("product", slave.id), ("revision", slave.rev)):
@@ -189,6 +200,7 @@ class EthercatDevice(Device):
                     raise DeviceMismatch(self.name, "", f"{where}.{key}", f"slave {joint.slave} ({slave.name}) has "
                                          f"{key} 0x{value:08X}, the app file says 0x{wanted:08X}")
             info = parse_sii(_eeprom_reader(slave))
+            assign_activate.append(info.dc_assign_activate)
             for key, found_entries, layout in (("rxpdo", info.rxpdo, joint.rx), ("txpdo", info.txpdo, joint.tx)):
                 found_objects = tuple(entry.index for entry in found_entries)
                 if found_objects != layout.objects:
@@ -202,6 +214,10 @@ class EthercatDevice(Device):
                 if bits != layout.size * 8:
                     raise DeviceMismatch(self.name, "", f"{where}.{key}", f"the PDO does not fit: the slave maps "
                                          f"{bits} bits, the declared objects take {layout.size * 8}")
+        self._dc, problem = dc.dc_plan(self.joints, assign_activate)
+        if problem:
+            key, _, text = problem.partition(": ")
+            raise DeviceMismatch(self.name, "", key, text)
 
     def check(self) -> None:
         master = self._master()
@@ -225,6 +241,11 @@ class EthercatDevice(Device):
                 raise DeviceError(self.name, "", "joints", f"SOEM mapped {size} bytes of process data, the joints "
                                   f"declare {cycle.output_bytes + cycle.input_bytes}")
             self._expected_wkc = master.expected_wkc
+            # SOEM's ec_configdc: receive times latched, each slave's delay and offset set (system time:
+            # the master's wall clock, ns since 2000); SYNC0 is started at T0's announcement (activate)
+            if self._dc.with_dc and not master.config_dc():
+                raise DeviceError(self.name, "", "joints", "SOEM found no slave with distributed clocks, the "
+                                  f"slaves' SII describe {self._dc.with_dc}")
             if master.state_check(pysoem.SAFEOP_STATE, 2_000_000) != pysoem.SAFEOP_STATE:
                 raise DeviceError(self.name, "", "", f"the slaves did not reach SAFE-OP: {self._al_problems(master)}")
         finally:
@@ -288,8 +309,12 @@ class EthercatDevice(Device):
     def _bind(self, cycle: DriveCycle, sock: Any) -> None:
         """The cycle's frame, exchanged on ``sock`` (blocking, its receive timeout short: SO_RCVTIMEO)."""
         total_out, total = cycle.output_bytes, cycle.output_bytes + cycle.input_bytes
-        self._frame = new_frame(12 + total)
-        put_datagram(self._frame, 16, LRW, 0, 0, total)
+        reference = self._dc.reference
+        self._frame = new_frame(12 + total + (12 + 8 if reference else 0))
+        after = put_datagram(self._frame, 16, LRW, 0, 0, total, more=bool(reference))
+        if reference:  # the reference clock's system time read and written into every other DC slave (SOEM's)
+            put_datagram(self._frame, after, dc.FRMW, 0, dc.station(reference) | dc.REG_SYSTEM_TIME << 16, 8)
+        self._dc_wkc_at = after + 10 + 8 if reference else 0
         self._reply = bytearray(len(self._frame) + 64)
         self._wkc_at = DATA_AT + total
         cycle.bind(self._frame, DATA_AT, self._reply, DATA_AT + total_out)
@@ -300,7 +325,7 @@ class EthercatDevice(Device):
         self.socket = sock
         self._sent_at = 0.0
         cycle.link(self.socket.fileno(), self._frame, self._reply, self._wkc_at, self._expected_wkc,
-                   round(self.timeout_s * 1e9))
+                   round(self.timeout_s * 1e9), self._dc_wkc_at, self._dc.with_dc)
 
     def _exchange(self) -> int:
         """Send the frame, take its answer; the working counter (-1: it did not come back in time)."""
@@ -337,13 +362,47 @@ class EthercatDevice(Device):
             passed += 1
         return -1
 
+    def timeline(self, t0_ns: int, period_ns: int) -> None:
+        self._t0_ns, self._period_ns = t0_ns, period_ns
+
     def activate(self) -> None:
-        """T0 is known (it may be some time away): the process data keeps flowing until the loop's
-        first exchange (:meth:`_stop_keeper`). Without the C build OP is asked for now (with any
-        error acknowledged) and the enabling waits for it."""
+        """T0 is known (it may be some time away): SYNC0 of the slaves on distributed clocks is
+        started on a release; the process data keeps flowing until the loop's first exchange
+        (:meth:`_stop_keeper`). Without the C build OP is asked for now (with any error
+        acknowledged) and the enabling waits for it."""
+        if self._dc.synced and self._period_ns:
+            self._start_sync0()
         if self._keeper is None:
             self._request_state(AL_OP | AL_ACK)
         self.active = True
+
+    def _start_sync0(self) -> None:
+        """SYNC0 on the first release T0 + kP far enough ahead (``ethercat_dc.SYNC0_LEAD_NS``), mapped
+        into the DC system time through the reference clock's time read now, its cycle the period.
+        On a socket of its own: the keeper thread receives on the cycle's."""
+        reference, period_ns = self._dc.reference, self._period_ns
+        if period_ns > dc.MAX_SYNC0_CYCLE_NS:
+            raise DeviceFault(f"devices.{self.name}: a period of {period_ns} ns does not fit SYNC0's cycle time "
+                              "register (32 bits, at most 4.29 s): run these drives without distributed clocks "
+                              "(dc = false)")
+        try:
+            with open_raw(self.interface, timeout_s=0.005) as sock:
+                system_ns, monotonic_ns, round_trip_ns = dc.read_system_time(sock, reference)
+                offset_ns = system_ns - monotonic_ns
+                k = dc.first_release(self._t0_ns, period_ns, time.monotonic_ns())
+                start_ns = self._t0_ns + k * period_ns + offset_ns
+                for position, assign in self._dc.synced.items():
+                    dc.start_sync0(sock, position, start_ns, period_ns, assign)
+        except OSError as error:
+            raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error} (the reference "
+                              f"clock is slave {reference})") from None
+        self._sync0_note = (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = "
+                            f"CLOCK_MONOTONIC + {offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference "
+                            f"clock, slave {reference})")
+
+    def run_notes(self) -> list[str]:
+        """Which slaves ran on distributed clocks and which free on the frames, and why."""
+        return self._dc.describe(self.joints, self._sync0_note)
 
     def _stop_keeper(self) -> None:
         """The thread that kept the process data flowing since configure stops (at the loop's first
@@ -392,13 +451,27 @@ class EthercatDevice(Device):
         wkc = cycle.receive_linked(y)  # one C call while every drive is enabled
         if wkc == -1:
             return
+        if wkc == DC_LOST:
+            raise DeviceFault(self._reference_problem())
         if wkc == NOT_LINKED:
             wkc = self._receive()
         # while the drives are enabled, every slave must exchange; before, a slave still on its way
         # to OP writes no outputs (the drives stay disabled: the enabling waits, within its limit)
         if wkc != self._expected_wkc and (cycle.enabled or wkc < 0):
             raise DeviceFault(self._bus_problem(wkc))
+        at = self._dc_wkc_at
+        if at and wkc >= 0 and self._reply[at] | self._reply[at + 1] << 8 != self._dc.with_dc:
+            raise DeviceFault(self._reference_problem())
         cycle.take_inputs(y)
+
+    def _reference_problem(self) -> str:
+        cycle = self.cycle
+        assert cycle is not None
+        at = self._dc_wkc_at
+        got = self._reply[at] | self._reply[at + 1] << 8
+        return (f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}: the reference clock's time "
+                f"did not come back (distributed clocks: the FRMW of slave {self._dc.reference}'s system time had "
+                f"working counter {got}, expected {self._dc.with_dc}): the reference clock lost or out of step")
 
     def _bus_problem(self, wkc: int) -> str:
         cycle = self.cycle

@@ -7,7 +7,10 @@
 
 One table per drive, in bus order. ``rxpdo``/``txpdo`` name the objects of its mapping in order
 (default: :data:`~rtloop.io.drives.pdo.DEFAULT_RXPDO` / ``DEFAULT_TXPDO``), or ``esi`` names the
-drive's ESI XML file, whose identity and first RxPDO/TxPDO give them. ``drive`` holds the
+drive's ESI XML file, whose identity and first RxPDO/TxPDO give them, and whether it has
+distributed clocks (a ``Dc/OpMode`` with a non-zero ``AssignActivate``). ``dc`` (EtherCAT) runs the
+drive on distributed clocks (``true``) or free on the frames (``false``); by default on DC where the
+slave has them (its ESI, when given, and its SII). ``drive`` holds the
 emulated drive's parameters (:class:`~rtloop.io.drives.drive_model.DriveParameters`: the twin's
 and the emulator's motor, load and loops).
 """
@@ -31,7 +34,7 @@ from rtloop.io.drives.sii import Identity
 __all__ = ["QUICK_STOP_TIMEOUT", "JointConfig", "JointError", "joint_from_table", "joint_limits", "joint_tables_check"]
 
 JOINT_KEYS = {"name", "vendor", "product", "revision", "mode", "modes", "counts_per_rev", "gear_ratio", "direction",
-              "rated_torque_Nm", "rxpdo", "txpdo", "esi", "drive"}
+              "rated_torque_Nm", "rxpdo", "txpdo", "esi", "drive", "dc"}
 
 
 QUICK_STOP_TIMEOUT = Setting(float, 2.0, "how long the safe transition may take (quick stop, then disable) before "
@@ -79,6 +82,10 @@ class JointConfig:
     rx: PdoLayout
     tx: PdoLayout
     drive: DriveParameters
+    dc: bool | None = None
+    """Run on distributed clocks (True), free on the frames (False), or where the slave has them (None)."""
+    esi_dc: bool | None = None
+    """Whether the joint's ESI file describes a DC operation mode (None: no ESI file given)."""
 
     @property
     def mode_command(self) -> bool:
@@ -128,8 +135,9 @@ def _objects(table: dict[str, Any], key: str, where: str, default: tuple[int, ..
     return tuple(objects)
 
 
-def read_esi(path: Path, where: str) -> tuple[Identity, tuple[int, ...], tuple[int, ...]]:
-    """An ESI file's first device: identity, and the objects of its first RxPDO and TxPDO."""
+def read_esi(path: Path, where: str) -> tuple[Identity, tuple[int, ...], tuple[int, ...], bool]:
+    """An ESI file's first device: identity, the objects of its first RxPDO and TxPDO, and whether
+    it describes a distributed clocks operation mode (``Dc/OpMode`` with a non-zero AssignActivate)."""
     try:
         root = ElementTree.parse(path).getroot()
     except (OSError, ElementTree.ParseError) as error:
@@ -153,12 +161,13 @@ def read_esi(path: Path, where: str) -> tuple[Identity, tuple[int, ...], tuple[i
             pdo = device.find(tag)
             entries = [] if pdo is None else [number(e.findtext("Index")) for e in pdo.findall("Entry")]
             mappings.append(tuple(index for index in entries if index))
+        has_dc = any(number(mode.findtext("AssignActivate")) for mode in device.findall("Dc/OpMode"))
     except ValueError as error:
         raise JointError(f"{where}.esi", f"{path}: not an ESI file rtloop reads ({error})") from None
     for index in (*mappings[0], *mappings[1]):
         if index not in OBJECTS:
             raise JointError(f"{where}.esi", f"{path}: maps object 0x{index:04X}, which rtloop does not map")
-    return identity, mappings[0], mappings[1]
+    return identity, mappings[0], mappings[1], has_dc
 
 
 def _drive(table: dict[str, Any], where: str, counts_per_rev: float, rated: float, modes: tuple[int, ...]) -> \
@@ -192,14 +201,14 @@ def joint_from_table(table: Any, slave: int, base_dir: Path | None = None) -> Jo
     name = table.get("name")
     if not isinstance(name, str) or not name.isidentifier() or len(name) > 24:
         raise JointError(f"{where}.name", f"expected a name of letters, digits and underscores, got {name!r}")
-    esi_identity = None
+    esi_identity, esi_dc = None, None
     default_rx: tuple[int, ...] = DEFAULT_RXPDO
     default_tx: tuple[int, ...] = DEFAULT_TXPDO
     if "esi" in table:
         path = Path(str(table["esi"]))
         if base_dir is not None and not path.is_absolute():
             path = base_dir / path
-        esi_identity, default_rx, default_tx = read_esi(path, where)
+        esi_identity, default_rx, default_tx, esi_dc = read_esi(path, where)
     identity = Identity(_id(table, "vendor", where, esi_identity), _id(table, "product", where, esi_identity),
                         _id(table, "revision", where, esi_identity))
     if "mode" in table and "modes" in table:
@@ -235,4 +244,10 @@ def joint_from_table(table: Any, slave: int, base_dir: Path | None = None) -> Jo
             raise JointError(f"{where}.rxpdo", f"mode {cia402.MODE_NAMES[mode]} needs object 0x{target:04X} "
                              f"({OBJECTS[target].name}) in the mapping; it is missing")
     drive = _drive(table, where, scale.counts_per_rev, scale.rated_torque_Nm, tuple(modes))
-    return JointConfig(name, slave, identity, tuple(modes), scale, PdoLayout(rx), PdoLayout(tx), drive)
+    dc = table.get("dc")
+    if dc is not None and not isinstance(dc, bool):
+        raise JointError(f"{where}.dc", f"expected true (distributed clocks) or false (free run), got {dc!r}")
+    if dc and esi_dc is False:
+        raise JointError(f"{where}.dc", "the joint's ESI file describes no distributed clocks mode (Dc/OpMode): "
+                         "the drive cannot run on them")
+    return JointConfig(name, slave, identity, tuple(modes), scale, PdoLayout(rx), PdoLayout(tx), drive, dc, esi_dc)

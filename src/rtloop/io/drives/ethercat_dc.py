@@ -1,0 +1,155 @@
+"""Distributed clocks (DC) for the EtherCAT drive device: which slaves run on them, the reference
+clock's time in every cycle's frame, and SYNC0 started on a release of rtloop's timeline.
+
+What a master does, as ETG.1000 and the ESC datasheets describe it (and SOEM's ``ec_configdc``,
+through pysoem's ``config_dc``, does the first part): latch every slave's receive times with a
+broadcast write to 0x0900, work out each slave's propagation delay (0x0928) and the offset of its
+local clock (0x0920) so that every slave's system time (0x0910) reads the same, in ns since
+2000-01-01 (SOEM sets it from the master's wall clock). The first slave with DC is the reference
+clock: every cycle's frame carries an FRMW datagram after its LRW that reads the reference's
+system time and writes it into every other DC slave, whose drift control follows it.
+
+rtloop's timeline is CLOCK_MONOTONIC. At T0's announcement (``start_sync0``) the reference's system
+time is read between two readings of CLOCK_MONOTONIC: their midpoint maps a monotonic instant onto
+the DC system time (``offset_ns``), and SYNC0 of each slave rtloop runs on DC starts at the first
+release T0 + kP at least ``SYNC0_LEAD_NS`` ahead, mapped, with the period as its cycle time.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from rtloop.io.drives.joints import JointConfig
+from rtloop.io.drives.rawsocket import new_frame, put_datagram
+
+__all__ = [
+    "DC_INDEX",
+    "FRMW",
+    "REG_SYSTEM_TIME",
+    "SYNC0_LEAD_NS",
+    "DcPlan",
+    "dc_plan",
+    "first_release",
+    "read_system_time",
+    "start_sync0",
+    "station",
+]
+
+FPRD, FPWR, FRMW = 4, 5, 14
+REG_SYSTEM_TIME = 0x0910
+REG_CYCLIC_CONTROL, REG_SYNC0_START, REG_SYNC0_CYCLE = 0x0980, 0x0990, 0x09A0
+DC_INDEX = 0x5C
+"""The datagram index of the DC set-up frames (the cycle's frame counts its own)."""
+SYNC0_LEAD_NS = 20_000_000
+"""SYNC0's first pulse is at least this far ahead of its set-up (a start time already past would
+wait for the slave's 32-bit clock to come round: about 4 s)."""
+MAX_SYNC0_CYCLE_NS = 0xFFFFFFFF
+DATA_AT = 26
+
+
+def station(position: int) -> int:
+    """The configured station address SOEM gives the slave at ``position`` (from 1)."""
+    return 0x1000 + position
+
+
+@dataclass
+class DcPlan:
+    """How each slave runs: on DC (SYNC0 started by rtloop) or free on the frames, and why."""
+
+    reference: int = 0
+    """The position of the reference clock (the first slave with DC); 0: no slave has DC."""
+    with_dc: int = 0
+    """Slaves that have DC: the working counter of the cycle's FRMW (the reference reads, each other writes)."""
+    synced: dict[int, int] = field(default_factory=dict)
+    """Slave position → the AssignActivate rtloop writes to 0x0980 (from its SII) to start SYNC0."""
+    free: dict[int, str] = field(default_factory=dict)
+    """Slave position → why it runs free on the frames."""
+
+    def describe(self, joints: Sequence[JointConfig], sync0: str = "") -> list[str]:
+        lines = []
+        for joint in joints:
+            who = f"joint {joint.name!r} (slave {joint.slave})"
+            if joint.slave in self.synced:
+                lines.append(f"{who} runs on distributed clocks: SYNC0 every period{sync0}"
+                             + (" (the reference clock)" if joint.slave == self.reference else ""))
+            else:
+                lines.append(f"{who} runs free on the frames, without distributed clocks: {self.free[joint.slave]}")
+        return lines
+
+
+def dc_plan(joints: Sequence[JointConfig], assign_activate: Sequence[int]) -> tuple[DcPlan, str]:
+    """Each joint's way to run from its ``dc`` setting, its ESI and its slave's SII (``assign_activate``:
+    the SII's DC mode, 0 none); with the first problem ('' none): ``dc = true`` on a slave without DC."""
+    plan = DcPlan()
+    for joint, assign in zip(joints, assign_activate, strict=True):
+        if assign:
+            plan.with_dc += 1
+            plan.reference = plan.reference or joint.slave
+        if joint.dc is False:
+            plan.free[joint.slave] = "dc = false in the app file"
+        elif not assign:
+            if joint.dc:
+                return plan, (f"joints[{joint.slave - 1}].dc: slave {joint.slave} describes no distributed "
+                              "clocks mode in its SII: it cannot run on them")
+            plan.free[joint.slave] = "the slave has none (no DC mode in its SII)"
+        elif joint.esi_dc is False:
+            plan.free[joint.slave] = "its ESI file describes no DC mode"
+        else:
+            plan.synced[joint.slave] = assign
+    return plan, ""
+
+
+def first_release(t0_ns: int, period_ns: int, now_ns: int, lead_ns: int = SYNC0_LEAD_NS) -> int:
+    """The first k ≥ 0 whose release T0 + kP is at least ``lead_ns`` after ``now_ns``."""
+    wait_ns = now_ns + lead_ns - t0_ns
+    return max(0, -(-wait_ns // period_ns))
+
+
+def _transact(sock: socket.socket, command: int, address: int, data: bytes, timeout_s: float = 0.05) -> \
+        tuple[int, bytes]:
+    """One datagram out and its answer back: (working counter, data); (-1, b'') when none came."""
+    frame = new_frame(12 + len(data))
+    put_datagram(frame, 16, command, DC_INDEX, address, len(data))
+    frame[DATA_AT:DATA_AT + len(data)] = data
+    sock.send(frame)
+    deadline = time.monotonic() + timeout_s
+    reply = bytearray(len(frame) + 64)
+    while time.monotonic() < deadline:
+        try:
+            size = sock.recv_into(reply)
+        except (TimeoutError, BlockingIOError):
+            continue
+        if size >= DATA_AT + len(data) + 2 and reply[16] == command and reply[17] == DC_INDEX:
+            wkc_at = DATA_AT + len(data)
+            return reply[wkc_at] | reply[wkc_at + 1] << 8, bytes(reply[DATA_AT:wkc_at])
+    return -1, b""
+
+
+def read_system_time(sock: socket.socket, position: int) -> tuple[int, int, int]:
+    """The slave's DC system time, the CLOCK_MONOTONIC instant it stands for (the midpoint of the
+    exchange) and the exchange's round trip (twice the mapping's uncertainty), in ns; raises
+    OSError when the slave does not answer."""
+    before = time.monotonic_ns()
+    wkc, data = _transact(sock, FPRD, station(position) | REG_SYSTEM_TIME << 16, bytes(8))
+    after = time.monotonic_ns()
+    if wkc != 1:
+        raise OSError(f"slave {position} did not answer the read of its system time (0x0910)")
+    return struct.unpack("<Q", data)[0], (before + after) // 2, after - before
+
+
+def start_sync0(sock: socket.socket, position: int, start_ns: int, cycle_ns: int, assign_activate: int) -> None:
+    """SYNC0 of the slave at ``position``: deactivated, start time (system time) and cycle time set,
+    then activated with its AssignActivate, as a master does; raises OSError when a write is not taken."""
+    address = station(position)
+    for register, data in ((REG_CYCLIC_CONTROL, struct.pack("<H", 0)),
+                           (REG_SYNC0_START, struct.pack("<Q", start_ns)),
+                           (REG_SYNC0_CYCLE, struct.pack("<I", cycle_ns)),
+                           (REG_CYCLIC_CONTROL, struct.pack("<H", assign_activate))):
+        wkc, _ = _transact(sock, FPWR, address | register << 16, data)
+        if wkc != 1:
+            raise OSError(f"slave {position} did not take the write of register 0x{register:04X} "
+                          f"(working counter {wkc})")
