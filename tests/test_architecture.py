@@ -259,3 +259,104 @@ def test_every_type_ignore_names_its_code_and_reason() -> None:
             if "type: ignore" in line and not re.search(r"# type: ignore\[[a-z-]+(,[a-z-]+)*\]  # \S", line):
                 bare.append(f"{path.relative_to(SRC)}:{number}")
     assert not bare, f"type: ignore without [code] and '  # reason' after it: {bare}"
+
+
+# --- repeats removed from the tests and the benchmarks (#29's review): kept from coming back ---------
+
+TESTS = Path(__file__).resolve().parent
+BENCHMARKS = TESTS.parent / "benchmarks"
+OWN_TAILS_YET = {"bench_latency.py", "bench_wakeup_trace.py"}
+"""Benchmarks that still write their own options, Targets and Machine sections: they take
+``_common.py``'s helpers when next changed (remove them here then)."""
+
+
+class _Shape(ast.NodeTransformer):
+    """A function with every name, attribute and argument renamed and its docstring dropped: what
+    stays is its shape, so a copy with other names is the same."""
+
+    def visit_FunctionDef(self, node: ast.FunctionDef) -> ast.AST:
+        if node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant):
+            node.body = node.body[1:]
+        node.name = "_"
+        return self.generic_visit(node)
+
+    def visit_Name(self, node: ast.Name) -> ast.AST:
+        return ast.Name("_", node.ctx)
+
+    def visit_Attribute(self, node: ast.Attribute) -> ast.AST:
+        node.attr = "_"
+        return self.generic_visit(node)
+
+    def visit_arg(self, node: ast.arg) -> ast.AST:
+        node.arg = "_"
+        return self.generic_visit(node)
+
+
+def _methods(path: Path, name: str) -> dict[str, str]:
+    """``name`` method of every class in ``path``: class name → its shape."""
+    found = {}
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ClassDef):
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef) and item.name == name:
+                    found[node.name] = ast.dump(_Shape().visit(item))
+    return found
+
+
+def _code_strings(path: Path) -> set[str]:
+    """The string constants of a module's code (its docstrings left out: prose may name anything)."""
+    tree = ast.parse(path.read_text(), str(path))
+    docstrings = {id(body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef)
+                  and (body := node.body) and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)}
+    return {node.value for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings}
+
+
+def test_the_line_that_answers_at_once_is_written_once() -> None:
+    """A servo line handing back the same answers to every sync read is tests/servo_lines.py's, for the
+    tests and benchmarks/bench_servos.py alike; it was written twice, under two names."""
+    shared = TESTS / "servo_lines.py"
+    reference = _methods(shared, "receive")["AnswersAtOnce"]
+    modules = sorted([*TESTS.glob("*.py"), *BENCHMARKS.rglob("*.py")])
+    copies = [f"{path.relative_to(TESTS.parent)}:{cls}" for path in modules
+              if path != shared for cls, shape in _methods(path, "receive").items() if shape == reference]
+    assert copies == [], "use servo_lines.AnswersAtOnce (or servos_answering_at_once)"
+
+
+@pytest.mark.parametrize("path", sorted(p for p in BENCHMARKS.glob("bench_*.py") if p.name not in OWN_TAILS_YET),
+                         ids=lambda path: path.name)
+def test_a_benchmark_ends_through_the_shared_helpers(path: Path) -> None:
+    """The "### Targets" and "### Machine" sections, ``--quick`` and the hold on /dev/cpu_dma_latency are
+    benchmarks/_common.py's (``closing_sections``, ``add_output_options``, ``PmQos``), so every benchmark
+    prints them alike; the hop processes' start is bench_channels.run_hop_processes."""
+    strings = _code_strings(path)
+    assert not strings & {"### Machine", "### Targets", "**MISSED**"}, "use _common.closing_sections"
+    assert "--quick" not in strings, "use _common.add_output_options and parse_options"
+    assert "/dev/cpu_dma_latency" not in strings, "use _common.PmQos (rtloop's own rt.CpuDmaLatency)"
+    if path.name != "bench_channels.py":
+        assert "a hop benchmark process died while starting" not in strings, "use bench_channels.run_hop_processes"
+
+
+def test_the_hold_on_cpu_dma_latency_is_written_once() -> None:
+    """linux/rt.py's CpuDmaLatency holds /dev/cpu_dma_latency, for the supervisor and the benchmarks
+    (``_common.PmQos``); the doctor looks at the file under its own root."""
+    holders = sorted(str(path.relative_to(SRC.parent)) for path in [*PACKAGE.rglob("*.py"), *BENCHMARKS.rglob("*.py")]
+                     if "/dev/cpu_dma_latency" in _code_strings(path))
+    assert holders == ["src/rtloop/linux/rt.py"], "use rt.CpuDmaLatency (benchmarks: _common.PmQos)"
+
+
+def test_the_byte_layout_twins_and_the_busy_wait_are_written_once() -> None:
+    """A layout compiled and as the Python reference is conftest.layout_twins; a runnable spinning to a
+    deadline calls rt_test_runnables.busy_until."""
+    twins = []
+    for path in sorted(TESTS.glob("*.py")):
+        source = path.read_text()
+        for node in ast.walk(ast.parse(source, str(path))):
+            if isinstance(node, ast.FunctionDef) and path.name != "conftest.py":
+                body = ast.get_source_segment(source, node) or ""
+                if 'setenv("RTLOOP_PURE_PYTHON"' in body and body.count("ByteLayout(") >= 2:
+                    twins.append(f"{path.name}:{node.name}")
+    assert twins == [], "use conftest.layout_twins"
+    spins = (TESTS / "rt_test_runnables.py").read_text().count("while time.monotonic_ns() <")
+    assert spins == 1
