@@ -73,7 +73,16 @@ def task_pids(supervisor: int) -> dict[str, int]:
             continue
         if "multiprocessing.spawn" in cmdline or "spawn_main" in cmdline:
             found[f"pid{child}"] = child
+        elif "multiprocessing.forkserver" in cmdline:  # the task server: the tasks are its children
+            found.update({f"pid{task}": task for task in map(int, _children(child))})
     return found
+
+
+def _children(pid: int) -> list[str]:
+    try:
+        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return []
 
 
 def disk_bytes(folder: Path) -> int:

@@ -62,9 +62,16 @@ def locked_kib(pid: int | str) -> int:
 
 
 def child_pids() -> list[int]:
+    """This process's children, and the task processes its task server forked (runtime/task_start.py)."""
+    from rtloop.runtime.task_start import server_pid
+
     pids = []
     for thread in os.listdir("/proc/self/task"):
         with open(f"/proc/self/task/{thread}/children") as children:
+            pids += [int(pid) for pid in children.read().split()]
+    server = server_pid()
+    if server in pids:
+        with open(f"/proc/{server}/task/{server}/children") as children:
             pids += [int(pid) for pid in children.read().split()]
     return pids
 

@@ -186,13 +186,24 @@ def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path
     assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 
+def _children(pid: int | str) -> list[str]:
+    try:
+        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return []
+
+
 def _task_pid(supervisor: int) -> int:
-    """The task process: the supervisor's child that multiprocessing spawned (not its resource tracker)."""
+    """The task process: a child of the supervisor's task server (runtime/task_start.py), or the
+    supervisor's child that multiprocessing spawned (not its resource tracker)."""
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
-        for child in Path(f"/proc/{supervisor}/task/{supervisor}/children").read_text().split():
+        for child in _children(supervisor):
             command = Path(f"/proc/{child}/cmdline").read_bytes()
-            if b"spawn_main" in command and b"resource_tracker" not in command:
+            if b"multiprocessing.forkserver" in command:
+                for task in _children(child):
+                    return int(task)
+            elif b"spawn_main" in command and b"resource_tracker" not in command:
                 return int(child)
         time.sleep(0.05)
     raise AssertionError("no task process")
