@@ -19,7 +19,8 @@ from drive_veth import example_app, start_emulator, stop, veth_pair
 from rtloop.errors import DeviceError
 from rtloop.io.device import build_device
 from rtloop.io.drives.emulator import DEFAULT_IDENTITY
-from rtloop.io.drives.ethercat_dc import first_release
+from rtloop.io.drives.ethercat_dc import dc_plan, first_release
+from rtloop.io.drives.joints import joint_from_table
 from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO
 
 PERIOD_MS = 10  # a frame must come back within the period: on a loaded 2-core host a Python emulator can take ms
@@ -117,8 +118,11 @@ def test_a_slave_without_dc_runs_free_and_the_run_says_which_way_each_ran(veth: 
 
 
 @pytest.mark.slow
-def test_a_reference_clock_whose_time_stops_coming_back_is_a_named_fault(veth: tuple[str, str],
-                                                                         tmp_path: Path) -> None:
+@pytest.mark.parametrize("pure", [False, True], ids=["c_cycle", "python_reference"])
+def test_a_reference_clock_whose_time_stops_coming_back_is_a_named_fault(veth: tuple[str, str], tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch,
+                                                                         pure: bool) -> None:
+    monkeypatch.setenv("RTLOOP_PURE_PYTHON", "1" if pure else "0")  # the C cycle's check, and the reference's
     app = example_app(tmp_path, *veth, unique_name("ecat_ref"), PERIOD_MS)
     run, text, _ = _run(app, tmp_path, "clock:1@20")
     assert run.returncode == 1, run.stderr
@@ -149,3 +153,22 @@ def test_sync0_starts_on_the_first_release_far_enough_ahead() -> None:
     assert first_release(t0_ns=1_000_000_000, period_ns=1_000_000, now_ns=900_000_000, lead_ns=20_000_000) == 0
     assert first_release(t0_ns=1_000_000_000, period_ns=1_000_000, now_ns=990_000_000, lead_ns=20_000_000) == 10
     assert first_release(t0_ns=1_000_000_000, period_ns=3_000_000, now_ns=990_000_001, lead_ns=20_000_000) == 4
+
+
+def test_each_joint_runs_on_dc_only_where_its_slave_and_its_esi_have_it_and_the_app_does_not_say_no(
+        tmp_path: Path) -> None:
+    def joint(slave: int, **extra: object):  # type: ignore[no-untyped-def]
+        return joint_from_table({"name": f"j{slave}", "counts_per_rev": 4096, "vendor": 1, "product": 1,
+                                 "revision": 1, **extra}, slave)
+
+    free_esi = str(_esi(tmp_path, dc=False))
+    joints = (joint(1, dc=False), joint(2), joint(3, esi=free_esi, vendor=1), joint(4), joint(5, dc=True))
+    plan, problem = dc_plan(joints, [0x0300, 0, 0x0300, 0x0300, 0x0300])
+    assert problem == ""
+    assert plan.reference == 1  # the first slave with DC, whether rtloop starts its SYNC0 or not
+    assert plan.with_dc == 4  # the FRMW's working counter
+    assert plan.synced == {4: 0x0300, 5: 0x0300}
+    assert plan.free == {1: "dc = false in the app file", 2: "the slave has none (no DC mode in its SII)",
+                         3: "its ESI file describes no DC mode"}
+    _, problem = dc_plan((joint(1, dc=True),), [0])
+    assert problem == "joints[0].dc: slave 1 describes no distributed clocks mode in its SII: it cannot run on them"
