@@ -10,9 +10,10 @@ tracing instance of its own, ``trace_clock mono``: the tasks' clock), and splits
 - ``exit``:   the switch → ``clock_nanosleep`` returning to user space;
 - ``user``:   → the contender's own stamp (rtloop's ``start_ns``; cyclictest's expiry + its sample).
 
-A kernel that leaves the switch out of idle untraced (this VM's 6.18: on a quiet machine nearly
-every wake-up comes from idle) gets the thread's first own event as its switch-in: ``exit`` then
-reads 0 and ``to run`` holds it.
+The lines are read by rtloop's own parser (``rtloop.linux.trace``, what ``rtloop run --trace-misses``
+uses), with its one rule for a kernel that leaves the switch out of idle untraced (this VM's 6.18: on
+a quiet machine nearly every wake-up comes from idle): the thread's first own event is its switch-in,
+so ``exit`` then reads 0 and ``to run`` holds it.
 
 For the slowest 1 % of each contender's wake-ups it sums what held the CPU between the expiry
 and the switch: threads (the benchmark's own process, i.e. rtloop's supervisor, is named
@@ -56,10 +57,6 @@ from rtloop.linux import trace
 EVENTS = ("sched/sched_switch", "timer/hrtimer_start", "timer/hrtimer_expire_entry", "raw_syscalls/sys_exit",
           "irq/irq_handler_entry", "irq/irq_handler_exit", "irq/softirq_entry", "irq/softirq_exit")
 CLOCK_NANOSLEEP_NR = {"x86_64": 230, "aarch64": 115, "armv7l": 265}.get(platform.machine())
-LINE = re.compile(r"^\s*(?P<comm>.+?)-(?P<pid>\d+)\s+\[\d+\]\s+\S+\s+(?P<s>\d+)\.(?P<frac>\d+):\s+"
-                  r"(?P<event>\w+):\s*(?P<rest>.*)$")
-FIELD = re.compile(r"(\w+)=(\S+)")
-SOFTIRQ = re.compile(r"vec=\d+ \[action=(\w+)\]")
 PARTS = ("timer", "to run", "exit", "user", "total")
 
 
@@ -102,64 +99,50 @@ class Instance:
             trace.unmount(self.mounted)
 
 
-Event = tuple[int, str, str, int, str]
+def parse(text: str) -> list[trace.Event]:
+    """The trace's lines as rtloop's own parser reads them (``rtloop run --trace-misses`` uses it too)."""
+    return [event for line in text.splitlines() if (event := trace.parse(line)) is not None]
 
 
-def parse(text: str) -> list[Event]:
-    events = []
-    for line in text.splitlines():
-        match = LINE.match(line)
-        if match:
-            at_ns = int(match["s"]) * 10**9 + int(match["frac"].ljust(9, "0")[:9])
-            events.append((at_ns, match["event"], match["comm"], int(match["pid"]), match["rest"]))
-    return events
+def threads_switched_in(events: list[trace.Event]) -> set[int]:
+    """The threads that ran on the CPU: switched in or out, the switches the kernel left untraced put back."""
+    return {pid for event in trace.with_untraced_switches(events) if event.kind == "switch"
+            for pid in (trace.pid_of(event.who), trace.pid_of(event.prev)) if pid > 0}
 
 
-def threads_switched_in(events: list[Event]) -> set[int]:
-    """The threads that ran on the CPU: switched in, or out (a kernel may leave the switch out of idle
-    untraced, never the switch back into it)."""
-    return {int(f[key]) for _, event, _, _, rest in events if event == "sched_switch"
-            for f in [dict(FIELD.findall(rest))] for key in ("next_pid", "prev_pid")}
-
-
-def wakeups(events: list[Event], thread: int, own_pids: set[int]) -> tuple[np.ndarray, list[collections.Counter[str]]]:
+def wakeups(events: list[trace.Event], thread: int,
+            own_pids: set[int]) -> tuple[np.ndarray, list[collections.Counter[str]]]:
     """(expiry, fire, switch-in, sleep's return) per wake-up of ``thread`` from an absolute sleep, and what
-    held the CPU between its expiry and its switch-in."""
+    held the CPU between its expiry and its switch-in. A switch-in the kernel left untraced (the switch
+    out of idle, on this VM's 6.18) is put back by ``trace.with_untraced_switches``: the thread's first own
+    event then bounds it, and its ``exit`` part reads 0."""
     rows, held = [], []
-    timer = running = None
+    timer, running = "", ""
     expiry = fire = switched = since = 0
     blame: collections.Counter[str] = collections.Counter()
     opened: dict[str, tuple[int, str]] = {}
-    for at_ns, event, _comm, pid, rest in events:
-        if event in ("irq_handler_entry", "softirq_entry"):
-            name = (f"IRQ {dict(FIELD.findall(rest)).get('name', '?')}" if event == "irq_handler_entry"
-                    else f"softirq {m[1] if (m := SOFTIRQ.search(rest)) else '?'}")
-            opened[event[:3]] = (at_ns, name)
-        elif event in ("irq_handler_exit", "softirq_exit") and event[:3] in opened:
-            start_ns, name = opened.pop(event[:3])
+    for event in trace.with_untraced_switches(events):
+        kind, at_ns = event.kind, event.at_ns
+        if kind in ("irq", "softirq"):
+            opened[kind] = (at_ns, event.who)
+        elif kind in ("irq_end", "softirq_end") and kind[:-4] in opened:
+            start_ns, name = opened.pop(kind[:-4])
             if expiry and not switched and at_ns > expiry:
                 blame[name] += at_ns - max(start_ns, expiry)
-        elif event == "hrtimer_start" and pid == thread and "hrtimer_wakeup" in rest:
-            fields = dict(FIELD.findall(rest))
-            timer, expiry, fire, switched = fields["hrtimer"], int(fields["softexpires"]), 0, 0
+        elif kind == "sleep_armed" and event.context_pid == thread:
+            timer, expiry, fire, switched = event.who, event.expires_ns, 0, 0
             blame = collections.Counter()
-        elif event == "hrtimer_expire_entry" and expiry and dict(FIELD.findall(rest)).get("hrtimer") == timer:
+        elif kind == "sleep_fired" and expiry and event.who == timer:
             fire = at_ns
-        elif event == "sched_switch":
-            fields = dict(FIELD.findall(rest))
-            if expiry and not switched and running is not None and running != "swapper" and at_ns > expiry:
+        elif kind == "switch":
+            if expiry and not switched and running not in ("", "swapper") and at_ns > expiry:
                 blame[running] += at_ns - max(since, expiry)
-            next_pid = int(fields["next_pid"])
-            running = ("rtloop supervisor" if next_pid in own_pids else
-                       "swapper" if next_pid == 0 else f"{fields['next_comm']} ({next_pid})")
+            next_pid = trace.pid_of(event.who)
+            running = "rtloop supervisor" if next_pid in own_pids else "swapper" if next_pid == 0 else event.who
             since = at_ns
-            if next_pid == thread and expiry and fire:
+            if next_pid == thread and expiry and fire and not switched:
                 switched = at_ns
-        if pid == thread and expiry and fire and not switched and event != "hrtimer_start":
-            # running, with no switch to it seen: this kernel (6.18, preemption none) leaves the switch
-            # out of idle untraced; its first own event is the bound (its "exit" part then reads 0)
-            switched = at_ns
-        if event == "sys_exit" and pid == thread and switched:
+        elif kind == "syscall_exit" and event.context_pid == thread and switched:
             rows.append((expiry, fire, switched, at_ns))
             held.append(blame)
             expiry = switched = 0

@@ -178,3 +178,38 @@ def test_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -
     traced = [m for m in misses["first"] if "(traced)" in m["cause"]]
     assert traced, misses["first"]
     assert any(m["cause"].startswith("preempted by a higher-priority thread: rtloop-holder (pid ") for m in traced)
+
+
+def test_timer_and_syscall_lines_are_parsed_for_the_wake_up_bench() -> None:
+    armed = trace.parse("  python3-4242 [001] d..1. 23456.123456789: hrtimer_start: hrtimer=00000000a1b2c3d4 "
+                        "function=hrtimer_wakeup expires=23456124000000 softexpires=23456124000000 "
+                        "mode=ABS was_armed=0")
+    assert armed == trace.Event(23_456_123_456_789, "sleep_armed", "00000000a1b2c3d4", context_pid=4242,
+                                expires_ns=23_456_124_000_000)  # the stamp to the ns: no float on the way
+    assert trace.parse("  python3-4242 [001] d..1. 1.0: hrtimer_start: hrtimer=0000000011 function=tick_nohz_handler "
+                       "expires=2 softexpires=2 mode=ABS") is None  # not a sleeping thread's timer
+    fired = trace.parse("  <idle>-0 [001] d.h1. 23456.124003000: hrtimer_expire_entry: hrtimer=00000000a1b2c3d4 "
+                        "function=hrtimer_wakeup now=23456124002900")
+    assert fired == trace.Event(23_456_124_003_000, "sleep_fired", "00000000a1b2c3d4", context_pid=0)
+    returned = trace.parse("  python3-4242 [001] ..... 23456.124010000: sys_exit: NR 230 = 0")
+    assert returned == trace.Event(23_456_124_010_000, "syscall_exit", "230", context_pid=4242)
+
+
+def test_an_untraced_switch_in_is_put_back_once_at_the_first_sign_of_the_thread() -> None:
+    lines = [_switch("100.000000", "task", 10, "swapper/1", 0, 120),  # traced: a thread's switch into idle
+             "  <idle>-0 [001] d.h1. 100.000500: irq_handler_entry: irq=24 name=eth0",  # idle's: no switch
+             "  task-10 [001] ..... 100.001000: sys_exit: NR 230 = 0",  # (idle → task, untraced)
+             "  task-10 [001] d.h1. 100.001100: irq_handler_entry: irq=24 name=eth0",  # task still runs
+             _switch("100.002000", "task", 10, "swapper/1", 0, 120),
+             "  <idle>-0 [001] dNh2. 100.002500: sched_wakeup: comm=hog pid=77 prio=9 target_cpu=001",
+             "  hog-77 [001] ..s1. 100.003000: softirq_entry: vec=1 [action=TIMER]"]  # (idle → hog at its wake-up)
+    events = [event for line in lines if (event := trace.parse(line)) is not None]
+    switches = [(event.at_ns, event.prev, event.who, event.inferred)
+                for event in trace.with_untraced_switches(events) if event.kind == "switch"]
+    assert switches == [
+        (100_000_000_000, "", "task (pid 10)", True),  # its own switch out says it ran: from then, for no time
+        (100_000_000_000, "task (pid 10, other)", "swapper/1 (pid 0, other)", False),
+        (100_001_000_000, "swapper/1 (pid 0, other)", "task (pid 10, other)", True),
+        (100_002_000_000, "task (pid 10, other)", "swapper/1 (pid 0, other)", False),
+        (100_002_500_000, "swapper/1 (pid 0, other)", "hog (pid 77, FIFO/RR 90)", True),
+    ]

@@ -22,7 +22,8 @@ import contextlib
 import ctypes
 import os
 import re
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 TRACEFS_PLACES = (Path("/sys/kernel/tracing"), Path("/sys/kernel/debug/tracing"))
@@ -31,8 +32,9 @@ EVENTS = ("sched/sched_switch", "sched/sched_wakeup", "irq/irq_handler_entry", "
 EVENTS_KEPT = 200_000
 """Events kept per CPU (a 1 kHz task makes ~2000 context switches a second: ~1 min at least)."""
 BUFFER_KB = 4096
-_LINE = re.compile(r"^\s*(?P<comm>.+?)-(?P<pid>\d+)\s+\[(?P<cpu>\d+)\]\s+\S+\s+(?P<ts>\d+\.\d+):\s+"
+_LINE = re.compile(r"^\s*(?P<comm>.+?)-(?P<pid>\d+)\s+\[(?P<cpu>\d+)\]\s+\S+\s+(?P<s>\d+)\.(?P<frac>\d+):\s+"
                    r"(?P<event>\w+):\s*(?P<rest>.*)$")
+_SYSCALL = re.compile(r"NR (\d+)")
 _FIELD = re.compile(r"(\w+)=(\S+)")
 
 
@@ -41,7 +43,9 @@ class Event:
     at_ns: int
     kind: str
     """``switch`` (from ``prev`` to ``who``), ``wakeup`` (of ``who``), ``irq`` / ``softirq`` (``who`` its
-    name), ``irq_end`` / ``softirq_end``."""
+    name), ``irq_end`` / ``softirq_end``; ``sleep_armed`` (a thread's sleep timer ``who`` started, to expire at
+    ``expires_ns``), ``sleep_fired`` (timer ``who`` expired), ``syscall_exit`` (``who`` the system call's
+    number)."""
     who: str
     priority: int = -1
     """The real-time priority of ``who`` for a switch or a wake-up (1-99; 0 for SCHED_OTHER), -1 for a handler."""
@@ -50,6 +54,12 @@ class Event:
     prev_priority: int = -1
     context_pid: int = -1
     """The thread current on the CPU when the event was recorded (the line's ``comm-pid``)."""
+    expires_ns: int = -1
+    """A ``sleep_armed`` timer's expiry (CLOCK_MONOTONIC, the trace's clock)."""
+    inferred: bool = False
+    """A ``switch`` the kernel did not trace, put back by :func:`with_untraced_switches`."""
+    context_comm: str = field(default="", compare=False)
+    """The name of ``context_pid`` (the line's ``comm``)."""
 
 
 def find_tracefs() -> Path | None:
@@ -159,48 +169,33 @@ class MissTracer:
 
     def held(self, cpu: int, from_ns: int, to_ns: int, own_pids: frozenset[int]) -> list[dict[str, object]]:
         """Who had ``cpu`` in [from_ns, to_ns]: threads (not ``own_pids``, not idle) and IRQ handlers,
-        the longest first: ``{"who", "kind", "ran_ns", "priority"}``.
-
-        Some kernels leave the switch out of idle untraced (seen on a 6.18 VM kernel: every
-        ``swapper → thread`` switch missing, every ``thread → swapper`` one there). A switch whose
-        outgoing thread is not the one last switched in therefore says a switch-in was missed: that
-        thread ran from its wake-up on this CPU, or from the first event recorded in its context,
-        whichever came first (nothing is credited when neither was seen)."""
+        the longest first: ``{"who", "kind", "ran_ns", "priority"}``. A switch the kernel did not trace
+        is put back by :func:`with_untraced_switches` (the one rule, shared with the wake-up bench)."""
         events = self.events.get(cpu)
         if not events:
             return []
-        ran: dict[tuple[str, str], int] = collections.Counter()
-        priorities: dict[str, int] = {}
+        ran: dict[tuple[str, object], int] = collections.Counter()
+        labels: dict[int, tuple[str, int]] = {}  # pid -> the fullest label seen, its priority
 
-        def credit(kind: str, who: str, start_ns: int, end_ns: int) -> None:
+        def credit(kind: str, key: object, start_ns: int, end_ns: int) -> None:
             overlap = min(end_ns, to_ns) - max(start_ns, from_ns)
             if overlap > 0:
-                ran[(kind, who)] += overlap
+                ran[(kind, key)] += overlap
 
-        running, running_pid, since = "", -2, from_ns
-        seen_since: dict[int, int] = {}  # pid -> first sign of it on this CPU since the last switch
+        running_pid, since = 0, from_ns
         entered: dict[str, int] = {}
         names: dict[str, str] = {}
-        for event in events:
+        for event in with_untraced_switches(events):
             if event.at_ns > to_ns:
                 break
-            if event.context_pid >= 0 and event.context_pid != running_pid:
-                seen_since.setdefault(event.context_pid, event.at_ns)
-            if event.kind == "wakeup":
-                seen_since.setdefault(_pid_of(event.who), event.at_ns)
-            elif event.kind == "switch":
-                prev_pid = _pid_of(event.prev)
-                if prev_pid != running_pid:  # its switch-in was not traced
-                    start = seen_since.get(prev_pid)
-                    if running and start is not None:
-                        credit("thread", running, since, start)
-                    running, running_pid, since = event.prev, prev_pid, start if start is not None else event.at_ns
-                    priorities[running] = event.prev_priority
-                if running:
-                    credit("thread", running, since, event.at_ns)
-                running, running_pid, since = event.who, _pid_of(event.who), event.at_ns
-                priorities[running] = event.priority
-                seen_since.clear()
+            if event.kind == "switch":
+                prev_pid, next_pid = pid_of(event.prev), pid_of(event.who)
+                if labels.get(prev_pid, ("", -1))[1] < 0:  # its switch-in's label wins, unless put back
+                    labels[prev_pid] = (event.prev, event.prev_priority)
+                labels[next_pid] = (event.who, event.priority)
+                if running_pid > 0:
+                    credit("thread", running_pid, since, event.at_ns)
+                running_pid, since = next_pid, event.at_ns
             elif event.kind in ("irq", "softirq"):  # keyed by "IRQ 24": the exit event has no name
                 entered[event.kind + event.who.split(" (")[0]] = event.at_ns
                 names[event.kind + event.who.split(" (")[0]] = event.who
@@ -209,13 +204,19 @@ class MissTracer:
                 start = entered.pop(key, None)
                 if start is not None:
                     credit(event.kind[:-4], names.get(key, event.who), start, event.at_ns)
-        if running:
-            credit("thread", running, since, to_ns)
+        if running_pid > 0:
+            credit("thread", running_pid, since, to_ns)
         found: list[tuple[int, str, str, int]] = []
-        for (kind, who), ran_ns in ran.items():
-            if kind == "thread" and (who.startswith("swapper/") or _pid_of(who) in own_pids):
-                continue
-            found.append((ran_ns, who, kind, priorities.get(who, -1)))
+        for (kind, holder), ran_ns in ran.items():
+            if kind == "thread":
+                if not isinstance(holder, int) or holder in own_pids:
+                    continue
+                who, priority = labels.get(holder, (f"pid {holder}", -1))
+                if who.startswith("swapper/"):
+                    continue
+                found.append((ran_ns, who, kind, priority))
+            else:
+                found.append((ran_ns, str(holder), kind, -1))
         found.sort(key=lambda item: -item[0])
         return [{"who": who, "kind": kind, "ran_ns": ran_ns, "priority": priority}
                 for ran_ns, who, kind, priority in found]
@@ -233,7 +234,43 @@ class MissTracer:
             self.mounted = None
 
 
-def _pid_of(who: str) -> int:
+def with_untraced_switches(events: Iterable[Event]) -> Iterator[Event]:
+    """One CPU's events in order, with the switches to a thread the kernel did not trace put back
+    (``switch`` events with ``inferred=True``).
+
+    Some kernels leave the switch out of idle untraced (seen on a 6.18 VM kernel: every
+    ``swapper → thread`` switch missing, every ``thread → swapper`` one there). An event recorded in
+    the context of a thread other than the one last switched in (idle's, pid 0, never counts) says
+    that thread was switched in: it ran from the first sign of it on this CPU since the last switch,
+    its wake-up here or that event, whichever came first. A thread's own switch out is such an event
+    too (the kernel records it in the outgoing thread's context): a thread never seen before it is
+    put back as running from that instant, i.e. for no time at all.
+    """
+    running_pid, running, running_priority = -1, "", -1
+    labels: dict[int, tuple[str, int]] = {}  # pid -> label, priority (from the switches and wake-ups seen)
+    first_sign: dict[int, int] = {}  # pid -> its wake-up on this CPU since the last switch
+    for event in events:
+        if event.kind == "wakeup":
+            first_sign.setdefault(pid_of(event.who), event.at_ns)
+        pid = event.context_pid
+        if pid > 0 and pid != running_pid:
+            label, priority = labels.get(pid, (f"{event.context_comm or '?'} (pid {pid})", -1))
+            yield Event(min(first_sign.get(pid, event.at_ns), event.at_ns), "switch", label, priority, running,
+                        running_priority, pid, inferred=True, context_comm=event.context_comm)
+            running_pid, running, running_priority = pid, label, priority
+            first_sign.clear()
+        if event.kind in ("switch", "wakeup"):
+            labels[pid_of(event.who)] = (event.who, event.priority)
+        if event.kind == "switch":
+            if labels.get(pid_of(event.prev), ("", -1))[1] < 0:
+                labels[pid_of(event.prev)] = (event.prev, event.prev_priority)
+            running_pid, running, running_priority = pid_of(event.who), event.who, event.priority
+            first_sign.clear()
+        yield event
+
+
+def pid_of(who: str) -> int:
+    """The pid in a thread's label (``name (pid N, ...)``), -1 if none."""
     match = re.search(r"pid (\d+)", who)
     return int(match.group(1)) if match else -1
 
@@ -257,8 +294,8 @@ def parse(line: str) -> Event | None:
     match = _LINE.match(line)
     if match is None:
         return None
-    at_ns = round(float(match["ts"]) * 1e9)
-    context_pid = int(match["pid"])
+    at_ns = int(match["s"]) * 1_000_000_000 + int(match["frac"].ljust(9, "0")[:9])
+    context_pid, comm = int(match["pid"]), match["comm"].strip()
     rest = match["rest"]
     fields = dict(_FIELD.findall(rest))
     event = match["event"]
@@ -267,21 +304,28 @@ def parse(line: str) -> Event | None:
                                 fields.get("next_prio", "120"))
         prev, prev_priority = _thread(_between(rest, "prev_comm=", " prev_pid="), fields.get("prev_pid", "?"),
                                       fields.get("prev_prio", "120"))
-        return Event(at_ns, "switch", who, priority, prev, prev_priority, context_pid)
+        return Event(at_ns, "switch", who, priority, prev, prev_priority, context_pid, context_comm=comm)
     if event == "sched_wakeup":
         if fields.get("target_cpu", "").lstrip("0") != match["cpu"].lstrip("0"):
             return None  # woken onto another CPU: not this CPU's story
         who, priority = _thread(_between(rest, "comm=", " pid="), fields.get("pid", "?"), fields.get("prio", "120"))
-        return Event(at_ns, "wakeup", who, priority, context_pid=context_pid)
+        return Event(at_ns, "wakeup", who, priority, context_pid=context_pid, context_comm=comm)
     if event == "irq_handler_entry":
         return Event(at_ns, "irq", f"IRQ {fields.get('irq', '?')} ({fields.get('name', '?')})",
-                     context_pid=context_pid)
+                     context_pid=context_pid, context_comm=comm)
     if event == "irq_handler_exit":
-        return Event(at_ns, "irq_end", f"IRQ {fields.get('irq', '?')}", context_pid=context_pid)
+        return Event(at_ns, "irq_end", f"IRQ {fields.get('irq', '?')}", context_pid=context_pid, context_comm=comm)
     if event in ("softirq_entry", "softirq_exit"):
         action = fields.get("action", "?").strip("[]")
         return Event(at_ns, "softirq" if event == "softirq_entry" else "softirq_end", f"softirq {action}",
-                     context_pid=context_pid)
+                     context_pid=context_pid, context_comm=comm)
+    if event == "hrtimer_start" and fields.get("function") == "hrtimer_wakeup":  # a sleeping thread's timer
+        return Event(at_ns, "sleep_armed", fields.get("hrtimer", "?"), context_pid=context_pid,
+                     expires_ns=int(fields.get("softexpires") or fields.get("expires") or "-1"), context_comm=comm)
+    if event == "hrtimer_expire_entry" and fields.get("function", "").startswith("hrtimer_wakeup"):
+        return Event(at_ns, "sleep_fired", fields.get("hrtimer", "?"), context_pid=context_pid, context_comm=comm)
+    if event == "sys_exit" and (number := _SYSCALL.search(rest)):
+        return Event(at_ns, "syscall_exit", number[1], context_pid=context_pid, context_comm=comm)
     return None
 
 
