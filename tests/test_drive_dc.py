@@ -118,6 +118,22 @@ def test_a_slave_without_dc_runs_free_and_the_run_says_which_way_each_ran(veth: 
 
 
 @pytest.mark.slow
+def test_io_list_says_which_slaves_have_distributed_clocks(veth: tuple[str, str], tmp_path: Path) -> None:
+    esi = _esi(tmp_path, dc=False)
+    app = example_app(tmp_path, *veth, unique_name("ecat_dcls"), PERIOD_MS, **{TILT: TILT + f'esi = "{esi}"\n'})
+    emulator = start_emulator(app, tmp_path / "drives.log")
+    try:
+        listing = subprocess.run([sys.executable, "-m", "rtloop", "io", "list", "--ethercat", veth[0]],
+                                 capture_output=True, text=True, timeout=120)
+    finally:
+        stop(emulator)
+    assert listing.returncode == 0, listing.stderr
+    lines = {line.split(" slave ")[1][:1]: line for line in listing.stdout.splitlines() if " slave " in line}
+    assert "distributed clocks (AssignActivate 0x0300)" in lines["1"], listing.stdout
+    assert "no distributed clocks" in lines["2"], listing.stdout
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("pure", [False, True], ids=["c_cycle", "python_reference"])
 def test_a_reference_clock_whose_time_stops_coming_back_is_a_named_fault(veth: tuple[str, str], tmp_path: Path,
                                                                          monkeypatch: pytest.MonkeyPatch,

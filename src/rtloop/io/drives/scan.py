@@ -1,13 +1,17 @@
 """EtherCAT slaves on a network interface, for ``rtloop io list --ethercat IF``.
 
-SOEM (pysoem) enumerates the segment and reads each slave's identity from its SII; what stops a
+SOEM (pysoem) enumerates the segment and reads each slave's identity from its SII, and whether
+its SII describes a distributed clocks mode (rtloop runs it on DC then); what stops a
 scan (no such interface, the interface down, no raw-socket permission, pysoem missing, nothing
 answering) is one entry with its fix.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 from rtloop.io.drives.rawsocket import interface_problem, open_raw
+from rtloop.io.drives.sii import parse_sii
 from rtloop.io.inventory import Interface
 
 __all__ = ["ethercat_slaves"]
@@ -41,7 +45,17 @@ def ethercat_slaves(interface: str) -> list[Interface]:
         master.read_state()
         return [Interface("ethercat", f"{interface} slave {position}",
                           f"{slave.name}: vendor 0x{slave.man:08X}, product 0x{slave.id:08X}, revision "
-                          f"0x{slave.rev:08X}, {_STATES.get(slave.state & 0x0F, hex(slave.state))}", True)
+                          f"0x{slave.rev:08X}, {_STATES.get(slave.state & 0x0F, hex(slave.state))}, "
+                          f"{_clocks(slave)}", True)
                 for position, slave in enumerate(master.slaves, start=1)]
     finally:
         master.close()
+
+
+def _clocks(slave: Any) -> str:
+    """Whether the slave's SII describes a distributed clocks mode (category 60)."""
+    try:
+        assign = parse_sii(lambda word: bytes(slave.eeprom_read(word))).dc_assign_activate
+    except Exception:  # an SII that does not read: the listing goes on without it
+        return "distributed clocks unknown (its SII did not read)"
+    return f"distributed clocks (AssignActivate 0x{assign:04X})" if assign else "no distributed clocks"
