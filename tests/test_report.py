@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.patches import StepPatch
 
 from rtloop import report
 from rtloop.cli.main import main as cli_main
@@ -121,8 +122,10 @@ def test_figure_bars_are_the_histogram_counts(synthetic_run: Path) -> None:
     fig, hists = figures.task_figure("a", series, run.label)
     axes = fig.get_axes()
     for ax, key in zip(axes, ("latency", "jitter", "exec"), strict=True):
-        heights = [patch.get_height() for patch in ax.patches]
-        assert heights == pytest.approx(hists[key].counts.tolist()), key
+        (drawn,) = [patch for patch in ax.patches if isinstance(patch, StepPatch)]  # one artist for all bins
+        counts, edges_us, _ = drawn.get_data()
+        assert counts.tolist() == pytest.approx(hists[key].counts.tolist()), key
+        assert edges_us.tolist() == pytest.approx((hists[key].edges_ns / figures.US).tolist()), key
         assert ax.get_yscale() == "log"
     # the 3 % lines sit at ±30 µs on the jitter axes
     xs = {round(line.get_xdata()[0], 3) for line in axes[1].get_lines()}

@@ -28,6 +28,36 @@ FIGURE_WIDTH_IN = 13.0
 MAX_COLOR = "tab:red"
 CRITERION_COLOR = "tab:orange"
 RUN_COLORS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
+SUPTITLE_TOP_IN = 3 / 72
+"""The figure title's distance from the top edge (where matplotlib's constrained layout puts it)."""
+TITLE_LINE_IN = 0.185
+"""The height of one more line in an axis title (10 pt)."""
+HISTOGRAM_MARGINS_IN = {"left_in": 0.6, "right_in": 0.1, "bottom_in": 0.48, "top_in": 0.49}
+"""Around histogram and latency axes: log count ticks and a label left, a tick label's overhang right,
+ticks and a label below, an axis title and the figure title above."""
+
+
+def fixed_layout(fig: Figure, rows: int, columns: int, *, left_in: float, right_in: float, bottom_in: float,
+                 top_in: float, wspace_in: float = 0.0, hspace_in: float = 0.0) -> None:
+    """Place ``fig``'s grid of ``rows`` × ``columns`` axes with margins and gaps in inches.
+
+    The margins are those matplotlib's constrained layout finds for these figures (their tick
+    labels, titles and legends have known extents); set once, they spare its solve, which lays
+    out every tick label of every axis twice before the figure is drawn and costs more than the
+    drawing itself.
+    """
+    fig.set_layout_engine("none")  # whatever a matplotlibrc asks for: these margins are the layout
+    width_in, height_in = fig.get_size_inches()
+    axis_width_in = (width_in - left_in - right_in - (columns - 1) * wspace_in) / columns
+    axis_height_in = (height_in - top_in - bottom_in - (rows - 1) * hspace_in) / rows
+    fig.subplots_adjust(left=left_in / width_in, right=1 - right_in / width_in, bottom=bottom_in / height_in,
+                        top=1 - top_in / height_in, wspace=wspace_in / axis_width_in,
+                        hspace=hspace_in / axis_height_in)
+
+
+def suptitle(fig: Figure, text: str) -> None:
+    """The figure's title, at the top edge (a fixed layout leaves the room for it)."""
+    fig.suptitle(text, fontsize=12, y=1 - SUPTITLE_TOP_IN / fig.get_size_inches()[1])
 
 
 def literal(text: str) -> str:
@@ -53,10 +83,11 @@ def period_text(period_ns: int) -> str:
 
 
 def _bars(ax: Axes, hist: Histogram, color: str, label: str | None = None, step: bool = False) -> None:
-    edges_us = hist.edges_ns / US
-    centers = (edges_us[:-1] + edges_us[1:]) / 2
-    ax.hist(centers, bins=edges_us.tolist(), weights=hist.counts, log=True, color=color, label=label,
-            histtype="step" if step else "bar", linewidth=1.5 if step else None, alpha=1.0 if step else 0.85)
+    """The histogram as one stepped artist on a log count axis (filled, or an outline to overlay
+    runs): one path for all bins, where a bar per bin costs a patch each to lay out and draw."""
+    ax.set_yscale("log", nonpositive="clip")
+    ax.stairs(hist.counts, hist.edges_ns / US, fill=not step, color=color, label=label,
+              linewidth=1.5 if step else 0.0, alpha=1.0 if step else 0.85)
 
 
 def _mark_extreme(ax: Axes, hist: Histogram, which: str, color: str = MAX_COLOR) -> None:
@@ -130,8 +161,9 @@ def task_histograms(series: TaskSeries) -> dict[str, Histogram]:
 def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, dict[str, Histogram]]:
     """Wake-up latency, period jitter and execution time of one task, side by side."""
     hists = task_histograms(series)
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.4), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.4))
     axes = fig.subplots(1, 3)
+    fixed_layout(fig, 1, 3, **HISTOGRAM_MARGINS_IN, wspace_in=0.7)
     jitter = series.period_jitter_ns
     over = int(np.count_nonzero(np.abs(jitter) > THESIS_JITTER_FRACTION * series.period_ns)) if jitter.size else 0
     draw_histogram(axes[0], hists["latency"], title=f"wake-up latency (start − release), n = {hists['latency'].n}",
@@ -141,16 +173,17 @@ def task_figure(task: str, series: TaskSeries, run_label: str) -> tuple[Figure, 
                    xlabel="jitter [µs]", period_ns=series.period_ns, criterion=True, mark_min=True)
     draw_histogram(axes[2], hists["exec"], title=f"execution time (end − start), n = {hists['exec'].n}",
                    xlabel="execution time [µs]")
-    fig.suptitle(f"{literal(run_label)} — task {task}, {period_text(series.period_ns)}, "
-                 f"first and last {series.trim} cycles left out", fontsize=12)
+    suptitle(fig, f"{literal(run_label)} — task {task}, {period_text(series.period_ns)}, "
+                  f"first and last {series.trim} cycles left out")
     return fig, hists
 
 
 def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
     """Wake-up latency of every cycle against time: periodic disturbances show as stripes."""
     names = list(series)
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 2.6 + 2.2 * len(names)), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 2.6 + 2.2 * len(names)))
     axes = np.atleast_1d(fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0])
+    fixed_layout(fig, len(names), 1, **HISTOGRAM_MARGINS_IN, hspace_in=0.33)
     for ax, name in zip(axes, names, strict=True):
         s = series[name]
         samples = s.all_samples
@@ -174,7 +207,7 @@ def latency_over_time_figure(run: Run, series: dict[str, TaskSeries]) -> Figure:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
     axes[-1].set_xlabel("time since first release [s]")
-    fig.suptitle(f"{literal(run.label)} — wake-up latency over time", fontsize=12)
+    suptitle(fig, f"{literal(run.label)} — wake-up latency over time")
     return fig
 
 
@@ -213,7 +246,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
     """One task across several runs: latency and jitter histograms on common bins, overlaid."""
     period_ns = next((s.period_ns for _, s in runs if s.period_ns), 0)
     limit = THESIS_JITTER_FRACTION * period_ns
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.8), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.8))
     axes = fig.subplots(1, 2)
     out: dict[str, list[Histogram]] = {"latency": [], "jitter": []}
     for ax, key, attr, xlabel in (
@@ -246,7 +279,10 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
         ax.set_ylabel("cycles (log)")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"task {task} across runs, {period_text(period_ns)}", fontsize=12)
+    title_lines = max(ax.get_title().count("\n") + 1 for ax in axes)
+    fixed_layout(fig, 1, 2, **{**HISTOGRAM_MARGINS_IN, "top_in": HISTOGRAM_MARGINS_IN["top_in"]
+                               + TITLE_LINE_IN * (title_lines - 1)}, wspace_in=0.68)
+    suptitle(fig, f"task {task} across runs, {period_text(period_ns)}")
     return fig, out
 
 
