@@ -20,6 +20,7 @@ import pytest
 
 from can_pair import attach_to_a_pair, wire_frame
 from conftest import layout_twins
+from io_guest_devices import KEPT_BYTES_ALLOWED, bytes_kept_by
 from rtloop.io.bytelayout import Field
 from rtloop.io.device import CommandLimit
 from rtloop.io.host import DeviceWiring, TaskDevices
@@ -493,7 +494,6 @@ def test_an_spi_frame_refuses_a_transfer_that_does_not_point_at_its_frames():
 def test_the_gpio_and_spi_cycles_in_c_keep_nothing_allocated(monkeypatch):
     """10,000 cycles of each C cycle under tracemalloc, on the stand-ins above (the guest's
     tests/test_io_gpio.py and test_io_spi.py do the same on the devices)."""
-    import tracemalloc
 
     (lines, _reference), fd = gpio_pair(monkeypatch, [0, 9], [9, 3])
     frame_device, _ = spi_pair(monkeypatch, counter="echo", on_error="stale")
@@ -514,21 +514,14 @@ def test_the_gpio_and_spi_cycles_in_c_keep_nothing_allocated(monkeypatch):
         frame_device.read(readings)
 
     try:
-        tracemalloc.start()
-        for _ in range(2_000):  # free lists and caches filled first
-            cycle()
-        before = tracemalloc.get_traced_memory()[0]
-        for _ in range(10_000):
-            cycle()
-        kept = tracemalloc.get_traced_memory()[0] - before
+        kept = bytes_kept_by(cycle, 10_000)
     finally:
-        tracemalloc.stop()
         lines.close()
         _reference.close()
         os.close(fd)
     assert frame_device.stale_reads == 6_000 and frame.bad_crc == 6_000
     assert list(readings) == [0.25, 1.0, -3.0]  # the good answers were unpacked
-    assert kept <= 256, kept
+    assert kept <= KEPT_BYTES_ALLOWED, kept
 
 
 # --- CAN: CanCycle against CanDevice's Python write/read -----------------------------------------
@@ -724,7 +717,6 @@ def test_can_a_frame_is_waited_for_within_its_timeout_counted_from_the_start_of_
 
 def test_the_can_cycle_in_c_keeps_nothing_allocated(monkeypatch):
     """10,000 cycles of the C cycle: every frame sent, answers fresh and stale by turns."""
-    import tracemalloc
 
     receive = [{**CAN_RECEIVE[0], "timeout_ms": 5000}, {**CAN_RECEIVE[1], "timeout_ms": 0.001}]
     (device, peer), (reference, reference_peer) = can_pair(monkeypatch, receive=receive)
@@ -746,19 +738,12 @@ def test_the_can_cycle_in_c_keeps_nothing_allocated(monkeypatch):
         device.read(y)
 
     try:
-        tracemalloc.start()
-        for _ in range(2_000):
-            cycle()
-        before = tracemalloc.get_traced_memory()[0]
-        for _ in range(10_000):
-            cycle()
-        kept = tracemalloc.get_traced_memory()[0] - before
+        kept = bytes_kept_by(cycle, 10_000)
     finally:
-        tracemalloc.stop()
         device.close()
         peer.close()
     assert device.stale_reads == 6_000 and y[0] == pytest.approx(5e-4)
-    assert kept <= 256, kept
+    assert kept <= KEPT_BYTES_ALLOWED, kept
 
 
 def test_a_can_cycle_refuses_frames_that_do_not_fit_and_lets_go_when_released():
