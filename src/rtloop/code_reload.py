@@ -10,9 +10,10 @@ checks it (a Runnable, the same sizes, ``prerun``, a dry step on a copy with the
 finite outputs within the task's period) and hands the result back. The loop only swaps one
 object for another at the release asked for, bumpless (:mod:`rtloop.switching`).
 
-The thread runs under ``SCHED_OTHER`` and holds the interpreter's lock only between the loop's
-steps, but while it works the loop may wait for that lock when it wakes: up to the switch
-interval this module sets for the reload (50 µs). docs/switching.md says what that costs.
+In a real-time task the thread runs under ``SCHED_FIFO`` at priority 1 (:data:`RELOAD_PRIORITY`), so
+it holds the interpreter's lock only while the loop sleeps; the loop, waking while the thread is in
+Python code, waits for the lock up to the switch interval this module sets for the reload (50 µs).
+docs/switching.md says what that costs.
 
 In ``simulate`` and ``replay`` the loop waits for the reloader at the release (``wait = True``),
 so the reloaded code acts at the same cycle as in the run; ``replay`` reads the code the run kept.
@@ -43,6 +44,13 @@ CODE_ID_HEX_DIGITS = 12
 RELOAD_SWITCH_INTERVAL_S = 50e-6
 """The interpreter's switch interval while a reload is prepared: how long the loop, waking, may
 wait for the lock the reloader holds (CPython's default is 5 ms)."""
+RELOAD_PRIORITY = 1
+"""The reload thread's SCHED_FIFO priority in a real-time task: below every task (1 is the lowest), above
+every SCHED_OTHER thread. Under SCHED_OTHER, the thread could be preempted by any busy process while it
+held the interpreter's lock, and the loop, waking, waited for it as long (a priority inversion: up to
+108 ms and 28 deadline misses at 1 kHz while a reload was prepared on a loaded machine,
+benchmarks/bench_switch.py). At priority 1 it runs only while the loop sleeps, and gives the lock back
+as soon as the loop asks for it."""
 THREAD_STACK_BYTES = 512 * 1024
 """The reloader's stack (locked memory, as the task's is): not the default 8 MB."""
 
@@ -120,8 +128,8 @@ class CodeReloader:
 
     # --- the reloader's thread ----------------------------------------------------------------
     def _serve(self) -> None:
-        try:  # this thread only: it inherited the task's real-time policy, which is the loop's alone
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        try:  # this thread only (Linux: 0 is the calling thread): it inherited the loop's policy and priority
+            os.sched_setscheduler(0, *reload_thread_policy(os.sched_getscheduler(0)))
         except (OSError, AttributeError):
             pass
         while True:
@@ -251,6 +259,14 @@ class CodeReloader:
             os.replace(temporary, path)
         except OSError:
             pass  # a replay reads the run's folder: nothing to write there, and nothing lost
+
+
+def reload_thread_policy(inherited: int) -> tuple[int, os.sched_param]:
+    """The reload thread's policy and priority: SCHED_FIFO at :data:`RELOAD_PRIORITY` in a real-time
+    task (``inherited``: the loop's policy), else SCHED_OTHER, as the loop has."""
+    if inherited in (os.SCHED_FIFO, os.SCHED_RR):
+        return os.SCHED_FIFO, os.sched_param(RELOAD_PRIORITY)
+    return os.SCHED_OTHER, os.sched_param(0)
 
 
 class ReloadRefused(RtloopError):
