@@ -15,7 +15,7 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +55,21 @@ def stats_us(values_ns: Iterable[float] | np.ndarray) -> dict[str, float]:
         return {name: float("nan") for name in STAT_COLUMNS}
     values = np.percentile(data, [q for _, q in PERCENTILES])
     return {name: float(v) / 1000.0 for (name, _), v in zip(PERCENTILES, values, strict=True)}
+
+
+def median_us_per_call(call: Callable[[], object], repeats: int, batches: int = 11,
+                       before_batch: Callable[[], object] | None = None) -> float:
+    """Median over ``batches`` batches of ``repeats`` calls of the time per call, in µs (perf_counter;
+    ``before_batch``, untimed, runs before each batch: e.g. to empty a ring the calls fill)."""
+    samples = []
+    for _ in range(batches):
+        if before_batch is not None:
+            before_batch()
+        started = time.perf_counter_ns()
+        for _ in range(repeats):
+            call()
+        samples.append((time.perf_counter_ns() - started) / repeats)
+    return float(np.median(samples)) / 1000
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:

@@ -53,6 +53,7 @@ from _common import (
     load_timing_csv,
     machine_facts,
     markdown_table,
+    median_us_per_call,
     parse_options,
     print_and_save,
     result_head,
@@ -297,16 +298,7 @@ def measure_operations(repeats: int, cpu: int) -> dict[str, float]:
             "raw numpy write (2 values + counter)": raw_write,
             "raw numpy read (2 values)": raw_read,
         }
-        costs = {}
-        for name, operation in operations.items():
-            samples = []
-            for _ in range(15):
-                started = time.perf_counter_ns()
-                for _ in range(repeats):
-                    operation()
-                samples.append((time.perf_counter_ns() - started) / repeats)
-            costs[name] = float(np.median(samples)) / 1000
-        return costs
+        return {name: median_us_per_call(operation, repeats, batches=15) for name, operation in operations.items()}
     finally:
         os.sched_setaffinity(0, previous)
         for segment in segments:

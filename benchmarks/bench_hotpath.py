@@ -40,6 +40,7 @@ from _common import (
     closing_sections,
     machine_facts,
     markdown_table,
+    median_us_per_call,
     parse_options,
     print_and_save,
     result_head,
@@ -227,16 +228,6 @@ def busy_us(cycle: Any, step: Any, period_ns: int, first_release_ns: int, iterat
     return min(means)
 
 
-def median_cost_us(operation: Any, repeats: int) -> float:
-    samples = []
-    for _ in range(11):
-        started = time.perf_counter_ns()
-        for _ in range(repeats):
-            operation()
-        samples.append((time.perf_counter_ns() - started) / repeats)
-    return float(np.median(samples)) / 1000
-
-
 def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
     previous = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {args.reader_cpu})
@@ -260,7 +251,7 @@ def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
                 io, _, segments = task_io(names, kind, inputs=inputs, output=None, n_inputs=16, n_outputs=0)
                 made += segments
                 io.start(0, 2**62, 0)
-                costs[case] = median_cost_us(lambda io=io: io.read_inputs(1000), args.op_repeats)
+                costs[case] = median_us_per_call(lambda io=io: io.read_inputs(1000), args.op_repeats)
             connections[kind] = costs
 
             writer, _, segments = task_io(names, kind, inputs=[], output=15, n_inputs=0, n_outputs=2)
@@ -288,8 +279,8 @@ def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
             def sleep_once(sleep_until=sleep_until, past=past) -> None:
                 sleep_until(past)
 
-            whole = median_cost_us(iterate, min(args.op_repeats, 5000))
-            sleep_us = median_cost_us(sleep_once, args.op_repeats)
+            whole = median_us_per_call(iterate, min(args.op_repeats, 5000))
+            sleep_us = median_us_per_call(sleep_once, args.op_repeats)
             iteration[kind] = {"whole iteration (sleep returns at once)": whole,
                                "clock_nanosleep, deadline past": sleep_us,
                                "iteration, sleep excluded": whole - sleep_us}
@@ -304,7 +295,7 @@ def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
                     paced, step, 100_000, lambda _: rt.now_ns() + 1_000_000, 2000, 10)
             operations[kind] = {
                 "read_inputs, 1 connection (2 values)": connections[kind]["1 connections"],
-                "publish_outputs, 1 channel (2 values)": median_cost_us(
+                "publish_outputs, 1 channel (2 values)": median_us_per_call(
                     lambda writer=writer: writer.publish_outputs(1, 1), args.op_repeats),
                 "read_inputs, 0 connections (call overhead)": connections[kind]["0 connections"],
             }
@@ -319,9 +310,9 @@ def measure_costs(args: argparse.Namespace) -> dict[str, Any]:
         def raw_read() -> None:
             out[:] = raw[1:3]
 
-        operations["raw numpy"] = {"write 2 values + counter": median_cost_us(raw_write, args.op_repeats),
-                                   "read 2 values": median_cost_us(raw_read, args.op_repeats),
-                                   "rt.now_ns()": median_cost_us(rt.now_ns, args.op_repeats)}
+        operations["raw numpy"] = {"write 2 values + counter": median_us_per_call(raw_write, args.op_repeats),
+                                   "read 2 values": median_us_per_call(raw_read, args.op_repeats),
+                                   "rt.now_ns()": median_us_per_call(rt.now_ns, args.op_repeats)}
         return {"connections_us": connections, "iteration_us": iteration, "operations_us": operations}
     finally:
         os.environ.pop(hotpath.PURE_PYTHON_ENV, None)

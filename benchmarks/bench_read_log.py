@@ -35,7 +35,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import NoOp, add_output_options, facts_markdown, machine_facts, markdown_table, print_and_save
+from _common import (
+    NoOp,
+    add_output_options,
+    facts_markdown,
+    machine_facts,
+    markdown_table,
+    median_us_per_call,
+    print_and_save,
+)
 
 from rtloop.ipc import hotpath
 from rtloop.ipc.channels import LetChannel
@@ -91,16 +99,14 @@ class Rig:
 
 
 def median_us(call: Any, repeats: int, rings: list[Int64Ring | None]) -> float:
-    samples = []
-    for _ in range(11):
+    """µs per call, each batch started with ``rings`` drained (the calls fill them)."""
+
+    def drain() -> None:
         for ring in rings:
             if ring is not None:
                 ring.drain()
-        started = time.perf_counter_ns()
-        for _ in range(repeats):
-            call()
-        samples.append((time.perf_counter_ns() - started) / repeats)
-    return float(np.median(samples)) / 1000
+
+    return median_us_per_call(call, repeats, before_batch=drain)
 
 
 def snapshot_costs(args: argparse.Namespace) -> dict[str, float]:
