@@ -38,7 +38,10 @@ setup(
             depends=[f"src/rtloop/io/{name}" for name in DEVIO_SOURCES],
             define_macros=[("RTLOOP_DEVIO_SOURCES_DIGEST",
                             f'"{sources_digest(Path("src/rtloop/io"), DEVIO_SOURCES)}"')],
-            extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-missing-field-initializers"],
+            # -ffp-contract=off: no fused multiply-add (aarch64 has it), so the emulated drive's floats
+            # (devio_c/esc_drive.c) are bit for bit its Python reference's
+            extra_compile_args=["-O2", "-ffp-contract=off", "-Wall", "-Wextra", "-Wno-unused-parameter",
+                                "-Wno-missing-field-initializers"],
             optional=True,
         ),
     ],

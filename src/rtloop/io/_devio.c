@@ -12,7 +12,9 @@
  * DriveCycle's running cycle (with EthercatDevice._send/_receive for its link), FrameKeeper
  * (ecat_keeper.c: the EtherCAT process data before T0, no reference: without it OP waits for T0),
  * the servo_* functions (servo.c) <-> io/servos/protocol.py's CRC-16 and
- * checksum (crc16, crc_matches, seal_crc, sum_matches, seal_sum) and SyncRead.collect's scanning loop. This file includes them all (one
+ * checksum (crc16, crc_matches, seal_crc, sum_matches, seal_sum) and SyncRead.collect's scanning loop,
+ * EmulatedDrive (esc_drive.c) <-> io/drives/drive_model.py DriveModel and EscFrames (esc_frame.c) <->
+ * io/drives/esc.py's process-data path (the emulated EtherCAT drives). This file includes them all (one
  * translation unit) and makes the module. Same arithmetic in the same order, so the results are
  * bit for bit the Python ones. Every buffer a cycle touches is acquired once, when the
  * object is built; a cycle allocates nothing. Built by pip with the system compiler
@@ -45,6 +47,8 @@
 #include "devio_c/drive.c"
 #include "devio_c/ecat_keeper.c"
 #include "devio_c/servo.c"
+#include "devio_c/esc_drive.c"
+#include "devio_c/esc_frame.c"
 
 /* crc16_ccitt(data) -> the frame's CRC (for the tests: the same as binascii.crc_hqx(data, 0xFFFF)). */
 static PyObject *devio_crc16_ccitt(PyObject *module, PyObject *data) {
@@ -72,9 +76,9 @@ static struct PyModuleDef devio_module = {
 PyMODINIT_FUNC PyInit__devio(void) {
     PyTypeObject *types[] = {&GuardType,     &CopiesType,    &LayoutType,  &CanReceiverType,
                              &CanCycleType,  &GpioLinesType, &SpiFrameType, &DriveRunType,
-                             &FrameKeeperType};
+                             &FrameKeeperType, &EmulatedDriveType, &EscFramesType};
     const char *names[] = {"Guard", "Copies", "Layout", "CanReceiver", "CanCycle", "GpioLines", "SpiFrame",
-                           "DriveRun", "FrameKeeper"};
+                           "DriveRun", "FrameKeeper", "EmulatedDrive", "EscFrames"};
     crc16_table_build();
     dxl_crc_table_build();
     PyObject *errors = PyImport_ImportModule("rtloop.errors");

@@ -19,6 +19,11 @@ itself. Quick stop brakes at ``quick_stop_torque_Nm`` to rest, then holds *quick
 with target reached set (quick stop option code 6). A fault (injected, or a following error
 beyond ``following_error_window`` counts in CSP) goes through *fault reaction active* (braking)
 to *fault*; a rising edge of controlword bit 7 resets it.
+
+:func:`emulated_drive` gives the emulator its compiled twin (``io/devio_c/esc_drive.c``: the same
+arithmetic in the same order, with the same methods and attributes) where ``rtloop.io._devio`` is
+built, so the emulated slaves' process data runs without Python; the twin of ``rtloop simulate``
+keeps this reference.
 """
 
 from __future__ import annotations
@@ -26,13 +31,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from rtloop.io import compiled
 from rtloop.io.drives.cia402 import (
     MODE_NAMES,
     Cia402State,
     StatusBits,
 )
 
-__all__ = ["DriveModel", "DriveParameters"]
+__all__ = ["DriveModel", "DriveParameters", "emulated_drive"]
 
 FOLLOWING_ERROR_CODE = 0x8611
 """CiA 402's error code for a following error (0x603F)."""
@@ -273,3 +279,13 @@ class DriveModel:
         self.velocity = _saturate(self.omega / self.rad_per_count, 32)
         self.torque = _saturate(self.torque_Nm / self.p.rated_torque_Nm * 1000.0, 16)
         self.following_error = _wrap32(following)
+
+
+def emulated_drive(parameters: DriveParameters | None = None, use_compiled: bool = True) -> DriveModel:
+    """A drive for the emulated slaves: the compiled twin of :class:`DriveModel` where the devices'
+    C code is built (and ``use_compiled``), else the reference itself."""
+    module = compiled.devio() if use_compiled else None
+    if module is None:
+        return DriveModel(parameters)
+    drive: DriveModel = module.EmulatedDrive(parameters or DriveParameters(), MODE_NAMES, tuple(Cia402State))
+    return drive

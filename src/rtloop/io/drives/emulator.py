@@ -28,7 +28,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TextIO
 
-from rtloop.io.drives.drive_model import DriveModel, DriveParameters
+from rtloop.io import compiled
+from rtloop.io.drives.drive_model import DriveParameters, emulated_drive
 from rtloop.io.drives.esc import AL_OP, EmulatedSlave, Segment
 from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO, PdoLayout
 from rtloop.io.drives.rawsocket import FRAME_BYTES, interface_problem, open_raw
@@ -78,7 +79,7 @@ class Emulator:
         self.interface = interface
         self.log = log
         self.slaves = [EmulatedSlave(position, spec.identity, PdoLayout(spec.rxpdo), PdoLayout(spec.txpdo),
-                                     DriveModel(spec.parameters), spec.name, log, dc=spec.dc)
+                                     emulated_drive(spec.parameters), spec.name, log, dc=spec.dc)
                        for position, spec in enumerate(drives, start=1)]
         self.segment = Segment(self.slaves)
         self.injections = list(injections)
@@ -110,16 +111,17 @@ class Emulator:
         return answer
 
     def _tick(self) -> None:
-        now = time.monotonic_ns()
-        for slave in self.slaves:
-            slave.tick(now)
+        self.segment.tick(time.monotonic_ns())
 
     def run(self) -> None:
         sock = open_raw(self.interface, timeout_s=0.001)
         buffer = bytearray(FRAME_BYTES + 64)
+        whole = memoryview(buffer)
         self.log(f"emulating {len(self.slaves)} EtherCAT slave(s) on {self.interface}: " +
                  "; ".join(f"{s.position}: {s.identity.describe()}{'' if s.dc else ', no distributed clocks'}"
-                           for s in self.slaves))
+                           for s in self.slaves) +
+                 (" (process data in C)" if self.segment.compiled else
+                  f" (process data in Python: {compiled.why_python() or 'the drives are not compiled'})"))
         try:
             while not self.stopped:
                 try:
@@ -131,12 +133,12 @@ class Emulator:
                 if size < 16 or buffer[12:14] != b"\x88\xa4":
                     self._tick()  # after the frames waiting are served: a late emulator is not a late master
                     continue
-                frame = buffer[:size]
+                frame = whole[:size]  # in place: no copy
                 self.frames += 1
                 if not self.segment.process(frame):
                     continue
                 self._tick()
-                if not self._inject():
+                if self.injections and not self._inject():
                     continue
                 frame[6] |= 0x02  # the first slave marks the source address as it forwards the frame
                 try:

@@ -13,18 +13,29 @@ stands behind its process data.
 frame through them in order, as the wire does (position addresses counted up on the way, every
 slave ORing or copying its part, the working counters added), in place. It knows nothing of
 sockets: ``io/drives/emulator.py`` puts it on a veth end; the tests call it directly.
+
+The process-data path (a frame of LRD/LWR/LRW datagrams: the master's cycle) has a compiled twin,
+``io/devio_c/esc_frame.c``, used when every slave's drive is the compiled
+:func:`~rtloop.io.drives.drive_model.emulated_drive`: six drives answered in microseconds rather
+than half a millisecond, so a master at 4 kHz measures itself, not the emulator. Every other frame
+(registers, the SII, the AL state machine) is this module's. Both work on the same ESC memory and
+the same counters (:class:`EmulatedSlave`'s ``dropped``, ``outputs_written``, ...), so either may
+serve any frame; ``tests/test_drive_esc_compiled.py`` checks that they answer alike, bit for bit.
 """
 
 from __future__ import annotations
 
 import struct
 import time
+from array import array
 from collections.abc import Callable
+from typing import Any
 
+from rtloop.io import compiled
 from rtloop.io.drives import cia402
 from rtloop.io.drives.drive_model import DriveModel
 from rtloop.io.drives.esc_dc import DC_END, DC_FIRST, REG_DC_SYSTEM_TIME, DcUnit
-from rtloop.io.drives.pdo import PdoLayout
+from rtloop.io.drives.pdo import OBJECTS, PdoLayout
 from rtloop.io.drives.sii import Identity, build_sii
 
 __all__ = ["AL_STATES", "EmulatedSlave", "Segment"]
@@ -53,6 +64,14 @@ REG_EEP_CONFIG, REG_EEP_CONTROL, REG_EEP_ADDRESS, REG_EEP_DATA = 0x0500, 0x0502,
 REG_FMMU, REG_SM = 0x0600, 0x0800
 EEP_READ_8_BYTES = 0x0040
 OUTPUTS_AT, INPUTS_AT = 0x1000, 0x1200
+MEMORY_BYTES = 0x10000
+
+# a slave's counters, shared with the compiled path (esc_frame.c's C_* in this order)
+_DROPPED, _OUTPUTS_WRITTEN, _LAST_OUTPUTS_NS, _EXCHANGES_IN_OP, _EXCHANGES_ENABLED, _FIRST_CONTROLWORD = range(6)
+_RX_OBJECTS = (cia402.CONTROLWORD, cia402.MODES_OF_OPERATION, cia402.TARGET_POSITION, cia402.TARGET_VELOCITY,
+               cia402.TARGET_TORQUE)
+_TX_KINDS = {cia402.STATUSWORD: 0, cia402.MODES_DISPLAY: 1, cia402.POSITION_ACTUAL: 2, cia402.VELOCITY_ACTUAL: 3,
+             cia402.TORQUE_ACTUAL: 4, cia402.FOLLOWING_ERROR_ACTUAL: 5, cia402.ERROR_CODE: 6}
 
 
 def _state_name(code: int) -> str:
@@ -69,19 +88,15 @@ class EmulatedSlave:
         self.identity = identity
         self.rx, self.tx = rx, tx
         self.drive = drive
-        self.memory = bytearray(0x10000)
+        self.memory = bytearray(MEMORY_BYTES)
+        self.counters = array("q", [0, 0, 0, 0, 0, -1])
+        """dropped, outputs_written, last_outputs_ns, exchanges_in_op, exchanges_enabled, and the
+        controlword of the first exchange in OP that the compiled path leaves to the log (-1: none)."""
         self.sii = build_sii(identity, name, rx.entries(), tx.entries(), OUTPUTS_AT, INPUTS_AT, dc=dc)
         self.log = log or (lambda text: None)
         self.clock = clock
         self.dc = DcUnit(self.memory, position, position, clock, self.log) if dc else None
         """The distributed clocks unit (None: a slave without DC, free-running on the frames)."""
-        self.dropped = False
-        """Fault injection: a slave that dropped out (a broken cable, power lost) answers nothing."""
-        self.outputs_written = False
-        self.last_outputs_ns = 0
-        self.exchanges_in_op = 0
-        self.exchanges_enabled = 0
-        """Process-data exchanges with the drive in operation enabled (when injected faults fall due)."""
         m = self.memory
         m[0x0000] = 0x11  # ESC type
         m[0x0001] = 0x01
@@ -97,7 +112,49 @@ class EmulatedSlave:
         struct.pack_into("<H", m, REG_WD_SM, 1000)  # 100 ms
         self._write_tx()
 
-    # --- state ------------------------------------------------------------------------------------
+    # --- state (the counters the compiled path shares) --------------------------------------------
+    @property
+    def dropped(self) -> bool:
+        """Fault injection: a slave that dropped out (a broken cable, power lost) answers nothing."""
+        return bool(self.counters[_DROPPED])
+
+    @dropped.setter
+    def dropped(self, value: bool) -> None:
+        self.counters[_DROPPED] = int(value)
+
+    @property
+    def outputs_written(self) -> bool:
+        return bool(self.counters[_OUTPUTS_WRITTEN])
+
+    @outputs_written.setter
+    def outputs_written(self, value: bool) -> None:
+        self.counters[_OUTPUTS_WRITTEN] = int(value)
+
+    @property
+    def last_outputs_ns(self) -> int:
+        return self.counters[_LAST_OUTPUTS_NS]
+
+    @last_outputs_ns.setter
+    def last_outputs_ns(self, value: int) -> None:
+        self.counters[_LAST_OUTPUTS_NS] = value
+
+    @property
+    def exchanges_in_op(self) -> int:
+        return self.counters[_EXCHANGES_IN_OP]
+
+    @exchanges_in_op.setter
+    def exchanges_in_op(self, value: int) -> None:
+        self.counters[_EXCHANGES_IN_OP] = value
+
+    @property
+    def exchanges_enabled(self) -> int:
+        """Process-data exchanges with the drive in operation enabled (when injected faults fall due)."""
+        return self.counters[_EXCHANGES_ENABLED]
+
+    @exchanges_enabled.setter
+    def exchanges_enabled(self, value: int) -> None:
+        self.counters[_EXCHANGES_ENABLED] = value
+
     @property
     def al_status(self) -> int:
         return int(struct.unpack_from("<H", self.memory, REG_AL_STATUS)[0])
@@ -230,7 +287,7 @@ class EmulatedSlave:
             if low >= high:
                 continue
             frame_at, memory_at = low - address, physical + (low - start)
-            count = high - low
+            count = min(high - low, MEMORY_BYTES - memory_at)  # not past the memory's end
             if kind & 1 and command in (LRD, LRW):  # the master reads: inputs into the frame
                 data[frame_at:frame_at + count] = self.memory[memory_at:memory_at + count]
                 read = True
@@ -262,13 +319,34 @@ class EmulatedSlave:
             return int(values[rx[index]]) if index in rx else default
 
         if in_op and self.exchanges_in_op == 1:  # when the master's outputs begin to count, and what they say
-            controlword = get(cia402.CONTROLWORD, 0)
-            self.log(f"slave {self.position}: first process data in OP (controlword 0x{controlword:04X})")
+            self._say_first_exchange(get(cia402.CONTROLWORD, 0))
         drive.exchange(get(cia402.CONTROLWORD, 0), get(cia402.MODES_OF_OPERATION, drive.mode),
                        get(cia402.TARGET_POSITION, 0), get(cia402.TARGET_VELOCITY, 0), get(cia402.TARGET_TORQUE, 0),
                        outputs_valid=in_op)
         self._write_tx()
         self._take_drive_events()
+
+    def _say_first_exchange(self, controlword: int) -> None:
+        self.log(f"slave {self.position}: first process data in OP (controlword 0x{controlword:04X})")
+
+    def take_compiled_news(self) -> None:
+        """Log what the compiled path left to say: the first exchange in OP, the drive's events."""
+        controlword = self.counters[_FIRST_CONTROLWORD]
+        if controlword >= 0:
+            self.counters[_FIRST_CONTROLWORD] = -1
+            self._say_first_exchange(controlword)
+        self._take_drive_events()
+
+    def compiled_layout(self) -> list[int]:
+        """Where the drive's objects are in the outputs and inputs, for the compiled path: the rx size,
+        the offsets of controlword, mode, target position, velocity and torque (-1: not mapped), then
+        each tx entry's kind and offset, in order."""
+        layout = [self.rx.size, *(self.rx.offsets.get(index, -1) for index in _RX_OBJECTS)]
+        at = 0
+        for index in self.tx.objects:
+            layout += [_TX_KINDS[index], at]
+            at += OBJECTS[index].bits // 8
+        return layout
 
     def _take_drive_events(self) -> None:
         for event in self.drive.events:
@@ -298,10 +376,41 @@ class Segment:
             slave.set_link(last=slave is slaves[-1])
             if slave.dc is not None:
                 slave.dc.slaves = len(slaves)
+        self._dc_units = [slave.dc for slave in slaves if slave.dc is not None]
+        self._compiled = self._compiled_path()
 
-    def process(self, frame: bytearray, offset: int = 14) -> bool:
+    @property
+    def compiled(self) -> bool:
+        """Does the compiled path serve the process data (every drive compiled, ``_devio`` built)?"""
+        return self._compiled is not None
+
+    def _compiled_path(self) -> Any:
+        module = compiled.devio()
+        if module is None or not self.slaves or not all(isinstance(slave.drive, module.EmulatedDrive)
+                                                        for slave in self.slaves):
+            return None
+        return module.EscFrames([slave.memory for slave in self.slaves], [slave.counters for slave in self.slaves],
+                                [slave.drive for slave in self.slaves],
+                                [slave.compiled_layout() for slave in self.slaves], self.clock)
+
+    def tick(self, now_ns: int) -> None:
+        """Every slave's :meth:`EmulatedSlave.tick` (SM watchdog, SYNC0's first pulse); the watchdogs are
+        checked in C first where they can be."""
+        if self._compiled is None or self._compiled.expired(now_ns) or \
+                any(dc.sync0_active and not dc.sync0_pulsed for dc in self._dc_units):  # its first pulse to log
+            for slave in self.slaves:
+                slave.tick(now_ns)
+
+    def process(self, frame: bytearray | memoryview, offset: int = 14) -> bool:
         """Pass the EtherCAT frame (Ethernet header at 0, EtherCAT header at ``offset``) through every
         slave, in place. False when it carries no EtherCAT datagrams."""
+        if self._compiled is not None:
+            done = self._compiled.process(frame, offset)
+            if done == 2:
+                for slave in self.slaves:
+                    slave.take_compiled_news()
+            if done >= 0:
+                return bool(done)
         view = memoryview(frame)
         header, = struct.unpack_from("<H", frame, offset)
         if header >> 12 != 1:
