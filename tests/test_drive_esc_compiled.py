@@ -1,7 +1,9 @@
 """The emulated slaves' compiled process-data path (io/devio_c/esc_frame.c, esc_drive.c) answers as
 the Python reference (io/drives/esc.py with drive_model.DriveModel) does, bit for bit: six drives,
 the same frames, a few hundred cycles with mode changes, a quick stop, a following error, an
-injected fault and its reset, a slave leaving OP, a mixed frame, the SM watchdog and a drop-out."""
+injected fault and its reset, a slave leaving OP, a mixed frame, the SM watchdog and a drop-out;
+distributed clocks (the reference's time carried by an FRMW after the LRW, SYNC0 started, a slave
+without DC, DC units lost)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import pytest
 from rtloop.io import compiled
 from rtloop.io.drives import cia402
 from rtloop.io.drives.drive_model import DriveModel, DriveParameters, emulated_drive
-from rtloop.io.drives.esc import AL_OP, AL_PREOP, AL_SAFEOP, FPRD, FPWR, LRW, EmulatedSlave, Segment
+from rtloop.io.drives.esc import AL_OP, AL_PREOP, AL_SAFEOP, FPRD, FPWR, FRMW, LRW, EmulatedSlave, Segment
 from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO, PdoLayout
 from rtloop.io.drives.rawsocket import new_frame, put_datagram
 from rtloop.io.drives.sii import Identity
@@ -46,7 +48,7 @@ class Side:
         parameters = DriveParameters(cycle_s=0.00025, following_error_window=40_000)
         self.slaves = [EmulatedSlave(i + 1, Identity(0xA7E, 0x402402, 3), PdoLayout(DEFAULT_RXPDO),
                                      PdoLayout(DEFAULT_TXPDO), emulated_drive(parameters, use_compiled),
-                                     log=self.log.append, clock=self.clock) for i in range(DRIVES)]
+                                     log=self.log.append, clock=self.clock, dc=i != 3) for i in range(DRIVES)]
         self.segment = Segment(self.slaves, self.clock)
         assert self.segment.compiled == use_compiled
         assert isinstance(self.slaves[0].drive, DriveModel) != use_compiled
@@ -80,6 +82,8 @@ def _configuration() -> list[bytearray]:
                                 struct.pack("<HHBBBB", 0x1200, TX, 0x20, 0, 1, 0)))
         frames.append(_register(FPWR, station, 0x0600, struct.pack("<IHBBHBBBxxx", k * RX, RX, 0, 7, 0x1000, 0, 2, 1) +
                                 struct.pack("<IHBBHBBBxxx", DRIVES * RX + k * TX, TX, 0, 7, 0x1200, 0, 1, 1)))
+        frames.append(_register(FPWR, station, 0x0920, struct.pack("<Q", (-1_000_000_007 * (k + 1)) & (2**64 - 1))))
+        frames.append(_register(FPWR, station, 0x0928, struct.pack("<I", 500 * k)))  # system time offset and delay
         frames.append(_register(FPWR, station, 0x0120, struct.pack("<H", AL_SAFEOP)))
         frames.append(_register(FPWR, station, 0x0120, struct.pack("<H", AL_OP)))
     return frames
@@ -106,13 +110,15 @@ def _outputs(cycle: int, joint: int) -> tuple[int, int, int, int, int]:
 
 
 def _lrw(cycle: int, before: bytes = b"") -> bytearray:
-    frame = new_frame(len(before) + 12 + IMAGE)
+    """The cycle's frame: (a register datagram,) the LRW, the FRMW of slave 1's system time."""
+    frame = new_frame(len(before) + 12 + IMAGE + 12 + 8)
     at = 16
     if before:
         frame[at:at + len(before)] = before
         struct.pack_into("<H", frame, at + 6, struct.unpack_from("<H", frame, at + 6)[0] | 0x8000)  # more follow
         at += len(before)
-    put_datagram(frame, at, LRW, 0, 0, IMAGE)
+    put_datagram(frame, at, LRW, 0, 0, IMAGE, more=True)
+    put_datagram(frame, at + 12 + IMAGE, FRMW, 1, 0x1001 | 0x0910 << 16, 8)
     for joint in range(DRIVES):
         struct.pack_into("<HbiiH", frame, at + 10 + joint * RX, *_outputs(cycle, joint))
     return frame
@@ -126,7 +132,10 @@ def test_the_compiled_path_answers_every_frame_as_the_reference_does() -> None:
     status_frame = _register(FPRD, 0x1001, 0x0130, 2)[16:28]  # a register datagram before the LRW: the reference's
     faults = {150: lambda side: side.slaves[5].drive.inject_fault(),
               330: lambda side: side.send(_register(FPWR, 0x1002, 0x0120, struct.pack("<H", AL_SAFEOP))),
-              380: lambda side: setattr(side.slaves[0], "dropped", True)}
+              100: lambda side: side.send(_sync0(side.clock.ns)),
+              200: lambda side: setattr(side.slaves[1], "dc", None),  # a DC unit lost: no time written
+              380: lambda side: setattr(side.slaves[0], "dropped", True),
+              400: lambda side: setattr(side.slaves[2], "dc", None)}
     readings = []
     for cycle in range(420):
         for side in (reference, fast):
@@ -135,7 +144,7 @@ def test_the_compiled_path_answers_every_frame_as_the_reference_does() -> None:
                 faults[cycle](side)
             if cycle == 360:  # the master stalls for 200 ms: the SM watchdog takes the slaves out of OP
                 side.clock.ns += 200_000_000
-                side.segment.tick(side.clock.ns)
+            side.segment.tick(side.clock.ns)
         frame = _lrw(cycle, bytes(status_frame) if cycle % 50 == 7 else b"")
         answer = reference.send(bytearray(frame))
         assert fast.send(bytearray(frame)) == answer, f"cycle {cycle}: the answers differ"
@@ -145,11 +154,25 @@ def test_the_compiled_path_answers_every_frame_as_the_reference_does() -> None:
     text = "\n".join(reference.log)
     for event in ("operation enabled (csp)", "mode csp -> csv", "mode csp -> cst", "fault 0x8611: following error",
                   "fault reset", "quick stop (controlword)", "quick stop done: at rest", "fault 0x5530",
-                  "slave 2: left OP", "SM watchdog", "fault (error code 0x5530), drive at rest"):
+                  "slave 2: left OP", "SM watchdog", "fault (error code 0x5530), drive at rest",
+                  "slave 3: DC SYNC0 activated", "slave 3: DC SYNC0 first pulse"):
         assert event in text, event  # the sequence went through what it is meant to show
     statuswords = {struct.unpack_from("<H", answer, 26 + DRIVES * RX + 3 * TX)[0] for answer in readings}
     assert any(word & cia402.StatusBits.WARNING for word in statuswords)  # the CST joint at its torque limit
     assert len(set(readings)) > 400  # the readings moved
+
+
+def _sync0(now_ns: int) -> bytearray:
+    """SYNC0 of slave 3 started 2 ms ahead in its system time, cycling at 250 µs."""
+    start = now_ns + 2_000_000  # its system time is CLOCK_MONOTONIC: the offset above took its local start out
+    frame = new_frame(12 + 8 + 12 + 4 + 12 + 1)
+    second = put_datagram(frame, 16, FPWR, 1, 0x1003 | 0x0990 << 16, 8, more=True)
+    struct.pack_into("<Q", frame, 26, start)
+    third = put_datagram(frame, second, FPWR, 2, 0x1003 | 0x09A0 << 16, 4, more=True)
+    struct.pack_into("<I", frame, second + 10, 250_000)
+    put_datagram(frame, third, FPWR, 3, 0x1003 | 0x0981 << 16, 1)
+    frame[third + 10] = 0x03
+    return frame
 
 
 def test_the_compiled_drive_is_the_reference_for_arbitrary_commands() -> None:

@@ -1,5 +1,6 @@
 /* The compiled twin of io/drives/esc.py's process-data path: Segment.process for a frame of logical
- * datagrams (LRD, LWR, LRW: the master's cycle), EmulatedSlave.logical through each slave's FMMUs,
+ * datagrams (LRD, LWR, LRW: the master's cycle) and the FRMW of the DC reference clock's system
+ * time (0x0910, 8 bytes) that follows the LRW with distributed clocks, EmulatedSlave.logical through each slave's FMMUs,
  * EmulatedSlave.application (the drive, esc_drive.c, takes the outputs and computes its inputs) and
  * the SM watchdog's check of EmulatedSlave.tick. A frame with any other datagram (the
  * configuration: registers, the SII, the AL state machine) is left to the Python reference, which
@@ -7,12 +8,19 @@
  * end (the reference raises there). Each slave's ESC memory and its counters (esc.py
  * EmulatedSlave's dropped, outputs_written, ...) are the same bytes on both sides, so either path
  * may serve the next frame. What the log should say (a drive's events, the first exchange in OP)
- * is left for Python (process() returns 2).
+ * is left for Python (process() returns 2). Of the FRMW, the other slaves' writes of the reference's
+time (esc_dc.py DcUnit.written: the difference at 0x092C, the system time) are done here; the
+reference's own read (DcUnit.refresh: its SYNC0 state, logged) is its Python read().
  *
  * Included by ../_devio.c (one translation unit). */
 
-enum { LRD_ = 10, LWR_ = 11, LRW_ = 12 };
-enum { C_DROPPED, C_OUTPUTS_WRITTEN, C_LAST_OUTPUTS_NS, C_EXCHANGES_IN_OP, C_EXCHANGES_ENABLED, C_FIRST_CW, C_COUNT };
+enum { LRD_ = 10, LWR_ = 11, LRW_ = 12, FRMW_ = 14 };
+enum { C_DROPPED, C_OUTPUTS_WRITTEN, C_LAST_OUTPUTS_NS, C_EXCHANGES_IN_OP, C_EXCHANGES_ENABLED, C_FIRST_CW, C_HAS_DC,
+       C_LOCAL_START_NS, C_COUNT };
+#define ESC_DC_SYSTEM_TIME 0x0910
+#define ESC_DC_OFFSET 0x0920
+#define ESC_DC_DELAY 0x0928
+#define ESC_DC_DIFFERENCE 0x092C
 enum { X_STATUSWORD, X_MODE, X_POSITION, X_VELOCITY, X_TORQUE, X_FOLLOWING, X_ERROR };
 #define ESC_MEMORY 0x10000
 #define ESC_OUTPUTS_AT 0x1000
@@ -23,6 +31,7 @@ typedef struct {
     uint8_t *memory;
     long long *counters;
     EmulatedDrive *drive;
+    PyObject *clock, *read; /* the slave's clock (its DC unit's), its read(address, data, mode) */
     int rx_size, rx[5]; /* byte offsets of controlword, mode, target position, velocity, torque; -1: not mapped */
     int n_tx, tx_kind[ESC_MAX_TX], tx_at[ESC_MAX_TX];
 } EscSlave;
@@ -33,7 +42,7 @@ typedef struct {
     EscSlave *slaves;
     Py_buffer *views; /* 2 per slave: memory, counters */
     Py_ssize_t held;
-    PyObject *drives, *clock;
+    PyObject *drives, *clock, *clocks, *reads;
 } EscFrames;
 
 static inline unsigned esc_u16(const uint8_t *p) { return (unsigned)p[0] | (unsigned)p[1] << 8; }
@@ -44,6 +53,8 @@ static inline void esc_put16(uint8_t *p, long long v) { p[0] = (uint8_t)v; p[1] 
 static inline void esc_put32(uint8_t *p, long long v) {
     p[0] = (uint8_t)v; p[1] = (uint8_t)(v >> 8); p[2] = (uint8_t)(v >> 16); p[3] = (uint8_t)(v >> 24);
 }
+static inline uint64_t esc_u64(const uint8_t *p) { return (uint64_t)esc_u32(p) | (uint64_t)esc_u32(p + 4) << 32; }
+static inline void esc_put64(uint8_t *p, uint64_t v) { esc_put32(p, (long long)(v & 0xFFFFFFFF)); esc_put32(p + 4, (long long)(v >> 32)); }
 static inline int esc_in_op(const EscSlave *s) { return (esc_u16(s->memory + 0x0130) & 0x0F) == 8; }
 
 static void EscFrames_release(EscFrames *self) {
@@ -61,22 +72,26 @@ static void EscFrames_dealloc(EscFrames *self) {
     EscFrames_release(self);
     Py_XDECREF(self->drives);
     Py_XDECREF(self->clock);
+    Py_XDECREF(self->clocks);
+    Py_XDECREF(self->reads);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* EscFrames(memories, counters, drives, layouts, clock): per slave its 64 KiB ESC memory, its
- * counters (array('q') of C_COUNT), its EmulatedDrive, its layout (rx size, the five rx offsets,
- * then kind and offset of each tx entry in order); clock() -> ns, as Segment.clock. */
+/* EscFrames(memories, counters, drives, layouts, clocks, reads, clock): per slave its 64 KiB ESC
+ * memory, its counters (array('q') of C_COUNT), its EmulatedDrive, its layout (rx size, the five rx
+ * offsets, then kind and offset of each tx entry in order), its clock and its read method;
+ * clock() -> ns, as Segment.clock. */
 static int EscFrames_init(EscFrames *self, PyObject *args, PyObject *kwargs) {
-    PyObject *memories, *counters, *drives, *layouts, *clock;
-    if (!PyArg_ParseTuple(args, "O!O!O!O!O", &PyList_Type, &memories, &PyList_Type, &counters, &PyList_Type,
-                          &drives, &PyList_Type, &layouts, &clock)) {
+    PyObject *memories, *counters, *drives, *layouts, *clocks, *reads, *clock;
+    if (!PyArg_ParseTuple(args, "O!O!O!O!O!O!O", &PyList_Type, &memories, &PyList_Type, &counters, &PyList_Type,
+                          &drives, &PyList_Type, &layouts, &PyList_Type, &clocks, &PyList_Type, &reads, &clock)) {
         return -1;
     }
     EscFrames_release(self);
     Py_ssize_t n = PyList_GET_SIZE(memories);
-    if (PyList_GET_SIZE(counters) != n || PyList_GET_SIZE(drives) != n || PyList_GET_SIZE(layouts) != n) {
-        PyErr_SetString(PyExc_ValueError, "EscFrames: one memory, counters, drive and layout per slave");
+    if (PyList_GET_SIZE(counters) != n || PyList_GET_SIZE(drives) != n || PyList_GET_SIZE(layouts) != n ||
+        PyList_GET_SIZE(clocks) != n || PyList_GET_SIZE(reads) != n) {
+        PyErr_SetString(PyExc_ValueError, "EscFrames: one memory, counters, drive, layout, clock and read per slave");
         return -1;
     }
     self->slaves = PyMem_Calloc((size_t)n + 1, sizeof(EscSlave));
@@ -100,12 +115,14 @@ static int EscFrames_init(EscFrames *self, PyObject *args, PyObject *kwargs) {
         PyObject *drive = PyList_GET_ITEM(drives, i);
         if (memory->len != ESC_MEMORY || count->len != C_COUNT * (Py_ssize_t)sizeof(long long) ||
             !PyObject_TypeCheck(drive, &EmulatedDriveType)) {
-            PyErr_SetString(PyExc_ValueError, "EscFrames: a 64 KiB memory, 6 counters and an EmulatedDrive per slave");
+            PyErr_SetString(PyExc_ValueError, "EscFrames: a 64 KiB memory, 8 counters and an EmulatedDrive per slave");
             return -1;
         }
         s->memory = memory->buf;
         s->counters = count->buf;
         s->drive = (EmulatedDrive *)drive;
+        s->clock = PyList_GET_ITEM(clocks, i); /* held by self->clocks */
+        s->read = PyList_GET_ITEM(reads, i);
         PyObject *layout = PySequence_Fast(PyList_GET_ITEM(layouts, i), "EscFrames: a layout is a sequence of ints");
         if (layout == NULL) {
             return -1;
@@ -138,6 +155,55 @@ static int EscFrames_init(EscFrames *self, PyObject *args, PyObject *kwargs) {
     self->n = n;
     Py_XSETREF(self->drives, Py_NewRef(drives));
     Py_XSETREF(self->clock, Py_NewRef(clock));
+    Py_XSETREF(self->clocks, Py_NewRef(clocks));
+    Py_XSETREF(self->reads, Py_NewRef(reads));
+    return 0;
+}
+
+/* DcUnit.system_ns: (clock() + local start + offset) mod 2**64; -1 with an exception. */
+static int esc_system_ns(EscSlave *s, uint64_t *out) {
+    PyObject *now = PyObject_CallNoArgs(s->clock);
+    unsigned long long ns = now ? PyLong_AsUnsignedLongLongMask(now) : 0;
+    Py_XDECREF(now);
+    if (now == NULL || PyErr_Occurred()) {
+        return -1;
+    }
+    *out = ns + (uint64_t)s->counters[C_LOCAL_START_NS] + esc_u64(s->memory + ESC_DC_OFFSET);
+    return 0;
+}
+
+/* Segment._register_datagram for an FRMW of the system time: the reference (the addressed slave)
+ * reads its time into the frame, each other slave with DC writes it (DcUnit.written). 0, -1. */
+static int esc_frmw_system_time(EscSlave *s, unsigned adp, uint8_t *data, long long *wkc) {
+    if (!s->counters[C_HAS_DC]) {
+        return 0; /* no system time: neither read nor written */
+    }
+    if (adp != esc_u16(s->memory + 0x0010)) {
+        uint64_t now, later;
+        memcpy(s->memory + ESC_DC_SYSTEM_TIME, data, 8);
+        if (esc_system_ns(s, &now) < 0) {
+            return -1;
+        }
+        uint64_t difference = esc_u64(s->memory + ESC_DC_SYSTEM_TIME) + esc_u32(s->memory + ESC_DC_DELAY) - now;
+        int negative = difference >= (uint64_t)1 << 63;
+        uint64_t magnitude = negative ? (uint64_t)0 - difference : difference;
+        magnitude = magnitude < 0x7FFFFFFF ? magnitude : 0x7FFFFFFF;
+        esc_put32(s->memory + ESC_DC_DIFFERENCE, (long long)(magnitude | (negative ? 0x80000000u : 0)));
+        if (esc_system_ns(s, &later) < 0) {
+            return -1;
+        }
+        esc_put64(s->memory + ESC_DC_SYSTEM_TIME, later);
+        *wkc += 1;
+        return 0;
+    }
+    PyObject *view = PyMemoryView_FromMemory((char *)data, 8, PyBUF_WRITE);
+    PyObject *done = view ? PyObject_CallFunction(s->read, "iOs", ESC_DC_SYSTEM_TIME, view, "copy") : NULL;
+    Py_XDECREF(view);
+    if (done == NULL) {
+        return -1;
+    }
+    Py_DECREF(done);
+    *wkc += 1;
     return 0;
 }
 
@@ -243,7 +309,8 @@ static PyObject *EscFrames_process(EscFrames *self, PyObject *args) {
     for (long long at = start; at + 12 <= end;) { /* may it be done here? */
         int command = frame[at];
         unsigned length_field = esc_u16(frame + at + 6), length = length_field & 0x07FF;
-        if (command < LRD_ || command > LRW_ || at + 12 + length > size ||
+        int system_time = command == FRMW_ && esc_u16(frame + at + 4) == ESC_DC_SYSTEM_TIME && length == 8;
+        if ((!system_time && (command < LRD_ || command > LRW_)) || at + 12 + length > size ||
             esc_u16(frame + at + 10 + length) + 3 * self->n > 0xFFFF) {
             goto done;
         }
@@ -258,8 +325,14 @@ static PyObject *EscFrames_process(EscFrames *self, PyObject *args) {
         unsigned length_field = esc_u16(frame + at + 6), length = length_field & 0x07FF;
         long long address = esc_u32(frame + at + 2), wkc = esc_u16(frame + at + 10 + length);
         for (Py_ssize_t i = 0; i < self->n; i++) {
-            if (!self->slaves[i].counters[C_DROPPED]) {
+            if (self->slaves[i].counters[C_DROPPED]) {
+                continue;
+            }
+            if (command != FRMW_) {
                 wkc += esc_logical(&self->slaves[i], command, address, frame + at + 10, length);
+            } else if (esc_frmw_system_time(&self->slaves[i], esc_u16(frame + at + 2), frame + at + 10, &wkc) < 0) {
+                PyBuffer_Release(&view);
+                return NULL;
             }
         }
         outputs |= command == LWR_ || command == LRW_;

@@ -67,7 +67,8 @@ OUTPUTS_AT, INPUTS_AT = 0x1000, 0x1200
 MEMORY_BYTES = 0x10000
 
 # a slave's counters, shared with the compiled path (esc_frame.c's C_* in this order)
-_DROPPED, _OUTPUTS_WRITTEN, _LAST_OUTPUTS_NS, _EXCHANGES_IN_OP, _EXCHANGES_ENABLED, _FIRST_CONTROLWORD = range(6)
+_DROPPED, _OUTPUTS_WRITTEN, _LAST_OUTPUTS_NS, _EXCHANGES_IN_OP, _EXCHANGES_ENABLED, _FIRST_CONTROLWORD, _HAS_DC, \
+    _LOCAL_START_NS = range(8)
 _RX_OBJECTS = (cia402.CONTROLWORD, cia402.MODES_OF_OPERATION, cia402.TARGET_POSITION, cia402.TARGET_VELOCITY,
                cia402.TARGET_TORQUE)
 _TX_KINDS = {cia402.STATUSWORD: 0, cia402.MODES_DISPLAY: 1, cia402.POSITION_ACTUAL: 2, cia402.VELOCITY_ACTUAL: 3,
@@ -89,14 +90,14 @@ class EmulatedSlave:
         self.rx, self.tx = rx, tx
         self.drive = drive
         self.memory = bytearray(MEMORY_BYTES)
-        self.counters = array("q", [0, 0, 0, 0, 0, -1])
-        """dropped, outputs_written, last_outputs_ns, exchanges_in_op, exchanges_enabled, and the
-        controlword of the first exchange in OP that the compiled path leaves to the log (-1: none)."""
+        self.counters = array("q", [0, 0, 0, 0, 0, -1, 0, 0])
+        """dropped, outputs_written, last_outputs_ns, exchanges_in_op, exchanges_enabled, the
+        controlword of the first exchange in OP that the compiled path leaves to the log (-1: none),
+        whether it has a DC unit and that unit's local start."""
         self.sii = build_sii(identity, name, rx.entries(), tx.entries(), OUTPUTS_AT, INPUTS_AT, dc=dc)
         self.log = log or (lambda text: None)
         self.clock = clock
         self.dc = DcUnit(self.memory, position, position, clock, self.log) if dc else None
-        """The distributed clocks unit (None: a slave without DC, free-running on the frames)."""
         m = self.memory
         m[0x0000] = 0x11  # ESC type
         m[0x0001] = 0x01
@@ -121,6 +122,17 @@ class EmulatedSlave:
     @dropped.setter
     def dropped(self, value: bool) -> None:
         self.counters[_DROPPED] = int(value)
+
+    @property
+    def dc(self) -> DcUnit | None:
+        """The distributed clocks unit (None: a slave without DC, free-running on the frames)."""
+        return self._dc
+
+    @dc.setter
+    def dc(self, unit: DcUnit | None) -> None:
+        self._dc = unit
+        self.counters[_HAS_DC] = int(unit is not None)
+        self.counters[_LOCAL_START_NS] = unit.local_start_ns if unit is not None else 0
 
     @property
     def outputs_written(self) -> bool:
@@ -376,7 +388,6 @@ class Segment:
             slave.set_link(last=slave is slaves[-1])
             if slave.dc is not None:
                 slave.dc.slaves = len(slaves)
-        self._dc_units = [slave.dc for slave in slaves if slave.dc is not None]
         self._compiled = self._compiled_path()
 
     @property
@@ -391,13 +402,15 @@ class Segment:
             return None
         return module.EscFrames([slave.memory for slave in self.slaves], [slave.counters for slave in self.slaves],
                                 [slave.drive for slave in self.slaves],
-                                [slave.compiled_layout() for slave in self.slaves], self.clock)
+                                [slave.compiled_layout() for slave in self.slaves],
+                                [slave.clock for slave in self.slaves], [slave.read for slave in self.slaves],
+                                self.clock)
 
     def tick(self, now_ns: int) -> None:
         """Every slave's :meth:`EmulatedSlave.tick` (SM watchdog, SYNC0's first pulse); the watchdogs are
         checked in C first where they can be."""
         if self._compiled is None or self._compiled.expired(now_ns) or \
-                any(dc.sync0_active and not dc.sync0_pulsed for dc in self._dc_units):  # its first pulse to log
+                any(s.dc is not None and s.dc.sync0_active and not s.dc.sync0_pulsed for s in self.slaves):
             for slave in self.slaves:
                 slave.tick(now_ns)
 
