@@ -114,7 +114,8 @@ def test_a_slave_without_dc_runs_free_and_the_run_says_which_way_each_ran(veth: 
     assert "slave 2: drive: operation enabled (csp)" in text  # driven all the same, on the frames
     notes = " ".join(_notes(out))
     assert "joint 'pan' (slave 1) runs on distributed clocks" in notes
-    assert "joint 'tilt' (slave 2) runs free on the frames, without distributed clocks: the slave has none" in notes
+    assert "joint 'tilt' (slave 2) runs free on the frames, without distributed clocks: the slave has no DC unit " \
+           "(ESC feature register 0x0008)" in notes
 
 
 @pytest.mark.slow
@@ -178,13 +179,15 @@ def test_each_joint_runs_on_dc_only_where_its_slave_and_its_esi_have_it_and_the_
                                  "revision": 1, **extra}, slave)
 
     free_esi = str(_esi(tmp_path, dc=False))
-    joints = (joint(1, dc=False), joint(2), joint(3, esi=free_esi, vendor=1), joint(4), joint(5, dc=True))
-    plan, problem = dc_plan(joints, [0x0300, 0, 0x0300, 0x0300, 0x0300])
+    joints = (joint(1), joint(2, dc=False), joint(3), joint(4, esi=free_esi, vendor=1), joint(5), joint(6, dc=True))
+    plan, problem = dc_plan(joints, [0, 0x0300, 0, 0x0300, 0x0300, 0x0300], [False, True, True, True, True, True])
     assert problem == ""
-    assert plan.reference == 1  # the first slave with DC, whether rtloop starts its SYNC0 or not
-    assert plan.with_dc == 4  # the FRMW's working counter
-    assert plan.synced == {4: 0x0300, 5: 0x0300}
-    assert plan.free == {1: "dc = false in the app file", 2: "the slave has none (no DC mode in its SII)",
-                         3: "its ESI file describes no DC mode"}
-    _, problem = dc_plan((joint(1, dc=True),), [0])
-    assert problem == "joints[0].dc: slave 1 describes no distributed clocks mode in its SII: it cannot run on them"
+    assert plan.reference == 2  # the first slave with a DC unit, whether rtloop starts its SYNC0 or not
+    assert plan.with_dc == 5  # the FRMW's working counter: every slave with a DC unit
+    assert plan.synced == {5: 0x0300, 6: 0x0300}
+    assert plan.free == {1: "the slave has no DC unit (ESC feature register 0x0008)",
+                         2: "dc = false in the app file",
+                         3: "the slave describes no DC mode in its SII (category 60)",
+                         4: "its ESI file describes no DC mode"}
+    _, problem = dc_plan((joint(1, dc=True),), [0], [True])
+    assert problem == "joints[0].dc: slave 1 describes no DC mode in its SII (category 60): it cannot run on them"

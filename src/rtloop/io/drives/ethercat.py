@@ -191,7 +191,8 @@ class EthercatDevice(Device):
         if found != len(self.joints):
             raise DeviceMismatch(self.name, "", "joints", f"{found} slave(s) on {self.interface}, the app file "
                                  f"declares {len(self.joints)} joints (one drive each, in bus order)")
-        assign_activate = []
+        assign_activate: list[int] = []
+        dc_units: list[bool] = []
         for joint, slave in zip(self.joints, master.slaves, strict=True):
             where = f"joints[{joint.slave - 1}]"
             for key, value in (("vendor", slave.man), ("product", slave.id), ("revision", slave.rev)):
@@ -201,6 +202,7 @@ class EthercatDevice(Device):
                                          f"{key} 0x{value:08X}, the app file says 0x{wanted:08X}")
             info = parse_sii(_eeprom_reader(slave))
             assign_activate.append(info.dc_assign_activate)
+            dc_units.append(self._dc_unit(slave, info.dc_assign_activate))
             for key, found_entries, layout in (("rxpdo", info.rxpdo, joint.rx), ("txpdo", info.txpdo, joint.tx)):
                 found_objects = tuple(entry.index for entry in found_entries)
                 if found_objects != layout.objects:
@@ -214,10 +216,20 @@ class EthercatDevice(Device):
                 if bits != layout.size * 8:
                     raise DeviceMismatch(self.name, "", f"{where}.{key}", f"the PDO does not fit: the slave maps "
                                          f"{bits} bits, the declared objects take {layout.size * 8}")
-        self._dc, problem = dc.dc_plan(self.joints, assign_activate)
+        self._dc, problem = dc.dc_plan(self.joints, assign_activate, dc_units)
         if problem:
             key, _, text = problem.partition(": ")
             raise DeviceMismatch(self.name, "", key, text)
+
+    @staticmethod
+    def _dc_unit(slave: Any, assign_activate: int) -> bool:
+        """Whether the slave's ESC has a DC unit (feature register 0x0008, bit 2: what SOEM goes by);
+        where pysoem cannot read the register, whether its SII describes a DC mode."""
+        try:
+            features = bytes(slave._fprd(0x0008, 2))  # pysoem's FPRD primitive
+        except Exception:  # (an older pysoem without it, or no answer: the SII says it)
+            return bool(assign_activate)
+        return len(features) == 2 and bool(features[0] & 0x04)
 
     def check(self) -> None:
         master = self._master()

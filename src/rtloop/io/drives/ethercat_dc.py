@@ -81,21 +81,25 @@ class DcPlan:
         return lines
 
 
-def dc_plan(joints: Sequence[JointConfig], assign_activate: Sequence[int]) -> tuple[DcPlan, str]:
-    """Each joint's way to run from its ``dc`` setting, its ESI and its slave's SII (``assign_activate``:
-    the SII's DC mode, 0 none); with the first problem ('' none): ``dc = true`` on a slave without DC."""
+def dc_plan(joints: Sequence[JointConfig], assign_activate: Sequence[int], dc_units: Sequence[bool]) -> \
+        tuple[DcPlan, str]:
+    """Each joint's way to run from its ``dc`` setting, its ESI, its slave's SII (``assign_activate``:
+    the SII's DC mode, 0 none) and its ESC (``dc_units``: feature register 0x0008 bit 2, as SOEM
+    reads it: the reference clock is the first slave with a DC unit, and every slave with one takes
+    part in the FRMW); with the first problem ('' none): ``dc = true`` on a slave without DC."""
     plan = DcPlan()
-    for joint, assign in zip(joints, assign_activate, strict=True):
-        if assign:
+    for joint, assign, unit in zip(joints, assign_activate, dc_units, strict=True):
+        if unit:
             plan.with_dc += 1
             plan.reference = plan.reference or joint.slave
         if joint.dc is False:
             plan.free[joint.slave] = "dc = false in the app file"
-        elif not assign:
+        elif not unit or not assign:
+            why = ("has no DC unit (ESC feature register 0x0008)" if not unit else
+                   "describes no DC mode in its SII (category 60)")
             if joint.dc:
-                return plan, (f"joints[{joint.slave - 1}].dc: slave {joint.slave} describes no distributed "
-                              "clocks mode in its SII: it cannot run on them")
-            plan.free[joint.slave] = "the slave has none (no DC mode in its SII)"
+                return plan, f"joints[{joint.slave - 1}].dc: slave {joint.slave} {why}: it cannot run on them"
+            plan.free[joint.slave] = f"the slave {why}"
         elif joint.esi_dc is False:
             plan.free[joint.slave] = "its ESI file describes no DC mode"
         else:
