@@ -202,7 +202,7 @@ class EthercatDevice(Device):
                                          f"{key} 0x{value:08X}, the app file says 0x{wanted:08X}")
             info = parse_sii(_eeprom_reader(slave))
             assign_activate.append(info.dc_assign_activate)
-            dc_units.append(self._dc_unit(slave, info.dc_assign_activate))
+            dc_units.append(dc.has_dc_unit(slave, info.dc_assign_activate))
             for key, found_entries, layout in (("rxpdo", info.rxpdo, joint.rx), ("txpdo", info.txpdo, joint.tx)):
                 found_objects = tuple(entry.index for entry in found_entries)
                 if found_objects != layout.objects:
@@ -220,16 +220,6 @@ class EthercatDevice(Device):
         if problem:
             key, _, text = problem.partition(": ")
             raise DeviceMismatch(self.name, "", key, text)
-
-    @staticmethod
-    def _dc_unit(slave: Any, assign_activate: int) -> bool:
-        """Whether the slave's ESC has a DC unit (feature register 0x0008, bit 2: what SOEM goes by);
-        where pysoem cannot read the register, whether its SII describes a DC mode."""
-        try:
-            features = bytes(slave._fprd(0x0008, 2))  # pysoem's FPRD primitive
-        except Exception:  # (an older pysoem without it, or no answer: the SII says it)
-            return bool(assign_activate)
-        return len(features) == 2 and bool(features[0] & 0x04)
 
     def check(self) -> None:
         master = self._master()
@@ -389,28 +379,13 @@ class EthercatDevice(Device):
         self.active = True
 
     def _start_sync0(self) -> None:
-        """SYNC0 on the first release T0 + kP far enough ahead (``ethercat_dc.SYNC0_LEAD_NS``), mapped
-        into the DC system time through the reference clock's time read now, its cycle the period.
-        On a socket of its own: the keeper thread receives on the cycle's."""
-        reference, period_ns = self._dc.reference, self._period_ns
-        if period_ns > dc.MAX_SYNC0_CYCLE_NS:
-            raise DeviceFault(f"devices.{self.name}: a period of {period_ns} ns does not fit SYNC0's cycle time "
-                              "register (32 bits, at most 4.29 s): run these drives without distributed clocks "
-                              "(dc = false)")
+        """SYNC0 on a release (``ethercat_dc.start_on_release``), on a socket of its own: the keeper
+        thread receives on the cycle's."""
         try:
             with open_raw(self.interface, timeout_s=0.005) as sock:
-                system_ns, monotonic_ns, round_trip_ns = dc.read_system_time(sock, reference)
-                offset_ns = system_ns - monotonic_ns
-                k = dc.first_release(self._t0_ns, period_ns, time.monotonic_ns())
-                start_ns = self._t0_ns + k * period_ns + offset_ns
-                for position, assign in self._dc.synced.items():
-                    dc.start_sync0(sock, position, start_ns, period_ns, assign)
-        except OSError as error:
-            raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error} (the reference "
-                              f"clock is slave {reference})") from None
-        self._sync0_note = (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = "
-                            f"CLOCK_MONOTONIC + {offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference "
-                            f"clock, slave {reference})")
+                self._sync0_note = dc.start_on_release(sock, self._dc, self._t0_ns, self._period_ns)
+        except (OSError, ValueError) as error:
+            raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error}") from None
 
     def run_notes(self) -> list[str]:
         """Which slaves ran on distributed clocks and which free on the frames, and why."""

@@ -22,6 +22,7 @@ import struct
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from rtloop.io.drives.joints import JointConfig
 from rtloop.io.drives.rawsocket import new_frame, put_datagram
@@ -34,7 +35,9 @@ __all__ = [
     "DcPlan",
     "dc_plan",
     "first_release",
+    "has_dc_unit",
     "read_system_time",
+    "start_on_release",
     "start_sync0",
     "station",
 ]
@@ -157,3 +160,34 @@ def start_sync0(sock: socket.socket, position: int, start_ns: int, cycle_ns: int
         if wkc != 1:
             raise OSError(f"slave {position} did not take the write of register 0x{register:04X} "
                           f"(working counter {wkc})")
+
+
+def has_dc_unit(slave: Any, assign_activate: int) -> bool:
+    """Whether a pysoem slave's ESC has a DC unit (feature register 0x0008, bit 2: what SOEM goes
+    by); where pysoem cannot read the register, whether its SII describes a DC mode."""
+    try:
+        features = bytes(slave._fprd(0x0008, 2))  # pysoem's FPRD primitive
+    except Exception:  # (an older pysoem without it, or no answer: the SII says it)
+        return bool(assign_activate)
+    return len(features) == 2 and bool(features[0] & 0x04)
+
+
+def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: int) -> str:
+    """SYNC0 of every slave ``plan`` syncs, on the first release T0 + kP at least ``SYNC0_LEAD_NS``
+    ahead, mapped into the DC system time through the reference clock's time read now, its cycle
+    time the period; what it did, for the run's note. OSError: a slave did not answer or take a
+    write; ValueError: a period SYNC0's cycle register cannot hold."""
+    if period_ns > MAX_SYNC0_CYCLE_NS:
+        raise ValueError(f"a period of {period_ns} ns does not fit SYNC0's cycle time register (32 bits, at "
+                         "most 4.29 s): run these drives without distributed clocks (dc = false)")
+    try:
+        system_ns, monotonic_ns, round_trip_ns = read_system_time(sock, plan.reference)
+        offset_ns = system_ns - monotonic_ns
+        k = first_release(t0_ns, period_ns, time.monotonic_ns())
+        start_ns = t0_ns + k * period_ns + offset_ns
+        for position, assign in plan.synced.items():
+            start_sync0(sock, position, start_ns, period_ns, assign)
+    except OSError as error:
+        raise OSError(f"{error} (the reference clock is slave {plan.reference})") from None
+    return (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = CLOCK_MONOTONIC + "
+            f"{offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference clock, slave {plan.reference})")
