@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -427,6 +428,7 @@ def test_live_reload_acts_from_the_named_release_refuses_bad_code_and_replays(tm
     kept = sorted(p.name for p in (run_dir / "code").glob("*.py"))
     # the code it started with, the NaN one (refused in the task) and the good one; a syntax error never left the CLI
     assert len(kept) == 3 and json.loads((run_dir / "code" / "start.json").read_text())["ctl"]["pi"]
+    assert len(list((run_dir / "code").glob("*.code"))) == 2  # compiled by the command, not in the task
     replayed = _cli("replay", str(run_dir), "--out", str(tmp_path / "replay"), env=rtloop_env)
     assert replayed.returncode == 0 and "bit for bit" in replayed.stdout, replayed.stdout + replayed.stderr
 
@@ -637,3 +639,53 @@ def test_the_reload_thread_of_a_real_time_task_runs_at_fifo_1_below_the_loop_abo
     if found.stdout.strip() == "no SCHED_FIFO":
         pytest.skip("SCHED_FIFO is not permitted here (not root, no CAP_SYS_NICE, no RLIMIT_RTPRIO)")
     assert found.stdout.split() == ["True", "1"]
+
+
+def test_the_reload_thread_loads_the_code_rtloop_reload_compiled_and_compiles_nothing_itself(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A module's compilation is one C call that holds the interpreter's lock (9 ms for jiwy_models.py on
+    this machine): in the task's reload thread, a loop waking meanwhile waited as long (misses while a
+    reload was prepared, benchmarks/bench_switch.py). The command compiles it; the thread loads that."""
+    import copy
+    import importlib
+
+    from rtloop import code_reload
+    from rtloop.code_reload import CodeReloader, code_file_name, code_id_of, compiled_code, compiled_file_name
+
+    (tmp_path / "reload_compiled_ctl.py").write_text(RELOAD_MODULE.format(gain=1.0))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    module = importlib.import_module("reload_compiled_ctl")
+    controllers = Controllers({"pi": module.Pi(kp=2.0, ki=5.0)}, "pi")
+    code_dir = tmp_path / "code"
+    code_dir.mkdir()
+    new = RELOAD_MODULE.format(gain=3.0).encode()
+    code_id = code_id_of(new)
+    kept = code_dir / code_file_name("pi", code_id)
+    kept.write_bytes(new)
+    compiled_here: list[str] = []
+
+    def compile_spy(source: Any, filename: str, *rest: Any, **named: Any) -> Any:
+        compiled_here.append(filename)
+        return compile(source, filename, *rest, **named)
+
+    reloader = CodeReloader(controllers, code_dir, [copy.deepcopy(controllers.alternatives[0])], wait=True)
+    try:
+        monkeypatch.setattr(code_reload, "compile", compile_spy, raising=False)
+        assert reloader.build_now(0, code_id).kp == 2.0  # no compiled copy (a profile's reload in simulate)
+        assert compiled_here == [str(kept)]
+        (code_dir / compiled_file_name("pi", code_id)).write_bytes(compiled_code(new, kept, code_id))
+        compiled_here.clear()
+        built = reloader.build_now(0, code_id)
+        assert compiled_here == [], "the reload thread compiled the module though the command had"
+        built.bind_inputs(np.zeros(2))
+        built.tick = TickInfo(cycle=0, period_ns=P)
+        y = np.zeros(1)
+        built.step(np.array([0.0, 1.0]), y)
+        assert y[0] == pytest.approx(3.0 * 2.0 + 5.0 * 1e-3)  # the new code (GAIN = 3) acts
+        other = compiled_code(RELOAD_MODULE.format(gain=5.0).encode(), kept, code_id + 1)  # not this code's
+        (code_dir / compiled_file_name("pi", code_id)).write_bytes(other)
+        compiled_here.clear()
+        reloader.build_now(0, code_id)
+        assert compiled_here == [str(kept)], "a compiled copy of other code was used"
+    finally:
+        reloader.close()

@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rtloop.code_reload import code_file_name, code_id_of, result_file_name
+    from rtloop.code_reload import code_file_name, code_id_of, compiled_code, compiled_file_name, result_file_name
     from rtloop.ipc.ports import connect_app
     from rtloop.ipc.switch_requests import release_at, switch_port_of
 
@@ -57,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     run_dir = _run_dir(app.registry)
     code_dir = run_dir / "code"
     _keep(code_dir, code_file_name(name, code_id), source)
+    # compiled here, not in the task: a module's compilation holds the task's interpreter lock for milliseconds
+    _keep(code_dir, compiled_file_name(name, code_id),
+          compiled_code(source, code_dir / code_file_name(name, code_id), code_id))
     t0_ns, at_ns = release_at(app, port, args.at_cycle, LEAD_S, "reload")
     at_cycle = math.ceil((at_ns - t0_ns) / port.period_ns)
     at_ns = t0_ns + at_cycle * port.period_ns  # the release itself
