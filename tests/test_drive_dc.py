@@ -100,6 +100,13 @@ def test_sync0_starts_at_the_release_rtloop_meant_and_cycles_with_the_period(vet
         assert abs(monotonic_ns - release_ns) <= uncertainty_ns + 250 * slave, (slave, monotonic_ns, release_ns)
         assert f"slave {slave}: DC SYNC0 first pulse at system time {start_ns} ns" in text
     assert "runs on distributed clocks" in run.stdout + run.stderr  # the console says it too
+    # how far SYNC0 slid against the releases by the end: the emulator's clocks do not drift, so
+    # nothing beyond the two readings' uncertainty (a real reference clock's crystal would show here)
+    slide = re.search(r"SYNC0 slid ([-+][\d.]+) µs ± ([\d.]+) µs against rtloop's releases over ([\d.]+) s",
+                      " ".join(_notes(out)))
+    assert slide, _notes(out)
+    assert abs(float(slide[1])) <= float(slide[2]) + 0.25 * 2 + 0.1, slide[0]
+    assert float(slide[3]) >= 1.0
 
 
 @pytest.mark.slow

@@ -122,7 +122,6 @@ class EthercatDevice(Device):
         self._dc = dc.DcPlan()
         self._dc_wkc_at = 0
         self._t0_ns = self._period_ns = 0
-        self._sync0_note = ""
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -383,13 +382,13 @@ class EthercatDevice(Device):
         thread receives on the cycle's."""
         try:
             with open_raw(self.interface, timeout_s=0.005) as sock:
-                self._sync0_note = dc.start_on_release(sock, self._dc, self._t0_ns, self._period_ns)
+                dc.start_on_release(sock, self._dc, self._t0_ns, self._period_ns)
         except (OSError, ValueError) as error:
             raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error}") from None
 
     def run_notes(self) -> list[str]:
         """Which slaves ran on distributed clocks and which free on the frames, and why."""
-        return self._dc.describe(self.joints, self._sync0_note)
+        return self._dc.describe(self.joints)
 
     def _stop_keeper(self) -> None:
         """The thread that kept the process data flowing since configure stops (at the loop's first
@@ -530,6 +529,12 @@ class EthercatDevice(Device):
         keeper, self._keeper = self._keeper, None
         if keeper is not None:  # not _stop_keeper: no OP asked for on the way out
             keeper.stop()
+        if self._dc.mapped_at_ns and not self._dc.slide:  # how far SYNC0 slid against the releases
+            try:
+                with open_raw(self.interface, timeout_s=0.005) as sock:
+                    dc.measure_slide(sock, self._dc)
+            except OSError as error:
+                self._dc.slide = f"the reference clock's drift was not measured at the end: {error}"
         if self.socket is not None:
             self._request_state(AL_SAFEOP)
             self.socket.close()

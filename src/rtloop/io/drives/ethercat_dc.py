@@ -36,6 +36,7 @@ __all__ = [
     "dc_plan",
     "first_release",
     "has_dc_unit",
+    "measure_slide",
     "read_system_time",
     "start_on_release",
     "start_sync0",
@@ -71,8 +72,19 @@ class DcPlan:
     """Slave position → the AssignActivate rtloop writes to 0x0980 (from its SII) to start SYNC0."""
     free: dict[int, str] = field(default_factory=dict)
     """Slave position → why it runs free on the frames."""
+    offset_ns = 0
+    """DC system time − CLOCK_MONOTONIC, as read from the reference clock at SYNC0's start."""
+    mapped_at_ns = 0
+    """When (CLOCK_MONOTONIC) that mapping was read; 0: SYNC0 not started."""
+    uncertainty_ns = 0
+    """Half that read's round trip: how far the mapping may be off."""
+    sync0 = ""
+    """Where SYNC0 started, for the run's note."""
+    slide = ""
+    """How far SYNC0 slid against the releases over the run (the reference clock's drift), for the note."""
 
-    def describe(self, joints: Sequence[JointConfig], sync0: str = "") -> list[str]:
+    def describe(self, joints: Sequence[JointConfig]) -> list[str]:
+        sync0 = self.sync0
         lines = []
         for joint in joints:
             who = f"joint {joint.name!r} (slave {joint.slave})"
@@ -81,7 +93,7 @@ class DcPlan:
                              + (" (the reference clock)" if joint.slave == self.reference else ""))
             else:
                 lines.append(f"{who} runs free on the frames, without distributed clocks: {self.free[joint.slave]}")
-        return lines
+        return lines + ([self.slide] if self.slide else [])
 
 
 def dc_plan(joints: Sequence[JointConfig], assign_activate: Sequence[int], dc_units: Sequence[bool]) -> \
@@ -172,11 +184,11 @@ def has_dc_unit(slave: Any, assign_activate: int) -> bool:
     return len(features) == 2 and bool(features[0] & 0x04)
 
 
-def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: int) -> str:
+def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: int) -> None:
     """SYNC0 of every slave ``plan`` syncs, on the first release T0 + kP at least ``SYNC0_LEAD_NS``
     ahead, mapped into the DC system time through the reference clock's time read now, its cycle
-    time the period; what it did, for the run's note. OSError: a slave did not answer or take a
-    write; ValueError: a period SYNC0's cycle register cannot hold."""
+    time the period; the mapping and what it did kept in ``plan``. OSError: a slave did not answer
+    or take a write; ValueError: a period SYNC0's cycle register cannot hold."""
     if period_ns > MAX_SYNC0_CYCLE_NS:
         raise ValueError(f"a period of {period_ns} ns does not fit SYNC0's cycle time register (32 bits, at "
                          "most 4.29 s): run these drives without distributed clocks (dc = false)")
@@ -189,5 +201,25 @@ def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: i
             start_sync0(sock, position, start_ns, period_ns, assign)
     except OSError as error:
         raise OSError(f"{error} (the reference clock is slave {plan.reference})") from None
-    return (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = CLOCK_MONOTONIC + "
-            f"{offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference clock, slave {plan.reference})")
+    plan.offset_ns, plan.mapped_at_ns, plan.uncertainty_ns = offset_ns, monotonic_ns, round_trip_ns // 2
+    plan.sync0 = (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = CLOCK_MONOTONIC + "
+                  f"{offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference clock, slave {plan.reference})")
+
+
+def measure_slide(sock: socket.socket, plan: DcPlan) -> None:
+    """At the end of the run: the reference clock's time read again against CLOCK_MONOTONIC, and
+    how far it moved from the mapping SYNC0 started on (rtloop does not correct it: SYNC0 slid that
+    far against the releases), into ``plan.slide``."""
+    if not plan.mapped_at_ns:
+        return
+    try:
+        system_ns, monotonic_ns, round_trip_ns = read_system_time(sock, plan.reference)
+    except OSError as error:
+        plan.slide = f"the reference clock's drift was not measured at the end: {error}"
+        return
+    slide_ns = system_ns - (monotonic_ns + plan.offset_ns)
+    elapsed_ns = max(1, monotonic_ns - plan.mapped_at_ns)
+    uncertainty_ns = plan.uncertainty_ns + round_trip_ns // 2
+    plan.slide = (f"SYNC0 slid {slide_ns / 1000:+.1f} µs ± {uncertainty_ns / 1000:.1f} µs against rtloop's releases "
+                  f"over {elapsed_ns / 1e9:.1f} s (the reference clock {slide_ns / elapsed_ns * 1e6:+.1f} ± "
+                  f"{uncertainty_ns / elapsed_ns * 1e6:.1f} ppm off CLOCK_MONOTONIC; not corrected)")
