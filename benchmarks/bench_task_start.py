@@ -7,6 +7,10 @@ state: forked from the supervisor's task server, which imported the task's modul
 default), and spawned as a fresh interpreter that imports them itself (``RTLOOP_TASK_START=spawn``,
 the way before). For each:
 
+- a process that imports ``rtloop.runtime.task`` (what a task process imports, with numpy, to
+  unpickle its entry point), from ``start()`` to its exit: the task server already running (it
+  starts once per supervisor process, beside the supervisor's own imports: the next figures
+  include it);
 - ``rtloop run`` of a tiny app (one task, 1 ms period, ``--duration 1``) in a fresh process: the
   wall time of the whole command, start-up included (the server starts with the command);
 - ``rtloop.run()`` called again in one Python process (a notebook, a test suite, a sweep): the
@@ -64,6 +68,29 @@ print(times)
 '''
 
 
+ONE_START = '''import importlib, json, statistics, sys, time
+from rtloop.runtime.task_start import task_context
+context, server = task_context()
+def started_and_ended():
+    process = context.Process(target=importlib.import_module, args=("rtloop.runtime.task",))
+    started = time.perf_counter()
+    process.start()
+    process.join()
+    assert process.exitcode == 0, process.exitcode
+    return time.perf_counter() - started
+started_and_ended()  # the server's own preload is not a task's start
+print(json.dumps([started_and_ended() for _ in range({repeat})]))
+'''
+
+
+def time_task_process_starts(way: str, repeat: int) -> list[float]:
+    done = subprocess.run([sys.executable, "-c", ONE_START.format(repeat=repeat)], env=_environment(way),
+                          capture_output=True, text=True, timeout=600)
+    if done.returncode != 0:
+        raise SystemExit(f"starting a process failed ({done.returncode}): {done.stderr.strip()[-400:]}")
+    return [float(value) for value in json.loads(done.stdout.strip().splitlines()[-1])]
+
+
 def _environment(way: str) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k != "RTLOOP_TASK_START"}
     if way:
@@ -101,6 +128,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     started = time.monotonic()
     load_before = os.getloadavg()
     name = f"bench_start_{os.getpid()}"
+    one = {label: time_task_process_starts(way, args.repeat) for label, way in WAYS.items()}
     cli: dict[str, list[float]] = {way: [] for way in WAYS}
     again: dict[str, list[float]] = {way: [] for way in WAYS}
     with tempfile.TemporaryDirectory(prefix="rtloop-bench-start-") as work:
@@ -112,7 +140,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 cli[label].append(time_cli_run(folder, way, args.duration_s))
         for label, way in WAYS.items():  # the first run of the process starts the server: not counted
             again[label] = time_runs_in_one_process(folder, way, args.repeat + 1, args.duration_s, name)[1:]
-    rows = [{"way": label, "cli_run_median_s": statistics.median(cli[label]), "cli_run_s": cli[label],
+    rows = [{"way": label, "process_start_median_s": statistics.median(one[label]), "process_start_s": one[label],
+             "cli_run_median_s": statistics.median(cli[label]), "cli_run_s": cli[label],
              "run_again_median_s": statistics.median(again[label]), "run_again_s": again[label]}
             for label in WAYS]
     return {
@@ -124,12 +153,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def report_markdown(result: dict[str, Any]) -> str:
     duration_s = result["settings"]["duration_s"]
+    starts = [[r["way"], f"{r['process_start_median_s'] * 1e3:.1f}",
+               " ".join(f"{v * 1e3:.1f}" for v in r["process_start_s"])] for r in result["results"]]
     rows = [[r["way"], f"{r['cli_run_median_s']:.2f}", " ".join(f"{v:.2f}" for v in r["cli_run_s"]),
              f"{r['run_again_median_s']:.2f}", " ".join(f"{v:.2f}" for v in r["run_again_s"])]
             for r in result["results"]]
     load = (f"load average (1, 5, 15 min) before: {', '.join(f'{v:.2f}' for v in result['load_average_before'])}; "
             f"after: {', '.join(f'{v:.2f}' for v in result['load_average_after'])}")
     return "\n\n".join([
+        "### A process importing rtloop.runtime.task, from start() to its exit (ms)",
+        markdown_table(["task processes", "median", "each"], starts),
         f"### Wall time of a {duration_s:g} s run of a one-task app (s)",
         markdown_table(["task processes", f"`rtloop run --duration {duration_s:g}`: median", "each",
                         "`rtloop.run()` again in one process: median", "each"], rows),

@@ -203,3 +203,14 @@ def test_a_killed_supervisor_ends_its_task_with_safe_values_and_leaves_no_server
         for pid in (task, server):
             if pid and _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_the_pages_the_server_holds_are_found_as_runs_of_present_pages() -> None:
+    from array import array
+
+    from rtloop.linux.lean import PAGE_BYTES, PRESENT, _present_runs
+
+    entries = memoryview(array("Q", [PRESENT, PRESENT | 5, 0, PRESENT, 0, 0]).tobytes()).cast("Q")
+    assert _present_runs(entries, 0x1000) == [(0x1000, 0x1000 + 2 * PAGE_BYTES),
+                                              (0x1000 + 3 * PAGE_BYTES, 0x1000 + 4 * PAGE_BYTES)]
+    assert _present_runs(memoryview(array("Q", [0, PRESENT]).tobytes()).cast("Q"), 0) == [(PAGE_BYTES, 2 * PAGE_BYTES)]

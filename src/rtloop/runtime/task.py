@@ -29,7 +29,7 @@ from rtloop.ipc.status import ControlWord, StatusWord, TaskState, WordBlock, rea
 from rtloop.ipc.wiring import TaskSegments, TaskWiringPlan
 from rtloop.linux import memory, rt
 from rtloop.linux.cpustat import own_thread_counters
-from rtloop.linux.lean import lock_what_the_loop_touches, unlock_what_the_loop_never_needs
+from rtloop.linux.lean import lock_what_the_loop_touches, lock_what_the_server_ran, unlock_what_the_loop_never_needs
 from rtloop.runnable import Runnable
 from rtloop.runtime.snapshot import snapshot_file_name, write_snapshot
 from rtloop.runtime.task_start import ChildStart
@@ -249,6 +249,9 @@ def task_process_main(
         if unlocked is not None:  # every page the loop may touch, faulted in and locked now, not in a cycle
             for failed in lock_what_the_loop_touches(unlocked).failed[:1]:  # the loop may fault there, once per page
                 _report(pipe, kind="note", text=f"mlock refused a mapping its loop may touch ({failed})")
+            if start is not None and start.forked:  # and the library code the server's imports ran (linux/lean.py)
+                for failed in lock_what_the_server_ran(start.parent_pid).failed[:1]:
+                    _report(pipe, kind="note", text=f"could not lock what the task server's imports ran ({failed})")
             _report(pipe, kind="locked", bytes=memory.locked_bytes())
         status[StatusWord.STATE] = TaskState.READY
         t0_ns, end_ns = _wait_for_epoch(control)
