@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
 from rtloop.newfile import open_new
 from rtloop.report.data import Histogram, Run, TaskSeries, histogram
@@ -55,9 +56,9 @@ def fixed_layout(fig: Figure, rows: int, columns: int, *, left_in: float, right_
                         hspace=hspace_in / axis_height_in)
 
 
-def suptitle(fig: Figure, text: str) -> None:
+def suptitle(fig: Figure, text: str) -> Text:
     """The figure's title, at the top edge (a fixed layout leaves the room for it)."""
-    fig.suptitle(text, fontsize=12, y=1 - SUPTITLE_TOP_IN / fig.get_size_inches()[1])
+    return fig.suptitle(text, fontsize=12, y=1 - SUPTITLE_TOP_IN / fig.get_size_inches()[1])
 
 
 def literal(text: str) -> str:

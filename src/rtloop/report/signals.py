@@ -11,16 +11,19 @@ lines, labelled on the first axis (overlaid: in each run's colour). Long runs ar
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
 from rtloop.record.load import PortInputs, Signals
-from rtloop.report.figures import literal
+from rtloop.report.figures import SUPTITLE_TOP_IN, literal, suptitle
 
 FIGURE_WIDTH_IN = 13.0
 """1300 px at the report's 100 dpi: the page reads at 1366 px without shrinking the figures."""
@@ -34,6 +37,8 @@ SETPOINT_STYLE = {"color": "black", "linestyle": "--", "linewidth": 1.1}
 INPUT_STYLE: dict[str, Any] = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
 SWITCH_STYLE: dict[str, Any] = {"color": "tab:purple", "linestyle": "-", "linewidth": 1.0, "alpha": 0.7}
 TIME_LABEL = "t [s] (each value holds from t on)"
+PAD_IN = 3 / 72
+"""Space between the figure's edge and what is drawn, and between two axes' labels."""
 
 
 @dataclass(frozen=True)
@@ -211,11 +216,45 @@ def _shade_limits(ax: Axes, signals: Signals, group: Group) -> int:
     return len(stretches)
 
 
+def stack_axes(fig: Figure, axes: Sequence[Axes], heights: Sequence[float], title: Text) -> None:
+    """Place ``axes`` one below the other across ``fig``, their heights in the ratios ``heights``,
+    with room for what each draws outside itself (tick labels, titles, legends right of it).
+
+    The room is measured once, from each axis as drawn at a first placement: a constrained
+    layout measures every axis twice (and the figure draws once more before it is saved), which
+    costs more than the drawing. The legends and labels are the same either way.
+    """
+    fig.set_layout_engine("none")  # whatever a matplotlibrc asks for: this is the layout
+    width_in, height_in = fig.get_size_inches()
+    renderer = FigureCanvasAgg(fig).get_renderer()  # type: ignore[no-untyped-call]  # untyped in matplotlib 3.11
+
+    def place(left_in: float, right_in: float, top_in: float, gaps_in: Sequence[float], bottom_in: float) -> None:
+        free_in = height_in - top_in - bottom_in - sum(gaps_in)
+        y_in = height_in - top_in
+        for ax, share, gap_in in zip(axes, heights, [0.0, *gaps_in], strict=True):
+            y_in -= gap_in + free_in * share / sum(heights)
+            ax.set_position((left_in / width_in, y_in / height_in, 1 - (left_in + right_in) / width_in,
+                             free_in * share / sum(heights) / height_in))
+
+    place(0.6, 2.0, 0.5, [0.35] * (len(axes) - 1), 0.5)  # near the final placement: the same ticks
+    dpi = fig.dpi
+    around = []  # (left, right, top, bottom) of each axis' labels and legend beyond it, in inches
+    for ax in axes:
+        box, inner = ax.get_tightbbox(renderer, for_layout_only=True), ax.get_window_extent(renderer)
+        assert box is not None
+        around.append(((inner.x0 - box.x0) / dpi, (box.x1 - inner.x1) / dpi, (box.y1 - inner.y1) / dpi,
+                       (inner.y0 - box.y0) / dpi))
+    title_in = title.get_window_extent(renderer).height / dpi
+    place(max(a[0] for a in around) + PAD_IN, max(a[1] for a in around) + PAD_IN,
+          SUPTITLE_TOP_IN + title_in + 2 * PAD_IN + around[0][2],
+          [upper[3] + lower[2] + 2 * PAD_IN for upper, lower in itertools.pairwise(around)], around[-1][3] + PAD_IN)
+
+
 def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] | None = None,
                    switches: Sequence[dict[str, Any]] = ()) -> Figure:
     """A run's recorded signals: one axis per group, legends outside, live inputs and switches marked."""
     groups = groups_of(signals)
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + AXIS_HEIGHT_IN * len(groups)), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + AXIS_HEIGHT_IN * len(groups)))
     axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
     for ax, group in zip(axes, groups, strict=True):
         color = iter(RUN_COLORS)
@@ -232,7 +271,8 @@ def signals_figure(label: str, signals: Signals, inputs: dict[str, PortInputs] |
     note += f"; red: a limit acted ({limited} stretch(es))" if limited else ""
     note += f"; solid purple: {switched} controller switch(es)" if switched else ""
     gaps = f"; {len(signals.gaps)} gap(s) in the recording" if len(signals.gaps) else ""
-    fig.suptitle(literal(f"{label} — recorded signals{note}{gaps}"), fontsize=12)
+    title = suptitle(fig, literal(f"{label} — recorded signals{note}{gaps}"))
+    stack_axes(fig, list(axes), [AXIS_HEIGHT_IN] * len(groups), title)
     return fig
 
 
@@ -247,7 +287,7 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
     groups = [g for g in groups_of(reference) if all(any(n in s for n in g.names) for _, s, _ in runs[1:])]
     if not groups:
         return None
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + (AXIS_HEIGHT_IN + 1.5) * len(groups)), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 1.0 + (AXIS_HEIGHT_IN + 1.5) * len(groups)))
     axes = fig.subplots(2 * len(groups), 1, sharex=True, squeeze=False,
                         gridspec_kw={"height_ratios": [AXIS_HEIGHT_IN, 1.5] * len(groups)})[:, 0]
     limited = 0
@@ -282,8 +322,9 @@ def comparison_figure(runs: Sequence[tuple[str, Signals, dict[str, PortInputs]]]
     note = f"; dotted, in each run's colour: live port writes ({writes})" if writes else ""
     note += f"; solid purple: {reference_label}'s {switched} controller switch(es)" if switched else ""
     note += f"; red: a limit acted in {reference_label} ({limited} stretch(es))" if limited else ""
-    fig.suptitle(literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
-                         f"difference to {reference_label} at common times{note}"), fontsize=12)
+    title = suptitle(fig, literal(f"signals of {', '.join(label for label, _, _ in runs)} overlaid; below each: the "
+                         f"difference to {reference_label} at common times{note}"))
+    stack_axes(fig, list(axes), [AXIS_HEIGHT_IN, 1.5] * len(groups), title)
     return fig
 
 
