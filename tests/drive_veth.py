@@ -1,5 +1,6 @@
-"""Helpers of the EtherCAT drive tests: a veth pair of the test's own, the emulated drives on one
-end, the JIWY EtherCAT example adapted to them. Needs root (veth, raw sockets); skips otherwise."""
+"""Helpers of the EtherCAT drive tests (and of benchmarks/bench_ethercat_drives.py): a veth pair of
+the test's own (``rtloop.io.drives.veth``), the emulated drives on one end, the JIWY EtherCAT
+example adapted to them. Needs root (veth, raw sockets); skips otherwise."""
 
 from __future__ import annotations
 
@@ -15,43 +16,46 @@ from pathlib import Path
 
 import pytest
 
+from rtloop.io.drives import veth
+from rtloop.io.drives.veth import veth_problem
+
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "jiwy_ethercat"
 _COUNTER = itertools.count()
 
 
 def veth_pair() -> Iterator[tuple[str, str]]:
     """A veth pair named for this test alone (master end, slave end), up; deleted afterwards."""
-    if os.geteuid() != 0:
-        pytest.skip("needs root: a veth pair and raw sockets (the emulated EtherCAT drives)")
-    if shutil.which("ip") is None:
-        pytest.skip("needs the ip command (iproute2) to make a veth pair")
+    problem = veth_problem()
+    if problem:
+        pytest.skip(f"{problem}: the emulated EtherCAT drives")
     tag = f"{os.getpid() % 100000:05d}{next(_COUNTER) % 100:02d}"
-    master, slave = f"ecm{tag}", f"ecs{tag}"
-    made = subprocess.run(["ip", "link", "add", master, "type", "veth", "peer", "name", slave],
-                          capture_output=True, text=True)
-    if made.returncode != 0:
-        pytest.skip(f"cannot make a veth pair here: {made.stderr.strip()}")
     try:
-        for name in (master, slave):
-            subprocess.run(["ip", "link", "set", name, "up"], check=True)
-        yield master, slave
-    finally:
-        subprocess.run(["ip", "link", "del", master], capture_output=True)
+        with veth.veth_pair(f"ecm{tag}", f"ecs{tag}") as pair:
+            yield pair
+    except veth.VethError as error:
+        pytest.skip(str(error))
 
 
-def example_app(folder: Path, master: str, slave: str, name: str, period_ms: int = 2, **replace: str) -> Path:
+def example_app(folder: Path, master: str, slave: str, name: str, period_ms: float = 2, drives: int = 2,
+                **replace: str) -> Path:
     """The JIWY EtherCAT example in ``folder``, on this veth pair, under ``name``, at ``period_ms``
-    (the planner's time step and the drives' cycle with it, so the motion is the example's)."""
+    (the planner's time step and the drives' cycle with it, so the motion is the example's), with
+    ``drives`` drives (beyond two: copies of pan, holding where they are)."""
     shutil.copy(EXAMPLE / "jiwy_trajectory.py", folder)
     text = (EXAMPLE / "jiwy_ethercat.toml").read_text()
     period_s = period_ms / 1000
     text = text.replace('name = "jiwy_ethercat"', f'name = "{name}"')
     text = text.replace('interface = "ecm0"', f'interface = "{master}"')
     text = text.replace('emulator_interface = "ecs0"', f'emulator_interface = "{slave}"')
-    text = text.replace("period_ns = 1_000_000", f"period_ns = {period_ms * 1_000_000}")
+    text = text.replace("period_ns = 1_000_000", f"period_ns = {round(period_ms * 1_000_000)}")
     text = text.replace("period_s = 0.001", f"period_s = {period_s}")
     text = text.replace("cycle_s = 0.001", f"cycle_s = {period_s}")
     text = re.sub(r"timeout_us = \d+", f"timeout_us = {int(period_ms * 900)}", text)
+    if drives > 2:
+        pan = text[text.index("[[devices.gimbal.joints]]"):text.index('[[devices.gimbal.joints]]\nname = "tilt"')]
+        extra = "".join(pan.replace('name = "pan"', f'name = "j{k}"') for k in range(3, drives + 1))
+        at = text.index("[devices.gimbal.limits.pan_target_position_rad]")
+        text = text[:at] + extra + text[at:]
     for old, new in replace.items():
         assert old in text, old
         text = text.replace(old, new)

@@ -71,7 +71,7 @@ def _register(command: int, station: int, register: int, data: bytes | int) -> b
     return frame
 
 
-def _configuration() -> list[bytearray]:
+def configuration_frames() -> list[bytearray]:
     """What a master writes to take each slave to OP, the process image laid out slave after slave."""
     frames = []
     for k in range(DRIVES):
@@ -109,7 +109,7 @@ def _outputs(cycle: int, joint: int) -> tuple[int, int, int, int, int]:
     return controlword, mode, position, velocity, torque
 
 
-def _lrw(cycle: int, before: bytes = b"") -> bytearray:
+def cycle_frame(cycle: int, before: bytes = b"") -> bytearray:
     """The cycle's frame: (a register datagram,) the LRW, the FRMW of slave 1's system time."""
     frame = new_frame(len(before) + 12 + IMAGE + 12 + 8)
     at = 16
@@ -126,7 +126,7 @@ def _lrw(cycle: int, before: bytes = b"") -> bytearray:
 
 def test_the_compiled_path_answers_every_frame_as_the_reference_does() -> None:
     reference, fast = Side(False), Side(True)
-    for frame in _configuration():
+    for frame in configuration_frames():
         assert reference.send(bytearray(frame)) == fast.send(bytearray(frame))
     assert all(slave.al_status == AL_OP for slave in fast.slaves)
     status_frame = _register(FPRD, 0x1001, 0x0130, 2)[16:28]  # a register datagram before the LRW: the reference's
@@ -145,7 +145,7 @@ def test_the_compiled_path_answers_every_frame_as_the_reference_does() -> None:
             if cycle == 360:  # the master stalls for 200 ms: the SM watchdog takes the slaves out of OP
                 side.clock.ns += 200_000_000
             side.segment.tick(side.clock.ns)
-        frame = _lrw(cycle, bytes(status_frame) if cycle % 50 == 7 else b"")
+        frame = cycle_frame(cycle, bytes(status_frame) if cycle % 50 == 7 else b"")
         answer = reference.send(bytearray(frame))
         assert fast.send(bytearray(frame)) == answer, f"cycle {cycle}: the answers differ"
         assert fast.state() == reference.state(), f"cycle {cycle}: the slaves differ"

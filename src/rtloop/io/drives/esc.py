@@ -389,6 +389,7 @@ class Segment:
             if slave.dc is not None:
                 slave.dc.slaves = len(slaves)
         self._compiled = self._compiled_path()
+        self._sync0_waiting = self._waiting_for_sync0()
 
     @property
     def compiled(self) -> bool:
@@ -409,10 +410,15 @@ class Segment:
     def tick(self, now_ns: int) -> None:
         """Every slave's :meth:`EmulatedSlave.tick` (SM watchdog, SYNC0's first pulse); the watchdogs are
         checked in C first where they can be."""
-        if self._compiled is None or self._compiled.expired(now_ns) or \
-                any(s.dc is not None and s.dc.sync0_active and not s.dc.sync0_pulsed for s in self.slaves):
+        if self._compiled is None or self._sync0_waiting or self._compiled.expired(now_ns):
             for slave in self.slaves:
                 slave.tick(now_ns)
+            self._sync0_waiting = self._waiting_for_sync0()
+
+    def _waiting_for_sync0(self) -> bool:
+        """Is a DC unit's first SYNC0 pulse still to be logged (by its tick)? Only a register write
+        (the Python path) or a tick changes that."""
+        return any(s.dc is not None and s.dc.sync0_active and not s.dc.sync0_pulsed for s in self.slaves)
 
     def process(self, frame: bytearray | memoryview, offset: int = 14) -> bool:
         """Pass the EtherCAT frame (Ethernet header at 0, EtherCAT header at ``offset``) through every
@@ -424,6 +430,7 @@ class Segment:
                     slave.take_compiled_news()
             if done >= 0:
                 return bool(done)
+            self._sync0_waiting = True  # the Python path may start SYNC0: the next tick looks
         view = memoryview(frame)
         header, = struct.unpack_from("<H", frame, offset)
         if header >> 12 != 1:
