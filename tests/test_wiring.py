@@ -171,7 +171,10 @@ def _spawn(target, *args):
 
 
 @pytest.mark.timeout(120)
-def test_no_torn_reads_across_cores_in_a_million_reads() -> None:
+def test_no_torn_reads_across_cores_in_200k_reads() -> None:
+    # The writer (pinned to CPU 0) publishes rows from a table, back to back, so it is inside
+    # a slot's write most of the time; the reader (pinned to CPU 1) reads as fast as it can. A
+    # reader without the seqlock's second check saw 75 torn copies in these 200k reads (load ~11).
     token = new_run_token()
     segment = Segment.create("stress", os.getpid(), token, "let", LetChannel.size_bytes(shm_stress.N_VALUES, 2))
     stop = Segment.create("stress", os.getpid(), token, "stop", 8)
@@ -190,7 +193,7 @@ def test_no_torn_reads_across_cores_in_a_million_reads() -> None:
         while channel.words[0] < 1000:
             time.sleep(0.001)
         seen = set()
-        while reads < 1_000_000:
+        while reads < 200_000:
             filled = 0
             while filled < len(rows):
                 stamp = channel.read_valid_at(2**62, sources, rows[filled])
@@ -199,7 +202,7 @@ def test_no_torn_reads_across_cores_in_a_million_reads() -> None:
                     filled += 1
             reads += filled
             torn += int(np.count_nonzero(~shm_stress.consistent_rows(block)))
-            seen.update(stamps[::1000].tolist())
+            seen.update(stamps[::100].tolist())
         stop.buffer.cast("q")[0] = 1
         writer.join(10)
         assert torn == 0
@@ -217,14 +220,17 @@ def test_sample_queue_delivers_every_row_in_order_across_processes() -> None:
     try:
         queue = SampleQueue.initialise(segment, shm_stress.N_VALUES, 256)
         writer = _spawn(shm_stress.queue_writer, segment.name, 0, count)
+        os.sched_setaffinity(0, {1})  # the reader beside the writer, not time-sharing its CPU
         expected = 0
         while expected < count:
             ticks, rows = queue.drain()  # a whole batch checked at once: its ticks and every value of every row
-            np.testing.assert_array_equal(ticks, np.arange(expected, expected + len(ticks)))
-            np.testing.assert_array_equal(rows, shm_stress.payloads(ticks))
-            expected += len(ticks)
+            if len(ticks):
+                np.testing.assert_array_equal(ticks, np.arange(expected, expected + len(ticks)))
+                np.testing.assert_array_equal(rows, shm_stress.payloads(ticks))
+                expected += len(ticks)
         writer.join(10)
     finally:
+        os.sched_setaffinity(0, set(range(os.cpu_count() or 1)))
         segment.unlink()
 
 

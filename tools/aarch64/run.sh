@@ -33,7 +33,7 @@ main() {
     repo=$(cd "$(dirname "$0")/../.." && pwd)
     root=${1:-${RTLOOP_AARCH64_ROOT:-${XDG_CACHE_HOME:-$HOME/.cache}/rtloop/aarch64-root}}
     out=${RTLOOP_AARCH64_OUT:-$(mktemp -d /tmp/rtloop-aarch64.XXXXXX)}
-    # The default selection leaves out the two stress tests of test_wiring (minutes natively, far
+    # The default selection leaves out the two stress tests of test_wiring (seconds natively, far
     # longer emulated; the torn-read one proves nothing under qemu-user, see docs/raspberry-pi.md),
     # the C hot path's torn-read stress (300k reads across cores: the same reason), its lean-process
     # test (/proc shows the qemu process, with qemu's own threads and translation buffer, not the guest's),
