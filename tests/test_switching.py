@@ -238,12 +238,13 @@ def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit
         assert unknown.stderr.count("\n") == 1, unknown.stderr
         shadow = _cli("switch", name, "controller", "soft", "--shadow", env=rtloop_env)
         assert shadow.returncode == 0, shadow.stderr
-        done = wait_for_cycles(app, "controller", 1500, process)
-        # 3 s ahead: the CLI's start on a loaded machine (seconds) must not make the release a past one
-        promoted = _cli("switch", name, "controller", "--promote", "--at-cycle", str(done + 3000), env=rtloop_env)
+        shadow_from = int(shadow.stdout.split("at cycle ")[1].split()[0])
+        wait_for_cycles(app, "controller", max(1500, shadow_from + 300), process)  # the shadow's rows before it
+        # about 0.2 s ahead of the command's own start (an --at-cycle named before it started was a past
+        # release when a loaded machine took over 3 s to start it): said if late, as for the switch back
+        promoted = _cli("switch", name, "controller", "--promote", env=rtloop_env)
         assert promoted.returncode == 0 and "soft promoted at cycle" in promoted.stdout, promoted.stderr
-        done = wait_for_cycles(app, "controller", int(promoted.stdout.split("at cycle ")[1].split()[0]) + 500,
-                               process)
+        wait_for_cycles(app, "controller", int(promoted.stdout.split("at cycle ")[1].split()[0]) + 500, process)
         back = _cli("switch", name, "controller", "pid", env=rtloop_env)  # about 0.2 s ahead: said if late
         assert back.returncode == 0 and "pid active at cycle" in back.stdout, back.stderr
         # the gimbal settled long before (the step is at 0.5 s): the last rows show it stayed, without a bump
@@ -257,8 +258,9 @@ def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit
     assert [(s["from"], s["to"], s["transfer"]) for s in switches] == [
         ("pid", "soft", "take_over"), ("soft", "pid", "take_over")]
     asked = [int(line.split("at cycle ")[1].split()[0]) for line in (promoted.stdout, back.stdout)]
-    if "after the release named" in back.stdout:  # a machine that kept the command waiting over 0.2 s
-        asked[1] = switches[1]["cycle"]
+    for index, said in enumerate((promoted.stdout, back.stdout)):
+        if "after the release named" in said:  # a machine that kept the command waiting over 0.2 s
+            asked[index] = switches[index]["cycle"]
     signals = rtloop.load(run_dir).signals
     t_ns = np.round(np.asarray(signals.t_s) * 1e9).astype(np.int64)
     asked = [first_cycle_run(run_dir, "controller", cycle) for cycle in asked]  # releases it skipped, if any
