@@ -85,6 +85,9 @@ class EthercatDevice(Device):
         "quick_stop_timeout_s": QUICK_STOP_TIMEOUT,
         "emulator_interface": Setting(str, "", "the veth end `rtloop emulate ethercat --app` answers on (tests, "
                                       "examples)"),
+        "sync0_shift_us": Setting(float, 0.0, "SYNC0 this long after each release, µs (distributed clocks: e.g. "
+                                  "once the frame has passed every slave)", lambda v: None if v >= 0 else
+                                  f"expected 0 or more, got {v}", at_most=1e6),
         "esi_dir": Setting(str, "", "the folder relative esi paths are taken from (in an app file, \".\" is the "
                            "app file's folder; default: the current folder)", is_path=True),
     }
@@ -96,6 +99,7 @@ class EthercatDevice(Device):
         self.watchdog_ms: float = settings["watchdog_ms"]
         self.quick_stop_timeout_s: float = settings["quick_stop_timeout_s"]
         self.emulator_interface: str = settings["emulator_interface"]
+        self.sync0_shift_ns = round(settings["sync0_shift_us"] * 1000)
         base = Path(settings["esi_dir"]) if settings["esi_dir"] else None
         try:
             self.joints = tuple(joint_from_table(table, slave, base)
@@ -382,7 +386,7 @@ class EthercatDevice(Device):
         thread receives on the cycle's."""
         try:
             with open_raw(self.interface, timeout_s=0.005) as sock:
-                dc.start_on_release(sock, self._dc, self._t0_ns, self._period_ns)
+                dc.start_on_release(sock, self._dc, self._t0_ns, self._period_ns, self.sync0_shift_ns)
         except (OSError, ValueError) as error:
             raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error}") from None
 

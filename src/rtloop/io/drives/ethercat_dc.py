@@ -184,26 +184,29 @@ def has_dc_unit(slave: Any, assign_activate: int) -> bool:
     return len(features) == 2 and bool(features[0] & 0x04)
 
 
-def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: int) -> None:
+def start_on_release(sock: socket.socket, plan: DcPlan, t0_ns: int, period_ns: int, shift_ns: int = 0) -> None:
     """SYNC0 of every slave ``plan`` syncs, on the first release T0 + kP at least ``SYNC0_LEAD_NS``
-    ahead, mapped into the DC system time through the reference clock's time read now, its cycle
-    time the period; the mapping and what it did kept in ``plan``. OSError: a slave did not answer
-    or take a write; ValueError: a period SYNC0's cycle register cannot hold."""
+    ahead (``shift_ns`` after it), mapped into the DC system time through the reference clock's
+    time read now, its cycle time the period; the mapping and what it did kept in ``plan``.
+    OSError: a slave did not answer or take a write; ValueError: a period SYNC0's cycle register
+    cannot hold."""
     if period_ns > MAX_SYNC0_CYCLE_NS:
         raise ValueError(f"a period of {period_ns} ns does not fit SYNC0's cycle time register (32 bits, at "
                          "most 4.29 s): run these drives without distributed clocks (dc = false)")
     try:
         system_ns, monotonic_ns, round_trip_ns = read_system_time(sock, plan.reference)
         offset_ns = system_ns - monotonic_ns
-        k = first_release(t0_ns, period_ns, time.monotonic_ns())
-        start_ns = t0_ns + k * period_ns + offset_ns
+        k = first_release(t0_ns + shift_ns, period_ns, time.monotonic_ns())
+        start_ns = t0_ns + k * period_ns + shift_ns + offset_ns
         for position, assign in plan.synced.items():
             start_sync0(sock, position, start_ns, period_ns, assign)
     except OSError as error:
         raise OSError(f"{error} (the reference clock is slave {plan.reference})") from None
     plan.offset_ns, plan.mapped_at_ns, plan.uncertainty_ns = offset_ns, monotonic_ns, round_trip_ns // 2
-    plan.sync0 = (f" from release {k} (T0 + {k}·P = system time {start_ns} ns; DC system time = CLOCK_MONOTONIC + "
-                  f"{offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference clock, slave {plan.reference})")
+    shift = f" + {shift_ns} ns shift" if shift_ns else ""
+    plan.sync0 = (f" from release {k} (T0 + {k}·P{shift} = system time {start_ns} ns; DC system time = "
+                  f"CLOCK_MONOTONIC + {offset_ns} ns ± {round_trip_ns // 2} ns, read from the reference clock, "
+                  f"slave {plan.reference})")
 
 
 def measure_slide(sock: socket.socket, plan: DcPlan) -> None:
