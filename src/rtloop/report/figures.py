@@ -29,8 +29,13 @@ FIGURE_WIDTH_IN = 13.0
 MAX_COLOR = "tab:red"
 CRITERION_COLOR = "tab:orange"
 RUN_COLORS = ("tab:blue", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
+PNG_COMPRESS_LEVEL = 3
+"""zlib level of the figures: half the encoding time of the default 6 for files ~5 % larger."""
 SUPTITLE_TOP_IN = 3 / 72
 """The figure title's distance from the top edge (where matplotlib's constrained layout puts it)."""
+TITLE_Y = 1.0
+"""An axis title right above its axis: where matplotlib puts it when nothing is drawn above the axis (as on a
+log count axis, without an offset text); given, it spares matplotlib a pass over the y ticks to check that."""
 TITLE_LINE_IN = 0.185
 """The height of one more line in an axis title (10 pt)."""
 HISTOGRAM_MARGINS_IN = {"left_in": 0.6, "right_in": 0.1, "bottom_in": 0.48, "top_in": 0.49}
@@ -142,7 +147,7 @@ def draw_histogram(
     if mark_min:
         _mark_extreme(ax, hist, "min", color="tab:purple")
     _headroom(ax, int(hist.counts.max()))
-    ax.set_title(title, fontsize=10)
+    ax.set_title(title, fontsize=10, y=TITLE_Y)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("cycles (log)")
     ax.grid(True, which="major", alpha=0.3)
@@ -274,7 +279,7 @@ def comparison_figure(task: str, runs: Sequence[tuple[str, TaskSeries]]) -> tupl
             continue
         beyond = [f"{literal(label)}: {h.above} above" for (label, _), h in zip(runs, out[key], strict=True) if h.above]
         ax.set_title(f"{key} — dash-dot lines: each run's max" + (f"\n({', '.join(beyond)} the axis)"
-                                                                  if beyond else ""), fontsize=10)
+                                                                  if beyond else ""), fontsize=10, y=TITLE_Y)
         _headroom(ax, max(int(h.counts.max()) if h.counts.size else 0 for h in out[key]))
         ax.set_xlabel(xlabel)
         ax.set_ylabel("cycles (log)")
@@ -301,7 +306,7 @@ def save(fig: Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with open(open_new(path), "wb") as file:  # a new file: never through a link that has the name
-            fig.savefig(file, dpi=100, format="png")
+            fig.savefig(file, dpi=100, format="png", pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     except BaseException:
         with contextlib.suppress(OSError):
             path.unlink()  # a full disk leaves no empty or half figure behind
