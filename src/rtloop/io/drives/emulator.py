@@ -114,7 +114,9 @@ class Emulator:
         self.segment.tick(time.monotonic_ns())
 
     def run(self) -> None:
-        sock = open_raw(self.interface, timeout_s=0.001)
+        # blocking, a receive ending after a kernel tick without frames (SO_RCVTIMEO): one syscall per
+        # receive and per send, where Python's timeout polls before each
+        sock = open_raw(self.interface, receive_timeout_us=1000)
         buffer = bytearray(FRAME_BYTES + 64)
         whole = memoryview(buffer)
         self.log(f"emulating {len(self.slaves)} EtherCAT slave(s) on {self.interface}: " +
@@ -126,7 +128,7 @@ class Emulator:
             while not self.stopped:
                 try:
                     size = sock.recv_into(buffer)
-                except TimeoutError:
+                except (TimeoutError, BlockingIOError):
                     size = 0
                 except InterruptedError:
                     continue
