@@ -209,36 +209,37 @@ def lock_what_the_loop_touches(unlocked: Unlocked | None) -> Touched:
 # library code and read-only data the server's imports ran are present in the server, not in the
 # task. A spawned task ran its imports itself, so MCL_ONFAULT had locked those pages; a forked one
 # would fault each in the first time its loop runs it (one fault in the first cycle, measured).
-# So it locks the same pages the server holds: those its pagemap says are present.
+# So it touches the pages the server holds (those its pagemap says are present) once before T0:
+# under mlockall(MCL_ONFAULT) each is locked as it faults in, as the spawned task's imports did
+# (an mlock(2) of each run of pages would split the mappings into thousands of pieces).
 PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 PRESENT = 1 << 63
 
 
 def lock_what_the_server_ran(server_pid: int) -> Touched:
-    """Lock the pages of this process's read-only file mappings that are present in the task server
-    (``server_pid``, the process this one was forked from), where the mapping is the same in both."""
+    """Fault in (and so lock, under MCL_ONFAULT) the pages of this process's read-only file mappings that
+    are present in the task server (``server_pid``, the process this one was forked from), where the
+    mapping is the same in both."""
     interpreter = os.path.realpath("/proc/self/exe")
     try:
         with open(f"/proc/{server_pid}/maps") as maps:
-            theirs = {line.split(maxsplit=5)[0] for line in maps}
+            theirs = {tuple(int(address, 16) for address in line.split(maxsplit=1)[0].split("-")) for line in maps}
         pagemap = open(f"/proc/{server_pid}/pagemap", "rb", buffering=0)  # noqa: SIM115  (closed below)
     except OSError as error:
         return Touched(0, (f"the task server's page map ({error.strerror})",))
     locked = 0
-    failed = []
     with pagemap:
         for mapping in mappings():
             if (not mapping.path.startswith("/") or "w" in mapping.permissions[:2] or mapping.permissions[0] != "r"
-                    or the_loop_touches(mapping, interpreter) or f"{mapping.start:x}-{mapping.end:x}" not in theirs):
+                    or the_loop_touches(mapping, interpreter) or (mapping.start, mapping.end) not in theirs):
                 continue  # anonymous or writable (locked in full already), a reservation, or not the server's
             pagemap.seek(mapping.start // PAGE_BYTES * 8)
             entries = memoryview(pagemap.read(mapping.size_bytes // PAGE_BYTES * 8)).cast("Q")
             for start, end in _present_runs(entries, mapping.start):
-                if _libc.mlock(start, end - start) == 0:
-                    locked += end - start
-                else:
-                    failed.append(f"{start:x}-{end:x} {mapping.path}: {os.strerror(ctypes.get_errno())}")
-    return Touched(locked, tuple(failed))
+                pages = memoryview((ctypes.c_char * (end - start)).from_address(start)).cast("B")
+                bytes(pages[::PAGE_BYTES])  # one byte read of each page: a fault that locks it
+                locked += end - start
+    return Touched(locked)
 
 
 def _present_runs(entries: memoryview, first_address: int) -> list[tuple[int, int]]:
