@@ -189,3 +189,11 @@ def test_the_compiled_drive_is_the_reference_for_arbitrary_commands() -> None:
             [getattr(reference, name) for name in DRIVE_ATTRIBUTES], f"step {step}"
         assert fast.events == reference.events
     assert "mode csv -> cst" in reference.events and "quick stop (controlword)" in reference.events
+
+
+def test_a_mapping_the_compiled_path_does_not_take_is_served_by_python() -> None:
+    tx = PdoLayout(DEFAULT_TXPDO * 3)  # 21 inputs: more than the compiled path's 16
+    slave = EmulatedSlave(1, Identity(0xA7E, 0x402402, 3), PdoLayout(DEFAULT_RXPDO), tx, emulated_drive())
+    segment = Segment([slave])
+    assert not segment.compiled
+    assert segment.process(_register(FPRD, 0, 0x0130, 2))

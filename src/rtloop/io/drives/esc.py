@@ -401,11 +401,14 @@ class Segment:
         if module is None or not self.slaves or not all(isinstance(slave.drive, module.EmulatedDrive)
                                                         for slave in self.slaves):
             return None
-        return module.EscFrames([slave.memory for slave in self.slaves], [slave.counters for slave in self.slaves],
-                                [slave.drive for slave in self.slaves],
-                                [slave.compiled_layout() for slave in self.slaves],
-                                [slave.clock for slave in self.slaves], [slave.read for slave in self.slaves],
-                                self.clock)
+        try:
+            return module.EscFrames([slave.memory for slave in self.slaves],
+                                    [slave.counters for slave in self.slaves], [slave.drive for slave in self.slaves],
+                                    [slave.compiled_layout() for slave in self.slaves],
+                                    [slave.clock for slave in self.slaves], [slave.read for slave in self.slaves],
+                                    self.clock)
+        except ValueError:  # a mapping the compiled path does not take (over 16 inputs): Python serves it
+            return None
 
     def tick(self, now_ns: int) -> None:
         """Every slave's :meth:`EmulatedSlave.tick` (SM watchdog, SYNC0's first pulse); the watchdogs are
