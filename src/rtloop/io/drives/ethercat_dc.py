@@ -72,15 +72,15 @@ class DcPlan:
     """Slave position → the AssignActivate rtloop writes to 0x0980 (from its SII) to start SYNC0."""
     free: dict[int, str] = field(default_factory=dict)
     """Slave position → why it runs free on the frames."""
-    offset_ns = 0
+    offset_ns: int = 0
     """DC system time − CLOCK_MONOTONIC, as read from the reference clock at SYNC0's start."""
-    mapped_at_ns = 0
+    mapped_at_ns: int = 0
     """When (CLOCK_MONOTONIC) that mapping was read; 0: SYNC0 not started."""
-    uncertainty_ns = 0
+    uncertainty_ns: int = 0
     """Half that read's round trip: how far the mapping may be off."""
-    sync0 = ""
+    sync0: str = ""
     """Where SYNC0 started, for the run's note."""
-    slide = ""
+    slide: str = ""
     """How far SYNC0 slid against the releases over the run (the reference clock's drift), for the note."""
 
     def describe(self, joints: Sequence[JointConfig]) -> list[str]:
