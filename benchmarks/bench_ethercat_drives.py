@@ -119,9 +119,22 @@ def round_trip_us(answerer: str, args: argparse.Namespace, folder: Path, frames:
             "p99_us": rtts[int(len(rtts) * 0.99)], "max_us": rtts[-1]}
 
 
+def steal_ms(cpus: tuple[int, ...]) -> dict[int, float]:
+    """Each CPU's steal time so far (/proc/stat, ms): the hypervisor running something else."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    found = {}
+    for line in Path("/proc/stat").read_text().splitlines():
+        name, *fields = line.split()
+        if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus and len(fields) > 7:
+            found[int(name[3:])] = int(fields[7]) * 1000 / ticks
+    return found
+
+
 def one_period(period_us: int, args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     tag = f"{os.getpid() % 10000:04d}{period_us % 100:02d}"
     load = os.getloadavg()[0]
+    cpus = (args.cpu, args.emulator_cpu)
+    steal_before = steal_ms(cpus)
     with veth_pair(f"edm{tag}", f"eds{tag}") as (master, slave):
         app = example_app(folder, master, slave, f"ecat{args.drives}x{period_us}_{tag}", period_us / 1000,
                           args.drives)
@@ -142,6 +155,7 @@ def one_period(period_us: int, args: argparse.Namespace, folder: Path) -> dict[s
         cyclic_out, cyclic_err = cyclic.communicate(timeout=args.duration_s + 120)
         emulator.terminate()
         emulator.wait(timeout=30)
+    steal_after = steal_ms(cpus)
     summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
     task = (summary.get("tasks") or {}).get("planner", {})
     histogram = [line.split() for line in cyclic_out.splitlines() if line[:1].isdigit()]
@@ -159,6 +173,7 @@ def one_period(period_us: int, args: argparse.Namespace, folder: Path) -> dict[s
             "cyclictest_over_period": over + (int(overflow.group(1)) if overflow else 0),
             "cyclictest_stderr": cyclic_err.strip()[:300], "load_before": load, "load_after": os.getloadavg()[0],
             "emulator_in_c": "(process data in C)" in emulator_log,
+            "steal_ms": {cpu: steal_after.get(cpu, 0) - steal_before.get(cpu, 0) for cpu in cpus},
             "emulator_log_tail": emulator_log.splitlines()[-3:]}
 
 
@@ -169,22 +184,26 @@ def _us(stats: dict[str, float | None] | None, key: str) -> str:
 
 def table_row(result: dict[str, Any]) -> str:
     """One row of BENCHMARKS.md's table."""
-    task = (f"{result['cycles']:,} cycles, {result['deadline_misses']} deadline misses; release latency "
-            f"p50 {_us(result['latency_ns'], 'p50')}, p99 {_us(result['latency_ns'], 'p99')}, max "
-            f"{_us(result['latency_ns'], 'max')}; exec p50 {_us(result['exec_ns'], 'p50')}")
+    misses = result["deadline_misses"] or 0
+    task = f"{result['cycles'] or 0:,} cycles, {misses} deadline miss{'' if misses == 1 else 'es'}"
+    if (result["latency_ns"] or {}).get("p50") is not None:
+        task += (f"; release latency p50 {_us(result['latency_ns'], 'p50')}, p99 {_us(result['latency_ns'], 'p99')}, "
+                 f"max {_us(result['latency_ns'], 'max')}; exec p50 {_us(result['exec_ns'], 'p50')}")
     cycle = re.search(r"at cycle \d+", result["ended"])
     why = re.search(r"exchange \d+ on \S+: (.*?)(?: \(timeout_us\)|$)", result["ended"])
     ended = "its duration" if result["exit_code"] == 0 else \
         f"{cycle.group(0) if cycle else '?'}: `{why.group(1) if why else result['ended'][-120:]}`"
     cyclic = (f"{result['cyclictest_samples']:,}, max {result['cyclictest_max_us']} µs, "
               f"{result['cyclictest_over_period']} over the period" if result["cyclictest_samples"] else "-")
-    return (f"| {result['period_us']} µs | {task} | {ended} | {cyclic} | "
-            f"{result['load_before']:.1f} / {result['load_after']:.1f} |")
+    steal = ", ".join(f"CPU {cpu} {ms:.0f} ms" for cpu, ms in (result.get("steal_ms") or {}).items())
+    started = f" ({result['started']})" if result.get("started") else ""
+    return (f"| {result['period_us']} µs{started} | {task} | {ended} | {cyclic} | "
+            f"{result['load_before']:.1f} / {result['load_after']:.1f}{'; steal ' + steal if steal else ''} |")
 
 
 def print_rows(results: list[dict[str, Any]]) -> None:
     print("\n| period | rtloop: cycles, misses, latency | how the run ended | cyclictest beside it: samples, max, "
-          "over the period | load average before / after |\n|---|---|---|---|---|")
+          "over the period | load average before / after; steal in the run |\n|---|---|---|---|---|")
     for result in results:
         print(table_row(result))
 
