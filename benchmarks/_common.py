@@ -8,6 +8,7 @@ re-import, in the task processes), so it imports nothing heavier than numpy and 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -15,7 +16,7 @@ import platform
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -222,3 +223,22 @@ def trim(records: np.ndarray, count: int) -> np.ndarray:
     if count <= 0:
         return records
     return records[count:-count] if len(records) > 2 * count else records[:0]
+
+
+@contextlib.contextmanager
+def summary_synced_every_rewrite(active: bool = True) -> Iterator[None]:
+    """While inside, rtloop syncs summary.json at every rewrite of a running run, as it did before issue 33
+    (since then only the first and the final one): a before/after comparison in one checkout, one process."""
+    from rtloop.record import summary
+
+    written = summary.write_new
+
+    def synced(path: Path, data: bytes, *, sync: bool = False) -> None:
+        written(path, data, sync=True)
+
+    if active:
+        summary.write_new = synced
+    try:
+        yield
+    finally:
+        summary.write_new = written

@@ -60,6 +60,7 @@ from _common import (
     machine_facts,
     markdown_table,
     stats_us,
+    summary_synced_every_rewrite,
     trim,
     write_json,
 )
@@ -267,7 +268,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     others: set[str] = set()
     started = time.monotonic()
     try:
-        with PmQos(not args.no_pm_qos) as qos:
+        with PmQos(not args.no_pm_qos) as qos, summary_synced_every_rewrite(args.summary_synced):
             facts["cpu_dma_latency_held_at_0us"] = qos.active
             for round_index in range(args.rounds):
                 shift = round_index % len(order)
@@ -413,7 +414,8 @@ def report_markdown(result: dict[str, Any]) -> str:
     settings = result["settings"]
     return "\n\n".join([
         f"### Wake-up latency (µs), {settings['rounds']} rounds × blocks of {settings['block_s']} s "
-        f"({settings['fast_block_s']} s at the fast period), priority {settings['priority']}, CPU {settings['cpu']}",
+        f"({settings['fast_block_s']} s at the fast period), priority {settings['priority']}, CPU {settings['cpu']}"
+        + (", summary.json synced at every rewrite (--summary-synced)" if settings.get("summary_synced") else ""),
         markdown_table(["contender", "period_us", "samples", "min", "p50", "p99", "p99.9", "max", "drift_us_per_1k"],
                        rows),
         "### Misses (late wake-up = latency > period; missed releases = late wake-ups + releases skipped after "
@@ -447,6 +449,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--loop-cycles", type=int, default=100_000, help="iterations of the in-process loop timing")
     parser.add_argument("--quick", action="store_true", help="2 rounds × 3 s blocks: under a minute")
     parser.add_argument("--no-pm-qos", action="store_true", help="do not hold /dev/cpu_dma_latency at 0 µs")
+    parser.add_argument("--summary-synced", action="store_true",
+                        help="sync summary.json at every rewrite, as rtloop did before issue 33 (only the first and "
+                             "the final one since): the 'before' of a before/after comparison in one checkout")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     parser.add_argument("--keep", action="store_true", help="keep the per-block run directories")
     parser.add_argument("-v", "--verbose", action="store_true", help="print progress to stderr")

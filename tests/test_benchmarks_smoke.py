@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -183,3 +184,32 @@ def test_bench_wakeup_trace_splits_both_contenders_wake_ups(tmp_path: Path) -> N
     assert [row[0] for row in table_rows(stdout, "| contender | wake-ups | held by |")] == ["rtloop", "cyclictest"]
     result = json.loads(out.read_text())
     assert set(result["contenders"]["rtloop"]["us"]) == {"timer", "to run", "exit", "user", "total"}
+
+
+def test_bench_disk_writes_counts_the_supervisors_requests_apart(tmp_path: Path) -> None:
+    from rtloop.linux import trace
+
+    if not trace.availability()[0]:
+        pytest.skip(trace.availability()[1])
+    out = tmp_path / "disk.json"
+    stdout = run_script("bench_disk_writes.py", "--rounds", "1", "--seconds", "1", "--variants", "synced,tmpfs,idle",
+                        "--json", str(out))
+    header = "| per second | synced (each round) | tmpfs (each round) | idle (each round) |"
+    rows = {row[0]: row[1:] for row in table_rows(stdout, header)}
+    runs = json.loads(out.read_text())["runs"]
+    assert set(runs) == {"synced", "tmpfs", "idle"} and all(len(figures) == 1 for figures in runs.values())
+    assert runs["tmpfs"][0].get("issued: rtloop supervisor", 0) == 0  # a folder in RAM: nothing for a disk
+    assert runs["idle"][0].get("issued: rtloop supervisor", 0) == 0
+    if _filesystem_of(Path(tempfile.gettempdir())) not in ("tmpfs", "ramfs"):  # where the bench's runs go
+        assert runs["synced"][0]["issued: rtloop supervisor"] > 0, rows  # the summaries' fsyncs
+    assert "load average (1 min, at the end)" in rows
+
+
+def _filesystem_of(folder: Path) -> str:
+    """The filesystem type of the mount holding ``folder`` (/proc/self/mounts: the longest mount point)."""
+    where, best, kind = str(folder.resolve()), -1, ""
+    for line in Path("/proc/self/mounts").read_text().splitlines():
+        _, point, fstype, *_ = line.split()
+        if (where == point or where.startswith(point.rstrip("/") + "/")) and len(point) >= best:
+            best, kind = len(point), fstype
+    return kind

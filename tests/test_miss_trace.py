@@ -213,3 +213,15 @@ def test_an_untraced_switch_in_is_put_back_once_at_the_first_sign_of_the_thread(
         (100_002_000_000, "task (pid 10, other)", "swapper/1 (pid 0, other)", False),
         (100_002_500_000, "swapper/1 (pid 0, other)", "hog (pid 77, FIFO/RR 90)", True),
     ]
+
+
+def test_block_request_lines_are_parsed_for_the_disk_bench() -> None:
+    issued = trace.parse("  python3-4242 [000] ..... 100.000001: block_rq_issue: 254,0 WS 4096 () 123456 + 8 "
+                         "none,0,0 [python3]")
+    assert issued == trace.Event(100_000_001_000, "disk_issue", "254,0 123456", context_pid=4242, flags="WS")
+    assert issued is not None and issued.context_comm == "python3"
+    done = trace.parse("  <idle>-0 [001] d.h1. 100.000201: block_rq_complete: 254,0 WS () 123456 + 8 none,0,0 [0]")
+    assert done == trace.Event(100_000_201_000, "disk_done", "254,0 123456", context_pid=0, flags="WS")
+    flush = trace.parse("  kworker/0:1H-77 [000] ..... 100.0003: block_rq_issue: 254,0 FF 0 () 0 + 0 none,0,0 "
+                        "[kworker/0:1H]")
+    assert flush is not None and flush.flags == "FF" and flush.context_comm == "kworker/0:1H"

@@ -35,6 +35,7 @@ BUFFER_KB = 4096
 _LINE = re.compile(r"^\s*(?P<comm>.+?)-(?P<pid>\d+)\s+\[(?P<cpu>\d+)\]\s+\S+\s+(?P<s>\d+)\.(?P<frac>\d+):\s+"
                    r"(?P<event>\w+):\s*(?P<rest>.*)$")
 _SYSCALL = re.compile(r"NR (\d+)")
+_BLOCK = re.compile(r"(?P<device>\d+,\d+) (?P<flags>\w+) (?:\d+ )?\(.*?\) (?P<sector>\d+) \+")
 _FIELD = re.compile(r"(\w+)=(\S+)")
 
 
@@ -45,7 +46,8 @@ class Event:
     """``switch`` (from ``prev`` to ``who``), ``wakeup`` (of ``who``), ``irq`` / ``softirq`` (``who`` its
     name), ``irq_end`` / ``softirq_end``; ``sleep_armed`` (a thread's sleep timer ``who`` started, to expire at
     ``expires_ns``), ``sleep_fired`` (timer ``who`` expired), ``syscall_exit`` (``who`` the system call's
-    number)."""
+    number), ``disk_issue`` / ``disk_done`` (a block request ``who``, ``device sector``, sent to / completed by
+    the device; ``flags`` its kind: ``W`` write, ``R`` read, ``F`` a cache flush, ``S`` synchronous...)."""
     who: str
     priority: int = -1
     """The real-time priority of ``who`` for a switch or a wake-up (1-99; 0 for SCHED_OTHER), -1 for a handler."""
@@ -56,6 +58,8 @@ class Event:
     """The thread current on the CPU when the event was recorded (the line's ``comm-pid``)."""
     expires_ns: int = -1
     """A ``sleep_armed`` timer's expiry (CLOCK_MONOTONIC, the trace's clock)."""
+    flags: str = ""
+    """A disk request's kind (the kernel's ``rwbs``)."""
     inferred: bool = False
     """A ``switch`` the kernel did not trace, put back by :func:`with_untraced_switches`."""
     context_comm: str = field(default="", compare=False)
@@ -324,6 +328,10 @@ def parse(line: str) -> Event | None:
                      expires_ns=int(fields.get("softexpires") or fields.get("expires") or "-1"), context_comm=comm)
     if event == "hrtimer_expire_entry" and fields.get("function", "").startswith("hrtimer_wakeup"):
         return Event(at_ns, "sleep_fired", fields.get("hrtimer", "?"), context_pid=context_pid, context_comm=comm)
+    if event in ("block_rq_issue", "block_rq_complete") and (request := _BLOCK.match(rest)):
+        return Event(at_ns, "disk_issue" if event == "block_rq_issue" else "disk_done",
+                     f"{request['device']} {request['sector']}", context_pid=context_pid, flags=request["flags"],
+                     context_comm=comm)
     if event == "sys_exit" and (number := _SYSCALL.search(rest)):
         return Event(at_ns, "syscall_exit", number[1], context_pid=context_pid, context_comm=comm)
     return None
