@@ -1,7 +1,7 @@
 """A running app on ROS 2: the JIWY demo's bridges seen from outside, and two apps talking.
 
-Each test starts ``rtloop run`` as a subprocess with its own random ``ROS_DOMAIN_ID``
-and talks to it from a *peer*: a plain cyclonedds program that declares the ROS 2 types
+Each test (the two outside subscribers share one) starts ``rtloop run`` as a subprocess with
+its own random ``ROS_DOMAIN_ID`` and talks to it from a *peer*: a plain cyclonedds program that declares the ROS 2 types
 itself (``pkg::msg::dds_::Type_``) and never imports rtloop, as a ROS 2 node written by
 someone else would. Every wait is bounded; each test takes a few seconds.
 """
@@ -237,20 +237,37 @@ def signals_of(out: Path) -> tuple[list[str], np.ndarray]:
     return header, np.loadtxt(out / "signals.csv", delimiter=",", skiprows=1, ndmin=2)
 
 
-# --- 1. an outside subscriber receives the angles ---------------------------------------------
+# --- 1. outside subscribers receive the angles: a peer node and the cyclonedds CLI ----------------
+CYCLONEDDS_CLI = find_cyclonedds_cli()
+
+
+@pytest.fixture(scope="module")
+def angles_seen_from_outside(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One run of JIWY watched by two outside subscribers at once (each run costs seconds of
+    start-up): the peer node, listening before the app starts, and the cyclonedds CLI when it is
+    installed. The run is stopped with Ctrl-C once both have what they wait for."""
+    domain = random_domain()
+    out = tmp_path_factory.mktemp("angles") / "out"
+    peer = Peer("listen", "rt/jiwy/angles", "250", "15", domain=domain)
+    run = None
+    try:
+        peer.expect("READY")
+        run = start_app(JIWY, out, domain, duration_s=20)
+        cli_output = (_cyclonedds_subscribe(domain, "rt/jiwy/angles", samples=5, within_s=10.0)
+                      if CYCLONEDDS_CLI is not None else None)
+        samples = peer.samples(timeout_s=15)
+    finally:
+        peer.close()
+        if run is not None:
+            if run.poll() is None:  # seen (or given up): Ctrl-C ends the run
+                run.send_signal(signal.SIGINT)
+            code, stderr = finish(run)
+    return {"code": code, "stderr": stderr, "samples": samples, "cli_output": cli_output, "out": out}
 
 
 @pytest.mark.rt
-def test_independent_ros2_subscriber_receives_jiwy_angles(tmp_path: Path) -> None:
-    domain = random_domain()
-    peer = Peer("listen", "rt/jiwy/angles", "250", "12", domain=domain)
-    try:
-        peer.expect("READY")
-        run = start_app(JIWY, tmp_path / "out", domain, duration_s=4)
-        samples = peer.samples(timeout_s=15)
-        code, stderr = finish(run)
-    finally:
-        peer.close()
+def test_independent_ros2_subscriber_receives_jiwy_angles(angles_seen_from_outside: dict) -> None:
+    code, stderr, samples = (angles_seen_from_outside[key] for key in ("code", "stderr", "samples"))
     assert code == 0, stderr
     assert len(samples) >= 200, f"only {len(samples)} JointState messages arrived"
     assert all(s["name"] == ["pan", "tilt"] for s in samples)
@@ -264,7 +281,17 @@ def test_independent_ros2_subscriber_receives_jiwy_angles(tmp_path: Path) -> Non
     ages_ms = [(s["rx_ns"] - s["stamp_ns"]) / 1e6 for s in samples]
     assert all(0 < age < 5000 for age in ages_ms), ages_ms
     assert np.median(ages_ms[-20:]) < 100, ages_ms[-20:]
-    assert summary_of(tmp_path / "out")["bridges"]["publish /jiwy/angles"]["state"] == "ok"
+    assert summary_of(angles_seen_from_outside["out"])["bridges"]["publish /jiwy/angles"]["state"] == "ok"
+
+
+@pytest.mark.rt
+@pytest.mark.skipif(CYCLONEDDS_CLI is None, reason="the cyclonedds CLI is not installed")
+def test_cyclonedds_cli_prints_the_angles(angles_seen_from_outside: dict) -> None:
+    code, stderr, output = (angles_seen_from_outside[key] for key in ("code", "stderr", "cli_output"))
+    assert code == 0, stderr
+    assert output.count("JointState_(") >= 5, output[-2000:]
+    assert "name=['pan', 'tilt']" in output
+    assert "position=[" in output and "stamp=Time_(sec=" in output
 
 
 # --- 2. setpoints from ROS 2 move the gimbal; bad ones are rejected and counted ---------------------
@@ -313,28 +340,6 @@ def test_setpoints_from_ros2_move_the_gimbal_bad_ones_are_rejected_counted_and_n
     assert np.abs(final[:, header.index("plant.AngleTilt")] + 0.2).max() < 0.02, final[-1]
 
 
-CYCLONEDDS_CLI = find_cyclonedds_cli()
-
-# --- 3. the cyclonedds command-line tool sees the angles ---------------------------------------------
-
-
-@pytest.mark.rt
-@pytest.mark.skipif(CYCLONEDDS_CLI is None, reason="the cyclonedds CLI is not installed")
-def test_cyclonedds_cli_prints_the_angles(tmp_path: Path) -> None:
-    domain = random_domain()
-    run = start_app(JIWY, tmp_path / "out", domain, duration_s=12)
-    try:
-        output = _cyclonedds_subscribe(domain, "rt/jiwy/angles", samples=5, within_s=10.0)
-    finally:
-        if run.poll() is None:  # seen (or given up): Ctrl-C ends the run, no need to wait out its 12 s
-            run.send_signal(signal.SIGINT)
-        code, stderr = finish(run)
-    assert code == 0, stderr
-    assert output.count("JointState_(") >= 5, output[-2000:]
-    assert "name=['pan', 'tilt']" in output
-    assert "position=[" in output and "stamp=Time_(sec=" in output
-
-
 def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: float) -> str:
     """What the cyclonedds CLI prints for ``topic`` until ``samples`` came or ``within_s`` passed.
     The CLI (Python) can take seconds to start on a loaded machine, and gives up when the writer
@@ -371,7 +376,7 @@ def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: fl
     return output
 
 
-# --- 4. a killed bridge does not stop the real-time tasks ------------------------------------------------
+# --- 3. a killed bridge does not stop the real-time tasks ------------------------------------------------
 
 
 @pytest.mark.rt
@@ -426,7 +431,7 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
     assert all(cycle >= expected_cycles - 3 for cycle in last.values()), last
 
 
-# --- 5. two apps, as on two devices, exchange a signal over ROS 2 -----------------------------------------
+# --- 4. two apps, as on two devices, exchange a signal over ROS 2 -----------------------------------------
 
 
 @pytest.mark.rt
