@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -375,3 +376,18 @@ def test_the_affinity_probe_writes_the_interrupts_own_affinity_back(tmp_path: Pa
 def test_doctor_refuses_a_cpu_list_it_cannot_read(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["doctor", "--cpu", "one"]) == 2
     assert "--cpu 'one' is not a CPU list" in capsys.readouterr().err
+
+
+def test_the_interrupt_probe_writes_nothing_where_a_write_back_may_move_the_interrupt(tmp_path, monkeypatch):
+    """On an ARM GIC a mask written back may re-target the interrupt: doctor must not change the machine there."""
+    affinity = tmp_path / "proc" / "irq" / "36" / "smp_affinity_list"
+    affinity.parent.mkdir(parents=True)
+    affinity.write_text("0-1\n")
+    os.utime(affinity, ns=(1_000_000_000, 1_000_000_000))
+    monkeypatch.setattr(os, "geteuid", lambda: 0)
+    monkeypatch.setattr(platform, "machine", lambda: "aarch64")
+    assert doctor.affinity_refused(tmp_path, "36") == ""
+    assert affinity.stat().st_mtime_ns == 1_000_000_000
+    monkeypatch.setattr(platform, "machine", lambda: "x86_64")
+    assert doctor.affinity_refused(tmp_path, "36") == ""
+    assert affinity.stat().st_mtime_ns != 1_000_000_000 and affinity.read_text() == "0-1"

@@ -13,6 +13,7 @@ installed. ``rtloop doctor`` (:mod:`rtloop.cli.doctor`) adds the device interfac
 from __future__ import annotations
 
 import os
+import platform
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -373,8 +374,8 @@ def affinity_refused(root: Path, irq: str) -> str:
     own affinity written back, which moves nothing where it is allowed (x86 keeps an interrupt on its
     CPU while that CPU stays in the mask), EPERM where its driver's affinity is managed by the kernel."""
     path = Path(root) / "proc" / "irq" / irq / "smp_affinity_list"
-    if os.geteuid() != 0:
-        return ""
+    if os.geteuid() != 0 or platform.machine() not in WRITE_BACK_MOVES_NOTHING_ON:
+        return ""  # elsewhere (an ARM GIC) a mask written back may move the interrupt: doctor changes nothing
     try:
         current = path.read_text().strip()
         with open(path, "w") as file:
@@ -383,6 +384,9 @@ def affinity_refused(root: Path, irq: str) -> str:
         return f"{os.strerror(error.errno) if error.errno else error}"
     return ""
 
+
+WRITE_BACK_MOVES_NOTHING_ON = frozenset({"x86_64", "i686", "i386"})
+"""Machines whose interrupt controllers keep an interrupt on its CPU while that CPU stays in the mask written."""
 
 IRQS_WORTH_NAMING = 100
 """Interrupts a device has raised on a task CPU since boot before the check names it (a serial console's
