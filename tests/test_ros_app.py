@@ -383,7 +383,7 @@ def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: fl
 def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
     domain = random_domain()
     out = tmp_path / "out"
-    duration_s = 4
+    duration_s = 8  # the bridge may take seconds to be found by the peer on a loaded machine (below)
     peer = Peer("listen", "rt/jiwy/angles", "100000", "12", domain=domain)
     stop_on_failure: subprocess.Popen | None = None
     try:
@@ -394,8 +394,12 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
         tasks = set(wait_for_task_pids(app, run, START_TIMEOUT_S).values())  # never a 0
         # Bridges start in the order of the app file: publish /jiwy/angles first.
         angles_bridge, setpoint_bridge = bridge_pids(run.pid, tasks, count=2)
-        time.sleep(1.0)
-        before = len(peer.samples(timeout_s=0.5))
+        # until the angles bridge publishes: it imports DDS and is found by the peer, while the tasks (forked
+        # from the task server, runtime/task_start.py) may have been in their loops for a while
+        deadline = time.monotonic() + duration_s / 2
+        before = 0
+        while not before and time.monotonic() < deadline:
+            before = len(peer.samples(timeout_s=0.25))
         assert before > 0, "the angles bridge published nothing before it was killed"
         os.kill(angles_bridge, signal.SIGKILL)
         killed_ns = time.time_ns()

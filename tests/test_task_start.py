@@ -214,3 +214,29 @@ def test_the_pages_the_server_holds_are_found_as_runs_of_present_pages() -> None
     assert _present_runs(entries, 0x1000) == [(0x1000, 0x1000 + 2 * PAGE_BYTES),
                                               (0x1000 + 3 * PAGE_BYTES, 0x1000 + 4 * PAGE_BYTES)]
     assert _present_runs(memoryview(array("Q", [0, PRESENT]).tobytes()).cast("Q"), 0) == [(PAGE_BYTES, 2 * PAGE_BYTES)]
+
+
+class _Process:
+    def __init__(self, alive: bool) -> None:
+        self.alive = alive
+
+    def is_alive(self) -> bool:
+        return self.alive
+
+
+def test_t0_waits_for_a_bridge_until_it_says_ready_fails_or_dies() -> None:
+    # Forked tasks are ready in ms, a bridge imports DDS for seconds: the supervisor's T0 waits for
+    # "ready" (at most READY_WITHIN_S), as the spawned tasks' own start-up used to make it do.
+    import multiprocessing
+
+    from rtloop.app.specs import RosTopic
+    from rtloop.runtime.bridges import Bridges, _Bridge
+
+    bridges = Bridges.__new__(Bridges)
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    topic = RosTopic.__new__(RosTopic)
+    starting, dead = _Bridge(topic, _Process(True), reader), _Bridge(topic, _Process(False), multiprocessing.Pipe()[0])
+    bridges.running = [starting, dead]
+    assert bridges.starting()
+    writer.send({"kind": "ready"})
+    assert not bridges.starting() and starting.ready

@@ -89,6 +89,14 @@ class BridgeStats:
         self.rejected: dict[str, Any] = {}
         self.last_sent = 0.0
 
+    def ready(self) -> None:
+        """Its DDS entity exists: the supervisor may pick T0 (runtime/bridges.py)."""
+        try:
+            if self.pipe is not None:
+                self.pipe.send({"kind": "ready"})
+        except (BrokenPipeError, OSError):
+            self.pipe = None
+
     def send(self, force: bool = False) -> None:
         now = time.monotonic()
         if self.pipe is None or (not force and now - self.last_sent < STATS_INTERVAL_S):
@@ -168,6 +176,7 @@ def run_listener(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats
 
     info = app.ports[topic.port]
     publisher = RosPublisher(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id)
+    stats.ready()
     epoch = _wall_offset_ns(app, stop)
     if epoch is None:
         publisher.close()
@@ -218,6 +227,7 @@ def run_talker(app: RunningApp, topic: RosTopic, stop: Any, stats: BridgeStats) 
     refused = 0
     with app.writer(topic.port) as writer, \
             RosSubscriber(topic.topic, topic.msg_type, qos=topic.qos, domain_id=topic.domain_id) as subscriber:
+        stats.ready()
         while not stop:
             for message in subscriber.take():
                 values = validator.check(values_of(message))

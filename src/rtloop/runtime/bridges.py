@@ -20,6 +20,9 @@ from rtloop.app.byvalue import children_without_main
 from rtloop.app.specs import RosTopic
 
 STOP_TIMEOUT_S = 5.0
+READY_WITHIN_S = 10.0
+"""How long T0 waits for the bridges to have their DDS entity (they import DDS; the tasks, forked
+from the task server, are ready in ms): then the run starts anyway, a late bridge catches up."""
 
 
 def dds_available() -> str:
@@ -43,6 +46,7 @@ class _Bridge:
     pipe: Any
     stats: dict[str, Any] = field(default_factory=dict)
     error: str = ""
+    ready: bool = False
 
 
 class Bridges:
@@ -76,12 +80,19 @@ class Bridges:
             try:
                 while bridge.pipe.poll():
                     message = bridge.pipe.recv()
-                    if message.get("kind") == "stats":
+                    if message.get("kind") == "ready":
+                        bridge.ready = True
+                    elif message.get("kind") == "stats":
                         bridge.stats = message
                     elif message.get("kind") == "error":
                         bridge.error = message.get("reason", "unknown error")
             except (EOFError, OSError):
                 pass
+
+    def starting(self) -> bool:
+        """Whether a bridge is still on its way to its DDS entity (alive, not failed, not ready)."""
+        self.poll()
+        return any(not b.ready and not b.error and b.process.is_alive() for b in self.running)
 
     def stop(self) -> None:
         for bridge in self.running:

@@ -47,7 +47,7 @@ from rtloop.record.summary import (
     RunSummary,
     not_real_time_notes,
 )
-from rtloop.runtime.bridges import Bridges
+from rtloop.runtime.bridges import READY_WITHIN_S, Bridges
 from rtloop.runtime.evidence import MissWatch
 from rtloop.runtime.layout import AppLayout, device_wiring
 from rtloop.runtime.memory_watch import MemoryWatch
@@ -225,13 +225,14 @@ class Supervisor:
         allowance_s = self.limits.startup_allowance_s
         limit_s = float("inf") if self.duration_s is None else self.duration_s + allowance_s
         deadline = time.monotonic() + limit_s
+        bridges_until = time.monotonic() + READY_WITHIN_S
         while self.failure is None and self.state is RunState.RUNNING:
             self._poll(layout)
-            states = [layout.tasks[name].status[StatusWord.STATE] for name in self.runs]
-            if all(state == TaskState.READY for state in states):
+            slow = [n for n in self.runs if layout.tasks[n].status[StatusWord.STATE] != TaskState.READY]
+            if not slow and not (  # and the bridges' DDS entities, for a while (runtime/bridges.py)
+                    self.bridges and self.bridges.starting() and time.monotonic() < min(bridges_until, deadline)):
                 return
             if time.monotonic() > deadline:
-                slow = [n for n, s in zip(self.runs, states, strict=True) if s != TaskState.READY]
                 reason = (f"prerun did not finish within the run's duration + {allowance_s:g} s "
                           f"of start-up ({limit_s:g} s)")
                 self.failure = TaskFailed(slow[0], None, "prerun", reason)
