@@ -182,11 +182,11 @@ def test_supervisor_killed_with_sigkill_leaves_no_process_and_the_next_run_clean
 
 def test_supervisor_stopped_with_sigstop_finishes_after_sigcont(tmp_path: Path, rtloop_env) -> None:
     name = f"sigstop_{os.getpid()}"
-    process = _start(_app_file(tmp_path, name, "step", "fork"), tmp_path / "out", rtloop_env, 2)
+    process = _start(_app_file(tmp_path, name, "step", "fork"), tmp_path / "out", rtloop_env, 1)
     try:
         _task_pids(name)
         process.send_signal(signal.SIGSTOP)
-        time.sleep(3)  # past the run's end: the tasks end on their own timeline
+        time.sleep(2)  # past the run's end (1 s after T0): the tasks end on their own timeline
         process.send_signal(signal.SIGCONT)
         _, stderr = process.communicate(timeout=60)
     finally:
