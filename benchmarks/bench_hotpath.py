@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -348,6 +349,8 @@ def task_process_facts(work: Path) -> dict[str, Any]:
         locked_resident = next(line.split()[1] for line in rollup if line.startswith("Locked:"))
         locked = locked_bytes(pid) or 0
     finally:
+        if process.poll() is None:  # measured (or given up): Ctrl-C ends the run, its duration is only a bound
+            process.send_signal(signal.SIGINT)
         process.communicate(timeout=30)
     return {"threads": int(status["Threads"]), "VmLck_MB": int(status["VmLck"].split()[0]) / 1024,
             "locked_proportional_MB": int(locked_resident) / 1024, "locked_MB": locked / 2**20,

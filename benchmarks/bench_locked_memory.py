@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -99,6 +100,8 @@ def measure(kind: str, lock_all: str, work: Path, window_s: float, index: int) -
                          "VmLck_MB": _kib(proc / "status", "VmLck"), "VmRSS_MB": _kib(proc / "status", "VmRSS"),
                          "faults_in_window": faults, "window_s": window_s})
     finally:
+        if process.poll() is None:  # measured (or given up): Ctrl-C ends the run, its duration is only a bound
+            process.send_signal(signal.SIGINT)
         _, stderr = process.communicate(timeout=60)
     if process.returncode != 0:
         raise SystemExit(f"{kind} run failed ({process.returncode}): {stderr.strip()[-400:]}")
