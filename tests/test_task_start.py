@@ -240,3 +240,21 @@ def test_t0_waits_for_a_bridge_until_it_says_ready_fails_or_dies() -> None:
     assert bridges.starting()
     writer.send({"kind": "ready"})
     assert not bridges.starting() and starting.ready
+
+
+def test_a_forked_copy_of_a_process_with_a_server_spawns_its_tasks(forking: None) -> None:
+    # The server is its parent's child, not the copy's (multiprocessing's own check of it raised there).
+    task_start.start_server()
+    read_end, write_end = os.pipe()
+    child = os.fork()
+    if child == 0:
+        try:
+            context, server = task_start.task_context()
+            os.write(write_end, f"{context.get_start_method()} {server}".encode())
+        except BaseException as error:
+            os.write(write_end, repr(error).encode())
+        os._exit(0)
+    os.close(write_end)
+    os.waitpid(child, 0)
+    with os.fdopen(read_end, "rb") as said:
+        assert said.read().decode() == "spawn None"

@@ -20,8 +20,10 @@ each task its parent-death signal (``SUPERVISOR_GONE``, runtime/task.py): the lo
 order, its devices get their safe values. ``tests/test_task_start.py`` proves it.
 
 Tasks are spawned as before when the environment asks BLAS for more than one thread (the server
-would hold the pool's threads while it forks) and when ``RTLOOP_TASK_START=spawn`` is set (the
-reference of ``benchmarks/bench_task_start.py``).
+would hold the pool's threads while it forks), when ``RTLOOP_TASK_START=spawn`` is set (the
+reference of ``benchmarks/bench_task_start.py``), and in a process forked from one that had started
+the server. The server is the standard library's one per process: a program that started it itself
+with other modules to preload keeps its own (its tasks then import rtloop after the fork).
 """
 
 from __future__ import annotations
@@ -92,7 +94,10 @@ def start_server() -> int | None:
     server = _stdlib_server()
     with single_threaded_children(), _server_environment():
         multiprocessing.get_context("forkserver").set_forkserver_preload([SERVER_MODULE])
-        server.ensure_running()
+        try:
+            server.ensure_running()
+        except ChildProcessError:  # a forked copy of a process that had started one: not ours to use
+            return None
     return int(server._forkserver_pid)
 
 
