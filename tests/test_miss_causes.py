@@ -233,7 +233,7 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced:
     hog = subprocess.Popen([sys.executable, "-c", HOG, str(cpu), "30"], stdout=subprocess.PIPE, text=True)
     try:
         assert hog.stdout is not None and hog.stdout.readline().strip() == "holding"
-        done = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "2", "--out",
+        done = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "1", "--out",
                                str(tmp_path / "run"), *(["--trace-misses"] if traced else [])],
                               capture_output=True, text=True, env=cli_env(), timeout=240)
     finally:
