@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import rtloop
+from conftest import wait_for_app, wait_for_cycles
 from rt_test_runnables import Counter, Gain, RaiseAt
 from rtloop.record.load import LoadError
 
@@ -146,7 +147,9 @@ def test_a_real_run_loads_with_its_live_inputs(tmp_path: Path, rtloop_env) -> No
     app_file.write_text(APP_FILE.format(name=name))
     out = tmp_path / "run"
     cli = [sys.executable, "-m", "rtloop.cli"]
-    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", "4", "--out", str(out), "-q"],
+    # Until Ctrl-C, once the write has been taken and 200 cycles of gain have run after it (the
+    # duration is only a bound): however slow the machine, the run has rows after the write.
+    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", "60", "--out", str(out), "-q"],
                                env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 30
@@ -157,7 +160,12 @@ def test_a_real_run_loads_with_its_live_inputs(tmp_path: Path, rtloop_env) -> No
                 break
             time.sleep(0.2)
         assert write.returncode == 0, write.stderr
+        app = wait_for_app(name, process)
+        written_at = wait_for_cycles(app, "gain", 1, process)
+        wait_for_cycles(app, "gain", written_at + 200, process)
     finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
         _, err = process.communicate(timeout=60)
     assert process.returncode == 0, err
     run = rtloop.load(out)
@@ -171,6 +179,7 @@ def test_a_real_run_loads_with_its_live_inputs(tmp_path: Path, rtloop_env) -> No
     assert offset.values.tolist() == [[4.25]] and offset.task == "gain"
     assert 0 <= offset.t_s[0] < 4  # a write before T0 is taken at cycle 0
     after = run.signals.t_s > offset.t_s[0] + 0.002 + 1e-9
+    assert np.count_nonzero(after) >= 100, "the run has too few rows after the write to show it"
     assert np.all(run.signals["gain.y[0]"][after] == 4.25)
 
 
