@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -93,7 +94,8 @@ def test_a_real_time_run_takes_an_offset_written_while_it_runs(tmp_path: Path, r
         f'name = "{name}"\n[tasks.echo]\nrunnable = "rt_test_runnables:Gain"\nargs = {{ n = 1 }}\n'
         'period_ns = 1_000_000\npriority = 10\n[ports.setpoint]\nto = "echo.u[0]"\nfeed = "profile.csv"\n'
         'nudge = "offset"\nrange = [-1.0, 1.0]\n[ports.echoed]\nsource = "echo.y"\n[record]\nsignals = ["echo.u"]\n')
-    command = [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "3",
+    # Until Ctrl-C, once the loop has echoed the nudged value (the duration is only a bound)
+    command = [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "60",
                "--out", str(tmp_path / "out"), "-q"]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -102,9 +104,13 @@ def test_a_real_time_run_takes_an_offset_written_while_it_runs(tmp_path: Path, r
             deadline = time.monotonic() + 30
             while not len(echoed.read()[0]) and time.monotonic() < deadline:
                 time.sleep(0.05)
-        with pytest.raises(PortValueError, match="outside its range"):
-            app.write("setpoint", [2.0])
-        app.write("setpoint", [0.5])
+            with pytest.raises(PortValueError, match="outside its range"):
+                app.write("setpoint", [2.0])
+            app.write("setpoint", [0.5])
+            deadline = time.monotonic() + 30
+            while 1.5 not in echoed.read()[1] and time.monotonic() < deadline:
+                time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
         _, stderr = process.communicate(timeout=60)
     finally:
         if process.poll() is None:
