@@ -65,7 +65,7 @@ from rtloop.runtime.session import (
 from rtloop.runtime.snapshot import SnapshotRequests
 from rtloop.runtime.task import STEP_STUCK, task_process_main
 from rtloop.runtime.task_messages import TaskReports
-from rtloop.runtime.task_start import child_start, start_server, task_context
+from rtloop.runtime.task_start import child_start, task_context
 from rtloop.runtime.task_watch import TaskProcess, Watchdog, phase_of
 
 STOP_GRACE_S = DEFAULT_LIMITS.stop_grace_s  # what `rtloop service` sizes its stop timeout by
@@ -435,7 +435,6 @@ def run(app: App, duration_s: float | None, out: str | Path, *, trim: int = 20, 
     with a :class:`Progress` at every drain (the CLI draws its progress line with it). ``trace_misses``:
     record the kernel's scheduler and IRQ events on the tasks' CPUs, to name who held a late cycle's CPU.
     """
-    start_server()  # the task server imports the tasks' modules while the run is set up (runtime/task_start.py)
     summary = Supervisor(app, duration_s, Path(out), trim=trim, keep_s=keep_s, force=force, limits=limits,
                          on_progress=on_progress, trace_misses=trace_misses).run()
     # a notebook sees it (the summary's notes say it too); rtloop run prints its own WARNING line
