@@ -64,10 +64,6 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.app.appfile import load_app
     from rtloop.app.specs import check_duration
 
-    if args.command == "run":  # the task server's imports overlap this process's own (runtime/task_start.py)
-        from rtloop.runtime.task_start import start_server
-
-        start_server()
     if args.duration is not None:  # without one, a run lasts until SIGINT or SIGTERM
         check_duration(args.duration)
     elif args.command == "simulate":
@@ -85,6 +81,11 @@ def run(args: argparse.Namespace) -> int:
     interactive = not args.quiet and sys.stderr.isatty()
     keep_s = args.keep if args.keep is not None or args.duration is not None else DEFAULT_KEEP_S
     if args.command == "run":
+        # The task server's imports run beside the supervisor's and the run's set-up (runtime/task_start.py);
+        # started once the app file is taken, not for a command refused before (it would import for nothing).
+        from rtloop.runtime.task_start import start_server
+
+        start_server()
         from rtloop.runtime.supervisor import run as run_app
 
         try:
