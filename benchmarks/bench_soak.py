@@ -59,30 +59,15 @@ def rss_kib(pid: int) -> int | None:
     return None
 
 
-def task_pids(supervisor: int) -> dict[str, int]:
-    """The supervisor's task processes, by task name (their process title is rtloop-APP-TASK)."""
-    found: dict[str, int] = {}
-    try:
-        children = Path(f"/proc/{supervisor}/task/{supervisor}/children").read_text().split()
-    except OSError:
-        return found
-    for child in map(int, children):
-        try:
-            cmdline = Path(f"/proc/{child}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if "multiprocessing.spawn" in cmdline or "spawn_main" in cmdline:
-            found[f"pid{child}"] = child
-        elif "multiprocessing.forkserver" in cmdline:  # the task server: the tasks are its children
-            found.update({f"pid{task}": task for task in map(int, _children(child))})
-    return found
+def task_pids(name: str, supervisor: int) -> dict[str, int]:
+    """The supervisor's task processes (keyed pidN, as the results have them), from the running app's
+    own registry: each task's status block holds its pid, however the process was started."""
+    from rtloop.ipc.ports import running_apps
 
-
-def _children(pid: int) -> list[str]:
-    try:
-        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
-    except OSError:
-        return []
+    for app in running_apps():
+        if app.name == name and app.pid == supervisor:
+            return {f"pid{pid}": pid for pid in app.task_pids().values() if pid}
+    return {}
 
 
 def disk_bytes(folder: Path) -> int:
@@ -136,7 +121,7 @@ def main() -> int:
         while time.monotonic() - started < duration_s and supervisor.poll() is None:
             time.sleep(args.sample_s)
             summary = read_summary(out / "summary.json") or {}
-            tasks = {n: rss_kib(p) for n, p in task_pids(supervisor.pid).items()}
+            tasks = {n: rss_kib(p) for n, p in task_pids(name, supervisor.pid).items()}
             sample = {
                 "t_s": round(time.monotonic() - started, 1),
                 "supervisor_rss_kib": rss_kib(supervisor.pid),

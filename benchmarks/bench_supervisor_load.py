@@ -61,19 +61,13 @@ def locked_kib(pid: int | str) -> int:
         return -1
 
 
-def child_pids() -> list[int]:
-    """This process's children, and the task processes its task server forked (runtime/task_start.py)."""
-    from rtloop.runtime.task_start import server_pid
+def task_pids(name: str) -> list[int]:
+    """The task processes of this process's running app ``name``, from the app's own registry (each
+    task's status block holds its pid, however the process was started)."""
+    from rtloop.ipc.ports import running_apps
 
-    pids = []
-    for thread in os.listdir("/proc/self/task"):
-        with open(f"/proc/self/task/{thread}/children") as children:
-            pids += [int(pid) for pid in children.read().split()]
-    server = server_pid()
-    if server in pids:
-        with open(f"/proc/{server}/task/{server}/children") as children:
-            pids += [int(pid) for pid in children.read().split()]
-    return pids
+    return [pid for app in running_apps() if app.name == name and app.pid == os.getpid()
+            for pid in app.task_pids().values() if pid]
 
 
 def measure(app: App, duration_s: float, out: Path) -> dict[str, float]:
@@ -84,7 +78,7 @@ def measure(app: App, duration_s: float, out: Path) -> dict[str, float]:
         samples.append((time.monotonic(), time.process_time()))
         if len(samples) == 20:  # the tasks are in their loops by now
             locked["supervisor_vmlck_kib"] = locked_kib("self")
-            locked["task_vmlck_kib_max"] = max((locked_kib(pid) for pid in child_pids()), default=-1)
+            locked["task_vmlck_kib_max"] = max((locked_kib(pid) for pid in task_pids(app.name)), default=-1)
 
     summary = rtloop.run(app, duration_s, out, trim=0, on_progress=progress)
     (wall0, cpu0), (wall1, cpu1) = samples[0], samples[-1]

@@ -10,13 +10,14 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import rtloop
-from conftest import require_nobody_can_import_rtloop, unique_name
+from conftest import require_nobody_can_import_rtloop, unique_name, wait_for_app, wait_for_task_pids
 from replay_helpers import compare_signals, first_miss_s
 from rtloop.app.appfile import load_app
 from rtloop.errors import DeviceError
@@ -186,27 +187,11 @@ def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path
     assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 
-def _children(pid: int | str) -> list[str]:
-    try:
-        return Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
-    except OSError:
-        return []
-
-
-def _task_pid(supervisor: int) -> int:
-    """The task process: a child of the supervisor's task server (runtime/task_start.py), or the
-    supervisor's child that multiprocessing spawned (not its resource tracker)."""
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        for child in _children(supervisor):
-            command = Path(f"/proc/{child}/cmdline").read_bytes()
-            if b"multiprocessing.forkserver" in command:
-                for task in _children(child):
-                    return int(task)
-            elif b"spawn_main" in command and b"resource_tracker" not in command:
-                return int(child)
-        time.sleep(0.05)
-    raise AssertionError("no task process")
+def _task_pid(tmp_path: Path, process: subprocess.Popen[str]) -> int:
+    """The task process of the app ``process`` runs, from the app's own registry (as rtloop port finds it)."""
+    name = tomllib.loads((tmp_path / "dcmotor_serial.toml").read_text())["name"]
+    (pid,) = wait_for_task_pids(wait_for_app(name, process, 30), process, 30).values()
+    return pid
 
 
 def _start(tmp_path: Path, driver: Driver, name: str) -> subprocess.Popen[str]:
@@ -219,7 +204,7 @@ def _start(tmp_path: Path, driver: Driver, name: str) -> subprocess.Popen[str]:
 
 def test_kill_9_of_the_task_the_driver_goes_safe_by_its_heartbeat(tmp_path: Path, driver: Driver) -> None:
     process = _start(tmp_path, driver, "dcm_serial_kill_task")
-    os.kill(_task_pid(process.pid), signal.SIGKILL)
+    os.kill(_task_pid(tmp_path, process), signal.SIGKILL)
     line = driver.wait_for("no request for")
     assert "output off" in line
     _out, err = process.communicate(timeout=30)
