@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import time
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -179,6 +180,13 @@ def wait_for_task_pids(app, process: subprocess.Popen, timeout_s: float = 60.0) 
             pytest.fail(f"not every task started within {timeout_s} s: {pids}")
         time.sleep(0.05)
     return pids
+
+
+def wait_for_the_task_pid(app_file: Path, process: subprocess.Popen, timeout_s: float = 30.0) -> int:
+    """The task process of a one-task app file that ``process`` (``rtloop run``) runs, from the app's registry."""
+    name = tomllib.loads(app_file.read_text())["name"]
+    (pid,) = wait_for_task_pids(wait_for_app(name, process, timeout_s), process, timeout_s).values()
+    return pid
 
 
 def wait_for_cycles(app, task: str, cycles: int, process: subprocess.Popen, timeout_s: float = 60.0) -> int:

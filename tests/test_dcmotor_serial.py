@@ -10,14 +10,13 @@ import subprocess
 import sys
 import tempfile
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import rtloop
-from conftest import require_nobody_can_import_rtloop, unique_name, wait_for_app, wait_for_task_pids
+from conftest import require_nobody_can_import_rtloop, unique_name, wait_for_the_task_pid
 from replay_helpers import compare_signals, first_miss_s
 from rtloop.app.appfile import load_app
 from rtloop.errors import DeviceError
@@ -187,13 +186,6 @@ def test_late_answers_are_counted_stale_and_the_run_still_replays(tmp_path: Path
     assert replayed.equal and replayed.rows_compared > 0, replayed.divergence or replayed.cannot
 
 
-def _task_pid(tmp_path: Path, process: subprocess.Popen[str]) -> int:
-    """The task process of the app ``process`` runs, from the app's own registry (as rtloop port finds it)."""
-    name = tomllib.loads((tmp_path / "dcmotor_serial.toml").read_text())["name"]
-    (pid,) = wait_for_task_pids(wait_for_app(name, process, 30), process, 30).values()
-    return pid
-
-
 def _start(tmp_path: Path, driver: Driver, name: str) -> subprocess.Popen[str]:
     app_file = example_file(tmp_path, driver.link, name)
     process = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--out", str(tmp_path / "out"),
@@ -204,7 +196,7 @@ def _start(tmp_path: Path, driver: Driver, name: str) -> subprocess.Popen[str]:
 
 def test_kill_9_of_the_task_the_driver_goes_safe_by_its_heartbeat(tmp_path: Path, driver: Driver) -> None:
     process = _start(tmp_path, driver, "dcm_serial_kill_task")
-    os.kill(_task_pid(tmp_path, process), signal.SIGKILL)
+    os.kill(wait_for_the_task_pid(tmp_path / "dcmotor_serial.toml", process), signal.SIGKILL)
     line = driver.wait_for("no request for")
     assert "output off" in line
     _out, err = process.communicate(timeout=30)

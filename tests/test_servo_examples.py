@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 import rtloop
-from conftest import unique_name
+from conftest import unique_name, wait_for_the_task_pid
 from replay_helpers import compare_signals, first_miss_s
 from rtloop.app.appfile import load_app
 
@@ -236,13 +236,11 @@ def test_a_nan_command_turns_the_torque_off(tmp_path: Path, jiwy_model: Emulator
 
 
 def test_kill_9_of_the_task_the_supervisor_turns_the_torque_off(tmp_path: Path, jiwy_model: Emulator) -> None:
-    from test_dcmotor_serial import _task_pid
-
     app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_kill", tty=jiwy_model.link)
     jiwy_model.next_run()
     process = _start(app_file, tmp_path / "out")
     jiwy_model.wait_for("torque on", count=2)
-    os.kill(_task_pid(process.pid), signal.SIGKILL)
+    os.kill(wait_for_the_task_pid(app_file, process), signal.SIGKILL)
     jiwy_model.torque_off(1, 2)
     process.communicate(timeout=60)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
