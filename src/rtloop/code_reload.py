@@ -55,6 +55,12 @@ benchmarks/bench_switch.py). At priority 1 it runs only while the loop sleeps, a
 as soon as the loop asks for it."""
 THREAD_STACK_BYTES = 512 * 1024
 """The reloader's stack (locked memory, as the task's is): not the default 8 MB."""
+PHASES = ("asked", "read", "executed", "built", "dry_step", "prerun", "ready")
+"""The reload's timeline, stamped (CLOCK_MONOTONIC ns) as each phase ends and kept in its result file:
+``asked`` when the thread took the request, ``read`` the kept code, ``executed`` the module, ``built`` the
+controller twice (the one that acts, and a copy for the dry step), ``dry_step`` the copy's step, ``prerun``
+the new controller's, ``ready`` handed to the loop. benchmarks/bench_switch.py lines the loop's late
+wake-ups up against it."""
 
 
 def code_id_of(source: bytes) -> int:
@@ -98,6 +104,8 @@ class CodeReloader:
         self.finished: set[int] = set()
         """Code ids the thread has answered (ready or refused)."""
         self.retired: list[Runnable] = []
+        self.timeline_ns = [0] * len(PHASES)
+        """The last reload's timeline (:data:`PHASES`; 0: a phase not reached)."""
         self._wake_r, self._wake_w = os.pipe()
         previous = threading.stack_size(THREAD_STACK_BYTES)
         try:
@@ -157,13 +165,16 @@ class CodeReloader:
                 self._postrun_retired()
                 continue
             index, code_id = self.request_index, self.request_code
+            self.timeline_ns = [0] * len(PHASES)
             previous = sys.getswitchinterval()
             sys.setswitchinterval(RELOAD_SWITCH_INTERVAL_S)
             try:
                 result = self._prepare(index, code_id)
             finally:
                 sys.setswitchinterval(previous)
-            self._write_result(index, code_id, result)
+            result["timeline_ns"] = dict(zip(PHASES, self.timeline_ns, strict=True))
+            if not self.wait:  # the answer `rtloop reload` waits for; a replay must not overwrite the run's
+                self._write_result(index, code_id, result)
             self.finished.add(code_id)
             self.done.set()
 
@@ -177,14 +188,22 @@ class CodeReloader:
     def _prepare(self, index: int, code_id: int) -> dict[str, Any]:
         owner = self.owner
         name = owner.names[index]
+        stamp = self._stamp
+        stamp("asked")
         try:
-            module = self._module(index, name, code_id, self._read(code_file_name(name, code_id), code_id))
+            source = self._read(code_file_name(name, code_id), code_id)
+            stamp("read")
+            module = self._module(index, name, code_id, source)
+            stamp("executed")
             built = self._build(index, module)
             dry = self._build(index, module)
+            stamp("built")
             dry_ns = self._dry_step(dry, index)
+            stamp("dry_step")
             built.tick = owner.tick
             built.bind_inputs(owner.own_inputs(index))
             built.prerun()
+            stamp("prerun")
         except ReloadRefused as refusal:
             self.failed_code = code_id
             return {"accepted": False, "reason": str(refusal)}
@@ -194,7 +213,11 @@ class CodeReloader:
             return {"accepted": False, "reason": f"{type(error).__name__}: {error}{where}"}
         self.ready_runnable = built
         self.ready_code = code_id
-        return {"accepted": True, "dry_step_ns": dry_ns, "ready_ns": time.clock_gettime_ns(time.CLOCK_MONOTONIC)}
+        stamp("ready")
+        return {"accepted": True, "dry_step_ns": dry_ns, "ready_ns": self.timeline_ns[PHASES.index("ready")]}
+
+    def _stamp(self, phase: str) -> None:
+        self.timeline_ns[PHASES.index(phase)] = time.clock_gettime_ns(time.CLOCK_MONOTONIC)
 
     def _module(self, index: int, name: str, code_id: int, source: bytes) -> types.ModuleType:
         """The kept code executed as a fresh module (named as the controller's own, not registered)."""
@@ -299,7 +322,7 @@ class CodeReloader:
             temporary.write_text(json.dumps(result) + "\n")
             os.replace(temporary, path)
         except OSError:
-            pass  # a replay reads the run's folder: nothing to write there, and nothing lost
+            pass  # the command then says it had no answer; the loop takes the code if it is ready
 
 
 def reload_thread_policy(inherited: int) -> tuple[int, os.sched_param]:

@@ -324,6 +324,13 @@ class _ModuleByFile:
     def __reduce__(self) -> tuple[Any, ...]:
         return (load_module_file, (self.module_name, self.path))
 
+    def __deepcopy__(self, _memo: dict[int, Any]) -> _ModuleByFile:
+        """``copy.deepcopy`` consults copyreg too, so without this an in-process copy of an instance loaded
+        the module's file again: after an edit on disk it imported the edited file (compiling it, one C call
+        of 7-10 ms holding the interpreter's lock in a task's reload thread: the loop, waking, waited as long)
+        and put it in ``sys.modules``. A copy needs no module loaded: the class is copied by reference."""
+        return self
+
 
 def _rebuild(_module: ModuleType, rebuild: Any, args: tuple[Any, ...]) -> Any:
     return rebuild(*args)
