@@ -203,6 +203,9 @@ class App:
             device = kind
         else:
             device = build_device(kind, name, settings, source)
+        problem = device.period_problem(self.tasks[task].config.period_ns)
+        if problem is not None:
+            raise DeviceError(name, source, *problem)
         twin = device.default_twin() if twin is None else twin  # a servo bus brings its model, drives theirs
         if twin is not None:
             check_twin(name, source, device, twin)

@@ -208,6 +208,12 @@ class Device(ABC):
     def check(self) -> None:
         """Before any process starts: the interface exists and this user may open it."""
 
+    def period_problem(self, period_ns: int) -> tuple[str, str] | None:
+        """A setting that does not fit the period of the task that owns the device, as
+        ``(key, problem)`` (an EtherCAT device's ``lost_frames_max`` that would leave the drives
+        unwatched past their watchdog); None when it fits. Asked as the app is built."""
+        return None
+
     def claims(self) -> tuple[Claim, ...]:
         """What no other device of the app may hold too (a CAN id this device sends on its bus)."""
         return ()

@@ -35,6 +35,10 @@ typedef struct {
     Py_ssize_t dc_wkc_at;
     long expected_dc_wkc;
     long long timeout_ns, sent_ns;
+    /* The wait to the timeout to the nanosecond (ppoll, then a recv that does not block): lost frames
+     * are tolerated (lost_frames_max), so a lost one must end its cycle at the timeout, not at the
+     * kernel's next tick (up to 4 ms at HZ=250). 0: the blocking recv alone, one syscall. */
+    int precise;
 } DriveRun;
 
 static void DriveRun_release(DriveRun *self) {
@@ -240,11 +244,11 @@ static PyObject *DriveRun_take(DriveRun *self, PyObject *unused) {
 #define ECAT_INDEX_AT 17
 #define ECAT_LRW 12
 
-/* link(fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at=0, expected_dc_wkc=0): send()
+/* link(fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at=0, expected_dc_wkc=0, precise=0): send()
  * and receive() exchange ``frame`` on the raw socket ``fd`` (blocking, its SO_RCVTIMEO one tick),
  * the answer into ``reply``, whose working counter is at ``wkc_at``, due within ``timeout_ns`` of
- * the send; the DC datagram's working counter at ``dc_wkc_at`` (0: none). The run's out and in
- * buffers are places in them. */
+ * the send; the DC datagram's working counter at ``dc_wkc_at`` (0: none); ``precise``: the wait
+ * ends at the timeout to the nanosecond (ppoll). The run's out and in buffers are places in them. */
 static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     int fd;
     PyObject *frame, *reply;
@@ -253,8 +257,9 @@ static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     long long timeout_ns;
     Py_ssize_t dc_wkc_at = 0;
     long expected_dc_wkc = 0;
-    if (!PyArg_ParseTuple(args, "iOOnlL|nl", &fd, &frame, &reply, &wkc_at, &expected_wkc, &timeout_ns, &dc_wkc_at,
-                          &expected_dc_wkc)) {
+    int precise = 0;
+    if (!PyArg_ParseTuple(args, "iOOnlL|nlp", &fd, &frame, &reply, &wkc_at, &expected_wkc, &timeout_ns, &dc_wkc_at,
+                          &expected_dc_wkc, &precise)) {
         return NULL;
     }
     DriveRun_unlink(self);
@@ -279,6 +284,7 @@ static PyObject *DriveRun_link(DriveRun *self, PyObject *args) {
     self->expected_dc_wkc = expected_dc_wkc;
     self->timeout_ns = timeout_ns;
     self->sent_ns = 0;
+    self->precise = precise;
     Py_RETURN_NONE;
 }
 
@@ -313,8 +319,10 @@ static PyObject *DriveRun_send(DriveRun *self, PyObject *unused) {
  * kernel tick after the timeout); else the answer's working counter, the inputs not taken (the
  * Python side checks it and takes them, naming what is wrong); -4 when every slave exchanged but
  * the DC datagram's working counter is not the one expected (the reference clock's time did not
- * come back to the others; the inputs not taken). Up to 16 late answers of earlier frames are
- * passed over. EthercatDevice._receive and _take_answer are the reference. */
+ * come back to the others; the inputs not taken). Late answers to earlier frames (another datagram
+ * index) are passed over, as many as come before the timeout: after lost frames (lost_frames_max)
+ * their late answers may queue, and each is drained, never taken for this frame's. EthercatDevice.
+ * _receive and _take_answer are the reference. */
 static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
     if (!self->linked) {
         PyErr_SetString(PyExc_ValueError, "DriveRun.receive: no link");
@@ -323,10 +331,36 @@ static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
     const uint8_t *frame = self->frame.buf;
     uint8_t *reply = self->reply.buf;
     long long deadline_ns = self->sent_ns + self->timeout_ns;
-    for (int passed = 0; passed < 16;) {
+    for (;;) {
         ssize_t size;
+        int flags = 0;
+        if (self->precise) { /* wait for the answer until the timeout, to the nanosecond */
+            long long left_ns = deadline_ns - monotonic_ns();
+            if (left_ns <= 0) {
+                return PyLong_FromLong(-2);
+            }
+            struct pollfd waiting = {.fd = self->fd, .events = POLLIN, .revents = 0};
+            struct timespec wait = {.tv_sec = left_ns / 1000000000LL, .tv_nsec = left_ns % 1000000000LL};
+            int ready;
+            Py_BEGIN_ALLOW_THREADS
+            ready = ppoll(&waiting, 1, &wait, NULL);
+            Py_END_ALLOW_THREADS
+            if (ready == 0) {
+                return PyLong_FromLong(-2); /* nothing came in time */
+            }
+            if (ready < 0) {
+                if (errno != EINTR) {
+                    return PyErr_SetFromErrno(PyExc_OSError);
+                }
+                if (PyErr_CheckSignals() < 0) {
+                    return NULL;
+                }
+                continue;
+            }
+            flags = MSG_DONTWAIT;
+        }
         Py_BEGIN_ALLOW_THREADS /* as socket.recv_into gives the GIL away while it waits */
-        size = recv(self->fd, reply, (size_t)self->reply.len, 0);
+        size = recv(self->fd, reply, (size_t)self->reply.len, flags);
         Py_END_ALLOW_THREADS
         int saved = errno;
         if (monotonic_ns() > deadline_ns) {
@@ -347,8 +381,7 @@ static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
         }
         if (size < self->wkc_at + 2 || reply[ECAT_INDEX_AT] != frame[ECAT_INDEX_AT] ||
             reply[ECAT_COMMAND_AT] != ECAT_LRW) {
-            passed++;
-            continue;
+            continue; /* an earlier frame's late answer (or not a cycle frame): drained */
         }
         long wkc = (long)reply[self->wkc_at] | (long)reply[self->wkc_at + 1] << 8;
         if (wkc != self->expected_wkc) {
@@ -364,7 +397,6 @@ static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
         }
         return PyLong_FromLong(-1);
     }
-    return PyLong_FromLong(-2);
 }
 
 static PyMethodDef DriveRun_methods[] = {

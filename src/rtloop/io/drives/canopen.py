@@ -245,7 +245,7 @@ class Canopen402Device(Device):
         from rtloop.io.drives.ethercat import EthercatTwin
 
         # the same drive model stepped in the same order (TPDOs hold the values before the step)
-        return EthercatTwin(self)  # type: ignore[arg-type]  # it reads name, joints and the names only
+        return EthercatTwin(self)  # it reads name, joints and the names only
 
     # --- supervisor ------------------------------------------------------------------------------
     def check(self) -> None:

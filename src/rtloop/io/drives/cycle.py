@@ -161,14 +161,16 @@ class DriveCycle:
             in_at += joint.tx.size
 
     def link(self, fd: int, frame: bytearray, reply: bytearray, wkc_at: int, expected_wkc: int,
-             timeout_ns: int, dc_wkc_at: int = 0, expected_dc_wkc: int = 0) -> None:
+             timeout_ns: int, dc_wkc_at: int = 0, expected_dc_wkc: int = 0, precise: bool = False) -> None:
         """The EtherCAT frame the buffers are places in, on the raw socket ``fd`` (blocking, its
         receive timeout one tick), its answer due within ``timeout_ns`` of the send: the running
         cycle then packs, sends, receives, checks and unpacks in one C call each way
         (:meth:`send_linked`, :meth:`receive_linked`; ``EthercatDevice._send`` and ``_receive`` are
         the reference). ``dc_wkc_at``: where the DC datagram's working counter is (0: none), checked
-        against ``expected_dc_wkc`` once every slave exchanged (:data:`DC_LOST` when it differs)."""
-        self._link = (fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at, expected_dc_wkc)
+        against ``expected_dc_wkc`` once every slave exchanged (:data:`DC_LOST` when it differs).
+        ``precise``: the wait ends at the timeout to the nanosecond (ppoll, one syscall more a cycle;
+        lost frames tolerated, a lost one ends its cycle in time)."""
+        self._link = (fd, frame, reply, wkc_at, expected_wkc, timeout_ns, dc_wkc_at, expected_dc_wkc, precise)
 
     def send_linked(self, u: Any) -> bool:
         """The running cycle's outputs packed and the frame sent, in C: True; False when the C

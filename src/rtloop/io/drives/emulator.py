@@ -12,9 +12,11 @@ own state changes ("quick stop (controlword)", "fault 0x5530: ..."), injected fa
 
 Fault injection, counted in process-data exchanges with the drive enabled (``--inject``,
 repeatable): ``fault:SLAVE@N`` (the drive faults), ``drop:SLAVE@N`` (the slave drops out: answers
-nothing more, a cable pulled), ``lose@N`` (that one frame is not answered: lost on the wire),
-``clock:SLAVE@N`` (the slave's distributed clocks unit stops: as reference clock its time no
-longer goes out).
+nothing more, a cable pulled), ``lose@N`` (that one frame is not answered: lost on the wire; the
+slaves took its outputs), ``lose:K@N`` (K frames in a row), ``late:US@N`` (that frame answered US
+µs late: the emulator holds it, then answers it and the frames that came meanwhile),
+``clock:SLAVE@N`` (the slave's distributed clocks unit stops: as reference clock its time no longer
+goes out).
 """
 
 from __future__ import annotations
@@ -57,17 +59,19 @@ class DriveSpec:
 @dataclass(frozen=True)
 class Injection:
     what: str
-    """``fault``, ``drop``, ``lose`` or ``clock``."""
+    """``fault``, ``drop``, ``lose``, ``late`` or ``clock``."""
     slave: int
+    """The slave (1 the first); for ``lose`` the frames lost in a row, for ``late`` the delay in µs."""
     at_exchange: int
 
 
 def parse_injection(text: str) -> Injection:
     what, _, rest = text.partition(":") if ":" in text else (text.partition("@")[0], "", "@" + text.partition("@")[2])
     slave_text, _, at_text = rest.partition("@")
-    if what not in ("fault", "drop", "lose", "clock") or not at_text.isdigit() or \
-            (what != "lose" and not slave_text.isdigit()):
-        raise ValueError(f"--inject {text!r}: expected fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N or lose@N")
+    if what not in ("fault", "drop", "lose", "late", "clock") or not at_text.isdigit() or \
+            (what != "lose" and not slave_text.isdigit()) or (slave_text and not slave_text.isdigit()):
+        raise ValueError(f"--inject {text!r}: expected fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N, lose@N, "
+                         "lose:K@N or late:US@N")
     return Injection(what, int(slave_text or 1), int(at_text))
 
 
@@ -85,12 +89,16 @@ class Emulator:
         self.injections = list(injections)
         self.stopped = False
         self.frames = 0
+        self.lose_left = 0  # frames still to be lost (lose:K@N)
+        self.late_s = 0.0  # how late the frame being answered goes back (late:US@N)
 
     def _inject(self) -> bool:
         """Carry out injections that are due; False when this frame is to be lost."""
         answer = True
         for injection in list(self.injections):
-            slave = self.slaves[injection.slave - 1] if 0 < injection.slave <= len(self.slaves) else self.slaves[0]
+            on_slave = injection.what in ("fault", "drop", "clock")
+            slave = self.slaves[injection.slave - 1] if on_slave and 0 < injection.slave <= len(self.slaves) \
+                else self.slaves[0]
             if slave.al_status & 0x0F != AL_OP or slave.exchanges_enabled < injection.at_exchange:
                 continue
             self.injections.remove(injection)
@@ -105,9 +113,18 @@ class Emulator:
                 self.log(f"slave {slave.position}: injected loss of its distributed clocks unit at exchange "
                          f"{slave.exchanges_enabled}")
                 slave.dc = None
+            elif injection.what == "late":
+                self.log(f"injected late answer at exchange {slave.exchanges_enabled}: answered "
+                         f"{injection.slave} µs late")
+                self.late_s = injection.slave / 1e6
             else:
-                self.log(f"injected lost frame at exchange {slave.exchanges_enabled}: not answered")
-                answer = False
+                count = injection.slave
+                self.log(f"injected lost frame at exchange {slave.exchanges_enabled}: not answered" +
+                         (f", nor the {count - 1} after it" if count > 1 else ""))
+                self.lose_left = count
+        if self.lose_left:
+            self.lose_left -= 1
+            answer = False
         return answer
 
     def _tick(self) -> None:
@@ -140,8 +157,11 @@ class Emulator:
                 if not self.segment.process(frame):
                     continue
                 self._tick()
-                if self.injections and not self._inject():
+                if (self.injections or self.lose_left) and not self._inject():
                     continue
+                if self.late_s:  # held: the frames that come meanwhile wait in the socket
+                    time.sleep(self.late_s)
+                    self.late_s = 0.0
                 frame[6] |= 0x02  # the first slave marks the source address as it forwards the frame
                 try:
                     sock.send(frame)
@@ -201,8 +221,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slaves", type=int, default=0, help="this many default drives")
     parser.add_argument("--log", help="append the log here (default: standard output)")
     parser.add_argument("--inject", action="append", default=[], metavar="WHAT",
-                        help="fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N or lose@N (N: exchanges with the drive "
-                        "enabled)")
+                        help="fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N, lose@N, lose:K@N (K frames in a row) or "
+                        "late:US@N (answered US µs late); N: exchanges with the drive enabled")
     parser.add_argument("--priority", type=int, default=0,
                         help="run at SCHED_FIFO this priority (a drive must answer within the master's timeout)")
 

@@ -23,13 +23,17 @@ actual values back; the CiA 402 state machine (``io/drives/cia402.py``) enables 
 first exchanges. Where a slave has distributed clocks (``io/drives/ethercat_dc.py``, docs/drives.md),
 SOEM configures them before SAFE-OP, the frame carries the reference clock's time to the others
 (an FRMW after the LRW, its working counter checked), and each slave rtloop runs on DC gets SYNC0
-started on a release T0 + kP, cycling with the period. On every way the run ends:
-quick stop, then disable voltage, then SAFE-OP. When the task process is killed, the slaves' SM
-watchdog (``watchdog_ms``) takes them out of OP and the drives quick-stop by themselves.
+started on a release T0 + kP, cycling with the period. A frame not back within ``timeout_us``
+is a fault, or with ``lost_frames_max`` one of a bounded number of lost frames in a row
+(``io/drives/ethercat_lost.py``). On every way the run ends: quick stop, then disable voltage,
+then SAFE-OP. When the task process is killed, the slaves' SM watchdog (``watchdog_ms``) takes
+them out of OP and the drives quick-stop by themselves.
 """
 
 from __future__ import annotations
 
+import select
+import socket
 import struct
 import time
 from pathlib import Path
@@ -42,10 +46,10 @@ from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives import ethercat_dc as dc
 from rtloop.io.drives.cycle import DC_LOST, NOT_LINKED, DriveCycle, command_names, reading_names
-from rtloop.io.drives.drive_model import DriveModel
+from rtloop.io.drives.ethercat_lost import blind_bound_problem, lost_frames_fault, lost_frames_note
+from rtloop.io.drives.ethercat_twin import EthercatTwin
 from rtloop.io.drives.joints import (
     QUICK_STOP_TIMEOUT,
-    JointConfig,
     JointError,
     joint_from_table,
     joint_limits,
@@ -53,7 +57,6 @@ from rtloop.io.drives.joints import (
 )
 from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
 from rtloop.io.drives.sii import parse_sii
-from rtloop.runnable import Runnable
 
 __all__ = ["EthercatDevice", "EthercatTwin"]
 
@@ -82,6 +85,10 @@ class EthercatDevice(Device):
                               at_most=1e6),
         "watchdog_ms": Setting(float, 100.0, "the slaves' SM watchdog: without process data this long, a slave "
                                "leaves OP and its drive stops", positive, at_most=6000.0),
+        "lost_frames_max": Setting(int, 0, "cycles in a row whose frame may not come back within timeout_us, each "
+                                   "a lost frame (readings held, frame_ok 0, counted) before that is a fault; 0: "
+                                   "the first is", lambda v: None if v >= 0 else f"expected 0 or more, got {v}",
+                                   at_most=1e6),
         "quick_stop_timeout_s": QUICK_STOP_TIMEOUT,
         "emulator_interface": Setting(str, "", "the veth end `rtloop emulate ethercat --app` answers on (tests, "
                                       "examples)"),
@@ -97,6 +104,7 @@ class EthercatDevice(Device):
         self.interface: str = settings["interface"]
         self.timeout_s: float = settings["timeout_us"] * 1e-6
         self.watchdog_ms: float = settings["watchdog_ms"]
+        self.lost_frames_max: int = settings["lost_frames_max"]
         self.quick_stop_timeout_s: float = settings["quick_stop_timeout_s"]
         self.emulator_interface: str = settings["emulator_interface"]
         self.sync0_shift_ns = round(settings["sync0_shift_us"] * 1000)
@@ -110,7 +118,8 @@ class EthercatDevice(Device):
         if len(set(names)) != len(names):
             raise DeviceError(name, "", "joints", f"two joints share a name: {names}")
         self.input_names = tuple(n for joint in self.joints for n in command_names(joint))
-        self.output_names = tuple(n for joint in self.joints for n in reading_names(joint))
+        self.output_names = tuple(n for joint in self.joints for n in reading_names(joint)) + \
+            (("frame_ok",) if self.lost_frames_max else ())  # 1: this cycle's frame came; 0: lost, readings held
         self.n_inputs, self.n_outputs = len(self.input_names), len(self.output_names)
         total = sum(j.rx.size + j.tx.size for j in self.joints)
         if total > MAX_DATAGRAM_DATA:
@@ -126,6 +135,8 @@ class EthercatDevice(Device):
         self._dc = dc.DcPlan()
         self._dc_wkc_at = 0
         self._t0_ns = self._period_ns = 0
+        self.stale_reads = self._lost_in_a_row = self._lost_longest = 0  # lost frames (lost_frames_max)
+        self._frame_ok_at = self.n_outputs - 1 if self.lost_frames_max else -1
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -148,7 +159,7 @@ class EthercatDevice(Device):
         return (Claim(("ethercat", self.interface), "interface",
                       f"EtherCAT segment clash: {self.interface} is also"),)
 
-    def default_twin(self) -> Runnable:
+    def default_twin(self) -> EthercatTwin:
         return EthercatTwin(self)
 
     def drive_specs(self) -> list[Any]:
@@ -223,6 +234,10 @@ class EthercatDevice(Device):
         if problem:
             key, _, text = problem.partition(": ")
             raise DeviceMismatch(self.name, "", key, text)
+
+    def period_problem(self, period_ns: int) -> tuple[str, str] | None:
+        problem = blind_bound_problem(self.lost_frames_max, period_ns, self.watchdog_ms)
+        return None if problem is None else ("lost_frames_max", problem)
 
     def check(self) -> None:
         master = self._master()
@@ -330,7 +345,7 @@ class EthercatDevice(Device):
         self.socket = sock
         self._sent_at = 0.0
         cycle.link(self.socket.fileno(), self._frame, self._reply, self._wkc_at, self._expected_wkc,
-                   round(self.timeout_s * 1e9), self._dc_wkc_at, self._dc.with_dc)
+                   round(self.timeout_s * 1e9), self._dc_wkc_at, self._dc.with_dc, self.lost_frames_max > 0)
 
     def _exchange(self) -> int:
         """Send the frame, take its answer; the working counter (-1: it did not come back in time)."""
@@ -346,16 +361,20 @@ class EthercatDevice(Device):
     def _receive(self, command: int = LRW, index: int = -1, data_bytes: int = 2) -> int:
         """The working counter of the answer to the frame just sent (``index``: its datagram's, by
         default the cycle's frame's); -1 when it did not come within ``timeout_us`` of the send (a
-        late answer is seen as it comes, a lost one at the kernel's first tick after the timeout)."""
+        late answer is seen as it comes, a lost one at the kernel's first tick after the timeout; with
+        ``lost_frames_max`` at the timeout: select, to the µs). Answers to earlier frames (late ones)
+        are passed over, as many as come before the timeout."""
         reply, wkc_at = self._reply, self._wkc_at if command == LRW else DATA_AT + data_bytes
         index = self._frame[17] if index < 0 else index
         cycle = self.cycle
         sent_at = max(self._sent_at, cycle.linked_sent_at()) if cycle is not None else self._sent_at  # the last send
         deadline = sent_at + self.timeout_s
-        passed = 0
-        while passed < 16:  # late answers of earlier frames are passed over
+        precise = self.lost_frames_max > 0
+        while True:
             try:
-                size = self.socket.recv_into(reply)
+                if precise and not select.select((self.socket,), (), (), max(0.0, deadline - time.monotonic()))[0]:
+                    return -1
+                size = self.socket.recv_into(reply, 0, socket.MSG_DONTWAIT if precise else 0)
             except BlockingIOError:  # a tick (SO_RCVTIMEO) before the timeout: wait on
                 size = -1
             if time.monotonic() > deadline:
@@ -364,8 +383,6 @@ class EthercatDevice(Device):
                 continue
             if size >= wkc_at + 2 and reply[17] == index and reply[16] == command:
                 return int(reply[wkc_at] | reply[wkc_at + 1] << 8)
-            passed += 1
-        return -1
 
     def timeline(self, t0_ns: int, period_ns: int) -> None:
         self._t0_ns, self._period_ns = t0_ns, period_ns
@@ -391,8 +408,15 @@ class EthercatDevice(Device):
             raise DeviceFault(f"devices.{self.name}: distributed clocks on {self.interface}: {error}") from None
 
     def run_notes(self) -> list[str]:
-        """Which slaves ran on distributed clocks and which free on the frames, and why."""
-        return self._dc.describe(self.joints)
+        """Which slaves ran on distributed clocks and which free on the frames, and why; the lost frames."""
+        lost = lost_frames_note(self.stale_reads, self._lost_longest, self.lost_frames_max, self.timeout_s * 1e6)
+        return [*self._dc.describe(self.joints), *([lost] if lost else [])]
+
+    def may_read_stale(self) -> bool:
+        return self.lost_frames_max > 0
+
+    def stale_sources(self) -> dict[str, int]:
+        return {"LRW frames not back within timeout_us": self.stale_reads} if self.stale_reads else {}
 
     def _stop_keeper(self) -> None:
         """The thread that kept the process data flowing since configure stops (at the loop's first
@@ -440,19 +464,42 @@ class EthercatDevice(Device):
         assert cycle is not None
         wkc = cycle.receive_linked(y)  # one C call while every drive is enabled
         if wkc == -1:
+            if self._frame_ok_at >= 0:
+                self._lost_in_a_row = 0
+                y[self._frame_ok_at] = 1.0
             return
         if wkc == DC_LOST:
             raise DeviceFault(self._reference_problem())
         if wkc == NOT_LINKED:
             wkc = self._receive()
+        if wkc < 0:  # not back within timeout_us (-1 here, -2 from C)
+            self._frame_lost(y)
+            return
         # while the drives are enabled, every slave must exchange; before, a slave still on its way
         # to OP writes no outputs (the drives stay disabled: the enabling waits, within its limit)
-        if wkc != self._expected_wkc and (cycle.enabled or wkc < 0):
+        if wkc != self._expected_wkc and cycle.enabled:
             raise DeviceFault(self._bus_problem(wkc))
         at = self._dc_wkc_at
-        if at and wkc >= 0 and self._reply[at] | self._reply[at + 1] << 8 != self._dc.with_dc:
+        if at and self._reply[at] | self._reply[at + 1] << 8 != self._dc.with_dc:
             raise DeviceFault(self._reference_problem())
         cycle.take_inputs(y)
+        if self._frame_ok_at >= 0:
+            self._lost_in_a_row = 0
+            y[self._frame_ok_at] = 1.0
+
+    def _frame_lost(self, y: FloatVector) -> None:
+        """This cycle's frame did not come back in time: a fault, or (``lost_frames_max``) a lost
+        frame: the readings not taken, frame_ok 0, counted (``io/drives/ethercat_lost.py``)."""
+        cycle = self.cycle
+        assert cycle is not None
+        self._lost_in_a_row += 1
+        if self._lost_in_a_row > self.lost_frames_max:
+            raise DeviceFault(lost_frames_fault(f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}",
+                                                self._lost_in_a_row, self.timeout_s * 1e6, self.lost_frames_max))
+        cycle.exchanges += 1  # a cycle of the drives all the same (named in faults; the enabling's limit)
+        self.stale_reads += 1
+        self._lost_longest = max(self._lost_longest, self._lost_in_a_row)
+        y[self._frame_ok_at] = 0.0
 
     def _reference_problem(self) -> str:
         cycle = self.cycle
@@ -467,9 +514,6 @@ class EthercatDevice(Device):
         cycle = self.cycle
         assert cycle is not None
         where = f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}"
-        if wkc < 0:
-            return (f"{where}: the LRW frame did not come back within {self.timeout_s * 1e6:.0f} µs "
-                    "(timeout_us): a slave lost, a cable pulled, or the frame lost")
         lost = self._lost_slaves()
         who = f"; not answering: {lost}" if lost else ""
         return (f"{where}: working counter {wkc}, expected {self._expected_wkc} (every slave +3): a slave did not "
@@ -545,50 +589,3 @@ class EthercatDevice(Device):
         self.socket = None
         self.cycle = None
         self.active = False
-
-
-class EthercatTwin(Runnable):
-    """The device's twin: the same :class:`DriveCycle` exchanging with the emulated drives in process,
-    as the emulated slaves answer an LRW (the inputs they hold, then a step with the outputs)."""
-
-    def __init__(self, device: EthercatDevice) -> None:
-        self.device_name = device.name
-        self.joints: tuple[JointConfig, ...] = device.joints
-        self.n_inputs, self.n_outputs = device.n_inputs, device.n_outputs
-        self.input_names, self.output_names = device.input_names, device.output_names
-
-    def prerun(self) -> None:
-        from rtloop.io.drives.esc import tx_values
-
-        self._tx_values = tx_values
-        self.cycle = DriveCycle(self.device_name, self.joints)
-        self.drives = [DriveModel(joint.drive) for joint in self.joints]
-        self.outputs = bytearray(self.cycle.output_bytes)
-        self.inputs = bytearray(self.cycle.input_bytes)
-        self.cycle.bind(self.outputs, 0, self.inputs, 0)
-        self._publish()
-
-    def _publish(self) -> None:
-        at = 0
-        for joint, drive in zip(self.joints, self.drives, strict=True):
-            joint.tx.struct.pack_into(self.inputs, at, *self._tx_values(drive, joint.tx))
-            at += joint.tx.size
-
-    def _exchange(self) -> None:
-        self._publish()  # the answer carries what the drives held when the frame passed
-        at = 0
-        for joint, drive in zip(self.joints, self.drives, strict=True):
-            values = joint.rx.struct.unpack_from(self.outputs, at)
-            rx = joint.rx.position
-
-            def get(index: int, default: int, values: tuple[Any, ...] = values, rx: dict[int, int] = rx) -> int:
-                return int(values[rx[index]]) if index in rx else default
-
-            drive.exchange(get(0x6040, 0), get(0x6060, drive.mode), get(0x607A, 0), get(0x60FF, 0), get(0x6071, 0))
-            drive.events.clear()
-            at += joint.rx.size
-
-    def step(self, u: FloatVector, y: FloatVector) -> None:
-        self.cycle.prepare_outputs(u)
-        self._exchange()
-        self.cycle.take_inputs(y)

@@ -1,0 +1,169 @@
+"""Lost frames on the EtherCAT drive device (``lost_frames_max``): a cycle whose frame does not come
+back within ``timeout_us`` keeps its readings, says so in ``frame_ok`` and is counted; the next
+cycle goes on; a late answer is drained, never taken for a later cycle's; one more in a row than
+the key allows is the fault it is without it; a value that would run the drives blind past their
+SM watchdog is refused as the app loads. The veth tests need root (skipped otherwise)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from conftest import unique_name
+from drive_veth import example_app, start_emulator, stop, veth_pair
+from rtloop import Runnable
+from rtloop.app.builder import App
+from rtloop.errors import DeviceError
+
+PERIOD_MS = 10  # the example's period in the drive tests: a loaded 2-core host answers within it
+ATTEMPTS = 3
+WATCHDOG = "watchdog_ms = 100"
+
+
+class _Hold(Runnable):
+    """A task with nothing to do (the device's own checks are under test)."""
+
+    n_inputs = n_outputs = 0
+
+    def step(self, u: object, y: object) -> None:
+        pass
+
+
+@pytest.fixture
+def veth() -> Iterator[tuple[str, str]]:
+    yield from veth_pair()
+
+
+def _rtloop(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "rtloop", *args], capture_output=True, text=True, timeout=180)
+
+
+def _with_lost_frames_max(n: int) -> dict[str, str]:
+    return {WATCHDOG: f"{WATCHDOG}\nlost_frames_max = {n}"}
+
+
+@pytest.mark.parametrize(("period_ms", "lost_frames_max", "words"), [
+    (2, 49, "49 lost frames in a row at the task's period of 2 ms leave the drives unwatched for 100 ms, not less "
+            "than 100 ms (the slaves' SM watchdog, watchdog_ms = 100): at most 48"),
+    (0.25, 300, "300 is too many: at most 254"),
+])
+def test_lost_frames_max_that_runs_the_drives_blind_too_long_is_refused_as_the_app_loads(
+        tmp_path: Path, period_ms: float, lost_frames_max: int, words: str) -> None:
+    app = example_app(tmp_path, "ecm9", "ecs9", "ecat_blind", period_ms, **_with_lost_frames_max(lost_frames_max))
+    result = _rtloop("simulate", str(app), "--duration", "0.1", "--out", str(tmp_path / "sim"), "-q")
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert f"devices.gimbal.lost_frames_max: {words}" in result.stderr, result.stderr
+    assert not (tmp_path / "sim").exists()
+
+
+def test_the_bound_follows_the_watchdog_and_the_task_period_in_python_too() -> None:
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY
+
+    joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
+    app = App("ecat_blind_py")
+    app.add_task("t", _Hold(), period_ns=1_000_000)
+    app.add_device("fine", "ethercat", task="t", interface="ecm8", joints=[joint], watchdog_ms=20.0,
+                   lost_frames_max=18)  # 19 ms blind: within the 20 ms watchdog
+    assert "frame_ok" in app.devices["fine"].device.reading_names()
+    with pytest.raises(DeviceError, match=r"lost_frames_max: 19 lost frames .* unwatched for 20 ms"):
+        app.add_device("blind", "ethercat", task="t", interface="ecm7", joints=[joint], watchdog_ms=20.0,
+                       lost_frames_max=19)
+
+
+def _rows(path: Path) -> list[list[str]]:
+    with open(path, newline="") as file:
+        return list(csv.reader(file))
+
+
+def _first_miss_cycle(run: Path) -> int | None:
+    """The planner's first cycle that ended past its deadline or followed a skip (lost frames aside)."""
+    from rtloop.runtime.replay.logs import read_timing
+
+    period_ns = PERIOD_MS * 1_000_000
+    records, _ = read_timing(run, {"planner": period_ns}, [])
+    previous = -1
+    for record in records["planner"]:
+        if record.cycle != previous + 1 or record.end_ns > record.release_ns + period_ns:
+            return record.cycle
+        previous = record.cycle
+    return None
+
+
+def _run_with(app: Path, tmp_path: Path, inject: str, lost: int) -> tuple[subprocess.CompletedProcess[str], Path, str]:
+    """A 3 s run against fresh emulated drives with ``inject``; tried again (up to three times) where the
+    loaded host lost frames of its own (not ``lost`` of them) or missed a deadline before the injection."""
+    tried = []
+    for attempt in range(ATTEMPTS):
+        log, out = tmp_path / f"drives{attempt}.log", tmp_path / f"run{attempt}"
+        emulator = start_emulator(app, log, "--inject", inject)
+        try:
+            run = _rtloop("run", str(app), "--duration", "3", "--out", str(out), "-q")
+        finally:
+            stop(emulator)
+        text = log.read_text()
+        summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else {}
+        device = (summary.get("devices") or {}).get("gimbal") or {}
+        first = (device.get("first_stale_cycles") or [0])[0]
+        miss = _first_miss_cycle(out) if run.returncode == 0 else None
+        if "injected" in text and (run.returncode != 0 or (device.get("stale_reads") == lost and
+                                                           (miss is None or miss > first + lost + 1))):
+            return run, out, text
+        tried.append(f"exit {run.returncode}, {device.get('stale_reads')} lost, first miss {miss}: "
+                     f"{run.stderr.strip()[-200:]}")
+    pytest.fail(f"the host lost frames or missed deadlines of its own in every run: {tried}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("inject", "lost"), [("lose:2@150", 2), ("late:12000@150", 1)])
+def test_lost_or_late_frames_within_the_bound_hold_the_readings_and_the_run_goes_on(
+        veth: tuple[str, str], tmp_path: Path, inject: str, lost: int) -> None:
+    """The emulated slaves took the lost frames' outputs (lost on the way back) and the late one's: the
+    drives moved as in the simulation, so every recorded row equals the simulation's but those that
+    read the held positions (the planner's inputs at the lost cycles, its errors a period later). A late
+    answer taken for the next cycle's would make that cycle's readings one cycle old: a row more differs."""
+    app = example_app(tmp_path, *veth, unique_name("ecat_lost"), PERIOD_MS, **_with_lost_frames_max(2))
+    sim = _rtloop("simulate", str(app), "--duration", "3", "--out", str(tmp_path / "sim"), "-q")
+    assert sim.returncode == 0, sim.stderr
+    run, out, text = _run_with(app, tmp_path, inject, lost)
+    assert run.returncode == 0, f"{run.stderr}\n{text}"
+    summary = json.loads((out / "summary.json").read_text())
+    device = summary["devices"]["gimbal"]
+    first = device["first_stale_cycles"][0]
+    assert device["first_stale_cycles"] == list(range(first, first + lost)), device
+    assert device["stale_reads_by_source"] == {"LRW frames not back within timeout_us": lost}, device
+    assert any(f"{lost} cycle{'' if lost == 1 else 's'} whose LRW frame did not come back" in note and
+               f"at most {lost} in a row (lost_frames_max = 2)" in note for note in summary["notes"]), summary["notes"]
+    run_rows, sim_rows = _rows(out / "signals.csv"), _rows(tmp_path / "sim" / "signals.csv")
+    assert run_rows[0] == sim_rows[0]
+    miss = _first_miss_cycle(out)
+    until = len(run_rows) - 1 if miss is None else miss  # a later miss of the loaded host: compared up to it
+    differ = [k for k in range(until) if run_rows[k + 1] != sim_rows[k + 1]]
+    assert differ and set(differ) <= set(range(first, first + lost + 1)), (first, differ)
+    measured = run_rows[0].index("planner.pan_measured_rad")
+    for k in range(first, first + lost):  # held: the position of the last frame that came
+        assert run_rows[k + 1][measured] == run_rows[first][measured] != sim_rows[k + 1][measured]
+    assert f"injected {'late answer' if inject.startswith('late') else 'lost frame'}" in text
+    replayed = _rtloop("replay", str(out), "--out", str(tmp_path / "replay"))
+    assert replayed.returncode == 0, replayed.stderr
+    assert _rows(tmp_path / "replay" / "signals.csv") == run_rows  # the lost frames played back as the run read them
+
+
+@pytest.mark.slow
+def test_one_lost_frame_more_in_a_row_than_the_bound_is_the_fault_and_the_drives_quick_stop(
+        veth: tuple[str, str], tmp_path: Path) -> None:
+    app = example_app(tmp_path, *veth, unique_name("ecat_lost3"), PERIOD_MS, **_with_lost_frames_max(2))
+    run, _out, text = _run_with(app, tmp_path, "lose:3@150", 3)
+    assert run.returncode == 1, run.stderr
+    line = next(text for text in run.stderr.splitlines() if text.startswith("rtloop run: task"))
+    assert "the LRW frame did not come back within 9000 µs (timeout_us), 3 cycles in a row (lost_frames_max = 2)" \
+        in line, run.stderr
+    assert "Traceback" not in run.stderr
+    assert "slave 1: drive: quick stop (controlword)" in text.split("injected lost frame")[1]
