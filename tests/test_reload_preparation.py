@@ -136,3 +136,133 @@ def test_simulate_and_replay_write_no_answer_over_the_runs_own(module_by_file, t
     finally:
         controllers.postrun()
     assert not (controllers.code_dir / result_file_name("pi", code_id)).exists()
+
+
+class LogicalLoop:
+    """A task's loop on a logical clock, for :class:`SlackGate`: releases T0 + k·P; at each one the loop takes
+    the interpreter's lock if the reload thread does not hold it (else as soon as it lets go: ``waited``
+    records by how long) and steps."""
+
+    def __init__(self, t0_ns: int, period_ns: int) -> None:
+        self.now_ns = t0_ns + 1
+        self.tick = TickInfo(cycle=0, release_ns=t0_ns, period_ns=period_ns)
+        self.stepped_release_ns = t0_ns
+        self.waited_ns: list[int] = []
+        self.free_at: list[int] = []
+
+    def _next_release_ns(self) -> int:
+        return self.tick.release_ns + self.tick.period_ns
+
+    def _step_at(self, release_ns: int, woke_ns: int) -> None:
+        self.tick.cycle += 1
+        self.tick.release_ns = release_ns
+        self.stepped_release_ns = release_ns
+        self.waited_ns.append(woke_ns - release_ns)
+
+    def clock(self) -> int:
+        return self.now_ns
+
+    def sleep_s(self, seconds: float) -> None:
+        """The reload thread sleeps, its lock free: the loop steps at each release in between, on time."""
+        until_ns = self.now_ns + round(seconds * 1e9)
+        while self._next_release_ns() <= until_ns:
+            release_ns = self._next_release_ns()
+            self._step_at(release_ns, release_ns)
+            self.free_at.append(release_ns)
+        self.now_ns = until_ns
+
+    def work(self, duration_ns: int) -> None:
+        """The reload thread holds the lock for ``duration_ns`` (one C call): a release inside it waits."""
+        self.now_ns += duration_ns
+        while self._next_release_ns() <= self.now_ns:
+            self._step_at(self._next_release_ns(), self.now_ns)
+
+
+def test_the_gate_leaves_the_lock_free_at_every_release_when_each_stretch_of_work_is_within_the_margin() -> None:
+    from rtloop.code_reload import SlackGate
+
+    loop = LogicalLoop(t0_ns=5_000_000_000, period_ns=P)
+    gate = SlackGate(loop, margin_ns=300_000, clock=loop.clock, sleep_s=loop.sleep_s)
+    hook = gate.hook()
+    stretches_ns = [7_000, 290_000, 45_000, 120_000, 3_000, 250_000, 80_000] * 60
+    for stretch_ns in stretches_ns:  # a preparation: a check (a call, a C call) before each stretch
+        hook(None, "c_call", None)
+        loop.work(stretch_ns)
+    assert loop.tick.cycle > 20, "the preparation spanned too few releases to show anything"
+    assert max(loop.waited_ns) == 0, f"the loop waited for the lock at a release: {max(loop.waited_ns)} ns"
+    assert gate.waits == len(loop.free_at) == loop.tick.cycle
+    assert gate.waited_ns < loop.tick.cycle * P  # it waits for the releases, not longer
+
+
+def test_a_stretch_longer_than_the_margin_delays_the_loop_by_what_it_lasts_beyond_it() -> None:
+    from rtloop.code_reload import SlackGate
+
+    loop = LogicalLoop(t0_ns=5_000_000_000, period_ns=P)
+    gate = SlackGate(loop, margin_ns=300_000, clock=loop.clock, sleep_s=loop.sleep_s)
+    hook = gate.hook()
+    for stretch_ns in [649_999, 400_000, 100_000]:  # the long one begins 350 µs before the release
+        hook(None, "c_call", None)
+        loop.work(stretch_ns)
+    assert loop.waited_ns == [50_000], "not late by what the stretch lasts beyond the release"
+    for stretch_ns in [300_000, 400_000, 100_000]:  # now it would begin within the margin: the gate waits first
+        hook(None, "c_call", None)
+        loop.work(stretch_ns)
+    assert loop.waited_ns[1:] == [0] * (len(loop.waited_ns) - 1)
+
+
+def test_a_real_preparation_under_the_gate_yields_at_every_release_and_builds_the_same_controller(
+        module_by_file, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """The gate as the reload thread installs it (its profile function), through a whole preparation of new
+    code, on a logical clock that advances 2 µs at each of the gate's clock reads."""
+    import time
+
+    from rtloop import code_reload
+    from rtloop.code_reload import SlackGate
+
+    _name, _path, module = module_by_file
+    controllers = Controllers({"pi": module.Pi()}, "pi")
+    controllers.bind_inputs(np.zeros(controllers.n_inputs))
+    loop = LogicalLoop(t0_ns=time.monotonic_ns(), period_ns=P)
+    controllers.tick = loop.tick
+    controllers.code_dir = tmp_path / "code"
+    controllers.code_dir.mkdir()
+    controllers.prerun()  # wait_for_code False: a real run's reloader, which installs the gate
+    new = MODULE.format(gain=3.0).encode()
+    code_id = code_id_of(new)
+    kept = controllers.code_dir / code_file_name("pi", code_id)
+    kept.write_bytes(new)
+    (controllers.code_dir / compiled_file_name("pi", code_id)).write_bytes(compiled_code(new, kept, code_id))
+
+    def clock() -> int:
+        loop.work(2_000)  # the stretch since the last check
+        controllers.stepped_release_ns = loop.stepped_release_ns
+        return loop.clock()
+
+    def sleep_s(seconds: float) -> None:
+        loop.sleep_s(seconds)
+        controllers.stepped_release_ns = loop.stepped_release_ns
+
+    class LogicalGate(SlackGate):
+        def __init__(self, owner: object) -> None:
+            super().__init__(owner, clock=clock, sleep_s=sleep_s)
+
+    reloader = controllers._reloader
+    assert isinstance(reloader, CodeReloader)
+    real_gate = code_reload.SlackGate
+    code_reload.SlackGate = LogicalGate  # type: ignore[misc]
+    try:
+        reloader.ask(0, code_id)
+        deadline = time.monotonic() + 30
+        while code_id not in reloader.finished and time.monotonic() < deadline:
+            time.sleep(0.01)
+        ready = reloader.take(code_id)
+    finally:
+        code_reload.SlackGate = real_gate  # type: ignore[misc]
+        controllers.postrun()
+    assert ready is not None, reloader.failed_code
+    assert reloader.gate is not None and reloader.gate.waits >= 2
+    assert loop.tick.cycle >= 2 and max(loop.waited_ns) <= 2_000, "a release found the reload thread working"
+    ready.bind_inputs(np.zeros(2))
+    y = np.zeros(1)
+    ready.step(np.array([0.0, 1.0]), y)
+    assert y[0] == pytest.approx(3.0 * 2.0 + 5.0 * 1e-3)  # the new code (GAIN = 3), built from the old state

@@ -55,6 +55,15 @@ benchmarks/bench_switch.py). At priority 1 it runs only while the loop sleeps, a
 as soon as the loop asks for it."""
 THREAD_STACK_BYTES = 512 * 1024
 """The reloader's stack (locked memory, as the task's is): not the default 8 MB."""
+SLACK_MARGIN_NS = 300_000
+"""How close to a release the reload thread stops and lets the interpreter's lock go (:class:`SlackGate`),
+at most half the period. It bounds the longest single C call a preparation makes, which no Python-level
+check can cut: measured in a reload of examples/jiwy/jiwy_models.py beside a 1 kHz loop on this 2-core VM
+(benchmarks/bench_switch.py, and a loop thread noting where the reloader stood when it let go), the
+compilation of one method a ``@dataclass`` generates took 0.1-0.7 ms, ``marshal.loads`` of the module 0.1-0.5
+ms. A C call begun just before the margin delays the loop's wake-up by what it lasts beyond it."""
+SLACK_POLL_S = 20e-6
+"""While waiting for the loop's step after a release, how often the reload thread looks (it sleeps between)."""
 PHASES = ("asked", "read", "executed", "built", "dry_step", "prerun", "ready")
 """The reload's timeline, stamped (CLOCK_MONOTONIC ns) as each phase ends and kept in its result file:
 ``asked`` when the thread took the request, ``read`` the kept code, ``executed`` the module, ``built`` the
@@ -104,6 +113,8 @@ class CodeReloader:
         self.finished: set[int] = set()
         """Code ids the thread has answered (ready or refused)."""
         self.retired: list[Runnable] = []
+        self.gate: SlackGate | None = None
+        """While a reload is prepared in a real run: what keeps the thread to the loop's slack."""
         self.timeline_ns = [0] * len(PHASES)
         """The last reload's timeline (:data:`PHASES`; 0: a phase not reached)."""
         self._wake_r, self._wake_w = os.pipe()
@@ -168,11 +179,17 @@ class CodeReloader:
             self.timeline_ns = [0] * len(PHASES)
             previous = sys.getswitchinterval()
             sys.setswitchinterval(RELOAD_SWITCH_INTERVAL_S)
+            self.gate = None if self.wait else SlackGate(self.owner)  # simulate, replay: the loop waits for it
+            if self.gate is not None:
+                sys.setprofile(self.gate.hook())  # this thread's only
             try:
                 result = self._prepare(index, code_id)
             finally:
+                sys.setprofile(None)
                 sys.setswitchinterval(previous)
             result["timeline_ns"] = dict(zip(PHASES, self.timeline_ns, strict=True))
+            if self.gate is not None:
+                result["slack_waits"], result["slack_waited_ns"] = self.gate.waits, self.gate.waited_ns
             if not self.wait:  # the answer `rtloop reload` waits for; a replay must not overwrite the run's
                 self._write_result(index, code_id, result)
             self.finished.add(code_id)
@@ -302,11 +319,17 @@ class CodeReloader:
         y = np.zeros(dry.n_outputs)
         dry.bind_inputs(u)
         dry.prerun()
+        gate = self.gate
+        if gate is not None:  # timed without the gate's own cost, begun just after the loop's step
+            sys.setprofile(None)
+            gate.at_margin(whatever_is_left=True)
         try:
             started_ns = time.thread_time_ns()
             dry.step(u, y)
             took_ns = time.thread_time_ns() - started_ns
         finally:
+            if gate is not None:
+                sys.setprofile(gate.hook())
             dry.postrun()
         if not all(math.isfinite(value) for value in y.tolist()):
             raise ReloadRefused(f"its dry step on the current inputs gave {y.tolist()}: not finite")
@@ -323,6 +346,57 @@ class CodeReloader:
             os.replace(temporary, path)
         except OSError:
             pass  # the command then says it had no answer; the loop takes the code if it is ready
+
+
+class SlackGate:
+    """The reload thread works only in its loop's slack: a profile function of that thread alone
+    (``sys.setprofile`` in it: called at each Python call and return and before each C call) that, once the
+    next release (T0 + k·P, from the task's tick) is nearer than ``margin_ns``, sleeps until that release,
+    then until the loop has stepped at it (``owner.stepped_release_ns``, or half a period at most), and only
+    then lets the preparation go on. The interpreter's lock is then free at every release: the loop, waking,
+    takes it at once instead of waiting for the switch interval and for the reloader's next check, unless
+    one C call the reloader began before the margin is still running (SLACK_MARGIN_NS says how long they
+    were). ``clock`` and ``sleep_s``: the thread's (a test gives its logical clock)."""
+
+    def __init__(self, owner: Any, margin_ns: int = SLACK_MARGIN_NS, *, clock: Any = time.monotonic_ns,
+                 sleep_s: Any = time.sleep) -> None:
+        self.owner, self.margin_ns, self.clock, self.sleep_s = owner, margin_ns, clock, sleep_s
+        self.work_until_ns = 0
+        """Until when the thread may work without looking again (the next release less the margin)."""
+        self.waits = 0
+        self.waited_ns = 0
+
+    def hook(self) -> Any:
+        """The profile function: one clock read and a comparison, unless the margin has come."""
+        clock, gate = self.clock, self
+
+        def profile(_frame: Any, _event: str, _arg: Any) -> None:
+            if clock() >= gate.work_until_ns:
+                gate.at_margin()
+        return profile
+
+    def at_margin(self, *, whatever_is_left: bool = False) -> None:
+        """Give the lock to the loop for the next release if it is within the margin (or, ``whatever_is_left``,
+        however far it is: what comes next should start just after a step)."""
+        tick = self.owner.tick
+        period_ns, last_ns = tick.period_ns, tick.release_ns
+        now_ns = self.clock()
+        if period_ns <= 0 or last_ns <= 0:  # no timeline (yet): nothing to keep clear of
+            self.work_until_ns = now_ns + self.margin_ns
+            return
+        margin_ns = min(self.margin_ns, period_ns // 2)
+        release_ns = last_ns + ((now_ns - last_ns) // period_ns + 1) * period_ns
+        if release_ns - now_ns > margin_ns and not whatever_is_left:
+            self.work_until_ns = release_ns - margin_ns
+            return
+        self.sleep_s((release_ns - now_ns) / 1e9)  # the lock is free: the loop takes it as it wakes
+        give_up_ns = release_ns + period_ns // 2  # a skipped release: go on rather than wait a period
+        while getattr(self.owner, "stepped_release_ns", release_ns) < release_ns and self.clock() < give_up_ns:
+            self.sleep_s(SLACK_POLL_S)
+        self.waits += 1
+        done_ns = self.clock()
+        self.waited_ns += done_ns - now_ns
+        self.work_until_ns = release_ns + period_ns - margin_ns
 
 
 def reload_thread_policy(inherited: int) -> tuple[int, os.sched_param]:

@@ -216,6 +216,8 @@ class Controllers(Runnable):
         self.codes = [0.0] * len(self.alternatives)
         """Per controller, the id of the reloaded code it runs (0: the code it started with)."""
         self._code_asked = 0.0
+        self.stepped_release_ns = 0
+        """The release of the last step taken (set in place: the attribute exists before the loop)."""
         self._refused_index = self._refused_at = self._refused_code = math.nan
         self._y_last[:] = y0[:n_out]
 
@@ -266,6 +268,7 @@ class Controllers(Runnable):
             y[n_out + 4:] = self._own_y[self.shadow]
         else:
             y[n_out + 4:] = math.nan  # no shadow: a gap in its signals, never a stale copy
+        self.stepped_release_ns = self._tick.release_ns  # a reload's preparation waits for it (code_reload.SlackGate)
 
     def _step_one(self, index: int) -> None:
         np.copyto(self._own_common_u[index], self._common_u)
