@@ -6,21 +6,23 @@ that the steering moves every cycle and a bump would stand out against a known n
 
 1. ``pid`` → ``soft`` at one release, then ``soft`` → ``pid`` at another (both named about 3 s ahead,
    through ``rtloop.ipc.switch_requests.switch``: what ``rtloop switch`` calls);
-2. (unless ``--no-reload``) the copy of ``jiwy_models.py`` edited while it runs (the lead filter of the
-   PID made twice as slow) and ``rtloop reload APP controller pid --at-cycle N`` (its code, run in this
-   process);
+2. ``--reloads N`` times (1 by default, 0 with ``--no-reload``): the copy of ``jiwy_models.py`` edited
+   while it runs (the lead filter of the PID made k + 1 times as slow at reload k, so each reload brings
+   other code) and ``rtloop reload APP controller pid --at-cycle N`` (its code, run in this process);
 3. the run stopped by SIGTERM, then ``rtloop replay`` of the whole run.
 
 Printed: per change, the cycle asked and the one summary.json lists; the deadline misses and skipped
 releases of both tasks within ±20 cycles; the steering's jump at the change (the outgoing controller's
 last output to the incoming one's first) next to the normal per-cycle change (p99 over the run, and the
-largest within ±20 cycles); for the reload, the loop's wake-up latency and execution time while the
-reload thread prepared the new code (from the release that took the request to the moment the code was
-ready) next to as many cycles just before the request, and the swap's own cycle; the replay's verdict.
+largest within ±20 cycles); for each reload, the loop's wake-up latency and execution time while the
+reload thread prepared the new code (from its own timeline: the request taken to the code ready; its
+phases; how often and how long it left the loop its slack, code_reload.SlackGate) next to as many cycles
+just before the request, and the swap's own cycle; the replay's verdict; and one row summing the reloads,
+ready for BENCHMARKS.md.
 
-Usage (as root, for a real-time run; about a minute)::
+Usage (as root, for a real-time run; about 25 s, 1.5 s more per reload)::
 
-    python benchmarks/bench_switch.py [--no-reload] [--json PATH]
+    python benchmarks/bench_switch.py [--reloads N | --no-reload] [--json PATH]
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from _common import (
 )
 
 import rtloop
+from rtloop.code_reload import code_id_of
 from rtloop.ipc.ports import RunningApp, running_apps
 from rtloop.ipc.status import STATUS_WORDS, StatusWord, WordBlock
 from rtloop.ipc.switch_requests import switch
@@ -65,9 +68,12 @@ AHEAD_CYCLES = 3000
 """How far ahead a change is named: the request (a CLI's start, on a loaded machine) must come before it."""
 AFTER_CYCLES = 1500
 """Cycles run after the last change before the run is stopped."""
-FILTER_EDIT = ("(c.beta * c.tau_d_s)", "(2.0 * c.beta * c.tau_d_s)")
-"""The edit made to the running PID's module: its lead filter twice as slow (its output equation, which
-``take_over`` solves, is unchanged, so the hand-over stays bumpless)."""
+FILTER_EDIT = ("(c.beta * c.tau_d_s)", "({factor:.1f} * c.beta * c.tau_d_s)")
+"""The edit made to the running PID's module for reload k (1, 2, ...): its lead filter k + 1 times as slow
+(its output equation, which ``take_over`` solves, is unchanged, so the hand-over stays bumpless; each
+reload's code differs from the last)."""
+RELOAD_AHEAD_CYCLES = 1500
+"""How far ahead a reload after the first is named (the command runs in this process: 0.2-0.3 s)."""
 
 
 def sine_profile(path: Path, seconds: float) -> None:
@@ -143,8 +149,8 @@ def reload_in_process(name: str, at_cycle: int) -> str:
 
 
 def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, name: str,
-                  reload: bool) -> dict[str, Any]:
-    """The run with its changes; returns what was asked (cycles, the reload's answer)."""
+                  reloads: int) -> dict[str, Any]:
+    """The run with its changes; returns what was asked (cycles, the reloads' codes and answers)."""
     asked: dict[str, Any] = {"changes": []}
     process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--out", str(run_dir),
                                 "-q", "--feed", f"setpoint={profile}"],
@@ -156,17 +162,20 @@ def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, na
             [answer] = switch(app, {"controller": target}, at_cycle=done + AHEAD_CYCLES)
             asked["changes"].append({"what": f"switch to {target}", "asked_cycle": answer.at_cycle})
             done = wait_for_cycle(app, "controller", answer.at_cycle + 100, process)
-        if reload:
-            module = folder / "jiwy_models.py"
-            source = module.read_text()
-            if source.count(FILTER_EDIT[0]) != 1:
-                raise SystemExit(f"bench_switch: {module} no longer has {FILTER_EDIT[0]!r} once: update FILTER_EDIT")
-            module.write_text(source.replace(*FILTER_EDIT))
-            at_cycle = cycles_done(app, "controller") + AHEAD_CYCLES
+        module = folder / "jiwy_models.py"
+        original = module.read_text()
+        if reloads and original.count(FILTER_EDIT[0]) != 1:
+            raise SystemExit(f"bench_switch: {module} no longer has {FILTER_EDIT[0]!r} once: update FILTER_EDIT")
+        asked["reloads"] = []
+        for k in range(1, reloads + 1):
+            edited = original.replace(FILTER_EDIT[0], FILTER_EDIT[1].format(factor=k + 1.0))
+            module.write_text(edited)
+            at_cycle = cycles_done(app, "controller") + (AHEAD_CYCLES if k == 1 else RELOAD_AHEAD_CYCLES)
             started = time.monotonic()
-            asked["reload_answer"] = reload_in_process(name, at_cycle)
-            asked["reload_command_s"] = time.monotonic() - started
-            asked["changes"].append({"what": "reload of pid (edited)", "asked_cycle": at_cycle})
+            answer = reload_in_process(name, at_cycle)
+            asked["reloads"].append({"asked_cycle": at_cycle, "code": f"{code_id_of(edited.encode()):012x}",
+                                     "answer": answer, "command_s": time.monotonic() - started})
+            asked["changes"].append({"what": f"reload {k} of pid (edited)", "asked_cycle": at_cycle})
             done = wait_for_cycle(app, "controller", at_cycle + 100, process)
         wait_for_cycle(app, "controller", asked["changes"][-1]["asked_cycle"] + AFTER_CYCLES, process)
     finally:
@@ -214,39 +223,59 @@ def jumps(signals: Any, cycles: list[int]) -> dict[str, Any]:
     return out
 
 
-def reload_cost(run_dir: Path, timing: dict[str, np.ndarray], reload_cycle: int) -> dict[str, Any] | None:
-    """The loop's timing while the reload thread prepared the code, next to as many cycles before it."""
+def reload_cost(run_dir: Path, timing: dict[str, np.ndarray], reload: dict[str, Any]) -> dict[str, Any] | None:
+    """The loop's timing while the reload thread prepared one reload's code (from the release that took the
+    request to the moment the code was ready, the thread's own timeline), next to as many cycles before it."""
     taken = None
     with open(run_dir / "inputs.csv") as file:
         for row in csv.DictReader(file):
             values = [float(v) for v in row["values"].split()]
-            if row["port"] == "controller_switch" and len(values) == 4 and values[3] and int(values[1]) == reload_cycle:
+            if row["port"] == "controller_switch" and len(values) == 4 and values[3] and \
+                    int(values[1]) == reload["asked_cycle"] and taken is None:
                 taken = int(row["cycle"])
-    results = sorted((run_dir / "code").glob("pid-*.result.json"))
-    answers = [json.loads(path.read_text()) for path in results]
-    accepted = [a for a in answers if a.get("accepted")]
-    if taken is None or not accepted:
+    try:
+        answer = json.loads((run_dir / "code" / f"pid-{reload['code']}.result.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if taken is None or not answer.get("accepted"):
         return None
     controller = timing["controller"]
     t0_ns = int(controller[0, 1] - controller[0, 0] * PERIOD_NS)
-    ready_cycle = math.ceil((int(accepted[-1]["ready_ns"]) - t0_ns) / PERIOD_NS)
-    out: dict[str, Any] = {"request_taken_cycle": taken, "ready_cycle": ready_cycle,
-                           "preparation_ms": (ready_cycle - taken) * PERIOD_NS / 1e6,
-                           "dry_step_us": accepted[-1].get("dry_step_ns", 0) / 1e3, "tasks": {}}
-    span = max(ready_cycle - taken + 1, 1)
+    timeline = answer.get("timeline_ns", {})
+    asked_ns = int(timeline.get("asked", t0_ns + taken * PERIOD_NS))
+    ready_ns = int(answer["ready_ns"])
+    first_cycle = (asked_ns - t0_ns) // PERIOD_NS + 1  # the first release after the thread took the request
+    ready_cycle = math.ceil((ready_ns - t0_ns) / PERIOD_NS)
+    out: dict[str, Any] = {"request_taken_cycle": taken, "first_cycle": first_cycle, "ready_cycle": ready_cycle,
+                           "preparation_ms": (ready_ns - asked_ns) / 1e6,
+                           "phases_ms": _phases_ms(timeline),
+                           "slack_waits": answer.get("slack_waits"),
+                           "slack_waited_ms": answer.get("slack_waited_ns", 0) / 1e6,
+                           "dry_step_us": answer.get("dry_step_ns", 0) / 1e3, "tasks": {}}
+    span = max(ready_cycle - first_cycle + 1, 1)
     for task, records in timing.items():
         cycles = records[:, 0]
-        during = records[(cycles >= taken) & (cycles <= ready_cycle)]
+        during = records[(cycles >= first_cycle) & (cycles <= ready_cycle)]
         before = records[(cycles >= taken - span - 50) & (cycles < taken - 50)]  # clear of the request's own write
-        swap = records[cycles == reload_cycle]
+        swap = records[cycles == (reload.get("listed_cycle") or reload["asked_cycle"])]
         out["tasks"][task] = {
-            "cycles_during": len(during),
+            "cycles_during": len(during), "skipped_during": span - len(during),
             "latency_us_during": _us(during[:, 2] - during[:, 1]),
             "latency_us_before": _us(before[:, 2] - before[:, 1]),
             "exec_us_during": _us(during[:, 3] - during[:, 2]), "exec_us_before": _us(before[:, 3] - before[:, 2]),
             "misses_during": int(np.count_nonzero(during[:, 3] > during[:, 1] + PERIOD_NS)),
             "swap_exec_us": float((swap[0, 3] - swap[0, 2]) / 1e3) if len(swap) else math.nan,
         }
+    return out
+
+
+def _phases_ms(timeline: dict[str, int]) -> dict[str, float]:
+    """Each phase's duration from the reload thread's timeline (code_reload.PHASES, in order)."""
+    out, last = {}, None
+    for phase, at_ns in timeline.items():
+        if last is not None and at_ns and last:
+            out[phase] = (at_ns - last) / 1e6
+        last = at_ns
     return out
 
 
@@ -295,30 +324,57 @@ def report(result: dict[str, Any]) -> str:
     parts += ["### The output's jump at each change (the last old output to the first new one)",
               markdown_table(["output", "change", "jump at the change", f"largest change ±{NEAR_CYCLES} cycles",
                               "normal change p99 (run)", "jump ≤ p99"], jump_rows)]
-    cost = result.get("reload_cost")
-    if cost:
+    costs = [(k, cost) for k, cost in enumerate(result.get("reload_costs") or [], 1) if cost]
+    if costs:
         cost_rows = []
-        for task, figures in cost["tasks"].items():
-            cost_rows.append([task, figures["cycles_during"],
-                              f"{figures['latency_us_before']['p50']:.1f} / {figures['latency_us_before']['max']:.1f}",
-                              f"{figures['latency_us_during']['p50']:.1f} / {figures['latency_us_during']['max']:.1f}",
-                              f"{figures['exec_us_before']['p50']:.1f} / {figures['exec_us_before']['max']:.1f}",
-                              f"{figures['exec_us_during']['p50']:.1f} / {figures['exec_us_during']['max']:.1f}",
-                              figures["misses_during"], figures["swap_exec_us"]])
-        parts += [f"### The reload's cost on the loop (prepared in {cost['preparation_ms']:.0f} ms: cycles "
-                  f"{cost['request_taken_cycle']}–{cost['ready_cycle']}; dry step {cost['dry_step_us']:.0f} µs; "
-                  f"the command took {result['reload_command_s']:.1f} s)",
-                  markdown_table(["task", "cycles while preparing", "wake-up µs before p50 / max",
+        for k, cost in costs:
+            waits = f"{cost['slack_waits']} / {cost['slack_waited_ms']:.1f}"
+            for task, figures in cost["tasks"].items():
+                cost_rows.append([k, task, f"{cost['preparation_ms']:.1f}", waits if task == "controller" else "",
+                                  f"{figures['cycles_during']} ({figures['skipped_during']})",
+                                  _p50_max(figures["latency_us_before"]), _p50_max(figures["latency_us_during"]),
+                                  _p50_max(figures["exec_us_before"]), _p50_max(figures["exec_us_during"]),
+                                  figures["misses_during"], f"{figures['swap_exec_us']:.1f}"])
+        parts += ["### The reloads' cost on the loop (the reload thread's preparation, from its own timeline; "
+                  "the reference: as many cycles just before the request)",
+                  markdown_table(["reload", "task", "prepared in ms", "slack waits / ms",
+                                  "cycles while preparing (skipped)", "wake-up µs before p50 / max",
                                   "wake-up µs while preparing p50 / max", "exec µs before p50 / max",
                                   "exec µs while preparing p50 / max", "misses while preparing",
                                   "exec µs of the swap's cycle"], cost_rows),
-                  f"`rtloop reload` said: {result['reload_answer']}"]
+                  "Phases (ms): " + "; ".join(
+                      f"reload {k}: " + ", ".join(f"{phase} {ms:.2f}" for phase, ms in cost["phases_ms"].items())
+                      for k, cost in costs),
+                  "`rtloop reload` said: " + " | ".join(r["answer"] for r in result["reloads"])]
+        parts += ["### Rows for BENCHMARKS.md",
+                  markdown_table(["date (UTC)", "load at start", "reloads", "prepared in ms",
+                                  "controller wake-up µs before: max", "while preparing: p50 / max",
+                                  "misses while preparing", f"misses and skipped ±{NEAR_CYCLES} cycles of each reload"],
+                                 [benchmarks_row(result, costs)])]
     replay = result["replay"]
     parts += ["### Replay of the whole run",
               f"bit for bit: {replay['bit_for_bit']}; switches listed alike: {replay['switches_equal']}; "
               f"{replay['seconds']:.1f} s; it said: {replay['said']}",
               "summary.json switches: " + json.dumps(result["switches"])]
     return "\n\n".join(parts)
+
+
+def _p50_max(figures: dict[str, float]) -> str:
+    return f"{figures['p50']:.1f} / {figures['max']:.1f}"
+
+
+def benchmarks_row(result: dict[str, Any], costs: list[tuple[int, dict[str, Any]]]) -> list[Any]:
+    """One row summing every reload of the run: the figures the switch section of BENCHMARKS.md tabulates."""
+    controller = [cost["tasks"]["controller"] for _k, cost in costs]
+    during_p50 = max(figures["latency_us_during"]["p50"] for figures in controller)
+    reload_changes = [change for change in result["changes"] if change["what"].startswith("reload")]
+    near = sum(figures["misses"] + figures["skipped"] for change in reload_changes
+               for figures in change["near"].values())
+    return [result["machine"]["date"][:16].replace("T", " "), " ".join(result["machine"]["loadavg_at_start"]),
+            len(costs), " / ".join(f"{cost['preparation_ms']:.1f}" for _k, cost in costs),
+            f"{max(figures['latency_us_before']['max'] for figures in controller):.0f}",
+            f"{during_p50:.0f} / {max(figures['latency_us_during']['max'] for figures in controller):.0f}",
+            sum(figures["misses_during"] for figures in controller), near]
 
 
 def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -340,22 +396,31 @@ def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
         {"target": "rtloop replay bit for bit over the whole run",
          "measured": "equal, switches alike" if replay_equal else replay["said"], "met": replay_equal},
     ]
-    cost = result.get("reload_cost")
-    if cost:
-        misses = cost["tasks"]["controller"]["misses_during"]
-        found.append({"target": "the reload's preparation: no miss (for information)",
-                      "measured": f"{misses} misses in {cost['preparation_ms']:.0f} ms", "met": None})
+    costs = [cost for cost in result.get("reload_costs") or [] if cost]
+    if result.get("reloads"):
+        misses = sum(cost["tasks"]["controller"]["misses_during"] for cost in costs)
+        prepared = sum(cost["preparation_ms"] for cost in costs)
+        found.append({"target": "each reload's preparation: no deadline miss of the controller",
+                      "measured": f"{misses} in {len(costs)} of {len(result['reloads'])} reloads measured "
+                                  f"({prepared:.0f} ms of preparation)",
+                      "met": misses == 0 and len(costs) == len(result["reloads"])})
     return found
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--no-reload", action="store_true", help="the two switches only")
+    parser.add_argument("--reloads", type=int, default=1, metavar="N",
+                        help="reload the edited module N times after the switches, each with other code (default 1)")
+    parser.add_argument("--no-reload", action="store_true", help="the two switches only (--reloads 0)")
     parser.add_argument("--cpu", default="1",
                         help="the CPU both tasks are pinned to (the example's: 1); none: unpinned")
     parser.add_argument("--keep", metavar="DIR", help="keep the run, its replay and the app's folder in DIR")
     add_output_options(parser)
     args = parser.parse_args(argv)
+    if args.no_reload:
+        args.reloads = 0
+    if not 0 <= args.reloads <= 20:
+        parser.error(f"--reloads {args.reloads}: give 0 to 20")
     started = time.monotonic()
     facts = machine_facts()
     folder = Path(tempfile.mkdtemp(prefix="bench_switch_")) if not args.keep else Path(args.keep)
@@ -368,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
         profile = folder / "sine.csv"
         sine_profile(profile, 60.0)
         run_dir = folder / "run"
-        asked = drive_the_run(folder, app_file, profile, run_dir, name, not args.no_reload)
+        asked = drive_the_run(folder, app_file, profile, run_dir, name, args.reloads)
         summary = json.loads((run_dir / "summary.json").read_text())
         switches = summary.get("switches") or []
         timing = load_timing_csv(run_dir / "timing.csv")
@@ -388,8 +453,9 @@ def main(argv: list[str] | None = None) -> int:
                     "deadline_misses": {name_: t["deadline_misses"] for name_, t in summary["tasks"].items()}},
             "changes": changes, "switches": switches,
             "jumps": jumps(signals, [c.get("listed_cycle", c["asked_cycle"]) for c in changes]),
-            "reload_answer": asked.get("reload_answer", ""), "reload_command_s": asked.get("reload_command_s", 0.0),
-            "reload_cost": reload_cost(run_dir, timing, changes[-1]["asked_cycle"]) if not args.no_reload else None,
+            "reloads": asked["reloads"],
+            "reload_costs": [reload_cost(run_dir, timing, {**reload, "listed_cycle": change.get("listed_cycle")})
+                             for reload, change in zip(asked["reloads"], changes[2:], strict=False)],
             "replay": replay_run(run_dir, folder / "replay"),
         })
         result["elapsed_s"] = round(time.monotonic() - started, 1)

@@ -266,3 +266,42 @@ def test_a_real_preparation_under_the_gate_yields_at_every_release_and_builds_th
     y = np.zeros(1)
     ready.step(np.array([0.0, 1.0]), y)
     assert y[0] == pytest.approx(3.0 * 2.0 + 5.0 * 1e-3)  # the new code (GAIN = 3), built from the old state
+
+
+def test_the_replaced_controllers_postrun_runs_in_the_loops_slack_too(module_by_file, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """What the reload thread does after the swap (the old code's postrun) holds the same lock: under the
+    gate and the reload switch interval, not the interpreter's 5 ms one."""
+    import threading
+
+    from rtloop import Runnable
+    from rtloop.code_reload import RELOAD_SWITCH_INTERVAL_S
+
+    _name, _path, module = module_by_file
+    seen: list[tuple[object, float]] = []
+    done = threading.Event()
+
+    class Retired(Runnable):
+        n_inputs, n_outputs = 2, 1
+
+        def step(self, u, y):  # type: ignore[no-untyped-def]
+            pass
+
+        def postrun(self) -> None:
+            seen.append((sys.getprofile(), sys.getswitchinterval()))
+            done.set()
+
+    controllers = Controllers({"pi": module.Pi()}, "pi")
+    controllers.bind_inputs(np.zeros(controllers.n_inputs))
+    controllers.tick = TickInfo(cycle=3, release_ns=1, period_ns=P)
+    controllers.code_dir = tmp_path / "code"
+    controllers.code_dir.mkdir()
+    controllers.prerun()  # a real run's reloader (no wait)
+    reloader = controllers._reloader
+    assert isinstance(reloader, CodeReloader)
+    try:
+        reloader.retire(Retired())
+        assert done.wait(30)
+    finally:
+        controllers.postrun()
+    [(profile, interval)] = seen
+    assert profile is not None and interval == pytest.approx(RELOAD_SWITCH_INTERVAL_S)

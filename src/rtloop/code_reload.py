@@ -21,6 +21,7 @@ so the reloaded code acts at the same cycle as in the run; ``replay`` reads the 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import importlib.util
@@ -33,6 +34,7 @@ import sys
 import threading
 import time
 import types
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -169,31 +171,38 @@ class CodeReloader:
             pass
         while True:
             what = os.read(self._wake_r, 1)
-            if what == b"q" or not what:
+            if what == b"q" or not what:  # after the loop: no release to keep clear of
                 self._postrun_retired()
                 return
-            if what == b"p":
-                self._postrun_retired()
-                continue
-            index, code_id = self.request_index, self.request_code
-            self.timeline_ns = [0] * len(PHASES)
-            previous = sys.getswitchinterval()
-            sys.setswitchinterval(RELOAD_SWITCH_INTERVAL_S)
-            self.gate = None if self.wait else SlackGate(self.owner)  # simulate, replay: the loop waits for it
-            if self.gate is not None:
-                sys.setprofile(self.gate.hook())  # this thread's only
-            try:
+            with self._in_the_loops_slack():  # everything it does while the loop runs, the answer's file too
+                if what == b"p":
+                    self._postrun_retired()
+                    continue
+                index, code_id = self.request_index, self.request_code
+                self.timeline_ns = [0] * len(PHASES)
                 result = self._prepare(index, code_id)
-            finally:
-                sys.setprofile(None)
-                sys.setswitchinterval(previous)
-            result["timeline_ns"] = dict(zip(PHASES, self.timeline_ns, strict=True))
-            if self.gate is not None:
-                result["slack_waits"], result["slack_waited_ns"] = self.gate.waits, self.gate.waited_ns
-            if not self.wait:  # the answer `rtloop reload` waits for; a replay must not overwrite the run's
-                self._write_result(index, code_id, result)
+                result["timeline_ns"] = dict(zip(PHASES, self.timeline_ns, strict=True))
+                if self.gate is not None:
+                    result["slack_waits"], result["slack_waited_ns"] = self.gate.waits, self.gate.waited_ns
+                if not self.wait:  # the answer `rtloop reload` waits for; a replay must not overwrite the run's
+                    self._write_result(index, code_id, result)
             self.finished.add(code_id)
             self.done.set()
+
+    @contextlib.contextmanager
+    def _in_the_loops_slack(self) -> Iterator[None]:
+        """The reload switch interval and, in a real run, the :class:`SlackGate` (simulate and replay have none:
+        their loop waits for the reloader)."""
+        previous = sys.getswitchinterval()
+        sys.setswitchinterval(RELOAD_SWITCH_INTERVAL_S)
+        self.gate = None if self.wait else SlackGate(self.owner)
+        if self.gate is not None:
+            sys.setprofile(self.gate.hook())  # this thread's only
+        try:
+            yield
+        finally:
+            sys.setprofile(None)
+            sys.setswitchinterval(previous)
 
     def _postrun_retired(self) -> None:
         while self.retired:
