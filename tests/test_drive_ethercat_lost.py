@@ -12,14 +12,16 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from conftest import unique_name
 from drive_veth import example_app, start_emulator, stop, veth_pair
 from rtloop import Runnable
 from rtloop.app.builder import App
-from rtloop.errors import DeviceError
+from rtloop.errors import DeviceError, DeviceFault
 
 PERIOD_MS = 10  # the example's period in the drive tests: a loaded 2-core host answers within it
 ATTEMPTS = 3
@@ -167,3 +169,46 @@ def test_one_lost_frame_more_in_a_row_than_the_bound_is_the_fault_and_the_drives
         in line, run.stderr
     assert "Traceback" not in run.stderr
     assert "slave 1: drive: quick stop (controlword)" in text.split("injected lost frame")[1]
+
+
+def _device_losing(lost_frames_max: int, period_ns: int = 1_000_000) -> tuple[Any, np.ndarray]:
+    """An EtherCAT device past T0 whose frames are lost (no bus: its loss path alone), and its readings."""
+    from rtloop.io.device import build_device
+    from rtloop.io.drives.cycle import DriveCycle
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY
+
+    joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
+    device = build_device("ethercat", "arm", {"interface": "ecm6", "joints": [joint],
+                                              "lost_frames_max": lost_frames_max}, "<test>")
+    device.cycle = DriveCycle("arm", device.joints)
+    device.timeline(0, period_ns)
+    return device, np.full(device.n_outputs, 7.0)
+
+
+def _lose_at(device: Any, sent_s: float, y: np.ndarray) -> None:
+    device._sent_at = sent_s  # when the lost frame went out
+    device._frame_lost(y)
+
+
+def test_lost_frames_hold_the_readings_mark_frame_ok_and_the_one_too_many_is_the_fault() -> None:
+    device, y = _device_losing(3)
+    assert device.reading_names()[-1] == "frame_ok" and device.may_read_stale()
+    for k in range(3):  # three in a row, one period apart: within the bound
+        _lose_at(device, 10.0 + k * 0.001, y)
+    assert list(y[:-1]) == [7.0] * (len(y) - 1) and y[-1] == 0.0  # held, and marked
+    assert device.stale_reads == 3 and device.stale_sources() == {
+        "LRW frames not back within timeout_us": 3}
+    with pytest.raises(DeviceFault, match=r"did not come back within 1000 µs \(timeout_us\), 4 cycles in a row "
+                                          r"\(lost_frames_max = 3\)"):
+        _lose_at(device, 10.003, y)
+
+
+def test_lost_frames_with_releases_skipped_between_them_count_the_periods_they_span() -> None:
+    """A host stall that skips releases between two lost frames keeps the drives without the master
+    for the whole span: two lost frames five periods apart are six periods' worth, past 3."""
+    device, y = _device_losing(3)
+    _lose_at(device, 10.0, y)
+    with pytest.raises(DeviceFault, match=r"2 cycles in a row over 6 periods \(releases skipped between them\) "
+                                          r"\(lost_frames_max = 3\)"):
+        _lose_at(device, 10.005, y)

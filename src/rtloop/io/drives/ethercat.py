@@ -46,7 +46,7 @@ from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives import ethercat_dc as dc
 from rtloop.io.drives.cycle import DC_LOST, NOT_LINKED, DriveCycle, command_names, reading_names
-from rtloop.io.drives.ethercat_lost import blind_bound_problem, lost_frames_fault, lost_frames_note
+from rtloop.io.drives.ethercat_lost import blind_bound_problem, lost_frames_fault, lost_frames_note, lost_frames_span
 from rtloop.io.drives.ethercat_twin import EthercatTwin
 from rtloop.io.drives.joints import (
     QUICK_STOP_TIMEOUT,
@@ -136,6 +136,7 @@ class EthercatDevice(Device):
         self._dc_wkc_at = 0
         self._t0_ns = self._period_ns = 0
         self.stale_reads = self._lost_in_a_row = self._lost_longest = 0  # lost frames (lost_frames_max)
+        self._lost_since_s = 0.0
         self._frame_ok_at = self.n_outputs - 1 if self.lost_frames_max else -1
 
     def __getstate__(self) -> dict[str, Any]:
@@ -493,9 +494,16 @@ class EthercatDevice(Device):
         cycle = self.cycle
         assert cycle is not None
         self._lost_in_a_row += 1
-        if self._lost_in_a_row > self.lost_frames_max:
+        sent_s = max(self._sent_at, cycle.linked_sent_at())  # this lost frame's send
+        if self._lost_in_a_row == 1:
+            self._lost_since_s = sent_s
+        # releases skipped between lost frames (the host stalled) stretch the time without the drives:
+        # the bound is N periods' sends, not only N frames
+        spans = lost_frames_span(sent_s - self._lost_since_s, self._period_ns)
+        if self._lost_in_a_row > self.lost_frames_max or spans > self.lost_frames_max:
             raise DeviceFault(lost_frames_fault(f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}",
-                                                self._lost_in_a_row, self.timeout_s * 1e6, self.lost_frames_max))
+                                                self._lost_in_a_row, self.timeout_s * 1e6, self.lost_frames_max,
+                                                spans))
         cycle.exchanges += 1  # a cycle of the drives all the same (named in faults; the enabling's limit)
         self.stale_reads += 1
         self._lost_longest = max(self._lost_longest, self._lost_in_a_row)

@@ -13,7 +13,9 @@ a *lost frame* each, as a CAN frame with ``on_missing = "stale"`` is a stale rea
 - the next cycle's commands go out as usual, in a frame with the next datagram index: an answer to
   an earlier frame that comes after its cycle is passed over (its index is not the awaited one), never
   taken as a later cycle's;
-- N + 1 in a row is the fault it is without the key: the drives are brought to quick stop.
+- N + 1 in a row is the fault it is without the key: the drives are brought to quick stop; so are
+  lost frames in a row whose sends span more periods than N frames' do (a host stall skipped
+  releases between them: the drives went longer without the master than N periods).
 
 A frame that comes back in time with a wrong working counter is not a lost frame: the network
 carried it, and a slave did not exchange (out of OP, lost): that does not heal by itself in a few
@@ -28,7 +30,8 @@ answer from the awaited one only among fewer than 256 frames in flight.
 
 from __future__ import annotations
 
-__all__ = ["BLIND_MAX_NS", "INDEX_FRAMES", "blind_bound_problem", "lost_frames_fault", "lost_frames_note"]
+__all__ = ["BLIND_MAX_NS", "INDEX_FRAMES", "blind_bound_problem", "lost_frames_fault", "lost_frames_note",
+           "lost_frames_span"]
 
 BLIND_MAX_NS = 100_000_000
 """The longest the drives may run unwatched by the master, whatever the SM watchdog allows."""
@@ -55,13 +58,22 @@ def blind_bound_problem(lost_frames_max: int, period_ns: int, watchdog_ms: float
             f"unwatched for {blind_ns / 1e6:g} ms, not less than {limit_ns / 1e6:g} ms ({which}): at most {most}")
 
 
-def lost_frames_fault(where: str, in_a_row: int, timeout_us: float, lost_frames_max: int) -> str:
-    """The fault of the cycle whose lost frame is one too many."""
+def lost_frames_span(since_first_s: float, period_ns: int) -> int:
+    """How many lost frames in a row a run of them counts for: the periods from the first lost
+    frame's send to this one's, plus this one (rounded: the releases' jitter aside); 0 when the
+    period is not known."""
+    return int(since_first_s * 1e9 / period_ns + 0.5) + 1 if period_ns > 0 else 0
+
+
+def lost_frames_fault(where: str, in_a_row: int, timeout_us: float, lost_frames_max: int, spans: int = 0) -> str:
+    """The fault of the cycle whose lost frame is one too many (``spans``: the periods the lost frames
+    in a row took, counting this one)."""
     if lost_frames_max <= 0:
         return (f"{where}: the LRW frame did not come back within {timeout_us:.0f} µs (timeout_us): a slave lost, "
                 "a cable pulled, or the frame lost")
+    over = f" over {spans} periods (releases skipped between them)" if spans > in_a_row else ""
     return (f"{where}: the LRW frame did not come back within {timeout_us:.0f} µs (timeout_us), {in_a_row} cycles in "
-            f"a row (lost_frames_max = {lost_frames_max}): a slave lost, a cable pulled, or the host stalled")
+            f"a row{over} (lost_frames_max = {lost_frames_max}): a slave lost, a cable pulled, or the host stalled")
 
 
 def lost_frames_note(lost: int, longest: int, lost_frames_max: int, timeout_us: float) -> str:
