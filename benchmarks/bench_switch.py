@@ -349,7 +349,8 @@ def report(result: dict[str, Any]) -> str:
         parts += ["### Rows for BENCHMARKS.md",
                   markdown_table(["date (UTC)", "load at start", "reloads", "prepared in ms",
                                   "controller wake-up µs before: max", "while preparing: p50 / max",
-                                  "misses while preparing", f"misses and skipped ±{NEAR_CYCLES} cycles of each reload"],
+                                  "plant (own process) while preparing: max", "controller misses while preparing",
+                                  f"misses and skipped ±{NEAR_CYCLES} cycles of each reload"],
                                  [benchmarks_row(result, costs)])]
     replay = result["replay"]
     parts += ["### Replay of the whole run",
@@ -374,6 +375,7 @@ def benchmarks_row(result: dict[str, Any], costs: list[tuple[int, dict[str, Any]
             len(costs), " / ".join(f"{cost['preparation_ms']:.1f}" for _k, cost in costs),
             f"{max(figures['latency_us_before']['max'] for figures in controller):.0f}",
             f"{during_p50:.0f} / {max(figures['latency_us_during']['max'] for figures in controller):.0f}",
+            f"{max(cost['tasks']['plant']['latency_us_during']['max'] for _k, cost in costs):.0f}",
             sum(figures["misses_during"] for figures in controller), near]
 
 

@@ -11,9 +11,10 @@ finite outputs within the task's period) and hands the result back. The loop onl
 object for another at the release asked for, bumpless (:mod:`rtloop.switching`).
 
 In a real-time task the thread runs under ``SCHED_FIFO`` at priority 1 (:data:`RELOAD_PRIORITY`), so
-it holds the interpreter's lock only while the loop sleeps; the loop, waking while the thread is in
-Python code, waits for the lock up to the switch interval this module sets for the reload (50 µs).
-docs/switching.md says what that costs.
+it runs only while the loop sleeps, and in a real run it works only in the loop's slack
+(:class:`SlackGate`): near a release it lets the interpreter's lock go until the loop has stepped,
+so the loop, waking, finds the lock free instead of waiting for the switch interval (50 µs here) and
+for the thread's next check. docs/switching.md says what that costs, and what caused the misses it had.
 
 In ``simulate`` and ``replay`` the loop waits for the reloader at the release (``wait = True``),
 so the reloaded code acts at the same cycle as in the run; ``replay`` reads the code the run kept.
@@ -57,13 +58,15 @@ benchmarks/bench_switch.py). At priority 1 it runs only while the loop sleeps, a
 as soon as the loop asks for it."""
 THREAD_STACK_BYTES = 512 * 1024
 """The reloader's stack (locked memory, as the task's is): not the default 8 MB."""
-SLACK_MARGIN_NS = 300_000
+SLACK_MARGIN_NS = 500_000
 """How close to a release the reload thread stops and lets the interpreter's lock go (:class:`SlackGate`),
-at most half the period. It bounds the longest single C call a preparation makes, which no Python-level
-check can cut: measured in a reload of examples/jiwy/jiwy_models.py beside a 1 kHz loop on this 2-core VM
-(benchmarks/bench_switch.py, and a loop thread noting where the reloader stood when it let go), the
-compilation of one method a ``@dataclass`` generates took 0.1-0.7 ms, ``marshal.loads`` of the module 0.1-0.5
-ms. A C call begun just before the margin delays the loop's wake-up by what it lasts beyond it."""
+at most half the period. It is there for the single C calls a preparation makes, which no Python-level
+check can cut: measured in reloads of examples/jiwy/jiwy_models.py beside a 1 kHz loop on this 2-core VM
+(benchmarks/bench_switch.py with a kernel trace of the CPU, and a loop thread noting where the reloader
+stood when it let go), the compilation of one method a ``@dataclass`` generates took 0.1-0.7 ms,
+``marshal.loads`` of the module 0.1-0.5 ms. A C call begun just before the margin delays the loop's wake-up
+by what it lasts beyond it (with 300 µs, one ran 0.5 ms past it: a wake-up 235 µs late); a wider margin
+leaves the thread less of each period (it then takes longer to prepare, not the loop)."""
 SLACK_POLL_S = 20e-6
 """While waiting for the loop's step after a release, how often the reload thread looks (it sleeps between)."""
 PHASES = ("asked", "read", "executed", "built", "dry_step", "prerun", "ready")
