@@ -150,6 +150,7 @@ def lost_frames_max(period_us: int, budget_ms: float) -> int:
 
 def one_period(period_us: int, budget_ms: float, args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     tag = f"{os.getpid() % 1000:03d}{period_us % 100:02d}{round(budget_ms) % 100:02d}"
+    started = time.strftime("%H:%M", time.gmtime())  # UTC, in the row
     load = os.getloadavg()[0]
     cpus = (args.cpu, args.emulator_cpu)
     steal_before = steal_ms(cpus)
@@ -186,7 +187,7 @@ def one_period(period_us: int, budget_ms: float, args: argparse.Namespace, folde
     cyclic_result = json.loads(cyclic_json.read_text()) if cyclic_json.exists() else {}
     thread = next(iter((cyclic_result.get("thread") or {}).values()), {})
     emulator_log = log.read_text() if log.exists() else ""
-    return {"period_us": period_us, "drives": args.drives, "lost_frames_max": lost_max,
+    return {"period_us": period_us, "started": started, "drives": args.drives, "lost_frames_max": lost_max,
             "blind_ms": (lost_max + 1) * period_us / 1000, "exit_code": run.returncode,
             "ended": next((line for line in run.stderr.splitlines() if line.startswith("rtloop run: task")),
                           run.stderr.strip()[:300] or "its duration")[:400],
