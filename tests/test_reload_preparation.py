@@ -178,20 +178,24 @@ class LogicalLoop:
             self._step_at(self._next_release_ns(), self.now_ns)
 
 
-def test_the_gate_leaves_the_lock_free_at_every_release_when_each_stretch_of_work_is_within_the_margin() -> None:
+@pytest.mark.parametrize(("period_ns", "stretches_ns"), [
+    (P, [7_000, 290_000, 45_000, 120_000, 3_000, 250_000, 80_000] * 60),
+    (100_000, [7_000, 45_000, 20_000, 3_000, 50_000] * 200),  # 10 kHz: the margin is half the period
+])
+def test_the_gate_leaves_the_lock_free_at_every_release_when_each_stretch_of_work_is_within_the_margin(
+        period_ns: int, stretches_ns: list[int]) -> None:
     from rtloop.code_reload import SlackGate
 
-    loop = LogicalLoop(t0_ns=5_000_000_000, period_ns=P)
+    loop = LogicalLoop(t0_ns=5_000_000_000, period_ns=period_ns)
     gate = SlackGate(loop, margin_ns=300_000, clock=loop.clock, sleep_s=loop.sleep_s)
     hook = gate.hook()
-    stretches_ns = [7_000, 290_000, 45_000, 120_000, 3_000, 250_000, 80_000] * 60
     for stretch_ns in stretches_ns:  # a preparation: a check (a call, a C call) before each stretch
         hook(None, "c_call", None)
         loop.work(stretch_ns)
     assert loop.tick.cycle > 20, "the preparation spanned too few releases to show anything"
     assert max(loop.waited_ns) == 0, f"the loop waited for the lock at a release: {max(loop.waited_ns)} ns"
     assert gate.waits == len(loop.free_at) == loop.tick.cycle
-    assert gate.waited_ns < loop.tick.cycle * P  # it waits for the releases, not longer
+    assert gate.waited_ns < loop.tick.cycle * period_ns  # it waits for the releases, not longer
 
 
 def test_a_stretch_longer_than_the_margin_delays_the_loop_by_what_it_lasts_beyond_it() -> None:

@@ -417,7 +417,7 @@ def test_live_reload_acts_from_the_named_release_refuses_bad_code_and_replays(tm
         assert nan.returncode == 2 and "not finite" in nan.stderr, nan.stderr
         module.write_text(RELOAD_MODULE.format(gain=3.0))
         good = _cli("reload", name, "ctl", env=rtloop_env)
-        assert good.returncode == 0 and "pi reloaded from" in good.stdout, good.stderr
+        assert good.returncode == 0 and "pi reloaded from" in good.stdout and "prepared in" in good.stdout, good.stderr
         wait_for_cycles(app, "ctl", int(good.stdout.split("at cycle ")[1].split()[0]) + 500, process)
     finally:
         process.send_signal(signal.SIGTERM)  # an orderly stop, however long the machine took to get here

@@ -76,8 +76,13 @@ def run(args: argparse.Namespace) -> int:
     if _number(result.get("ready_ns")) > at_ns:
         raise PortValueError(f"{source_path}: checked, but ready only after {where}: not used; ask again with a "
                              "later --at-cycle")
+    timeline = result.get("timeline_ns")
+    prepared = ""
+    if isinstance(timeline, dict) and _number(timeline.get("asked")):
+        prepared = (f"; prepared in {(_number(result.get('ready_ns')) - _number(timeline.get('asked'))) / 1e6:.1f} ms "
+                    f"beside the loop (it waited for {_number(result.get('slack_waits'))} of its releases)")
     print(f"{args.task}: {name} reloaded from {source_path} (code {code_id:012x}), acting {where}; "
-          f"dry step {_number(result.get('dry_step_ns')) / 1e3:.0f} µs")
+          f"dry step {_number(result.get('dry_step_ns')) / 1e3:.0f} µs{prepared}")
     return 0
 
 
