@@ -212,3 +212,14 @@ def test_lost_frames_with_releases_skipped_between_them_count_the_periods_they_s
     with pytest.raises(DeviceFault, match=r"2 cycles in a row over 6 periods \(releases skipped between them\) "
                                           r"\(lost_frames_max = 3\)"):
         _lose_at(device, 10.005, y)
+
+
+def test_the_emulator_injects_lost_frames_in_a_row_and_late_answers() -> None:
+    from rtloop.io.drives.emulator import Injection, parse_injection
+
+    assert parse_injection("lose@150") == Injection("lose", 1, 150)
+    assert parse_injection("lose:3@150") == Injection("lose", 3, 150)
+    assert parse_injection("late:12000@150") == Injection("late", 12000, 150)
+    for bad in ("late@150", "lose:x@150", "late:1.5@150"):
+        with pytest.raises(ValueError, match=r"expected fault:SLAVE@N, .* lose:K@N or late:US@N"):
+            parse_injection(bad)
