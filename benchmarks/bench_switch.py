@@ -22,7 +22,11 @@ ready for BENCHMARKS.md.
 
 Usage (as root, for a real-time run; about 25 s, 1.5 s more per reload)::
 
-    python benchmarks/bench_switch.py [--reloads N | --no-reload] [--json PATH]
+    python benchmarks/bench_switch.py [--reloads N | --no-reload] [--trace] [--json PATH]
+
+``--trace`` (root, a kernel with tracefs): the controller's loop thread's system calls in the kernel's
+trace while each reload is asked for and prepared, to count the wake-ups that waited for the interpreter's
+lock (a futex wait between waking and sleeping again; benchmarks/_lock_wait_trace.py).
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ from _common import (
     print_and_save,
     result_head,
 )
+from _lock_wait_trace import LockWaitTrace, waits_within
 
 import rtloop
 from rtloop.code_reload import code_id_of
@@ -149,8 +154,9 @@ def reload_in_process(name: str, at_cycle: int) -> str:
 
 
 def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, name: str,
-                  reloads: int) -> dict[str, Any]:
-    """The run with its changes; returns what was asked (cycles, the reloads' codes and answers)."""
+                  reloads: int, tracer: LockWaitTrace | None = None) -> dict[str, Any]:
+    """The run with its changes; returns what was asked (cycles, the reloads' codes and answers). ``tracer``:
+    the controller's loop thread traced while each reload is asked for and prepared (--trace)."""
     asked: dict[str, Any] = {"changes": []}
     process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--out", str(run_dir),
                                 "-q", "--feed", f"setpoint={profile}"],
@@ -167,12 +173,20 @@ def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, na
         if reloads and original.count(FILTER_EDIT[0]) != 1:
             raise SystemExit(f"bench_switch: {module} no longer has {FILTER_EDIT[0]!r} once: update FILTER_EDIT")
         asked["reloads"] = []
+        if tracer is not None:
+            tracer.arm(app.task_pids()["controller"])  # its loop runs in its main thread
         for k in range(1, reloads + 1):
             edited = original.replace(FILTER_EDIT[0], FILTER_EDIT[1].format(factor=k + 1.0))
             module.write_text(edited)
             at_cycle = cycles_done(app, "controller") + (AHEAD_CYCLES if k == 1 else RELOAD_AHEAD_CYCLES)
             started = time.monotonic()
-            answer = reload_in_process(name, at_cycle)
+            if tracer is not None:
+                tracer.switch(True)
+            try:
+                answer = reload_in_process(name, at_cycle)  # it returns once the task has prepared the code
+            finally:
+                if tracer is not None:
+                    tracer.switch(False)
             asked["reloads"].append({"asked_cycle": at_cycle, "code": f"{code_id_of(edited.encode()):012x}",
                                      "answer": answer, "command_s": time.monotonic() - started})
             asked["changes"].append({"what": f"reload {k} of pid (edited)", "asked_cycle": at_cycle})
@@ -247,6 +261,7 @@ def reload_cost(run_dir: Path, timing: dict[str, np.ndarray], reload: dict[str, 
     first_cycle = (asked_ns - t0_ns) // PERIOD_NS + 1  # the first release after the thread took the request
     ready_cycle = math.ceil((ready_ns - t0_ns) / PERIOD_NS)
     out: dict[str, Any] = {"request_taken_cycle": taken, "first_cycle": first_cycle, "ready_cycle": ready_cycle,
+                           "asked_ns": asked_ns, "ready_ns": ready_ns,
                            "preparation_ms": (ready_ns - asked_ns) / 1e6,
                            "phases_ms": _phases_ms(timeline),
                            "slack_waits": answer.get("slack_waits"),
@@ -346,11 +361,25 @@ def report(result: dict[str, Any]) -> str:
                       f"reload {k}: " + ", ".join(f"{phase} {ms:.2f}" for phase, ms in cost["phases_ms"].items())
                       for k, cost in costs),
                   "`rtloop reload` said: " + " | ".join(r["answer"] for r in result["reloads"])]
+        lock = result.get("lock_waits")
+        if lock:
+            outside = lock["traced_outside"]
+            parts += ["### The loop's wake-ups while each reload was prepared, in the kernel's trace (did it wait "
+                      "on the interpreter's lock between waking and sleeping again?)",
+                      markdown_table(["reload", "wake-ups", "that waited for the lock", "longest wait µs"],
+                                     [[k, figures["wake_ups"], figures["waited"], f"{figures['longest_us']:.1f}"]
+                                      for k, figures in enumerate(lock["per_reload"], 1)]
+                                     + [["traced, not preparing", outside["wake_ups"], outside["waited"],
+                                         f"{outside['longest_us']:.1f}"]]),
+                      "As it began such a wait, the CPU went to (kernel prio: 98 is SCHED_FIFO 1, the reload "
+                      "thread's; 120 SCHED_OTHER): " + (", ".join(f"{who} ×{n}" for who, n in sorted(
+                          lock["cpu_went_to"].items(), key=lambda item: -item[1])) or "no wait")]
         parts += ["### Rows for BENCHMARKS.md",
                   markdown_table(["date (UTC)", "load at start", "reloads", "prepared in ms",
                                   "controller wake-up µs before: max", "while preparing: p50 / max",
                                   "plant (own process) while preparing: max", "controller misses while preparing",
-                                  f"misses and skipped ±{NEAR_CYCLES} cycles of each reload"],
+                                  f"misses and skipped ±{NEAR_CYCLES} cycles of each reload",
+                                  "wake-ups that waited for the lock (--trace)"],
                                  [benchmarks_row(result, costs)])]
     replay = result["replay"]
     parts += ["### Replay of the whole run",
@@ -376,7 +405,16 @@ def benchmarks_row(result: dict[str, Any], costs: list[tuple[int, dict[str, Any]
             f"{max(figures['latency_us_before']['max'] for figures in controller):.0f}",
             f"{during_p50:.0f} / {max(figures['latency_us_during']['max'] for figures in controller):.0f}",
             f"{max(cost['tasks']['plant']['latency_us_during']['max'] for _k, cost in costs):.0f}",
-            sum(figures["misses_during"] for figures in controller), near]
+            sum(figures["misses_during"] for figures in controller), near, _lock_waits_cell(result)]
+
+
+def _lock_waits_cell(result: dict[str, Any]) -> str:
+    lock = result.get("lock_waits")
+    if not lock:
+        return "not traced"
+    per_reload = lock["per_reload"]
+    waited, woke = sum(f["waited"] for f in per_reload), sum(f["wake_ups"] for f in per_reload)
+    return f"{waited} of {woke} (longest {max(f['longest_us'] for f in per_reload):.0f} µs)"
 
 
 def targets(result: dict[str, Any]) -> list[dict[str, Any]]:
@@ -414,6 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reloads", type=int, default=1, metavar="N",
                         help="reload the edited module N times after the switches, each with other code (default 1)")
     parser.add_argument("--no-reload", action="store_true", help="the two switches only (--reloads 0)")
+    parser.add_argument("--trace", action="store_true",
+                        help="root: trace the controller's loop thread in the kernel while each reload is prepared "
+                             "(did a wake-up wait for the interpreter's lock?)")
     parser.add_argument("--cpu", default="1",
                         help="the CPU both tasks are pinned to (the example's: 1); none: unpinned")
     parser.add_argument("--keep", metavar="DIR", help="keep the run, its replay and the app's folder in DIR")
@@ -435,7 +476,14 @@ def main(argv: list[str] | None = None) -> int:
         profile = folder / "sine.csv"
         sine_profile(profile, 60.0)
         run_dir = folder / "run"
-        asked = drive_the_run(folder, app_file, profile, run_dir, name, args.reloads)
+        tracer = LockWaitTrace() if args.trace and args.reloads else None
+        try:
+            asked = drive_the_run(folder, app_file, profile, run_dir, name, args.reloads, tracer)
+            wake_ups = tracer.wake_ups() if tracer is not None else None
+            held_by = tracer.held_by if tracer is not None else {}
+        finally:
+            if tracer is not None:
+                tracer.close()
         summary = json.loads((run_dir / "summary.json").read_text())
         switches = summary.get("switches") or []
         timing = load_timing_csv(run_dir / "timing.csv")
@@ -460,6 +508,13 @@ def main(argv: list[str] | None = None) -> int:
                              for reload, change in zip(asked["reloads"], changes[2:], strict=False)],
             "replay": replay_run(run_dir, folder / "replay"),
         })
+        if wake_ups is not None:
+            windows = [(cost["asked_ns"], cost["ready_ns"]) if cost else (0, -1) for cost in result["reload_costs"]]
+            result["lock_waits"] = {"per_reload": waits_within(wake_ups, windows),
+                                    "traced_outside": waits_within(
+                                        [w for w in wake_ups if not any(a <= w[0] <= b for a, b in windows)],
+                                        [(0, 2**63)])[0],
+                                    "cpu_went_to": held_by}
         result["elapsed_s"] = round(time.monotonic() - started, 1)
         result["targets"] = targets(result)
         markdown = "\n\n".join([report(result), *closing_sections(result),
