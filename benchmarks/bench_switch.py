@@ -25,8 +25,8 @@ Usage (as root, for a real-time run; about 25 s, 1.5 s more per reload)::
     python benchmarks/bench_switch.py [--reloads N | --no-reload] [--trace] [--json PATH]
 
 ``--trace`` (root, a kernel with tracefs): the controller's loop thread's system calls in the kernel's
-trace while each reload is asked for and prepared, to count the wake-ups that waited for the interpreter's
-lock (a futex wait between waking and sleeping again; benchmarks/_lock_wait_trace.py).
+trace from each reload's request to 100 cycles after its hand-over, to count the wake-ups that waited
+for the interpreter's lock (a futex wait between waking and sleeping again; benchmarks/_lock_wait_trace.py).
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def reload_in_process(name: str, at_cycle: int) -> str:
 def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, name: str,
                   reloads: int, tracer: LockWaitTrace | None = None) -> dict[str, Any]:
     """The run with its changes; returns what was asked (cycles, the reloads' codes and answers). ``tracer``:
-    the controller's loop thread traced while each reload is asked for and prepared (--trace)."""
+    the controller's loop thread traced from each reload's request to 100 cycles after its hand-over (--trace)."""
     asked: dict[str, Any] = {"changes": []}
     process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--out", str(run_dir),
                                 "-q", "--feed", f"setpoint={profile}"],
@@ -182,15 +182,15 @@ def drive_the_run(folder: Path, app_file: Path, profile: Path, run_dir: Path, na
             started = time.monotonic()
             if tracer is not None:
                 tracer.switch(True)
-            try:
+            try:  # traced from the request to 100 cycles after the hand-over
                 answer = reload_in_process(name, at_cycle)  # it returns once the task has prepared the code
+                asked["reloads"].append({"asked_cycle": at_cycle, "code": f"{code_id_of(edited.encode()):012x}",
+                                         "answer": answer, "command_s": time.monotonic() - started})
+                asked["changes"].append({"what": f"reload {k} of pid (edited)", "asked_cycle": at_cycle})
+                done = wait_for_cycle(app, "controller", at_cycle + 100, process)
             finally:
                 if tracer is not None:
                     tracer.switch(False)
-            asked["reloads"].append({"asked_cycle": at_cycle, "code": f"{code_id_of(edited.encode()):012x}",
-                                     "answer": answer, "command_s": time.monotonic() - started})
-            asked["changes"].append({"what": f"reload {k} of pid (edited)", "asked_cycle": at_cycle})
-            done = wait_for_cycle(app, "controller", at_cycle + 100, process)
         wait_for_cycle(app, "controller", asked["changes"][-1]["asked_cycle"] + AFTER_CYCLES, process)
     finally:
         if process.poll() is None:
@@ -364,12 +364,17 @@ def report(result: dict[str, Any]) -> str:
         lock = result.get("lock_waits")
         if lock:
             outside = lock["traced_outside"]
-            parts += ["### The loop's wake-ups while each reload was prepared, in the kernel's trace (did it wait "
+            parts += ["### The loop's wake-ups while each reload was prepared and around its hand-over, in the "
+                      "kernel's trace (did it wait "
                       "on the interpreter's lock between waking and sleeping again?)",
                       markdown_table(["reload", "wake-ups", "that waited for the lock", "longest wait µs"],
-                                     [[k, figures["wake_ups"], figures["waited"], f"{figures['longest_us']:.1f}"]
+                                     [[f"{k}: preparing", figures["wake_ups"], figures["waited"],
+                                       f"{figures['longest_us']:.1f}"]
                                       for k, figures in enumerate(lock["per_reload"], 1)]
-                                     + [["traced, not preparing", outside["wake_ups"], outside["waited"],
+                                     + [[f"{k}: hand-over ±{NEAR_CYCLES} cycles", figures["wake_ups"],
+                                         figures["waited"], f"{figures['longest_us']:.1f}"]
+                                        for k, figures in enumerate(lock["hand_overs"], 1)]
+                                     + [["traced, neither", outside["wake_ups"], outside["waited"],
                                          f"{outside['longest_us']:.1f}"]]),
                       "As it began such a wait, the CPU went to (kernel prio: 98 is SCHED_FIFO 1, the reload "
                       "thread's; 120 SCHED_OTHER): " + (", ".join(f"{who} ×{n}" for who, n in sorted(
@@ -453,8 +458,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="reload the edited module N times after the switches, each with other code (default 1)")
     parser.add_argument("--no-reload", action="store_true", help="the two switches only (--reloads 0)")
     parser.add_argument("--trace", action="store_true",
-                        help="root: trace the controller's loop thread in the kernel while each reload is prepared "
-                             "(did a wake-up wait for the interpreter's lock?)")
+                        help="root: trace the controller's loop thread in the kernel from each reload's request to "
+                             "its hand-over (did a wake-up wait for the interpreter's lock?)")
     parser.add_argument("--cpu", default="1",
                         help="the CPU both tasks are pinned to (the example's: 1); none: unpinned")
     parser.add_argument("--keep", metavar="DIR", help="keep the run, its replay and the app's folder in DIR")
@@ -510,9 +515,14 @@ def main(argv: list[str] | None = None) -> int:
         })
         if wake_ups is not None:
             windows = [(cost["asked_ns"], cost["ready_ns"]) if cost else (0, -1) for cost in result["reload_costs"]]
+            t0_ns = int(timing["controller"][0, 1] - timing["controller"][0, 0] * PERIOD_NS)
+            hand_overs = [(t0_ns + (cycle - NEAR_CYCLES) * PERIOD_NS, t0_ns + (cycle + NEAR_CYCLES + 1) * PERIOD_NS)
+                          for cycle in (change.get("listed_cycle") or change["asked_cycle"] for change in changes[2:])]
+            windows_ = windows + hand_overs
             result["lock_waits"] = {"per_reload": waits_within(wake_ups, windows),
+                                    "hand_overs": waits_within(wake_ups, hand_overs),
                                     "traced_outside": waits_within(
-                                        [w for w in wake_ups if not any(a <= w[0] <= b for a, b in windows)],
+                                        [w for w in wake_ups if not any(a <= w[0] <= b for a, b in windows_)],
                                         [(0, 2**63)])[0],
                                     "cpu_went_to": held_by}
         result["elapsed_s"] = round(time.monotonic() - started, 1)
