@@ -80,6 +80,31 @@ def test_the_bound_follows_the_watchdog_and_the_task_period_in_python_too() -> N
                        lost_frames_max=19)
 
 
+def test_a_timeout_past_the_period_counts_in_the_bound() -> None:
+    """A lost frame's cycle waits timeout_us for its answer: past the period, the next frame goes out
+    only at the release after it, so one lost frame already leaves the drives that long unwatched. A
+    99 ms timeout at 1 ms with a 100 ms watchdog let a single tolerated lost frame trip the watchdog."""
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY
+
+    joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
+    app = App("ecat_slow_timeout")
+    app.add_task("t", _Hold(), period_ns=1_000_000)
+    app.add_device("below", "ethercat", task="t", interface="ecm5", joints=[joint], watchdog_ms=100.0,
+                   timeout_us=900.0, lost_frames_max=98)  # 99 ms blind
+    app.add_device("past", "ethercat", task="t", interface="ecm4", joints=[joint], watchdog_ms=100.0,
+                   timeout_us=20_000.0, lost_frames_max=79)  # 79 + 20 periods: 99 ms
+    with pytest.raises(DeviceError, match=r"lost_frames_max: 1 lost frames in a row at the task's period of 1 ms "
+                                          r"\(timeout_us = 99000 µs is past the period: a lost frame's cycle takes 99 "
+                                          r"periods\) leave the drives unwatched for 100 ms, .*: at most 0, or a "
+                                          r"timeout_us below the period"):
+        app.add_device("blind", "ethercat", task="t", interface="ecm3", joints=[joint], watchdog_ms=100.0,
+                       timeout_us=99_000.0, lost_frames_max=1)
+    with pytest.raises(DeviceError, match=r"lost_frames_max: 80 lost frames .* unwatched for 100 ms, .*: at most 79$"):
+        app.add_device("blind", "ethercat", task="t", interface="ecm3", joints=[joint], watchdog_ms=100.0,
+                       timeout_us=20_000.0, lost_frames_max=80)
+
+
 def _rows(path: Path) -> list[list[str]]:
     with open(path, newline="") as file:
         return list(csv.reader(file))

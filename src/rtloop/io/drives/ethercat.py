@@ -237,7 +237,7 @@ class EthercatDevice(Device):
             raise DeviceMismatch(self.name, "", key, text)
 
     def period_problem(self, period_ns: int) -> tuple[str, str] | None:
-        problem = blind_bound_problem(self.lost_frames_max, period_ns, self.watchdog_ms)
+        problem = blind_bound_problem(self.lost_frames_max, period_ns, self.watchdog_ms, round(self.timeout_s * 1e9))
         return None if problem is None else ("lost_frames_max", problem)
 
     def check(self) -> None:

@@ -24,14 +24,16 @@ cycles, and its drive is already stopping; it stays a fault at once.
 The bound. While frames are lost nobody watches the drives but the drives themselves and their
 slaves' SM watchdog (``watchdog_ms``): (N + 1) periods must stay within the watchdog (else a slave
 leaves OP during a loss the run tolerates, and its drive stops without the master saying why) and
-within 100 ms. N is also below 255: the datagram index (one byte, one step per cycle) tells a late
-answer from the awaited one only among fewer than 256 frames in flight.
+within 100 ms; with a ``timeout_us`` past the period, N periods plus those the timeout spans (the
+next frame waits for the last lost one's timeout). N is also below 255: the datagram index (one
+byte, one step per cycle) tells a late answer from the awaited one only among fewer than 256
+frames in flight.
 """
 
 from __future__ import annotations
 
 __all__ = ["BLIND_MAX_NS", "INDEX_FRAMES", "blind_bound_problem", "lost_frames_fault", "lost_frames_note",
-           "lost_frames_span"]
+           "lost_frames_span", "waits_in_periods"]
 
 BLIND_MAX_NS = 100_000_000
 """The longest the drives may run unwatched by the master, whatever the SM watchdog allows."""
@@ -39,23 +41,37 @@ INDEX_FRAMES = 255
 """Frames in flight the one-byte datagram index tells apart from the awaited one."""
 
 
-def blind_bound_problem(lost_frames_max: int, period_ns: int, watchdog_ms: float) -> str | None:
-    """What is wrong with ``lost_frames_max`` at this period and SM watchdog (one phrase), or None."""
+def waits_in_periods(timeout_ns: int, period_ns: int) -> int:
+    """The periods a lost frame's cycle takes: it waits ``timeout_us`` for the answer, so with a
+    timeout past the period the next frame goes out only at the release after it (1 below)."""
+    return max(1, -(-timeout_ns // period_ns)) if period_ns > 0 else 1
+
+
+def blind_bound_problem(lost_frames_max: int, period_ns: int, watchdog_ms: float, timeout_ns: int = 0) -> str | None:
+    """What is wrong with ``lost_frames_max`` at this period, SM watchdog and ``timeout_us``
+    (``timeout_ns``) (one phrase), or None. The drives go without the master from the last frame
+    that came to the next one: N lost frames' periods, and the last one's wait for its answer (one
+    period, or more where the timeout is past the period: the next frame waits for it)."""
     if lost_frames_max <= 0:
         return None
     if lost_frames_max >= INDEX_FRAMES:
         return (f"{lost_frames_max} is too many: at most {INDEX_FRAMES - 1} (the datagram index tells a late answer "
                 f"from the awaited one among {INDEX_FRAMES + 1} frames)")
-    blind_ns = (lost_frames_max + 1) * period_ns
+    waits = waits_in_periods(timeout_ns, period_ns)
+    blind_ns = (lost_frames_max + waits) * period_ns
     watchdog_ns = round(watchdog_ms * 1e6)
     limit_ns = min(watchdog_ns, BLIND_MAX_NS)
     if blind_ns < limit_ns:
         return None
     which = f"the slaves' SM watchdog, watchdog_ms = {watchdog_ms:g}" if watchdog_ns <= BLIND_MAX_NS else \
         "the bound on running the drives blind"
-    most = min(INDEX_FRAMES - 1, max(0, -(-limit_ns // period_ns) - 2))  # the largest N: (N + 1) periods below it
-    return (f"{lost_frames_max} lost frames in a row at the task's period of {period_ns / 1e6:g} ms leave the drives "
-            f"unwatched for {blind_ns / 1e6:g} ms, not less than {limit_ns / 1e6:g} ms ({which}): at most {most}")
+    # the largest N: (N + waits) periods below the limit
+    most = min(INDEX_FRAMES - 1, max(0, -(-limit_ns // period_ns) - 1 - waits))
+    late = "" if waits == 1 else (f" (timeout_us = {timeout_ns / 1e3:g} µs is past the period: a lost frame's cycle "
+                                  f"takes {waits} periods)")
+    return (f"{lost_frames_max} lost frames in a row at the task's period of {period_ns / 1e6:g} ms{late} leave the "
+            f"drives unwatched for {blind_ns / 1e6:g} ms, not less than {limit_ns / 1e6:g} ms ({which}): at most "
+            f"{most}" + ("" if most or waits == 1 else ", or a timeout_us below the period"))
 
 
 def lost_frames_span(since_first_s: float, period_ns: int) -> int:
