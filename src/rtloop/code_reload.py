@@ -401,7 +401,9 @@ class SlackGate:
         if release_ns - now_ns > margin_ns and not whatever_is_left:
             self.work_until_ns = release_ns - margin_ns
             return
-        self.sleep_s((release_ns - now_ns) / 1e9)  # the lock is free: the loop takes it as it wakes
+        # the lock is free: the loop takes it as it wakes (a moment after, so that a reload thread on another CPU,
+        # waking too, does not take it first)
+        self.sleep_s((release_ns - now_ns) / 1e9 + SLACK_POLL_S)
         give_up_ns = release_ns + period_ns // 2  # a skipped release: go on rather than wait a period
         while getattr(self.owner, "stepped_release_ns", release_ns) < release_ns and self.clock() < give_up_ns:
             self.sleep_s(SLACK_POLL_S)
