@@ -248,3 +248,87 @@ def test_the_emulator_injects_lost_frames_in_a_row_and_late_answers() -> None:
     for bad in ("late@150", "lose:x@150", "late:1.5@150"):
         with pytest.raises(ValueError, match=r"expected fault:SLAVE@N, .* lose:K@N or late:US@N"):
             parse_injection(bad)
+
+
+class _Drive:
+    """The other end of a datagram socket pair in place of the bus: each LRW frame is taken (its
+    controlwords kept) and, when ``answer``, answered as one slave in OP whose drive obeys the safe
+    transition at once (quick stop: at rest in quick stop active; disable voltage: switch on disabled)."""
+
+    def __init__(self, device: Any, end: Any, answer: bool) -> None:
+        import threading
+
+        self.device, self.end, self.answer = device, end, answer
+        self.controlwords: list[int] = []
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        from rtloop.io.drives import cia402
+
+        joint = self.device.cycle.joints[0]
+        control_at = joint.out_at + joint.config.rx.offsets[cia402.CONTROLWORD]
+        status_at = joint.in_at + joint.config.tx.offsets[cia402.STATUSWORD]
+        while True:
+            try:
+                frame = bytearray(self.end.recv(2048))
+            except OSError:
+                return
+            if frame[16] != 12:  # not the LRW (the state request)
+                continue
+            word = frame[control_at] | frame[control_at + 1] << 8
+            self.controlwords.append(word)
+            if self.answer:
+                status = 0x0407 if word == cia402.CW_QUICK_STOP else 0x0040  # at rest in quick stop; disabled
+                frame[status_at:status_at + 2] = status.to_bytes(2, "little")
+                frame[self.device._wkc_at:self.device._wkc_at + 2] = (3).to_bytes(2, "little")
+                self.end.send(bytes(frame))
+
+
+def _device_stopping(lost_frames_max: int, answer: bool) -> tuple[Any, _Drive]:
+    """An EtherCAT device past T0 with its drive in operation enabled, on a socket pair (no bus)."""
+    import socket
+    import struct
+
+    from rtloop.io.device import build_device
+    from rtloop.io.drives.cycle import DriveCycle
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY
+
+    joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
+    device = build_device("ethercat", "arm", {"interface": "ecm2", "joints": [joint], "timeout_us": 2000.0,
+                                              "quick_stop_timeout_s": 0.1, "lost_frames_max": lost_frames_max},
+                          "<test>")
+    master, slave = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    master.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("@ll", 0, 1000))  # as open_raw's
+    device._expected_wkc = 3
+    device._bind(DriveCycle("arm", device.joints), master)
+    device.cycle.joints[0].statusword = 0x0027  # operation enabled, as last read in the loop
+    device.active = True
+    return device, _Drive(device, slave, answer)
+
+
+@pytest.mark.parametrize("lost_frames_max", [0, 2])
+def test_a_safe_transition_whose_frames_are_lost_is_a_fault_that_says_so(lost_frames_max: int) -> None:
+    """The cable pulled at the end: the safe transition sends its quick stop frame after frame, none
+    comes back; after quick_stop_timeout_s it asks for SAFE-OP and says the drives are not known to be
+    stopped (before, it returned as if they were: the run's summary said nothing)."""
+    device, drive = _device_stopping(lost_frames_max, answer=False)
+    try:
+        with pytest.raises(DeviceFault, match=r"devices\.arm: the safe transition did not finish within 0\.1 s "
+                                              r"\(quick_stop_timeout_s\): joint 'pan' \(slave 1\) in operation enabled "
+                                              r"\(statusword 0x0027\); (\d+) of \1 frames not back within 2000 µs; "
+                                              r"SAFE-OP asked for"):
+            device.write_safe(np.zeros(device.n_inputs))
+    finally:
+        device.socket.close()
+    assert drive.controlwords and set(drive.controlwords) == {0x0002}  # quick stop went out, frame after frame
+
+
+def test_a_safe_transition_the_drive_follows_ends_quietly() -> None:
+    device, drive = _device_stopping(2, answer=True)
+    try:
+        device.write_safe(np.zeros(device.n_inputs))
+    finally:
+        device.socket.close()
+    assert drive.controlwords[:2] == [0x0002, 0x0000]  # quick stop, then (at rest) disable voltage

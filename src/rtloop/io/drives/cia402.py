@@ -83,6 +83,9 @@ class Cia402State(IntEnum):
     FAULT = 7
 
 
+STOPPED_STATES = (Cia402State.SWITCH_ON_DISABLED, Cia402State.FAULT, Cia402State.NOT_READY_TO_SWITCH_ON)
+"""Where the safe transition ends: no torque, and nothing more the master asks of the drive."""
+
 _STATE_NAMES = ("not ready to switch on", "switch on disabled", "ready to switch on", "switched on",
                 "operation enabled", "quick stop active", "fault reaction active", "fault")
 
@@ -209,7 +212,7 @@ class JointStateMachine:
         state = state_of(statusword)
         if state == Cia402State.OPERATION_ENABLED:
             word = CW_QUICK_STOP
-        elif state in (Cia402State.SWITCH_ON_DISABLED, Cia402State.FAULT, Cia402State.NOT_READY_TO_SWITCH_ON):
+        elif state in STOPPED_STATES:
             return -1
         elif state == Cia402State.QUICK_STOP_ACTIVE:
             # the drive sets target reached once its quick-stop ramp has brought it to rest; only

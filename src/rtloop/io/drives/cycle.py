@@ -219,6 +219,14 @@ class DriveCycle:
             self._pack(joint, word, joint.mode, joint.position_raw, 0, 0)
         return done
 
+    def still_stopping(self) -> str:
+        """The joints the safe transition has not brought to a stop yet, as last read (each named
+        with its state and statusword); empty once all are."""
+        self._from_fast()
+        return ", ".join(f"joint {joint.config.name!r} (slave {joint.config.slave}) in "
+                         f"{state_name(state_of(joint.statusword))} (statusword 0x{joint.statusword:04X})"
+                         for joint in self.joints if state_of(joint.statusword) not in cia402.STOPPED_STATES)
+
     def waiting_outputs(self) -> None:
         """The outputs while the slaves wait for T0 in OP: disable voltage (the drives stay disabled),
         each joint's first mode, no target."""

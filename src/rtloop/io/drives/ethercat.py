@@ -552,7 +552,10 @@ class EthercatDevice(Device):
     # --- every way out ------------------------------------------------------------------------------
     def write_safe(self, u: FloatVector) -> None:
         """The safe transition: quick stop while enabled (the drive brakes on its own ramp), disable
-        voltage once at rest, then SAFE-OP. Before T0 the drives are disabled already."""
+        voltage once at rest, then SAFE-OP. Before T0 the drives are disabled already. A transition
+        that does not finish within ``quick_stop_timeout_s`` (frames lost, a drive that does not
+        follow) is a fault saying which drives and how many frames did not come back, after SAFE-OP
+        is asked for (the run's notes say it: the drives are not known to be stopped)."""
         cycle = self.cycle
         if cycle is None or not self.active:
             return
@@ -560,17 +563,28 @@ class EthercatDevice(Device):
         self.active = False
         deadline = time.monotonic() + self.quick_stop_timeout_s
         scratch = np.zeros(self.n_outputs)
+        done, sent, lost, failed = False, 0, 0, ""
         while time.monotonic() < deadline:
             done = cycle.safe_outputs()
             try:
+                sent += 1
                 if self._exchange() >= 0:
                     cycle.take_inputs(scratch, check=False)
-            except OSError:
+                else:
+                    lost += 1
+            except OSError as error:
+                failed = f"; the frame could not be sent: {error.strerror or error}"
                 break
             if done:
                 break
             time.sleep(SAFE_STEP_S)
         self._request_state(AL_SAFEOP)
+        stopping = "" if done else cycle.still_stopping()  # (the last answer may show them stopped)
+        if stopping:
+            raise DeviceFault(f"devices.{self.name}: the safe transition did not finish within "
+                              f"{self.quick_stop_timeout_s:g} s (quick_stop_timeout_s): {stopping}; {lost} of {sent} "
+                              f"frames not back within {self.timeout_s * 1e6:.0f} µs{failed}; SAFE-OP asked for: "
+                              "each slave's SM watchdog stops its drive when the frames stop")
 
     def _request_state(self, state: int) -> None:
         frame = new_frame(12 + 2)
