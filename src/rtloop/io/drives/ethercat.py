@@ -47,6 +47,7 @@ from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, 
 from rtloop.io.drives import ethercat_dc as dc
 from rtloop.io.drives.cycle import DC_LOST, NOT_LINKED, DriveCycle, command_names, reading_names
 from rtloop.io.drives.ethercat_lost import blind_bound_problem, lost_frames_fault, lost_frames_note, lost_frames_span
+from rtloop.io.drives.ethercat_safe import safe_transition
 from rtloop.io.drives.ethercat_twin import EthercatTwin
 from rtloop.io.drives.joints import (
     QUICK_STOP_TIMEOUT,
@@ -65,8 +66,6 @@ DATA_AT = 26  # Ethernet header 14, EtherCAT header 2, datagram header 10
 AL_SAFEOP, AL_OP, AL_ACK = 4, 8, 0x10
 OP_WAIT_S = 10.0
 """How long configure waits for every slave to reach OP."""
-SAFE_STEP_S = 0.001
-"""The pace of the exchanges of the safe transition (outside the loop)."""
 
 
 def _eeprom_reader(slave: Any) -> Any:
@@ -551,40 +550,18 @@ class EthercatDevice(Device):
 
     # --- every way out ------------------------------------------------------------------------------
     def write_safe(self, u: FloatVector) -> None:
-        """The safe transition: quick stop while enabled (the drive brakes on its own ramp), disable
-        voltage once at rest, then SAFE-OP. Before T0 the drives are disabled already. A transition
-        that does not finish within ``quick_stop_timeout_s`` (frames lost, a drive that does not
-        follow) is a fault saying which drives and how many frames did not come back, after SAFE-OP
-        is asked for (the run's notes say it: the drives are not known to be stopped)."""
+        """The safe transition (``io/drives/ethercat_safe.py``), then SAFE-OP; a fault when it did
+        not finish in time. Before T0 the drives are disabled already."""
         cycle = self.cycle
         if cycle is None or not self.active:
             return
         self._stop_keeper()  # (stopped at the first exchange already, unless the run ended before it)
         self.active = False
-        deadline = time.monotonic() + self.quick_stop_timeout_s
-        scratch = np.zeros(self.n_outputs)
-        done, sent, lost, failed = False, 0, 0, ""
-        while time.monotonic() < deadline:
-            done = cycle.safe_outputs()
-            try:
-                sent += 1
-                if self._exchange() >= 0:
-                    cycle.take_inputs(scratch, check=False)
-                else:
-                    lost += 1
-            except OSError as error:
-                failed = f"; the frame could not be sent: {error.strerror or error}"
-                break
-            if done:
-                break
-            time.sleep(SAFE_STEP_S)
+        problem = safe_transition(cycle, self._exchange, self.n_outputs, self.quick_stop_timeout_s,
+                                  self.timeout_s * 1e6)
         self._request_state(AL_SAFEOP)
-        stopping = "" if done else cycle.still_stopping()  # (the last answer may show them stopped)
-        if stopping:
-            raise DeviceFault(f"devices.{self.name}: the safe transition did not finish within "
-                              f"{self.quick_stop_timeout_s:g} s (quick_stop_timeout_s): {stopping}; {lost} of {sent} "
-                              f"frames not back within {self.timeout_s * 1e6:.0f} µs{failed}; SAFE-OP asked for: "
-                              "each slave's SM watchdog stops its drive when the frames stop")
+        if problem:
+            raise DeviceFault(f"devices.{self.name}: {problem}")
 
     def _request_state(self, state: int) -> None:
         frame = new_frame(12 + 2)
