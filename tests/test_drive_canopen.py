@@ -226,6 +226,33 @@ def test_the_device_configures_enables_and_runs_equal_to_its_twin_then_quick_sto
     assert said.rstrip().endswith("NMT pre-operational (NMT enter pre-operational)")
 
 
+def test_a_safe_transition_the_node_no_longer_answers_is_a_fault_that_says_so() -> None:
+    """The cable pulled at the end: the quick stop goes out SYNC after SYNC, no TPDO comes back; after
+    quick_stop_timeout_s the NMT pre-operational still goes out, and the fault says the drive is not
+    known to be stopped (before, write_safe returned as if it were)."""
+    log: list[str] = []
+    paired = PairedNode(CanopenNode(3, log=log.append, sync_timeout_s=5.0))
+    device = _device_on(paired, quick_stop_timeout_s=0.2, tpdo_timeout_ms=5)
+    try:
+        device.configure()
+        device.activate()
+        u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
+        for _ in range(60):
+            device.write(u)
+            device.read(y)
+        assert y[device.output_names.index("wheel_enabled")] == 1.0
+        with paired.lock:
+            paired.answering = False
+        with pytest.raises(DeviceFault, match=r"devices\.axis: the safe transition did not finish within 0\.2 s "
+                                              r"\(quick_stop_timeout_s\): joint 'wheel' in operation enabled "
+                                              r"\(statusword 0x[0-9A-F]{4}\); (\d+) of \1 SYNCs without every TPDO "
+                                              r"within 5 ms; NMT pre-operational sent"):
+            device.write_safe(np.zeros(device.n_inputs))
+    finally:
+        device.close()
+        paired.close()
+
+
 def test_an_emcy_is_a_named_fault() -> None:
     paired = PairedNode(CanopenNode(3, sync_timeout_s=5.0))
     device = _device_on(paired)

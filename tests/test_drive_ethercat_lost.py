@@ -316,7 +316,7 @@ def test_a_safe_transition_whose_frames_are_lost_is_a_fault_that_says_so(lost_fr
     device, drive = _device_stopping(lost_frames_max, answer=False)
     try:
         with pytest.raises(DeviceFault, match=r"devices\.arm: the safe transition did not finish within 0\.1 s "
-                                              r"\(quick_stop_timeout_s\): joint 'pan' \(slave 1\) in operation enabled "
+                                              r"\(quick_stop_timeout_s\): joint 'pan' in operation enabled "
                                               r"\(statusword 0x0027\); (\d+) of \1 frames not back within 2000 µs; "
                                               r"SAFE-OP asked for"):
             device.write_safe(np.zeros(device.n_inputs))

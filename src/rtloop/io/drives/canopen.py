@@ -49,11 +49,11 @@ from rtloop.io.drives.joints import (
     joint_tables_check,
 )
 from rtloop.io.drives.pdo import OBJECTS
+from rtloop.io.drives.safe_transition import safe_transition
 from rtloop.runnable import Runnable
 
 __all__ = ["Canopen402Device"]
 
-SAFE_STEP_S = 0.001
 _Transfer = TypeVar("_Transfer", bound=SdoTransfer)
 CONSUMER_PERIODS = 3
 """Heartbeat periods either side waits without one before it stops (rtloop: a fault; a drive: 0x1016)."""
@@ -489,33 +489,33 @@ class Canopen402Device(Device):
 
     # --- every way out ----------------------------------------------------------------------------
     def write_safe(self, u: FloatVector) -> None:
-        """Quick stop while enabled (the drive brakes on its own ramp), disable voltage once at rest,
-        then NMT pre-operational. Before T0 the drives are disabled already."""
+        """The safe transition (``io/drives/safe_transition.py``): quick stop while enabled, disable
+        voltage once at rest, then NMT pre-operational; a fault when it did not finish in time.
+        Before T0 the drives are disabled already."""
         cycle = self.cycle
         if cycle is None or not self.active or self.socket is None:
             return
         self.active = False
-        deadline = time.monotonic() + self.quick_stop_timeout_s
-        scratch = np.zeros(self.n_outputs)
         fresh = self.socket.fresh
-        while time.monotonic() < deadline:
-            done = cycle.safe_outputs()
-            try:
-                self._exchange()
-            except DeviceFault:
-                break
-            if all(fresh[at] for at, _source, _target in self._tpdo_copies):
-                for _at, source, target in self._tpdo_copies:
-                    target[:] = source
-                cycle.take_inputs(scratch, check=False)
-            if done:
-                break
-            time.sleep(SAFE_STEP_S)
+
+        def exchange() -> bool:
+            self._exchange()
+            if not all(fresh[at] for at, _source, _target in self._tpdo_copies):
+                return False
+            for _at, source, target in self._tpdo_copies:
+                target[:] = source
+            return True
+
+        problem = safe_transition(cycle, exchange, self.n_outputs, self.quick_stop_timeout_s,
+                                  f"SYNCs without every TPDO within {self.tpdo_timeout_ms:g} ms", "NMT pre-operational "
+                                  "sent: each drive's heartbeat consumer or SYNC watch stops it when the PDOs stop")
         for n in self.nodes:
             try:
                 self._send(0x000, bytes([wire.NMT_PRE_OPERATIONAL, n.node]))
             except OSError:
                 break
+        if problem:
+            raise DeviceFault(f"devices.{self.name}: {problem}")
 
     def write_safe_for_dead_task(self, u: FloatVector) -> str:
         """From the supervisor: NMT stop to each node (an operational drive quick-stops when its

@@ -223,8 +223,8 @@ class DriveCycle:
         """The joints the safe transition has not brought to a stop yet, as last read (each named
         with its state and statusword); empty once all are."""
         self._from_fast()
-        return ", ".join(f"joint {joint.config.name!r} (slave {joint.config.slave}) in "
-                         f"{state_name(state_of(joint.statusword))} (statusword 0x{joint.statusword:04X})"
+        return ", ".join(f"joint {joint.config.name!r} in {state_name(state_of(joint.statusword))} (statusword "
+                         f"0x{joint.statusword:04X})"
                          for joint in self.joints if state_of(joint.statusword) not in cia402.STOPPED_STATES)
 
     def waiting_outputs(self) -> None:

@@ -47,7 +47,6 @@ from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, 
 from rtloop.io.drives import ethercat_dc as dc
 from rtloop.io.drives.cycle import DC_LOST, NOT_LINKED, DriveCycle, command_names, reading_names
 from rtloop.io.drives.ethercat_lost import blind_bound_problem, lost_frames_fault, lost_frames_note, lost_frames_span
-from rtloop.io.drives.ethercat_safe import safe_transition
 from rtloop.io.drives.ethercat_twin import EthercatTwin
 from rtloop.io.drives.joints import (
     QUICK_STOP_TIMEOUT,
@@ -57,6 +56,7 @@ from rtloop.io.drives.joints import (
     joint_tables_check,
 )
 from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
+from rtloop.io.drives.safe_transition import safe_transition
 from rtloop.io.drives.sii import parse_sii
 
 __all__ = ["EthercatDevice", "EthercatTwin"]
@@ -550,15 +550,16 @@ class EthercatDevice(Device):
 
     # --- every way out ------------------------------------------------------------------------------
     def write_safe(self, u: FloatVector) -> None:
-        """The safe transition (``io/drives/ethercat_safe.py``), then SAFE-OP; a fault when it did
+        """The safe transition (``io/drives/safe_transition.py``), then SAFE-OP; a fault when it did
         not finish in time. Before T0 the drives are disabled already."""
         cycle = self.cycle
         if cycle is None or not self.active:
             return
         self._stop_keeper()  # (stopped at the first exchange already, unless the run ended before it)
         self.active = False
-        problem = safe_transition(cycle, self._exchange, self.n_outputs, self.quick_stop_timeout_s,
-                                  self.timeout_s * 1e6)
+        problem = safe_transition(cycle, lambda: self._exchange() >= 0, self.n_outputs, self.quick_stop_timeout_s,
+                                  f"frames not back within {self.timeout_s * 1e6:.0f} µs", "SAFE-OP asked for: each "
+                                  "slave's SM watchdog stops its drive when the frames stop")
         self._request_state(AL_SAFEOP)
         if problem:
             raise DeviceFault(f"devices.{self.name}: {problem}")
