@@ -332,3 +332,18 @@ def test_a_safe_transition_the_drive_follows_ends_quietly() -> None:
     finally:
         device.socket.close()
     assert drive.controlwords[:2] == [0x0002, 0x0000]  # quick stop, then (at rest) disable voltage
+
+
+def test_an_injection_that_cannot_happen_is_refused_not_made_on_another_slave() -> None:
+    """``fault:3@N`` on two slaves hit slave 1 instead, and ``lose:0@N`` logged a loss it never made:
+    a test would pass on the wrong evidence. Each is one line, exit 2."""
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY, DriveSpec, parse_injection, serve
+    from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO
+
+    for bad in ("lose:0@150", "late:0@150", "fault:0@150"):
+        with pytest.raises(ValueError, match=r"must be at least 1"):
+            parse_injection(bad)
+    spec = DriveSpec(DEFAULT_IDENTITY, DEFAULT_RXPDO, DEFAULT_TXPDO)
+    for bad in ("fault:3@100", "drop:3@100", "clock:5@100"):
+        assert serve("ecm_none", [spec, spec], inject=(bad,)) == 2
+    assert serve("ecm_none", [spec, spec], inject=("fault:2@100",)) == 3  # fine: on to the interface (none here)

@@ -72,7 +72,18 @@ def parse_injection(text: str) -> Injection:
             (what != "lose" and not slave_text.isdigit()) or (slave_text and not slave_text.isdigit()):
         raise ValueError(f"--inject {text!r}: expected fault:SLAVE@N, drop:SLAVE@N, clock:SLAVE@N, lose@N, "
                          "lose:K@N or late:US@N")
-    return Injection(what, int(slave_text or 1), int(at_text))
+    injection = Injection(what, int(slave_text or 1), int(at_text))
+    if injection.slave < 1:  # (lose:0 would log a loss it never made; slave 0 is none)
+        raise ValueError(f"--inject {text!r}: {'K' if what == 'lose' else 'US' if what == 'late' else 'SLAVE'} "
+                         "must be at least 1")
+    return injection
+
+
+def injection_problem(text: str, injection: Injection, slaves: int) -> str | None:
+    """An injection on a slave the segment does not have (it hit slave 1 instead), or None."""
+    if injection.what in ("fault", "drop", "clock") and injection.slave > slaves:
+        return f"--inject {text!r}: slave {injection.slave}, but the segment has {slaves} slave(s)"
+    return None
 
 
 class Emulator:
@@ -86,6 +97,11 @@ class Emulator:
                                      emulated_drive(spec.parameters), spec.name, log, dc=spec.dc)
                        for position, spec in enumerate(drives, start=1)]
         self.segment = Segment(self.slaves)
+        for injection in injections:
+            problem = injection_problem(f"{injection.what}:{injection.slave}@{injection.at_exchange}", injection,
+                                        len(self.slaves))
+            if problem:
+                raise ValueError(problem)
         self.injections = list(injections)
         self.stopped = False
         self.frames = 0
@@ -97,8 +113,7 @@ class Emulator:
         answer = True
         for injection in list(self.injections):
             on_slave = injection.what in ("fault", "drop", "clock")
-            slave = self.slaves[injection.slave - 1] if on_slave and 0 < injection.slave <= len(self.slaves) \
-                else self.slaves[0]
+            slave = self.slaves[injection.slave - 1] if on_slave else self.slaves[0]  # (checked: serve)
             if slave.al_status & 0x0F != AL_OP or slave.exchanges_enabled < injection.at_exchange:
                 continue
             self.injections.remove(injection)
@@ -187,6 +202,11 @@ def serve(interface: str, drives: list[DriveSpec], log_path: str | None = None, 
     except ValueError as error:
         print(f"emulator: {error}", file=sys.stderr)
         return 2
+    for text, injection in zip(inject, injections, strict=True):
+        problem = injection_problem(text, injection, len(drives))
+        if problem:
+            print(f"emulator: {problem}", file=sys.stderr)
+            return 2
     problem = interface_problem(interface)
     if problem:
         print(f"emulator: {problem}", file=sys.stderr)
