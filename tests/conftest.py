@@ -1,12 +1,16 @@
 from __future__ import annotations
 
+import fcntl
+import importlib.util
 import json
 import os
+import random
 import subprocess
 import sys
 import time
 import tomllib
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -146,6 +150,23 @@ def unique_name(base: str) -> str:
     return name
 
 
+def worker_slot() -> tuple[int, int]:
+    """This pytest-xdist worker's index (``gw0`` is 0) and how many workers the run has; (0, 1) in a
+    serial run."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if not worker.startswith("gw"):
+        return 0, 1
+    return int(worker[2:]), max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+
+
+def random_ros_domain() -> int:
+    """A random ``ROS_DOMAIN_ID`` for one test, from 1 to 101 (ROS 2's range; 0 is the default, avoided).
+    The workers of a parallel run draw from sets of their own, so two tests running at once never
+    share a domain."""
+    index, count = worker_slot()
+    return random.Random(os.getpid() ^ time.monotonic_ns()).choice(range(1 + index, 102, count))
+
+
 def private_ros_domain() -> str:
     """A ``ROS_DOMAIN_ID`` (0-232) of this test run's own, so bridges of apps run elsewhere on the
     machine (the JIWY example publishes on the default domain 0) neither see nor feed ours."""
@@ -270,3 +291,68 @@ def _apps_run_under_names_of_their_own(request: pytest.FixtureRequest,
     if fixed:
         pytest.fail(f"{request.node.nodeid} ran app {fixed[0]!r} under a fixed name: use unique_name() "
                     "(tests/conftest.py), apps here hold their name while they run", pytrace=False)
+
+
+# --- running in parallel (pytest-xdist: `--numprocesses` in pyproject.toml's addopts) --------------
+# Most tests sleep through real-time runs, so the suite runs on every core at once. A test that
+# measures the machine itself (latencies, misses, a SCHED_FIFO hog, locked memory, system-wide
+# scans of /dev/shm, /proc or processes) is marked `alone`: it waits until no other test of this
+# run is running, and no other test starts until it ends.
+ALONE_LOCK_NAME = "rtloop-tests-alone.lock"
+
+
+def pytest_addoption(parser: pytest.Parser, pluginmanager: pytest.PytestPluginManager) -> None:
+    """Without pytest-xdist (a .venv made before it joined the test extra, or ``-p no:xdist``), the
+    options pyproject.toml's addopts give it are taken and ignored: the suite runs serially."""
+    if pluginmanager.has_plugin("xdist"):
+        return
+    if (importlib.util.find_spec("xdist") is not None and not pluginmanager.is_blocked("xdist")
+            and not os.environ.get("PYTEST_DISABLE_PLUGIN_AUTOLOAD")):
+        return  # it loads after this file (``-p conftest``) and adds the options itself
+    group = parser.getgroup("xdist-absent", "pytest-xdist is not loaded: the tests run serially")
+    group.addoption("--numprocesses", default=None, help="ignored: pytest-xdist is not loaded")
+    group.addoption("--dist", default="no", help="ignored: pytest-xdist is not loaded")
+
+
+def pytest_report_header(config: pytest.Config) -> str | None:
+    if config.pluginmanager.has_plugin("xdist"):
+        return None
+    if importlib.util.find_spec("xdist") is None:
+        return "rtloop: pytest-xdist is not installed, the tests run serially (pip install -e '.[test]' adds it)"
+    return "rtloop: pytest-xdist is not loaded, the tests run serially"
+
+
+def alone_lock_folder(config: pytest.Config) -> Path | None:
+    """The folder of this run's lock, the same for all its workers: the controller's base temporary
+    folder, which xdist makes each worker's basetemp a child of. None outside an xdist worker, where
+    one test runs at a time anyway."""
+    if "PYTEST_XDIST_WORKER" not in os.environ or not config.option.basetemp:
+        return None
+    return Path(config.option.basetemp).parent
+
+
+@contextmanager
+def machine_share(folder: Path | None, alone: bool) -> Iterator[None]:
+    """Holds this run's lock, exclusive for an `alone` test, shared for any other, from the test's
+    set-up to its tear-down. A turnstile lock taken around the request keeps a steady stream of
+    shared holders from starving the exclusive one."""
+    if folder is None:
+        yield
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ALONE_LOCK_NAME, "a") as lock, open(folder / (ALONE_LOCK_NAME + ".turnstile"), "a") as gate:
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    with machine_share(alone_lock_folder(item.config), alone=item.get_closest_marker("alone") is not None):
+        return (yield)

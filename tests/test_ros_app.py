@@ -13,7 +13,6 @@ import json
 import math
 import os
 import queue
-import random
 import signal
 import subprocess
 import sys
@@ -25,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import find_cyclonedds_cli, skip_in_rtkernel_guest, unique_name, wait_for_task_pids
+from conftest import find_cyclonedds_cli, random_ros_domain, skip_in_rtkernel_guest, unique_name, wait_for_task_pids
 from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
@@ -99,8 +98,9 @@ PEER = textwrap.dedent(
 
 
 def random_domain() -> int:
-    """A domain id for one test; ROS 2 uses 0..101, we avoid 0 (the default)."""
-    return random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 101)
+    """A domain id for one test; ROS 2 uses 0..101, we avoid 0 (the default), and a parallel run's
+    workers draw from sets of their own (conftest.random_ros_domain)."""
+    return random_ros_domain()
 
 
 def env_with_domain(domain: int) -> dict[str, str]:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import queue
-import random
 import subprocess
 import sys
 import textwrap
@@ -21,7 +20,7 @@ import time
 
 import pytest
 
-from conftest import find_cyclonedds_cli
+from conftest import find_cyclonedds_cli, random_ros_domain
 from ros2_peer_types import ROS2_TYPES
 
 pytest.importorskip("cyclonedds")
@@ -73,8 +72,9 @@ RECEIVER = textwrap.dedent(
 
 
 def random_domain() -> int:
-    """A domain id for one test; ROS 2 uses 0..101, we avoid 0 (the default)."""
-    return random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 101)
+    """A domain id for one test; ROS 2 uses 0..101, we avoid 0 (the default), and a parallel run's
+    workers draw from sets of their own (conftest.random_ros_domain)."""
+    return random_ros_domain()
 
 
 def receive_in_other_process(domain: int, dds_topic: str, kind: str, publish) -> dict:

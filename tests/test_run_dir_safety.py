@@ -14,6 +14,7 @@ import rtloop
 from conftest import unique_name
 from rt_test_runnables import Counter
 from rtloop import App
+from rtloop.record.summary import SUMMARY_BOUND_BYTES, SUMMARY_RESERVE_BYTES
 from rtloop.runtime.session import RunDirectoryError
 
 P = 1_000_000
@@ -155,12 +156,12 @@ def test_replay_through_a_link_to_the_run_is_refused(tmp_path: Path) -> None:
 # --- a disk already full --------------------------------------------------------------------------
 @pytest.fixture
 def tiny_disk(tmp_path: Path):
-    """A 128 KiB tmpfs of this test alone (root only), unmounted at the end."""
+    """A 256 KiB tmpfs of this test alone (root only), unmounted at the end."""
     if os.geteuid() != 0:
         pytest.skip("mounting a tiny tmpfs needs root")
     disk = tmp_path / "tiny"
     disk.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=128k", "tmpfs", str(disk)],
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
                              capture_output=True, text=True)
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
@@ -216,9 +217,33 @@ def test_the_summary_is_never_left_empty_on_a_full_disk(tiny_disk: Path) -> None
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
 
 
+def test_summaries_growing_to_the_bound_are_still_written_on_a_full_disk(tiny_disk: Path) -> None:
+    """The previous summary and its replacement both exist until the rename: the reserve holds both.
+    (With a reserve of one summary's worth, a run whose summary had grown past half of it, e.g.
+    with 20 misses kept in full on a loaded machine, ended with its last running summary.)"""
+    from rtloop.record.summary import SummaryFile
+
+    class Text:  # what SummaryFile.write asks of a summary
+        def __init__(self, size: int) -> None:
+            self.size = size
+
+        def to_json(self) -> dict[str, str]:
+            return {"pad": "x" * self.size}
+
+    out = tiny_disk / "run"
+    out.mkdir()
+    summary = SummaryFile(out)
+    assert summary.write(Text(1000))
+    fill(tiny_disk)
+    for size in (SUMMARY_BOUND_BYTES // 2, SUMMARY_BOUND_BYTES - 8192, SUMMARY_BOUND_BYTES - 100):  # growing
+        assert summary.write(Text(size)), (size, summary.problem)
+        assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * size}
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
+
+
 def test_a_disk_with_room_for_the_reserve_only_runs_and_says_so(tiny_disk: Path, tmp_path: Path,
                                                                  rtloop_env) -> None:
-    fill(tiny_disk, leave_bytes=64 * 1024)
+    fill(tiny_disk, leave_bytes=SUMMARY_RESERVE_BYTES)
     out = tiny_disk / "run"
     result = subprocess.run([*CLI, "simulate", str(app_file(tmp_path, "safety_reserve")), "--duration", "0.2",
                              "--out", str(out)], env=rtloop_env, capture_output=True, text=True)

@@ -7,7 +7,6 @@ spinning or late step does not starve the machine's other real-time work.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import os
@@ -229,6 +228,26 @@ def test_flight_window_pins_at_most_its_budget(tmp_path: Path) -> None:
 
 
 # --- a full disk ------------------------------------------------------------------------------------
+def fill_the_disk(filler: Path) -> None:
+    """Takes every free block of the filesystem in one ``fallocate``, which takes all it asks for or
+    nothing, and then nothing more. Written block by block until ENOSPC instead, the filler raced
+    the run: the run's first write failing on the full disk makes it give up its summary's reserve,
+    and the filler's next blocks took that (on a loaded machine: the final summary then found no
+    room, and summary.json kept saying 'running')."""
+    fd = os.open(filler, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        for _ in range(1000):
+            stat = os.statvfs(filler)
+            try:
+                os.posix_fallocate(fd, 0, stat.f_bavail * stat.f_frsize)
+                return
+            except OSError:  # ENOSPC: the run wrote since, ask again for what is left
+                continue
+        raise AssertionError("the run kept writing: the disk was never filled in one go")
+    finally:
+        os.close(fd)
+
+
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tiny tmpfs needs root")
 def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env) -> None:
     disk = tmp_path / "tiny"
@@ -249,10 +268,7 @@ def test_a_full_disk_stops_the_recording_not_the_run(tmp_path: Path, rtloop_env)
         while not (out / "summary.json").exists():
             assert run.poll() is None and time.monotonic() < deadline, run.communicate()
             time.sleep(0.02)
-        with open(disk / "filler", "wb") as filler, contextlib.suppress(OSError):
-            while True:
-                filler.write(bytes(64 * 1024))
-                filler.flush()
+        fill_the_disk(disk / "filler")
         stdout, stderr = run.communicate(timeout=120)
         result = subprocess.CompletedProcess(command, run.returncode, stdout, stderr)
         assert result.returncode == 0, result.stderr

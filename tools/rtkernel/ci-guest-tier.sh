@@ -12,6 +12,8 @@
 # (test_run.py's other real-time tests are scaled for the guest and pass there, but each starts
 # processes that take tens of seconds under emulation: they run on the host, and in the guest by
 # hand: tools/rtkernel-vm.sh .venv/bin/python -m pytest -m "rt or rtkernel" tests/test_run.py.)
+# Serially (-p no:xdist: pyproject.toml's addopts run the host suite in 2 processes; here one emulated
+# machine runs ~20x slower, and the tests' slowdown scaling assumes it runs one test at a time).
 # Prints the pytest counts and the wall time.
 #
 # Exit status: pytest's. A guest that cannot be prepared or booted on this machine prints
@@ -37,7 +39,7 @@ log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 started_s=$(date +%s)
 RTLOOP_RTKERNEL_TIMEOUT_S=${RTLOOP_RTKERNEL_TIMEOUT_S:-3300} tools/rtkernel-vm.sh \
-    .venv/bin/python -m pytest -p no:cacheprovider --timeout=900 "${selection[@]}" \
+    .venv/bin/python -m pytest -p no:cacheprovider -p no:xdist --timeout=900 "${selection[@]}" \
     "${by_hand[@]/#/--deselect=}" 2>&1 | tee "$log"
 status=${PIPESTATUS[0]}
 wall_s=$(($(date +%s) - started_s))

@@ -311,7 +311,12 @@ class RunSummary:
         path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
 
 
-SUMMARY_RESERVE_BYTES = 64 * 1024
+SUMMARY_BOUND_BYTES = 64 * 1024
+"""What a summary stays within (the miss causes kept in full are bounded for it: ``stats/miss_causes.py``)."""
+SUMMARY_RESERVE_BYTES = 2 * SUMMARY_BOUND_BYTES
+"""Disk space held for the summary from the start: two summaries' worth, since the previous one and its
+replacement both exist until the rename (with one summary's worth, a run whose summary had grown past
+half of it, e.g. with 20 misses kept in full, kept its last running summary on a full disk)."""
 
 
 class SummaryFile:

@@ -30,7 +30,7 @@ from typing import Any
 
 FIRST_IN_FULL = 20
 """Misses kept in ``summary.json`` with their evidence (about 1 KB each: the summary must stay within its
-64 KiB disk reserve); the rest are counted per cause."""
+64 KiB bound, ``SUMMARY_BOUND_BYTES``); the rest are counted per cause."""
 EVIDENCE_ITEMS = 3
 """Other tasks' steps, threads and late tasks kept per miss: the largest."""
 RECENT_READING_CYCLES = 20
