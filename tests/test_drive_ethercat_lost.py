@@ -347,3 +347,30 @@ def test_an_injection_that_cannot_happen_is_refused_not_made_on_another_slave() 
     for bad in ("fault:3@100", "drop:3@100", "clock:5@100"):
         assert serve("ecm_none", [spec, spec], inject=(bad,)) == 2
     assert serve("ecm_none", [spec, spec], inject=("fault:2@100",)) == 3  # fine: on to the interface (none here)
+
+
+def test_lost_frames_after_a_mode_change_do_not_count_as_the_drive_refusing_the_mode() -> None:
+    """A mode change, then 60 lost frames (within lost_frames_max = 90 at 1 ms): the drive saw none of
+    the frames asking for it, so the first frame back still shows the old mode. The lost cycles ran
+    the wait for the mode (50 exchanges) on: a false 'it does not support it' fault."""
+    from rtloop.io.device import build_device
+    from rtloop.io.drives.cycle import DriveCycle
+    from rtloop.io.drives.emulator import DEFAULT_IDENTITY
+
+    joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
+             "revision": DEFAULT_IDENTITY.revision, "modes": ["csp", "csv"], "counts_per_rev": 4096}
+    device = build_device("ethercat", "arm", {"interface": "ecm6", "joints": [joint], "lost_frames_max": 90},
+                          "<test>")
+    cycle = device.cycle = DriveCycle("arm", device.joints)
+    device.timeline(0, 1_000_000)
+    outputs, inputs = bytearray(cycle.output_bytes), bytearray(cycle.input_bytes)
+    cycle.bind(outputs, 0, inputs, 0)
+    cycle.enabled = True
+    u, y = np.array([0.0, 0.0, 9.0]), np.zeros(device.n_outputs)  # csv asked for
+    cycle.prepare_outputs(u)
+    for k in range(60):
+        _lose_at(device, 10.0 + k * 0.001, y)
+    tx = cycle.joints[0].config.tx
+    tx.struct.pack_into(inputs, 0, *[{0x6041: 0x0027, 0x6061: 8}.get(index, 0) for index in tx.objects])
+    cycle.take_inputs(y)  # operation enabled, still in csp: the drive has not seen the request yet
+    assert y[device.output_names.index("pan_mode")] == 8.0

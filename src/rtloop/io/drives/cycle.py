@@ -201,6 +201,15 @@ class DriveCycle:
             self.exchanges += 1
         return got
 
+    def count_lost(self) -> None:
+        """A cycle whose frame did not come back (``lost_frames_max``): an exchange all the same (named
+        in faults; the enabling's limit), but none a drive could show a mode in: the wait for a mode
+        asked for (``MODE_LIMIT``) does not run on, or a run of lost frames after a mode change is a
+        false 'does not support it' at the first frame back."""
+        self.exchanges += 1
+        for joint in self.joints:
+            joint.mode_asked_at += 1
+
     def where(self, joint: _Joint) -> str:
         config = joint.config
         return f"devices.{self.device}: joint {config.name!r} (slave {config.slave}, {config.identity.describe()})"

@@ -503,7 +503,7 @@ class EthercatDevice(Device):
             raise DeviceFault(lost_frames_fault(f"devices.{self.name}: exchange {cycle.exchanges} on {self.interface}",
                                                 self._lost_in_a_row, self.timeout_s * 1e6, self.lost_frames_max,
                                                 spans))
-        cycle.exchanges += 1  # a cycle of the drives all the same (named in faults; the enabling's limit)
+        cycle.count_lost()
         self.stale_reads += 1
         self._lost_longest = max(self._lost_longest, self._lost_in_a_row)
         y[self._frame_ok_at] = 0.0
