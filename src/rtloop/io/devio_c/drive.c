@@ -359,9 +359,14 @@ static PyObject *DriveRun_receive(DriveRun *self, PyObject *unused) {
             }
             flags = MSG_DONTWAIT;
         }
-        Py_BEGIN_ALLOW_THREADS /* as socket.recv_into gives the GIL away while it waits */
-        size = recv(self->fd, reply, (size_t)self->reply.len, flags);
-        Py_END_ALLOW_THREADS
+        if (flags == MSG_DONTWAIT) { /* after ppoll: it does not wait, so the GIL is kept (giving it away
+                                      * again would let another thread's slice delay the answer twice a cycle) */
+            size = recv(self->fd, reply, (size_t)self->reply.len, flags);
+        } else {
+            Py_BEGIN_ALLOW_THREADS /* as socket.recv_into gives the GIL away while it waits */
+            size = recv(self->fd, reply, (size_t)self->reply.len, flags);
+            Py_END_ALLOW_THREADS
+        }
         int saved = errno;
         if (monotonic_ns() > deadline_ns) {
             return PyLong_FromLong(-2); /* nothing, or an answer come too late */
