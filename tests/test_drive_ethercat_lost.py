@@ -374,3 +374,17 @@ def test_lost_frames_after_a_mode_change_do_not_count_as_the_drive_refusing_the_
     tx.struct.pack_into(inputs, 0, *[{0x6041: 0x0027, 0x6061: 8}.get(index, 0) for index in tx.objects])
     cycle.take_inputs(y)  # operation enabled, still in csp: the drive has not seen the request yet
     assert y[device.output_names.index("pan_mode")] == 8.0
+
+
+def test_lost_frames_while_a_drive_resets_its_fault_do_not_use_up_the_resets() -> None:
+    """A drive in fault at T0, then 30 lost frames (within lost_frames_max = 40): each lost cycle sent a
+    fault reset or its falling edge again from the held statusword, and each reset counted as one the
+    drive refused: a false 'stays in fault after 8 fault resets' at the 17th lost frame."""
+    device, y = _device_losing(40)
+    cycle = device.cycle
+    cycle.bind(bytearray(cycle.output_bytes), 0, bytearray(cycle.input_bytes), 0)
+    cycle.joints[0].statusword = 0x0008  # fault, as the last frame that came said
+    for k in range(30):
+        cycle.prepare_outputs(np.zeros(device.n_inputs))
+        _lose_at(device, 10.0 + k * 0.001, y)
+    assert cycle.joints[0].machine.reset_tries <= 1

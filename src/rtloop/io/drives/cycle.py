@@ -205,10 +205,14 @@ class DriveCycle:
         """A cycle whose frame did not come back (``lost_frames_max``): an exchange all the same (named
         in faults; the enabling's limit), but none a drive could show a mode in: the wait for a mode
         asked for (``MODE_LIMIT``) does not run on, or a run of lost frames after a mode change is a
-        false 'does not support it' at the first frame back."""
+        false 'does not support it' at the first frame back; nor is a fault reset it carried one of
+        the tries (``FAULT_RESET_TRIES``): lost frames while a drive resets were a false 'stays in
+        fault'."""
         self.exchanges += 1
         for joint in self.joints:
             joint.mode_asked_at += 1
+            if joint.machine.last_controlword & cia402.CW_FAULT_RESET:  # nor one of its fault resets tried
+                joint.machine.reset_tries -= 1
 
     def where(self, joint: _Joint) -> str:
         config = joint.config
