@@ -68,6 +68,7 @@ def no_rt(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 # --- the experiments ---------------------------------------------------------------------------
+@pytest.mark.alone
 @pytest.mark.rt
 def test_affinity_runs_same_and_different_cores(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["bench", "affinity", "--duration", DURATION, "--out", str(tmp_path)]) == 0
@@ -87,6 +88,7 @@ def test_affinity_runs_same_and_different_cores(tmp_path: Path, capsys: pytest.C
     assert "[1/1] affinity" in printed.err
 
 
+@pytest.mark.alone
 @pytest.mark.rt
 @pytest.mark.skipif(shutil.which("stress-ng") is None, reason="stress-ng not installed")
 def test_stress_runs_quiet_and_stressed(tmp_path: Path, reports_asked, capsys: pytest.CaptureFixture[str]) -> None:
@@ -99,6 +101,7 @@ def test_stress_runs_quiet_and_stressed(tmp_path: Path, reports_asked, capsys: p
     assert "stress-ng --taskset" in printed.out
 
 
+@pytest.mark.alone
 @pytest.mark.rt
 @pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) not installed")
 def test_cyclictest_side_by_side(tmp_path: Path, reports_asked, capsys: pytest.CaptureFixture[str]) -> None:

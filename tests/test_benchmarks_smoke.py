@@ -51,6 +51,7 @@ def table_rows(stdout: str, header: str) -> list[list[str]]:
     return rows
 
 
+@pytest.mark.alone
 @pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
 def test_bench_latency_prints_its_tables(tmp_path: Path) -> None:
     out = tmp_path / "latency.json"
@@ -106,6 +107,7 @@ def test_bench_channels_prints_its_tables(tmp_path: Path) -> None:
     assert set(result["hops"]) == {"LetChannel", "SampleQueue", "raw numpy"}
 
 
+@pytest.mark.alone
 @pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
 def test_bench_jiwy_sweeps_rates_next_to_cyclictest() -> None:
     stdout = run_script("bench_jiwy.py", "--duration", "0.3", "--rounds", "1", "--rates", "1000,2000",
@@ -129,6 +131,7 @@ def test_bench_peers_puts_iceoryx2_and_dora_beside_rtloop() -> None:
     assert "dora-rs period jitter" in stdout
 
 
+@pytest.mark.alone
 def test_bench_hotpath_measures_the_iteration_in_c(tmp_path: Path) -> None:
     out = tmp_path / "hotpath.json"
     stdout = run_script("bench_hotpath.py", "--rounds", "1", "--block-s", "0.3", "--op-repeats", "200",
@@ -168,6 +171,7 @@ def test_bench_port_writer_puts_the_held_writer_beside_a_mapping_per_write() -> 
     assert "held PortWriter" in stdout and "RunningApp.write (map per write)" in stdout
 
 
+@pytest.mark.alone
 @pytest.mark.skipif(shutil.which("cyclictest") is None, reason="cyclictest (rt-tests) is not installed")
 def test_bench_wakeup_trace_splits_both_contenders_wake_ups(tmp_path: Path) -> None:
     from rtloop.linux import trace
@@ -186,6 +190,7 @@ def test_bench_wakeup_trace_splits_both_contenders_wake_ups(tmp_path: Path) -> N
     assert set(result["contenders"]["rtloop"]["us"]) == {"timer", "to run", "exit", "user", "total"}
 
 
+@pytest.mark.alone
 def test_bench_disk_writes_counts_the_supervisors_requests_apart(tmp_path: Path) -> None:
     from rtloop.linux import trace
 

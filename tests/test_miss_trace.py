@@ -90,6 +90,7 @@ def test_without_tracefs_trace_misses_is_one_note_and_the_run_goes_on(tmp_path: 
     assert summary.tasks["idle"].timing.cycles > 0
 
 
+@pytest.mark.alone
 def test_a_private_tracefs_mount_is_gone_after_the_run(tmp_path: Path) -> None:
     usable, why = trace.availability()
     if not usable or trace.find_tracefs() is not None:
@@ -150,6 +151,7 @@ def test_held_sees_a_thread_whose_switch_out_of_idle_went_untraced() -> None:
             if "rtloop-hog" in str(item["who"])] == []
 
 
+@pytest.mark.alone
 def test_trace_misses_names_the_thread_that_held_the_tasks_cpu(tmp_path: Path) -> None:
     """A process of this test, at FIFO 90 on the task's CPU, spins for 8 periods now and then: the
     task (FIFO 50) wakes late, and the trace names the thread (its comm, set here) as the holder.

@@ -152,6 +152,7 @@ def _lets_own_simulation_differs(app_file: Path, run_dir: Path, tmp_path: Path, 
         run_dir / "signals.csv")
 
 
+@pytest.mark.alone
 @pytest.mark.rt
 @pytest.mark.timeout(300)
 @pytest.mark.skipif(shutil.which("stress-ng") is None, reason="stress-ng is not installed (apt install stress-ng)")

@@ -70,6 +70,7 @@ def _starve_and_interrupt(tmp_path: Path, name: str, cpus: list[int], env: dict[
 @pytest.mark.slow
 @skip_in_rtkernel_guest("the scenario needs tasks at 50 kHz that fill their 65,536-record rings within seconds; "
                         "emulated tasks run ~20x slower, never fill them, and nothing is lost to count")
+@pytest.mark.alone
 def test_ctrl_c_ends_a_run_that_starves_the_supervisor_and_reports_what_was_lost(tmp_path: Path, rtloop_env):
     cpus = sorted(os.sched_getaffinity(0))
     if len(cpus) < 2:
