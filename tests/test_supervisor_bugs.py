@@ -105,8 +105,15 @@ def test_a_second_ctrl_c_during_the_final_flush_keeps_summary_and_metadata(tmp_p
 
     monkeypatch.setattr(recorder.Recorder, "close", interrupted_close)
     out = tmp_path / "o"
-    with pytest.raises(KeyboardInterrupt):  # honoured, once everything is written
-        rtloop.simulate(counter_app(f"ctrlc_{os.getpid()}"), 0.05, out)
+    # Ctrl-C's usual handler, whatever pytest inherited: a process started as a background job (`cmd &`
+    # in a script, nohup) begins with SIGINT ignored, Python then installs no handler for it, and a
+    # Ctrl-C held back during the flush is rightly dropped afterwards.
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):  # honoured, once everything is written
+            rtloop.simulate(counter_app(f"ctrlc_{os.getpid()}"), 0.05, out)
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["running"] is False and summary["tasks"]["count"]["cycles"] == 50
     assert (out / "metadata.yaml").exists()
