@@ -12,7 +12,7 @@
 # (test_run.py's other real-time tests are scaled for the guest and pass there, but each starts
 # processes that take tens of seconds under emulation: they run on the host, and in the guest by
 # hand: tools/rtkernel-vm.sh .venv/bin/python -m pytest -m "rt or rtkernel" tests/test_run.py.)
-# Serially (-p no:xdist: pyproject.toml's addopts run the host suite in 2 processes; here one emulated
+# Serially (-p no:xdist: pyproject.toml's addopts run the host suite in 3 processes; here one emulated
 # machine runs ~20x slower, and the tests' slowdown scaling assumes it runs one test at a time).
 # Prints the pytest counts and the wall time.
 #

@@ -189,7 +189,7 @@ export RTLOOP_GUEST=1 RTLOOP_GUEST_DEVICES=$map RTLOOP_GUEST_ACCEL=$ACCEL
 export RTLOOP_TEST_SLOWDOWN=${SLOWDOWN:-$([ "$ACCEL" = tcg ] && echo 20 || echo 1)}
 # starting a task process (Python, numpy, mlockall) takes that much longer too
 export RTLOOP_STARTUP_ALLOWANCE_S=$((30 * ${RTLOOP_TEST_SLOWDOWN%.*}))
-# pytest runs serially here, by hand too (pyproject.toml's addopts run the host suite in 2 processes;
+# pytest runs serially here, by hand too (pyproject.toml's addopts run the host suite in 3 processes;
 # tests/conftest.py then takes those options and ignores them)
 export PYTEST_ADDOPTS="-p no:xdist${PYTEST_ADDOPTS:+ $PYTEST_ADDOPTS}"
 [ -d "$PROJECT/.venv/bin" ] && export PATH="$PROJECT/.venv/bin:$PATH" VIRTUAL_ENV="$PROJECT/.venv"
