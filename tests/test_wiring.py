@@ -386,6 +386,7 @@ def test_ports_from_the_cli_move_the_gimbal_and_stream_its_angles(tmp_path: Path
 
 
 @pytest.mark.rt
+@pytest.mark.alone  # another process's run would remove the dead run's segments before this test looks
 def test_killing_supervisor_and_task_leaves_nothing_after_the_next_run(tmp_path: Path) -> None:
     name = unique_name("jiwy_killed")
     process = _jiwy_cli(tmp_path, name, 30)
