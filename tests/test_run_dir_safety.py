@@ -193,26 +193,29 @@ def test_a_disk_already_full_is_refused_before_the_run(tiny_disk: Path, tmp_path
     assert not out.exists()  # no empty summary.json, no temporary left behind
 
 
+class _PaddedSummary:
+    """What SummaryFile.write asks of a summary: ``to_json``, here of a given size."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+
+    def to_json(self) -> dict[str, str]:
+        return {"pad": "x" * self.size}
+
+
 def test_the_summary_is_never_left_empty_on_a_full_disk(tiny_disk: Path) -> None:
     from rtloop.record.summary import SummaryFile
-
-    class Text:  # what SummaryFile.write asks of a summary
-        def __init__(self, size: int) -> None:
-            self.size = size
-
-        def to_json(self) -> dict[str, str]:
-            return {"pad": "x" * self.size}
 
     out = tiny_disk / "run"
     out.mkdir()
     summary = SummaryFile(out)
     fill(tiny_disk)
-    assert summary.write(Text(3000))  # the reserve is given up for it
+    assert summary.write(_PaddedSummary(3000))  # the reserve is given up for it
     assert not (out / ".summary-reserve").exists()
     fill(tiny_disk)
-    assert not summary.write(Text(30_000)) and "summary.json not written" in summary.problem
+    assert not summary.write(_PaddedSummary(30_000)) and "summary.json not written" in summary.problem
     assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * 3000}  # the previous one, whole
-    assert summary.write(Text(2000))  # smaller: over the previous one's own blocks
+    assert summary.write(_PaddedSummary(2000))  # smaller: over the previous one's own blocks
     assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * 2000}
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
 
@@ -223,20 +226,13 @@ def test_summaries_growing_to_the_bound_are_still_written_on_a_full_disk(tiny_di
     with 20 misses kept in full on a loaded machine, ended with its last running summary.)"""
     from rtloop.record.summary import SummaryFile
 
-    class Text:  # what SummaryFile.write asks of a summary
-        def __init__(self, size: int) -> None:
-            self.size = size
-
-        def to_json(self) -> dict[str, str]:
-            return {"pad": "x" * self.size}
-
     out = tiny_disk / "run"
     out.mkdir()
     summary = SummaryFile(out)
-    assert summary.write(Text(1000))
+    assert summary.write(_PaddedSummary(1000))
     fill(tiny_disk)
     for size in (SUMMARY_BOUND_BYTES // 2, SUMMARY_BOUND_BYTES - 8192, SUMMARY_BOUND_BYTES - 100):  # growing
-        assert summary.write(Text(size)), (size, summary.problem)
+        assert summary.write(_PaddedSummary(size)), (size, summary.problem)
         assert json.loads((out / "summary.json").read_text()) == {"pad": "x" * size}
     assert sorted(p.name for p in out.iterdir()) == ["summary.json"]
 
