@@ -98,6 +98,32 @@ def _reader_of(channel_segment: Segment, n_values: int, spans: list[tuple[slice,
     return wiring, work, status, [control, task]
 
 
+def test_a_replayed_read_takes_the_sample_given_in_place_of_the_channels(hot_path) -> None:
+    """``read_inputs(release_ns, instead)``, the replay's stale reads: the given sample (the input's
+    scratch layout) goes where the channel's would, None keeps the inputs, and the channel is not read."""
+    segment = Segment.create("hotpath", os.getpid(), new_run_token(), "y", LetChannel.size_bytes(3, 2))
+    made = [segment]
+    try:
+        LetChannel.initialise(segment, 3, 2).publish(0, np.array([1.0, 2.0, 3.0]))
+        spans = [(slice(2, 3), slice(0, 1)), (slice(0, 2), slice(1, 3))]
+        wiring, work, _status, more = _reader_of(segment, 3, spans, P)
+        made += more
+        work.start(0, 10 * P, 0)
+        work.read_inputs(0, {0: np.array([7.0, 8.0, 9.0])})
+        assert wiring.u.tolist() == [9.0, 7.0, 8.0]
+        work.read_inputs(P, {0: None})  # the run found no sample at all: the inputs keep their values
+        assert wiring.u.tolist() == [9.0, 7.0, 8.0] and work.stale_reads == 0
+        work.read_inputs(P, None)
+        assert wiring.u.tolist() == [3.0, 1.0, 2.0]
+        for wrong, error in (({1: None}, ValueError), ({0: np.zeros(2)}, ValueError), ([None], TypeError),
+                             ({"0": None}, TypeError)):
+            with pytest.raises(error):
+                work.read_inputs(P, wrong)  # type: ignore[arg-type]
+    finally:
+        for made_segment in made:
+            made_segment.unlink()
+
+
 def test_a_writer_stuck_mid_write_costs_one_bounded_stale_read_and_no_torn_input(hot_path) -> None:
     segment = Segment.create("hotpath", os.getpid(), new_run_token(), "y", LetChannel.size_bytes(3, 2))
     made = [segment]

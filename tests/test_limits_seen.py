@@ -144,15 +144,26 @@ def test_a_guarded_connection_runs_as_it_simulates(tmp_path: Path, hot_path: str
 
     replayed = replay(tmp_path / "run", tmp_path / "replay",  # the replay goes through the same guard
                       guarded_app("lim_conn_p", min=-10.0, max=10.0, rate_per_s=1500.0))
-    divergence = replayed.divergence
-    if (divergence is not None and any("stale read of ctl" in entry for entry in divergence.run_log)
-            and [name for name, *_ in divergence.signals] == ["plant.u[0]"]):
-        # An open defect, not this test's subject: runtime/replay/timeline.py's read_inputs writes a
-        # stale read's sample over the inputs after the connection's guard acted on the LET sample,
-        # so the replayed value is the raw one (22.0 where the run's guard gave 10.0). It shows only
-        # when the run had a stale read on the guarded connection (a loaded machine).
-        pytest.xfail(f"replay of a stale read on a guarded connection bypasses the guard: {divergence}")
     assert replayed.equal, replayed.divergence or replayed.cannot
+
+
+def test_a_replayed_stale_read_goes_through_the_connections_guard(tmp_path: Path, hot_path: str) -> None:
+    """A stale read on a guarded connection, replayed: the guard acts on the sample the run read, and its
+    rate limit goes on from there, as in the run's loop. The stale read is written into the run's reads.csv
+    (a simulation has none; a real one needs a loaded machine): at cycle 3 plant read ctl's initial 0.0
+    (stamp 0) in place of the 22 due at 3P."""
+    guard = {"min": -10.0, "max": 10.0, "rate_per_s": 1500.0}  # 3.0 per 2 ms cycle
+    rtloop.simulate(guarded_app("lim_stale_s", **guard), 0.02, tmp_path / "run")
+    with open(tmp_path / "run" / "reads.csv", "a") as file:
+        file.write(f"plant,3,ctl,0,{3 * PERIOD_NS}\n")
+    from rtloop.runtime.replay import replay
+
+    replayed = replay(tmp_path / "run", tmp_path / "replay", guarded_app("lim_stale_p", **guard))
+    force = [row["plant.u[0]"] for row in rows(tmp_path / "replay")]
+    # 0.0 read at cycle 3 moves 3.0 down from 6.0 (not to 0.0, raw), then 22 held at 10 climbs back 3 a cycle
+    assert force[:8] == [0.0, 3.0, 6.0, 3.0, 6.0, 9.0, 10.0, 10.0]
+    assert replayed.divergence is not None  # the run read no stale sample: the replay says where it parts
+    assert [name for name, *_ in replayed.divergence.signals] == ["plant.u[0]"]
 
 
 def test_an_app_file_connection_takes_min_max_and_rate_per_s(tmp_path: Path) -> None:

@@ -609,18 +609,32 @@ static void log_input(Core *self, LivePort *port, int64_t since_t0_ns) {
     push(&self->input_log, since_t0_ns, row);
 }
 
-static void read_inputs(Core *self, int64_t release_ns) {
+static void copy_spans(Core *self, const Input *input, const int64_t *values) {
+    for (int64_t s = 0; s < input->n_spans; s++) {
+        const Span *span = &input->spans[s];
+        memcpy(self->u + span->to, values + span->from, span->count * 8);
+    }
+}
+
+/* A replay's stale read that found no sample at all (the inputs keep what they held) */
+static const int64_t NOTHING_READ[1];
+
+/* instead: NULL in the loop; a replay's stale reads: per input, NULL (read the channel) or what the
+   run read instead (the input's scratch layout, or NOTHING_READ). The guards act on either. */
+static void read_inputs(Core *self, int64_t release_ns, const int64_t *const *instead) {
     int64_t since_t0_ns = release_ns - self->t0_ns;
     for (Py_ssize_t i = 0; i < self->n_inputs; i++) {
         Input *input = &self->inputs[i];
+        if (instead != NULL && instead[i] != NULL) {
+            if (instead[i] != NOTHING_READ)
+                copy_spans(self, input, instead[i]);
+            continue;
+        }
         int64_t stamp = read_channel(input, release_ns);
         if (stamp == INITIAL_STAMP) /* the writer's initial outputs, published before T0: valid from T0 */
             stamp = self->t0_ns;
         if (stamp != NO_STAMP)
-            for (int64_t s = 0; s < input->n_spans; s++) {
-                Span *span = &input->spans[s];
-                memcpy(self->u + span->to, input->scratch + span->from, span->count * 8);
-            }
+            copy_spans(self, input, input->scratch);
         int64_t entitled = self->t0_ns + since_t0_ns / input->period_ns * input->period_ns;
         if (stamp < entitled) { /* the writer has not published what we are entitled to */
             self->stale_reads++;
@@ -791,7 +805,7 @@ static PyObject *start_cycle(Core *self, int64_t start_ns) {
     if (set_tick(self, str_cycle, self->cycle) < 0 || set_tick(self, str_release_ns, release_ns) < 0 ||
         set_tick(self, str_start_ns, start_ns) < 0)
         return NULL;
-    read_inputs(self, release_ns);
+    read_inputs(self, release_ns, NULL);
     Py_RETURN_TRUE;
 }
 
@@ -901,16 +915,67 @@ static PyObject *Core_finish_at(Core *self, PyObject *arg) {
     return end_cycle(self, end_ns);
 }
 
-/* read_inputs(release_ns) and publish_outputs(cycle, publish_ns): the simulator's steps */
-static PyObject *Core_read_inputs(Core *self, PyObject *arg) {
+/* read_inputs(release_ns[, instead]) and publish_outputs(cycle, publish_ns): the simulator's steps.
+   instead (a replay's stale reads): {input index: what the run read in place of the channel's sample,
+   a float64 array of the input's width, or None for nothing read}; the guards then act on it. */
+static PyObject *Core_read_inputs(Core *self, PyObject *const *args, Py_ssize_t nargs) {
     if (self->closed) {
         PyErr_SetString(PyExc_ValueError, "hot path: this Core is closed");
         return NULL;
     }
-    int64_t release_ns = PyLong_AsLongLong(arg);
+    if (nargs < 1 || nargs > 2) {
+        PyErr_SetString(PyExc_TypeError, "read_inputs(release_ns[, instead])");
+        return NULL;
+    }
+    int64_t release_ns = PyLong_AsLongLong(args[0]);
     if (release_ns == -1 && PyErr_Occurred())
         return NULL;
-    read_inputs(self, release_ns);
+    PyObject *instead = nargs == 2 && args[1] != Py_None ? args[1] : NULL;
+    if (instead == NULL) {
+        read_inputs(self, release_ns, NULL);
+        Py_RETURN_NONE;
+    }
+    if (!PyDict_Check(instead)) {
+        PyErr_SetString(PyExc_TypeError, "hot path: read_inputs' instead must be a dict");
+        return NULL;
+    }
+    Py_ssize_t n = self->n_inputs > 0 ? self->n_inputs : 1;
+    const int64_t **rows = PyMem_Calloc(n, sizeof *rows);
+    Py_buffer *views = PyMem_Calloc(n, sizeof *views);
+    int failed = rows == NULL || views == NULL;
+    if (failed)
+        PyErr_NoMemory();
+    PyObject *key, *value;
+    Py_ssize_t position = 0;
+    while (!failed && PyDict_Next(instead, &position, &key, &value)) {
+        Py_ssize_t i = PyLong_AsSsize_t(key);
+        if (i == -1 && PyErr_Occurred()) {
+            failed = 1;
+        } else if (i < 0 || i >= self->n_inputs) {
+            PyErr_Format(PyExc_ValueError, "hot path: read_inputs' instead names input %zd of %zd", i,
+                         self->n_inputs);
+            failed = 1;
+        } else if (value == Py_None) {
+            rows[i] = NOTHING_READ;
+        } else if (PyObject_GetBuffer(value, &views[i], PyBUF_C_CONTIGUOUS) < 0) {
+            failed = 1;
+        } else if (views[i].len != self->inputs[i].width * 8) {
+            PyErr_Format(PyExc_ValueError, "hot path: read_inputs' instead for input %zd holds %zd bytes, "
+                         "not %lld", i, views[i].len, (long long)(self->inputs[i].width * 8));
+            failed = 1;
+        } else {
+            rows[i] = views[i].buf;
+        }
+    }
+    if (!failed)
+        read_inputs(self, release_ns, rows);
+    for (Py_ssize_t i = 0; views != NULL && i < self->n_inputs; i++)
+        if (views[i].obj != NULL)
+            PyBuffer_Release(&views[i]);
+    PyMem_Free(views);
+    PyMem_Free(rows);
+    if (failed)
+        return NULL;
     Py_RETURN_NONE;
 }
 
@@ -1020,7 +1085,8 @@ static PyMethodDef Core_methods[] = {
      "set_finite_check(indices, faults, labels, error_type): NaN/inf crossing a connection."},
     {"begin_at", (PyCFunction)Core_begin_at, METH_O, "begin() on a given clock: begin_at(start_ns), no sleep."},
     {"finish_at", (PyCFunction)Core_finish_at, METH_O, "finish() on a given clock: finish_at(end_ns)."},
-    {"read_inputs", (PyCFunction)Core_read_inputs, METH_O, "read_inputs(release_ns)"},
+    {"read_inputs", (PyCFunction)(void (*)(void))Core_read_inputs, METH_FASTCALL,
+     "read_inputs(release_ns[, instead])"},
     {"measure_busy", (PyCFunction)Core_measure_busy, METH_NOARGS, "Sum wake-up → next sleep from now on."},
     {"publish_outputs", (PyCFunction)(void (*)(void))Core_publish_outputs, METH_FASTCALL,
      "publish_outputs(cycle, publish_ns)"},

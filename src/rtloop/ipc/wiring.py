@@ -134,10 +134,10 @@ class TaskWiringPlan:
 class _WriterLink:
     """Every connection from one writer: one seqlock read per cycle, then a copy per connection."""
 
-    __slots__ = ("channel", "copies", "first", "period_ns", "scratch", "sources", "spans")
+    __slots__ = ("channel", "copies", "first", "period_ns", "scratch", "sources", "spans", "writer")
 
     def __init__(self, channel: LetChannel, links: list[InputLink], u: np.ndarray) -> None:
-        self.channel, self.period_ns = channel, links[0].writer_period_ns
+        self.channel, self.period_ns, self.writer = channel, links[0].writer_period_ns, links[0].writer
         self.first = min(link.source.start for link in links)
         stop = max(link.source.stop for link in links)
         self.sources = channel.source_views(slice(self.first, stop))
@@ -352,9 +352,20 @@ class TaskWiring:
                                       "a connection is a fault (allow_nonfinite = true on the connection lets it "
                                       "through)")
 
-    def read_inputs(self, release_ns: int, u: np.ndarray) -> None:
+    def read_inputs(self, release_ns: int, u: np.ndarray, instead: dict[int, np.ndarray | None] | None = None) -> None:
+        """Read the inputs valid at ``release_ns`` into ``u``, then guard them. ``instead`` (a replay's
+        stale reads): per link index, what the run read in its place (``link.scratch``'s layout), or
+        None for nothing read; the guards act on it as they did in the run."""
         t0_ns = self.t0_ns
+        if instead is not None:
+            self._check_instead(instead)
         for index, link in enumerate(self.links):
+            if instead is not None and index in instead:
+                read_then = instead[index]
+                if read_then is not None:
+                    for a, b, n in link.spans:
+                        u[b : b + n] = read_then[a : a + n]
+                continue
             stamp = link.channel.read_valid_at(release_ns, link.sources, link.scratch)
             if stamp == INITIAL_STAMP:  # the writer's initial outputs, published before T0: valid from T0
                 stamp = t0_ns
@@ -380,6 +391,20 @@ class TaskWiring:
                 self._log_input(self.input_log, release_ns - t0_ns, port_index, target)
         for profile in self.profiles:
             profile.read(release_ns - t0_ns, fresh)
+
+    def _check_instead(self, instead: dict[int, np.ndarray | None]) -> None:
+        """The C core's checks of a replay's ``instead``, with the same exceptions."""
+        if not isinstance(instead, dict):
+            raise TypeError("read_inputs' instead must be a dict")
+        for index, read_then in instead.items():
+            if not isinstance(index, int):
+                raise TypeError(f"read_inputs' instead names input {index!r}, not an index")
+            if not 0 <= index < len(self.links):
+                raise ValueError(f"read_inputs' instead names input {index} of {len(self.links)}")
+            width = len(self.links[index].scratch)
+            if read_then is not None and np.shape(read_then) != (width,):
+                raise ValueError(f"read_inputs' instead for input {index} holds {np.shape(read_then)} values, "
+                                 f"not {width}")
 
     def _log_input(self, log: SampleQueue, since_t0_ns: int, index: float, values: np.ndarray) -> None:
         """A port delivered a new value at this release: log it so the run can be replayed."""

@@ -19,6 +19,7 @@ import numpy as np
 from rtloop.app.builder import App
 from rtloop.errors import AppError, DeviceError, StopRequested, TaskFailed
 from rtloop.ipc.hotpath import announce_once
+from rtloop.ipc.wiring import TaskWiring
 from rtloop.record.summary import (
     RunSummary,
 )
@@ -69,8 +70,8 @@ class LetTimeline:
         """The cycle ``task`` runs after ``cycle`` (None: no more)."""
         return cycle + 1
 
-    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, u: np.ndarray) -> None:
-        """Read ``task``'s inputs for the release of ``cycle`` into ``u`` (the hot path's read)."""
+    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, wiring: TaskWiring) -> None:
+        """Read ``task``'s inputs for the release of ``cycle`` into ``wiring.u`` (the hot path's read)."""
         io.read_inputs(release_ns)
 
     def published(self, task: str, cycle: int, y: np.ndarray) -> None:
@@ -222,7 +223,7 @@ def _release(task: TaskRun, cycle: int, release_ns: int, timeline: LetTimeline, 
     tick, work = task.tick, task.cycle
     assert work is not None
     tick.cycle, tick.release_ns, tick.start_ns = cycle, release_ns, release_ns
-    timeline.read_inputs(task.name, cycle, release_ns, work, task.u)
+    timeline.read_inputs(task.name, cycle, release_ns, work, task.wiring)
     started = time.perf_counter_ns()
     task.job(cycle)
     outcome.host_exec[task.name].add(time.perf_counter_ns() - started)

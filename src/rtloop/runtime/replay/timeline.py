@@ -83,13 +83,12 @@ class RunTimeline(LetTimeline):
     def next_cycle(self, task: str, cycle: int) -> int | None:
         return self._next[task].get(cycle)
 
-    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, u: np.ndarray) -> None:
+    def read_inputs(self, task: str, cycle: int, release_ns: int, io: Any, wiring: Any) -> None:
         late = self.reads.get((task, cycle))
-        if late is None:
-            io.read_inputs(release_ns)
-        else:
-            before = u.copy()
-            io.read_inputs(release_ns)
+        instead: dict[int, np.ndarray | None] | None = None
+        if late is not None:  # the run read these samples in place of LET's: so does the replay
+            instead = {}
+            links = {link.writer: index for index, link in enumerate(wiring.links)}
             for writer, stamp_ns in late:
                 sample = None if stamp_ns is None else self._take(writer, stamp_ns)
                 if stamp_ns is not None and sample is None:
@@ -97,10 +96,11 @@ class RunTimeline(LetTimeline):
                         f"{task} cycle {cycle} read {writer}'s sample stamped {stamp_ns} ns, which the "
                         f"replayed {writer} never published (its timing record is missing)")))
                     continue
-                for source, target in self.spans[(task, writer)]:
-                    u[target] = before[target] if sample is None else sample[source]
+                link = wiring.links[links[writer]]
+                instead[links[writer]] = None if sample is None else sample[link.first : link.first + len(link.scratch)]
+        io.read_inputs(release_ns, instead)  # a connection's guard acts on what the run read, as it did in the run
         if (task, cycle) in self.capture:
-            self.captured[(task, cycle)] = u.copy()
+            self.captured[(task, cycle)] = wiring.u.copy()
 
     def _take(self, writer: str, stamp_ns: int) -> np.ndarray | None:
         key = (writer, stamp_ns)
