@@ -15,7 +15,7 @@ import rtloop
 from conftest import unique_name
 from device_test_drivers import MirrorTwin, read_log
 from replay_helpers import compare_signals, first_miss_s
-from rt_test_runnables import Gain
+from rt_test_runnables import Counter, Gain
 from rtloop import App
 from rtloop.app.appfile import load_app
 from rtloop.errors import AppError
@@ -164,6 +164,31 @@ def test_a_replayed_stale_read_goes_through_the_connections_guard(tmp_path: Path
     assert force[:8] == [0.0, 3.0, 6.0, 3.0, 6.0, 9.0, 10.0, 10.0]
     assert replayed.divergence is not None  # the run read no stale sample: the replay says where it parts
     assert [name for name, *_ in replayed.divergence.signals] == ["plant.u[0]"]
+
+
+def test_a_keep_window_replays_a_guarded_connection_from_where_its_rate_limit_stood(
+        tmp_path: Path, hot_path: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A --keep run replayed from a task snapshot: the guard's rate limit goes on from the input the
+    snapshot holds, not from the input's start value (the replay gave 0.5 where the run had 1080.0).
+    ``ctl`` counts 1, 2, 3...; the connection lets plant's input climb 0.5 a cycle, far behind."""
+    from rtloop.record import flight
+    from rtloop.runtime.replay import replay
+
+    monkeypatch.setattr(flight, "MIN_SEGMENT_NS", 250_000_000)  # 20 segments: the early ones are gone
+
+    def counting_app(name: str) -> App:
+        app = App(unique_name(name))
+        ctl = app.add_task("ctl", Counter(), period_ns=PERIOD_NS)
+        plant = app.add_task("plant", Gain(1, 1.0), period_ns=PERIOD_NS)
+        app.connect(ctl.y[0:1], plant.u[0:1], rate_per_s=250.0)
+        app.record(ctl.y, plant.u)
+        return app
+
+    rtloop.run(counting_app("lim_keep_r"), 5.0, tmp_path / "run", keep_s=0.5)
+    result = replay(tmp_path / "run", tmp_path / "replay", counting_app("lim_keep_p"))
+    assert result.from_s > 0, "the files no longer hold the run from t = 0: the replay starts from a snapshot"
+    assert result.equal, result.divergence or result.cannot
+    assert rows(tmp_path / "replay")[0]["plant.u[0]"] > 100.0
 
 
 def test_an_app_file_connection_takes_min_max_and_rate_per_s(tmp_path: Path) -> None:

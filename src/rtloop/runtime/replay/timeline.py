@@ -65,6 +65,8 @@ class RunTimeline(LetTimeline):
         assert snapshot.state is not None
         restore_state(task.runnable, snapshot.state)
         task.u[:] = snapshot.u
+        guards = task.wiring.guards  # a guarded input holds what its guard let through last: its rate limit goes on
+        guards.last[:] = task.u[guards.indices]  # from there (in place: the C core holds this vector)
         task.y[:] = task.wiring.initial_y[:] = snapshot.y
         task.wiring.stamp_initial(t0_ns, last_cycle=snapshot.last_cycle, period_ns=task.period_ns)
         for stamp_ns, values in getattr(snapshot, "outputs", ()):  # older samples a late read may still get
