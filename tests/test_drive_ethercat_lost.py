@@ -10,6 +10,7 @@ import csv
 import json
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -388,3 +389,30 @@ def test_lost_frames_while_a_drive_resets_its_fault_do_not_use_up_the_resets() -
         cycle.prepare_outputs(np.zeros(device.n_inputs))
         _lose_at(device, 10.0 + k * 0.001, y)
     assert cycle.joints[0].machine.reset_tries <= 1
+
+
+def test_the_python_receive_waits_on_a_socket_numbered_past_1023() -> None:
+    """The Python receive path (the C one's reference, and what runs without the C build) waits for a
+    lost frame's timeout with ppoll: select() refuses a descriptor of 1024 or more ("filedescriptor out
+    of range"), which a task holding many files, sockets and devices reaches."""
+    import os
+    import resource
+    import socket
+
+    device, _y = _device_losing(3)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 1600:
+        pytest.skip(f"this process may open no descriptor numbered 1500 (its hard limit is {hard})")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 1600), hard))
+    ours, peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        high = socket.socket(fileno=os.dup2(ours.fileno(), 1500))
+        device._expected_wkc = 3  # what configuring one slave sets (no bus here)
+        device._bind(device.cycle, high)
+        device._sent_at = time.monotonic()
+        assert device._receive() == -1  # nothing came back within timeout_us: lost, no ValueError
+        high.close()
+    finally:
+        ours.close()
+        peer.close()
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))

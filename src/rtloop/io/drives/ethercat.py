@@ -32,7 +32,6 @@ them out of OP and the drives quick-stop by themselves.
 
 from __future__ import annotations
 
-import select
 import socket
 import struct
 import time
@@ -42,6 +41,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rtloop.errors import DeviceError, DeviceFault, DeviceMismatch
+from rtloop.io.cansocket import ReadableWait
 from rtloop.io.compiled import devio
 from rtloop.io.device import Claim, CommandLimit, Device, FloatVector, Setting, positive
 from rtloop.io.drives import ethercat_dc as dc
@@ -343,6 +343,7 @@ class EthercatDevice(Device):
         self._copy_commands: Any = None  # write(u) in C (io/_devio.c Copies), for the vector it was built for
         self._commands_from: Any = None
         self.socket = sock
+        self._readable = ReadableWait(sock.fileno())  # ppoll: to the ns, and any descriptor (select stops at 1023)
         self._sent_at = 0.0
         cycle.link(self.socket.fileno(), self._frame, self._reply, self._wkc_at, self._expected_wkc,
                    round(self.timeout_s * 1e9), self._dc_wkc_at, self._dc.with_dc, self.lost_frames_max > 0)
@@ -362,7 +363,7 @@ class EthercatDevice(Device):
         """The working counter of the answer to the frame just sent (``index``: its datagram's, by
         default the cycle's frame's); -1 when it did not come within ``timeout_us`` of the send (a
         late answer is seen as it comes, a lost one at the kernel's first tick after the timeout; with
-        ``lost_frames_max`` at the timeout: select, to the µs). Answers to earlier frames (late ones)
+        ``lost_frames_max`` at the timeout: ppoll, to the µs). Answers to earlier frames (late ones)
         are passed over, as many as come before the timeout."""
         reply, wkc_at = self._reply, self._wkc_at if command == LRW else DATA_AT + data_bytes
         index = self._frame[17] if index < 0 else index
@@ -372,7 +373,7 @@ class EthercatDevice(Device):
         precise = self.lost_frames_max > 0
         while True:
             try:
-                if precise and not select.select((self.socket,), (), (), max(0.0, deadline - time.monotonic()))[0]:
+                if precise and not self._readable.wait(max(0, round((deadline - time.monotonic()) * 1e9))):
                     return -1
                 size = self.socket.recv_into(reply, 0, socket.MSG_DONTWAIT if precise else 0)
             except BlockingIOError:  # a tick (SO_RCVTIMEO) before the timeout: wait on
