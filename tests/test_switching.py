@@ -238,7 +238,8 @@ def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit
         assert unknown.stderr.count("\n") == 1, unknown.stderr
         shadow = _cli("switch", name, "controller", "soft", "--shadow", env=rtloop_env)
         assert shadow.returncode == 0, shadow.stderr
-        shadow_from = int(shadow.stdout.split("at cycle ")[1].split()[0])
+        assert "soft runs in shadow from cycle " in shadow.stdout, shadow.stdout
+        shadow_from = int(shadow.stdout.split("from cycle ")[1].split()[0])
         wait_for_cycles(app, "controller", max(1500, shadow_from + 300), process)  # the shadow's rows before it
         # about 0.2 s ahead of the command's own start (an --at-cycle named before it started was a past
         # release when a loaded machine took over 3 s to start it): said if late, as for the switch back
@@ -593,6 +594,18 @@ class _FakeApp:
 
     def write(self, port: str, values: list[float]) -> None:
         self.written.append((port, values))
+
+
+def test_each_switch_answer_names_its_release_in_plain_words() -> None:
+    from rtloop.ipc.switch_requests import SwitchPort, _request
+
+    port = SwitchPort("controller", "controller_switch", ("pid", "soft"), 1_000_000)
+    current = [0.0, 0.0, -1.0, 0.0]  # pid active, no shadow
+    said = {mode: _request(current, port, "soft", 6605, mode)[1] for mode in ("active", "shadow")}
+    assert said["active"] == "soft active at cycle 6605 (t = 6.605000 s)"
+    assert said["shadow"] == "soft runs in shadow from cycle 6605 (t = 6.605000 s)"  # was "from at cycle"
+    values, promoted = _request([0.0, 0.0, 1.0, 0.0], port, None, 7000, "promote")
+    assert promoted == "soft promoted at cycle 7000 (t = 7.000000 s)" and values[:3] == [1.0, 7000.0, 1.0]
 
 
 def test_several_tasks_switch_at_one_instant_or_none_does() -> None:

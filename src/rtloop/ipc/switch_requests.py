@@ -113,7 +113,8 @@ def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: i
              mode: Mode) -> tuple[list[float], str]:
     """The switch port's four values for this request (no new code: 0), and the answer to print."""
     active_request, shadow = float(current[0]), float(current[2])
-    when = f"at cycle {at_cycle} (t = {at_cycle * port.period_ns / 1e9:.6f} s)"
+    release = f"cycle {at_cycle} (t = {at_cycle * port.period_ns / 1e9:.6f} s)"
+    when = f"at {release}"
     if mode == "stop_shadow":
         return [active_request, float(at_cycle), -1.0, 0.0], f"shadow controller stopped {when}"
     if mode == "promote":
@@ -125,5 +126,5 @@ def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: i
     assert controller is not None
     wanted = float(port.controllers.index(controller))
     if mode == "shadow":
-        return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {when}"
+        return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {release}"
     return [wanted, float(at_cycle), shadow, 0.0], f"{controller} active {when}"
