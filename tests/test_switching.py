@@ -393,6 +393,65 @@ def test_simulate_loads_reloaded_code_at_the_cycle_asked_and_lists_the_reload(tm
     assert changes[20] <= 1.5 * normal, f"a bump at the reload: {changes[20]} against {normal}"
 
 
+def test_one_file_reloaded_into_two_controllers_in_turn_loads_into_each(tmp_path: Path) -> None:
+    # both controllers' classes live in one module: reloading it for the second after the first was asked
+    # for the same code id, which the task took for a request it had already passed on (refused, no answer)
+    from rtloop.code_reload import code_file_name, code_id_of
+
+    app_file = _reload_app(tmp_path, "sw_reload_two", None)
+    app_file.write_text(app_file.read_text().replace(
+        "[[connect]]", '[tasks.ctl.controllers.pi2]\nrunnable = "reload_ctl:Pi"\nargs = { kp = 2.0, ki = 5.0 }\n'
+        "[[connect]]", 1))
+    new_code = RELOAD_MODULE.format(gain=3.0).encode()
+    code_id = code_id_of(new_code)
+    out = tmp_path / "sim"
+    (out / "code").mkdir(parents=True)
+    for controller in ("pi", "pi2"):
+        (out / "code" / code_file_name(controller, code_id)).write_bytes(new_code)
+    profile = tmp_path / "reload.csv"
+    profile.write_text("t_s,controller,switch_at_cycle,shadow,code\n0,0,0,-1,0\n"
+                       f"0.1,0,200,-1,{code_id}\n0.25,1,300,-1,{code_id}\n")
+    app = load_app(app_file)
+    app.feed("ctl_switch", profile)
+    run = rtloop.simulate(app, duration_s=0.4, out=out, force=True)
+    # (the second lists no code: the listing shows a code where the active code changed, and both run this one)
+    assert [(s["cycle"], s["from"], s["to"]) for s in run.switches] == [(200, "pi", "pi"), (300, "pi", "pi2")]
+    signals = rtloop.load(out).signals
+    assert np.asarray(signals["ctl.switch_refusals"])[-1] == 0
+    assert (np.asarray(signals["ctl.active_code"])[-50:] == code_id).all()
+
+
+def test_reloading_the_code_the_task_was_just_asked_for_says_so_at_once(tmp_path: Path, monkeypatch) -> None:
+    # the task passes a code on once: the same request again got no answer, and the command waited 10 s to
+    # say "is the task running?"
+    import argparse
+
+    import rtloop.ipc.ports
+    from rtloop.cli import reload
+    from rtloop.code_reload import code_id_of
+
+    module = tmp_path / "reload_ctl.py"
+    module.write_text(RELOAD_MODULE.format(gain=1.0))
+    code_id = code_id_of(module.read_bytes())
+
+    class RunningApp:  # what rtloop reload reads of a running app: its switch port and its run folder
+        def __init__(self) -> None:
+            self.name = "sw_again"
+            self.ports = {"ctl_switch": {"controllers": ["pi", "pi2"], "switch_task": "ctl", "period_ns": 1_000_000,
+                                         "sources": {"pi": str(module), "pi2": str(module)}}}
+            self.registry = {"summary": str(tmp_path / "run" / "summary.json")}
+
+        def peek(self, _port: str) -> list[float]:
+            return [0.0, 4200.0, -1.0, float(code_id)]  # pi asked for this code at cycle 4200
+
+    monkeypatch.setattr(rtloop.ipc.ports, "connect_app", lambda *_args, **_kwargs: RunningApp())
+    args = argparse.Namespace(app="sw_again", task="ctl", controller=None, file=None, at_cycle=None, user=None)
+    with pytest.raises(rtloop.errors.PortValueError, match=r"asked for this very code for pi already "
+                       r"\(code [0-9a-f]{12}, at cycle 4200\): nothing new to load; edit the file first"):
+        reload.run(args)
+    assert not (tmp_path / "run").exists()  # nothing kept, nothing written to the task
+
+
 @pytest.mark.rt
 @pytest.mark.slow
 def test_live_reload_acts_from_the_named_release_refuses_bad_code_and_replays(tmp_path: Path, rtloop_env) -> None:

@@ -134,6 +134,7 @@ class CodeReloader:
     def ask(self, index: int, code_id: int) -> None:
         self.request_index, self.request_code = index, code_id
         self.ready_code = 0
+        self.finished.discard(code_id)  # the same file asked again for another controller: wait for this answer
         self.done.clear()
         os.write(self._wake_w, b"r")
 

@@ -216,6 +216,8 @@ class Controllers(Runnable):
         self.codes = [0.0] * len(self.alternatives)
         """Per controller, the id of the reloaded code it runs (0: the code it started with)."""
         self._code_asked = 0.0
+        self._index_asked = -1.0
+        """The controller the reloader was last asked to build ``_code_asked`` for (one file may hold both)."""
         self.stepped_release_ns = 0
         """The release of the last step taken (set in place: the attribute exists before the loop)."""
         self._refused_index = self._refused_at = self._refused_code = math.nan
@@ -239,8 +241,9 @@ class Controllers(Runnable):
         n_out = self.n_common_outputs
         at = self.switch_start
         requested, at_cycle, shadow, code = u[at], u[at + 1], u[at + 2], u[at + 3]
-        if code != self._code_asked:  # new code asked for: the reloader prepares it, outside the loop
-            self._code_asked = code
+        if code != self._code_asked or (code and requested != self._index_asked):
+            # new code asked for (or the same file for another controller): the reloader prepares it, outside the loop
+            self._code_asked, self._index_asked = code, requested
             if code and self._reloader is not None and 0 <= requested < len(self.alternatives):
                 self._reloader.ask(int(requested), int(code))
         new_code = bool(code) and 0 <= requested < len(self.alternatives) and code != self.codes[int(requested)]

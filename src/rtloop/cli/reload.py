@@ -54,6 +54,11 @@ def run(args: argparse.Namespace) -> int:
         raise PortValueError(f"{source_path}:{error.lineno}: {error.msg}: not loaded; the old code keeps "
                              "running") from None
     code_id = code_id_of(source)
+    if float(code_id) == float(current[3]) and name == port.controllers[int(current[0])]:
+        # the task passes a code on to its reload thread once: it would wait for an answer that never comes
+        raise PortValueError(f"{source_path}: task {args.task!r} was asked for this very code for {name} already "
+                             f"(code {code_id:012x}, at cycle {int(current[1])}): nothing new to load; edit the "
+                             "file first, or give another one with --file")
     run_dir = _run_dir(app.registry)
     code_dir = run_dir / "code"
     _keep(code_dir, code_file_name(name, code_id), source)
