@@ -460,3 +460,17 @@ def test_both_drive_devices_share_the_joints_limits_table_check_and_quick_stop_s
     for kind in ("canopen402", "ethercat"):
         with pytest.raises(DeviceError, match=r"devices\.axis\.joints: expected one table per drive, in bus order"):
             build_device(kind, "axis", {"interface": "vcan0", "joints": ["wheel"]}, "t")
+
+
+def test_the_emulated_node_without_a_can_interface_says_what_to_do(capsys: pytest.CaptureFixture[str]) -> None:
+    from rtloop.io.cansocket import can_supported
+    from rtloop.io.drives.canopen_node import serve
+
+    assert serve("rtlnobus0", CanopenNode(3)) == 3  # not ready: exit 3
+    said = capsys.readouterr().err
+    assert said.startswith("rtloop io emulate canopen: cannot open CAN interface 'rtlnobus0': ")
+    assert said.count("\n") == 1, said
+    if can_supported():  # this kernel has no CAN: where to get one
+        assert "this kernel has no SocketCAN: run it on a kernel with the can and vcan modules" in said, said
+    else:  # the interface is missing: how to make it
+        assert "sudo ip link add rtlnobus0 type vcan; sudo ip link set rtlnobus0 up" in said, said

@@ -296,6 +296,17 @@ class CanopenNode:
 
 # --- on a SocketCAN interface ---------------------------------------------------------------------------
 
+def _can_fix(interface: str) -> str:
+    """What to do when ``interface`` does not open as a CAN socket."""
+    from rtloop.io.cansocket import can_supported
+
+    if can_supported():
+        return ("this kernel has no SocketCAN: run it on a kernel with the can and vcan modules "
+                "(the PREEMPT_RT test guest has them: tools/rtkernel-vm.sh, docs/rtkernel-guest.md)")
+    return (f"make a virtual bus with: sudo ip link add {interface} type vcan; sudo ip link set {interface} up "
+            f"(a real bus: sudo ip link set {interface} up type can bitrate 500000)")
+
+
 def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0, priority: int = 0) -> int:
     """Answer on ``interface`` until SIGTERM/SIGINT (or ``stop_after_s``), at SCHED_FIFO ``priority``
     when given (a drive must answer within the master's TPDO timeout)."""
@@ -304,7 +315,7 @@ def serve(interface: str, node: CanopenNode, stop_after_s: float = 0.0, priority
         sock.bind((interface,))
     except (OSError, AttributeError) as error:
         print(f"rtloop io emulate canopen: cannot open CAN interface {interface!r}: "
-              f"{getattr(error, 'strerror', None) or error}", file=sys.stderr)
+              f"{getattr(error, 'strerror', None) or error}: {_can_fix(interface)}", file=sys.stderr)
         return 3
     sock.settimeout(POLL_S)
     stopping = []
