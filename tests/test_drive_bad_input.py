@@ -4,6 +4,7 @@ or the interface is found missing by the device's check."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -38,6 +39,16 @@ def _rtloop(*args: str) -> subprocess.CompletedProcess[str]:
      "devices.gimbal.joints[0]: counts_per_rev must be > 0"),
     ({"kp_Nm_per_rad = 2.842e-4": "kp_Nm_per_rad = 2.842e-4\nspring = 3.0"},
      "devices.gimbal.joints[0].drive.spring: unknown"),
+    # a count's radians underflowed to 0.0: the first command divided by zero in the loop (a traceback)
+    ({PAN_MODE: PAN_MODE.replace("4096", "1e308")},
+     "devices.gimbal.joints[0]: counts_per_rev must be a whole number 1..4294967296, got 1e+308"),
+    ({PAN: "gear_ratio = 1e308\n"}, "devices.gimbal.joints[0]: gear_ratio must be 1e-06..1e+06"),
+    # the drive model counted 2, the device 2.5
+    ({PAN_MODE: PAN_MODE.replace("4096", "2.5")}, "devices.gimbal.joints[0]: counts_per_rev must be a whole number"),
+    ({PAN_MODE: PAN_MODE.replace('"csp"', '["csp"]')},
+     "devices.gimbal.joints[0].mode: ['csp'] is not a mode rtloop drives"),
+    ({PAN_MODE: PAN_MODE.replace('mode = "csp"', 'modes = ["csp", "csp"]')},
+     "devices.gimbal.joints[0].modes: 'csp' is listed twice"),
 ])
 def test_a_joint_table_that_cannot_be_driven_is_refused_as_the_app_loads(tmp_path: Path, replace: dict[str, str],
                                                                           words: str) -> None:
@@ -116,6 +127,46 @@ def test_an_esi_file_that_does_not_parse_is_named(tmp_path: Path) -> None:
     with pytest.raises(DeviceError, match=r"joints\[0\]\.esi: .*drive.xml: cannot read it as an ESI file"):
         _app().add_device("arm", "ethercat", task="ctl", interface="ecm0", esi_dir=str(tmp_path),
                           joints=[{"name": "pan", "esi": "drive.xml", "counts_per_rev": 4096}])
+
+
+def _esi_joint_refused(tmp_path: Path, esi: str, words: str) -> None:
+    with pytest.raises(DeviceError, match=words):
+        _app().add_device("arm", "ethercat", task="ctl", interface="ecm0", esi_dir=str(tmp_path),
+                          joints=[{"name": "pan", "esi": esi, "mode": "csp", "counts_per_rev": 4096}])
+
+
+def test_an_esi_files_entities_are_refused_not_expanded_or_fetched(tmp_path: Path) -> None:
+    laughs = "".join(f'<!ENTITY l{i} "{f"&l{i - 1};" * 10 if i else "lol"}">' for i in range(10))
+    (tmp_path / "laughs.xml").write_text(f'<?xml version="1.0"?><!DOCTYPE x [{laughs}]>\n'
+                                         + ESI.split("\n", 1)[1].replace("rtloop</Name>", "&l9;</Name>"))
+    _esi_joint_refused(tmp_path, "laughs.xml", r"joints\[0\]\.esi: .*laughs.xml: cannot read it as an ESI file "
+                       r"\(it declares the entity 'l0'; an ESI file has no DTD entities")
+    (tmp_path / "outside.xml").write_text('<?xml version="1.0"?><!DOCTYPE x [<!ENTITY e SYSTEM "file:///etc/passwd">]>'
+                                          + ESI.split("\n", 1)[1].replace("rtloop</Name>", "&e;</Name>"))
+    _esi_joint_refused(tmp_path, "outside.xml",
+                       r"outside.xml: cannot read it as an ESI file \(it declares the entity 'e'")
+
+
+def test_an_esi_path_that_is_no_regular_file_or_too_large_is_refused_without_reading_it(tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.xml"  # opened, it would block the load forever
+    os.mkfifo(fifo)
+    _esi_joint_refused(tmp_path, "fifo.xml", r"joints\[0\]\.esi: .*fifo.xml: not a regular file, so not an ESI file")
+    (tmp_path / "zero.xml").symlink_to("/dev/zero")
+    _esi_joint_refused(tmp_path, "zero.xml", r"zero.xml: not a regular file")
+    (tmp_path / "folder.xml").mkdir()
+    _esi_joint_refused(tmp_path, "folder.xml", r"folder.xml: not a regular file")
+    with (tmp_path / "huge.xml").open("wb") as huge:
+        huge.truncate(2 << 30)  # sparse: 2 GB that take no disk
+    _esi_joint_refused(tmp_path, "huge.xml",
+                       r"huge.xml: 2147483648 bytes, more than an ESI file rtloop reads \(32 MiB\)")
+
+
+def test_an_esi_identity_past_32_bits_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "wide.xml").write_text(ESI.replace("#x00000A7E", "#x1FFFFFFFF"))
+    _esi_joint_refused(tmp_path, "wide.xml", r"wide.xml: not an ESI file rtloop reads \(its vendor 8589934591 is not "
+                       r"a 32-bit number\)")
+    (tmp_path / "negative.xml").write_text(ESI.replace("#x00000A7E", "-5"))
+    _esi_joint_refused(tmp_path, "negative.xml", r"its vendor -5 is not a 32-bit number")
 
 
 def test_two_drive_devices_on_one_interface_are_refused() -> None:

@@ -5,6 +5,8 @@ the bus (the same send, poll and receive calls as on SocketCAN). On vcan0 in the
 
 from __future__ import annotations
 
+import logging
+import os
 import re
 import socket
 import struct
@@ -324,6 +326,41 @@ def test_an_eds_gives_the_identity_and_a_broken_one_is_bad_input(tmp_path: Path)
     eds.write_text("this is not [an EDS\n")
     with pytest.raises(DeviceError, match=r"joints\[0\]\.eds: .*not an EDS file rtloop reads"):
         build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**joint, "eds": str(eds)}]}, "t")
+
+
+def test_an_eds_path_that_is_no_regular_file_too_large_or_out_of_range_is_one_line(tmp_path: Path) -> None:
+    pytest.importorskip("canopen", reason="reading an EDS needs the canopen package (rtloop[canopen])")
+    joint = {key: value for key, value in JOINT.items() if key not in ("vendor", "product", "revision")}
+
+    def refused(name: str, words: str) -> None:
+        with pytest.raises(DeviceError, match=words) as caught:
+            build_device("canopen402", "axis", {"interface": "vcan0", "joints": [
+                {**joint, "eds": str(tmp_path / name)}]}, "t")
+        assert "\n" not in str(caught.value)
+
+    os.mkfifo(tmp_path / "fifo.eds")  # opened, it would block the load forever
+    refused("fifo.eds", r"joints\[0\]\.eds: .*fifo.eds: not a regular file, so not an EDS file")
+    with (tmp_path / "huge.eds").open("wb") as huge:
+        huge.truncate(2 << 30)  # sparse; read whole, it took minutes and 2 GB
+    refused("huge.eds", r"huge.eds: 2147483648 bytes, more than an EDS file rtloop reads \(32 MiB\)")
+    (tmp_path / "minus.eds").write_text("[DeviceInfo]\nVendorNumber=-1\nProductNumber=0x402402\n"
+                                        "RevisionNumber=0x10000\n")
+    refused("minus.eds", r"joints\[0\]\.eds: .*minus.eds: its vendor number -1 is not a 32-bit number")
+
+
+def test_an_eds_parsers_warnings_do_not_reach_stderr(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Bad input is one line: the canopen package logged a line per object it skipped before it."""
+    pytest.importorskip("canopen", reason="reading an EDS needs the canopen package (rtloop[canopen])")
+    caplog.set_level(logging.WARNING)
+    eds = tmp_path / "odd.eds"
+    eds.write_text("[DeviceInfo]\nVendorNumber=0xA7E\nProductNumber=0x402402\nRevisionNumber=0x10000\n"
+                   "[MandatoryObjects]\nSupportedObjects=0\n" + "".join(
+                       f"\n[{index:04X}]\nParameterName=o\nObjectType=0x7\nDataType=0xFFFF\nAccessType=rw\n"
+                       for index in (0x6041, 0x6064)))
+    joint = {key: value for key, value in JOINT.items() if key not in ("vendor", "product", "revision")}
+    with pytest.raises(DeviceError, match=r"not in the EDS file"):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**joint, "eds": str(eds)}]}, "t")
+    assert not [record for record in caplog.records if record.name.startswith("canopen")]
 
 
 @pytest.mark.parametrize("lost", ["heartbeat", "tpdo"])

@@ -101,6 +101,7 @@ def test_sign_and_magnitude_values_round_trip() -> None:
 
 @pytest.mark.parametrize(("servos", "key", "words"), [
     ([{**PAN_TILT[0], "range_rad": [-3.5, 3.5]}], "servos[0].range_rad", "outside the servo's 0..4095"),
+    ([{**PAN_TILT[0], "range_rad": [-1e308, 1e308]}], "servos[0].range_rad", "outside the servo's 0..4095"),
     ([{**PAN_TILT[0], "model": "XM999"}], "servos[0].model", "is not a dynamixel model"),
     ([PAN_TILT[0], {**PAN_TILT[1], "id": 1}], "servos[1].id", "also servos[0]'s"),
     ([{**PAN_TILT[0], "direction": 2}], "servos[0].direction", "expected 1 or -1"),

@@ -29,6 +29,8 @@ is killed the supervisor sends NMT stop, and the drive's own SYNC or heartbeat w
 from __future__ import annotations
 
 import importlib
+import io
+import logging
 import time
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -47,6 +49,7 @@ from rtloop.io.drives.joints import (
     joint_from_table,
     joint_limits,
     joint_tables_check,
+    read_description_file,
 )
 from rtloop.io.drives.pdo import OBJECTS
 from rtloop.io.drives.safe_transition import safe_transition
@@ -66,22 +69,34 @@ def _node_id(value: int) -> str | None:
 
 def read_eds(path: Path, node: int, where: str) -> tuple[dict[str, int], set[int]]:
     """An EDS file's identity (vendor, product, revision) and the object indices it describes."""
-    if not path.is_file():
-        raise JointError(f"{where}.eds", f"{path}: no such file")
+    data = read_description_file(path, f"{where}.eds", "an EDS file")
     try:
         # by name: the optional package's types are not rtloop's to check (it may be absent)
         import_od: Any = importlib.import_module("canopen.objectdictionary").import_od
     except ImportError:
         raise JointError(f"{where}.eds", "reading an EDS file needs the canopen package: "
                          "pip install 'rtloop[canopen]'") from None
+    source = io.StringIO(data.decode("utf-8", errors="replace"))
+    source.name = str(path)  # the parser picks the format by the name's suffix
+    # the parser logs what it skips (a data type it does not know, ...) to stderr, a line each: the
+    # answer is ours to give, in one line
+    parser_log = logging.getLogger("canopen")
+    level = parser_log.level
+    parser_log.setLevel(logging.CRITICAL)
     try:
-        od = import_od(str(path), node)
+        od = import_od(source, node)
         info = od.device_information
         identity = {"vendor": info.vendor_number, "product": info.product_number, "revision": info.revision_number}
         indices = {int(index) for index in od.indices}
     except Exception as error:  # the parser raises many kinds on a broken file: all mean "does not parse"
         raise JointError(f"{where}.eds", f"{path}: not an EDS file rtloop reads ({type(error).__name__}: "
                          f"{error})") from None
+    finally:
+        parser_log.setLevel(level)
+    for key, value in identity.items():
+        if isinstance(value, int) and not 0 <= value <= 0xFFFFFFFF:  # 0x1018's entries: 32 bits each
+            raise JointError(f"{where}.eds", f"{path}: its {key} number {value} is not a 32-bit number "
+                             "(0x1018, [DeviceInfo])")
     return {key: value for key, value in identity.items() if isinstance(value, int)}, indices
 
 

@@ -118,6 +118,10 @@ class StatusBits:
     FOLLOWING_ERROR = 1 << 13  # in CSP; a mode-specific bit
 
 
+MAX_COUNTS_PER_REV = 1 << 32
+GEAR_RATIO_MIN, GEAR_RATIO_MAX = 1e-6, 1e6
+
+
 @dataclass(frozen=True, slots=True)
 class JointScale:
     """Raw drive units ↔ SI units at the joint.
@@ -144,8 +148,17 @@ class JointScale:
         """What is wrong with these numbers (one phrase), or None."""
         if not (math.isfinite(self.counts_per_rev) and self.counts_per_rev > 0):
             return f"counts_per_rev must be > 0, got {self.counts_per_rev!r}"
+        # an encoder counts whole steps, and the drive model takes them as an int: 2.5 would make the
+        # twin (2 counts) and the device (2.5) disagree; past 32 bits no drive's position fits
+        if self.counts_per_rev != int(self.counts_per_rev) or self.counts_per_rev > MAX_COUNTS_PER_REV:
+            return f"counts_per_rev must be a whole number 1..{MAX_COUNTS_PER_REV}, got {self.counts_per_rev!r}"
         if not (math.isfinite(self.gear_ratio) and self.gear_ratio > 0):
             return f"gear_ratio must be > 0 (motor revolutions per joint revolution), got {self.gear_ratio!r}"
+        # bounded so that a count's radians (2π / (counts · gear)) stays a finite, non-zero number:
+        # 1e308 made it 0.0, and the first command a division by zero in the loop
+        if not GEAR_RATIO_MIN <= self.gear_ratio <= GEAR_RATIO_MAX:
+            return (f"gear_ratio must be {GEAR_RATIO_MIN:g}..{GEAR_RATIO_MAX:g} (motor revolutions per joint "
+                    f"revolution), got {self.gear_ratio!r}")
         if self.direction not in (1, -1):
             return f"direction must be 1 or -1, got {self.direction!r}"
         if not (math.isfinite(self.rated_torque_Nm) and self.rated_torque_Nm > 0):

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import stat
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from xml.parsers import expat
 
 from rtloop.io.device import CommandLimit, Setting, positive
 from rtloop.io.drives import cia402
@@ -31,7 +33,8 @@ from rtloop.io.drives.drive_model import DriveParameters
 from rtloop.io.drives.pdo import DEFAULT_RXPDO, DEFAULT_TXPDO, OBJECTS, PdoLayout, parse_object
 from rtloop.io.drives.sii import Identity
 
-__all__ = ["QUICK_STOP_TIMEOUT", "JointConfig", "JointError", "joint_from_table", "joint_limits", "joint_tables_check"]
+__all__ = ["QUICK_STOP_TIMEOUT", "JointConfig", "JointError", "joint_from_table", "joint_limits", "joint_tables_check",
+           "read_description_file"]
 
 JOINT_KEYS = {"name", "vendor", "product", "revision", "mode", "modes", "counts_per_rev", "gear_ratio", "direction",
               "rated_torque_Nm", "rxpdo", "txpdo", "esi", "drive", "dc"}
@@ -135,12 +138,55 @@ def _objects(table: dict[str, Any], key: str, where: str, default: tuple[int, ..
     return tuple(objects)
 
 
+DESCRIPTION_FILE_MAX_BYTES = 32 << 20
+"""An ESI or EDS file larger than this is refused: a vendor's ESI for a whole family of drives is a
+few MB; a 2 GB file (or /dev/zero behind a symlink) would be read into memory before the app starts."""
+
+
+def read_description_file(path: Path, key: str, what: str) -> bytes:
+    """The bytes of a drive's ESI or EDS file (``what``), refused (naming ``key``) when it is missing,
+    not a regular file (a directory, a FIFO that blocks forever, a device) or too large."""
+    try:
+        status = path.stat()
+    except FileNotFoundError:
+        raise JointError(key, f"{path}: no such file") from None
+    except OSError as error:
+        raise JointError(key, f"{path}: cannot read it as {what} ({error.strerror or error})") from None
+    if not stat.S_ISREG(status.st_mode):
+        raise JointError(key, f"{path}: not a regular file, so not {what}")
+    if status.st_size > DESCRIPTION_FILE_MAX_BYTES:
+        raise JointError(key, f"{path}: {status.st_size} bytes, more than {what} rtloop reads "
+                         f"({DESCRIPTION_FILE_MAX_BYTES >> 20} MiB)")
+    try:
+        with path.open("rb") as file:
+            data = file.read(DESCRIPTION_FILE_MAX_BYTES + 1)  # a file growing meanwhile stops here
+    except OSError as error:
+        raise JointError(key, f"{path}: cannot read it as {what} ({error.strerror or error})") from None
+    if len(data) > DESCRIPTION_FILE_MAX_BYTES:
+        raise JointError(key, f"{path}: more than {what} rtloop reads ({DESCRIPTION_FILE_MAX_BYTES >> 20} MiB)")
+    return data
+
+
+def _refuse_entity(name: str, *_: Any) -> None:
+    raise ValueError(f"it declares the entity {name!r}; an ESI file has no DTD entities (refused, not expanded)")
+
+
+def _parse_esi_xml(data: bytes) -> ElementTree.Element:
+    """The XML tree, after a first pass that refuses any entity declaration: nothing is expanded (a
+    billion laughs) or fetched (an external entity), whatever the expat version's own limits."""
+    checker = expat.ParserCreate()
+    checker.EntityDeclHandler = _refuse_entity
+    checker.Parse(data, True)
+    return ElementTree.fromstring(data)
+
+
 def read_esi(path: Path, where: str) -> tuple[Identity, tuple[int, ...], tuple[int, ...], bool]:
     """An ESI file's first device: identity, the objects of its first RxPDO and TxPDO, and whether
     it describes a distributed clocks operation mode (``Dc/OpMode`` with a non-zero AssignActivate)."""
+    data = read_description_file(path, f"{where}.esi", "an ESI file")
     try:
-        root = ElementTree.parse(path).getroot()
-    except (OSError, ElementTree.ParseError) as error:
+        root = _parse_esi_xml(data)
+    except (ValueError, expat.ExpatError, ElementTree.ParseError) as error:
         raise JointError(f"{where}.esi", f"{path}: cannot read it as an ESI file ({error})") from None
 
     def number(text: str | None) -> int:
@@ -156,6 +202,10 @@ def read_esi(path: Path, where: str) -> tuple[Identity, tuple[int, ...], tuple[i
         if kind is None:
             raise ValueError("no Device/Type")
         identity = Identity(vendor, number(kind.get("ProductCode")), number(kind.get("RevisionNo")))
+        for field, value in (("vendor", identity.vendor), ("product code", identity.product),
+                             ("revision", identity.revision)):
+            if not 0 <= value <= 0xFFFFFFFF:  # what the SII holds: 32 bits each
+                raise ValueError(f"its {field} {value} is not a 32-bit number")
         mappings = []
         for tag in ("RxPdo", "TxPdo"):
             pdo = device.find(tag)
@@ -218,10 +268,12 @@ def joint_from_table(table: Any, slave: int, base_dir: Path | None = None) -> Jo
         raise JointError(f"{where}.modes", "expected a list such as ['csp', 'csv']")
     modes = []
     for text in mode_names:
-        if text not in MODES:
+        if not isinstance(text, str) or text not in MODES:
             raise JointError(f"{where}.mode{'s' if 'modes' in table else ''}",
                              f"{text!r} is not a mode rtloop drives; expected one of {sorted(MODES)} "
                              "(cyclic synchronous position, velocity, torque)")
+        if MODES[text] in modes:
+            raise JointError(f"{where}.modes", f"{text!r} is listed twice")
         modes.append(MODES[text])
     scale = JointScale(_number(table, "counts_per_rev", where), _number(table, "gear_ratio", where, 1.0),
                        int(_number(table, "direction", where, 1)), _number(table, "rated_torque_Nm", where, 1.0))
