@@ -286,7 +286,7 @@ class _Drive:
                 self.end.send(bytes(frame))
 
 
-def _device_stopping(lost_frames_max: int, answer: bool) -> tuple[Any, _Drive]:
+def _device_stopping(lost_frames_max: int, answer: bool, quick_stop_timeout_s: float = 0.1) -> tuple[Any, _Drive]:
     """An EtherCAT device past T0 with its drive in operation enabled, on a socket pair (no bus)."""
     import socket
     import struct
@@ -298,7 +298,8 @@ def _device_stopping(lost_frames_max: int, answer: bool) -> tuple[Any, _Drive]:
     joint = {"name": "pan", "vendor": DEFAULT_IDENTITY.vendor, "product": DEFAULT_IDENTITY.product,
              "revision": DEFAULT_IDENTITY.revision, "mode": "csp", "counts_per_rev": 4096}
     device = build_device("ethercat", "arm", {"interface": "ecm2", "joints": [joint], "timeout_us": 2000.0,
-                                              "quick_stop_timeout_s": 0.1, "lost_frames_max": lost_frames_max},
+                                              "quick_stop_timeout_s": quick_stop_timeout_s,
+                                              "lost_frames_max": lost_frames_max},
                           "<test>")
     master, slave = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
     master.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, struct.pack("@ll", 0, 1000))  # as open_raw's
@@ -327,12 +328,18 @@ def test_a_safe_transition_whose_frames_are_lost_is_a_fault_that_says_so(lost_fr
 
 
 def test_a_safe_transition_the_drive_follows_ends_quietly() -> None:
-    device, drive = _device_stopping(2, answer=True)
+    """Quick stop until the drive is seen at rest, then disable voltage. The drive's thread answers
+    each frame at once, but a loaded machine may run it after the frame's 1 ms receive timeout: that
+    exchange is lost and the quick stop goes out again, so only the order is asserted (and the
+    transition is given seconds: it ends as soon as the drive follows)."""
+    device, drive = _device_stopping(2, answer=True, quick_stop_timeout_s=30.0)
     try:
         device.write_safe(np.zeros(device.n_inputs))
     finally:
         device.socket.close()
-    assert drive.controlwords[:2] == [0x0002, 0x0000]  # quick stop, then (at rest) disable voltage
+    assert 0x0000 in drive.controlwords, drive.controlwords  # disable voltage went out
+    first_disable = drive.controlwords.index(0x0000)
+    assert first_disable >= 1 and set(drive.controlwords[:first_disable]) == {0x0002}, drive.controlwords
 
 
 def test_an_injection_that_cannot_happen_is_refused_not_made_on_another_slave() -> None:
