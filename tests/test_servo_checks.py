@@ -292,3 +292,51 @@ def test_the_cycle_keeps_nothing_allocated(kind: str, pure_python: bool, cycles:
     grown = [stat for stat in after.compare_to(before, "lineno") if stat.size_diff > 0]
     assert not grown, grown
     assert device.stale_reads == 0 and np.all(np.abs(y[:6] - 0.0) < 1.0)
+
+
+class _AnswersOfSome:
+    """A line on which only the servos of ``answering`` answer each sync read (once per request)."""
+
+    def __init__(self, kind: str, model: str, answering: list[int]) -> None:
+        from rtloop.io.servos.model import build_bus
+
+        self.bus = build_bus(kind, answering, [model] * len(answering), 0.002) if answering else None
+        self.pending = b""
+
+    def send(self, data: Any) -> None:
+        self.pending = bytes(self.bus.receive(bytes(data))) if self.bus is not None else b""
+
+    def receive(self, buffer: memoryview, timeout_ns: int) -> int:
+        answers, self.pending = self.pending, b""  # then nothing more within the timeout
+        buffer[:len(answers)] = answers
+        return len(answers)
+
+    def flush_input(self) -> None:
+        self.pending = b""
+
+
+def test_the_stale_fault_names_the_servo_that_went_silent_not_every_one_the_last_read_missed() -> None:
+    from rtloop.errors import DeviceFault
+    from rtloop.io.device import build_device
+    from rtloop.io.servos.line import ModelLine
+    from rtloop.io.servos.model import build_bus
+
+    servos = [{"name": name, "id": i, "model": "STS3215", "range_rad": [-1, 1]}
+              for i, name in enumerate(("pan", "lift", "elbow"), start=1)]
+    device = build_device("feetech", "arm", {"port": "/dev/ttyX", "servos": servos, "on_missing": "stale",
+                                             "max_stale_in_a_row": 3}, "app.toml")
+    device.attach(ModelLine(build_bus("feetech", [1, 2, 3], ["STS3215"] * 3, 0.002)))
+    device.activate()
+    y, u = np.zeros(device.n_outputs), np.zeros(3)
+    device.line = _AnswersOfSome("feetech", "STS3215", [1, 2])  # servo 3 (elbow) went silent
+    for _ in range(2):
+        device.write(u)
+        device.read(y)
+    device.line = _AnswersOfSome("feetech", "STS3215", [])  # one read that none answers: the 3rd of elbow's
+    device.write(u)
+    with pytest.raises(DeviceFault) as fault:
+        device.read(y)
+    said = str(fault.value)
+    assert "servo 3 (elbow) did not answer the sync read on /dev/ttyX for 3 reads in a row" in said, said
+    assert "1 (pan)" not in said and "2 (lift)" not in said, said  # they missed this one read only
+    assert device.stale_by_servo == [1, 1, 3]

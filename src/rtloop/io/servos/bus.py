@@ -335,13 +335,16 @@ class ServoBusDevice(Device):
         np.multiply(self.stale_in_a_row, self.missing, out=self.stale_in_a_row)  # an answer resets its count
         for index in np.flatnonzero(self.missing):  # (names the servos: not in a cycle that was whole)
             self.stale_by_servo[index] += 1
-        if int(self.stale_in_a_row.max()) >= self.config["max_stale_in_a_row"]:
-            raise DeviceFault(f"device {self.name!r}: {self._missing_phrase()} on {self.config['port']} for "
-                              f"{int(self.stale_in_a_row.max())} reads in a row (max_stale_in_a_row = "
-                              f"{self.config['max_stale_in_a_row']}): {state.problem}")
+        limit = self.config["max_stale_in_a_row"]
+        if int(self.stale_in_a_row.max()) >= limit:
+            # names the servos that reached the limit, not every one this read missed (those may have missed it once)
+            raise DeviceFault(f"device {self.name!r}: {self._missing_phrase(self.stale_in_a_row >= limit)} on "
+                              f"{self.config['port']} for {int(self.stale_in_a_row.max())} reads in a row "
+                              f"(max_stale_in_a_row = {limit}): {state.problem}")
 
-    def _missing_phrase(self) -> str:
-        names = [f"{spec.servo_id} ({spec.name})" for spec, gone in zip(self.specs, self.missing, strict=True) if gone]
+    def _missing_phrase(self, which: np.ndarray | None = None) -> str:
+        gone_ones = self.missing if which is None else which
+        names = [f"{spec.servo_id} ({spec.name})" for spec, gone in zip(self.specs, gone_ones, strict=True) if gone]
         return f"servo{'s' if len(names) > 1 else ''} {', '.join(names)} did not answer the sync read"
 
     def _status_errors(self) -> None:
