@@ -667,6 +667,29 @@ def test_each_switch_answer_names_its_release_in_plain_words() -> None:
     assert promoted == "soft promoted at cycle 7000 (t = 7.000000 s)" and values[:3] == [1.0, 7000.0, 1.0]
 
 
+def test_a_shadow_of_the_active_controller_or_a_stop_of_no_shadow_is_refused_not_reported_done() -> None:
+    from rtloop.errors import PortValueError
+    from rtloop.ipc.switch_requests import SwitchPort, _request
+
+    port = SwitchPort("controller", "controller_switch", ("pid", "soft"), 1_000_000)
+    with pytest.raises(PortValueError, match="pid is the active controller of task 'controller'"):
+        _request([0.0, 0.0, -1.0, 0.0], port, "pid", 100, "shadow")  # the task would ignore it
+    with pytest.raises(PortValueError, match="task 'controller' runs no shadow controller to stop"):
+        _request([0.0, 0.0, -1.0, 0.0], port, None, 100, "stop_shadow")
+    assert _request([0.0, 0.0, 1.0, 0.0], port, None, 100, "stop_shadow")[0][2] == -1.0
+
+
+def test_an_at_cycle_past_what_the_switch_port_holds_names_the_option() -> None:
+    from rtloop.errors import PortValueError
+    from rtloop.ipc.switch_requests import switch
+
+    app = _FakeApp()
+    with pytest.raises(PortValueError, match=r"at cycle 100000000000000000000000000000: task 'left' would reach it "
+                                             r"at its cycle 100000000000000000000000000000, past the last a switch"):
+        switch(app, {"left": "lqr"}, at_cycle=10**29)  # type: ignore[arg-type]
+    assert app.written == []
+
+
 def test_several_tasks_switch_at_one_instant_or_none_does() -> None:
     from rtloop.errors import PortValueError
     from rtloop.ipc.switch_requests import switch

@@ -14,7 +14,6 @@ written: a request naming a task or controller that does not exist changes nothi
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -98,7 +97,7 @@ def switch(app: RunningApp, changes: Mapping[str, str | None], *, at_cycle: int 
         chosen.append((port, controller))
     t0_ns, at_ns = release_at(app, chosen[0][0], at_cycle, lead_s, "switch")
     requests = [(port, *_request(app.peek(port.port), port, controller,
-                                 math.ceil((at_ns - t0_ns) / port.period_ns), mode))
+                                 _cycle_of(at_ns - t0_ns, port, at_cycle), mode))
                 for port, controller in chosen]  # all built (and refused) before the first write
     answers = []
     for port, values, said in requests:
@@ -109,6 +108,20 @@ def switch(app: RunningApp, changes: Mapping[str, str | None], *, at_cycle: int 
     return answers
 
 
+MAX_SWITCH_CYCLE = 1 << 53
+"""The last cycle a switch can name: the switch port holds it as a double, exact up to 2**53."""
+
+
+def _cycle_of(since_t0_ns: int, port: SwitchPort, asked: int | None) -> int:
+    """The first release of ``port``'s task at or after ``since_t0_ns``; past the port's range (an
+    ``--at-cycle`` of 1e29) refused naming the option, not the port's internal range."""
+    cycle = -(-since_t0_ns // port.period_ns)  # integers: a float division loses cycles past 2**53
+    if cycle > MAX_SWITCH_CYCLE:
+        raise PortValueError(f"at cycle {asked}: task {port.task!r} would reach it at its cycle {cycle}, past the "
+                             f"last a switch can name ({MAX_SWITCH_CYCLE}, 2**53)")
+    return cycle
+
+
 def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: int,
              mode: Mode) -> tuple[list[float], str]:
     """The switch port's four values for this request (no new code: 0), and the answer to print."""
@@ -116,6 +129,8 @@ def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: i
     release = f"cycle {at_cycle} (t = {at_cycle * port.period_ns / 1e9:.6f} s)"
     when = f"at {release}"
     if mode == "stop_shadow":
+        if shadow < 0:
+            raise PortValueError(f"task {port.task!r} runs no shadow controller to stop")
         return [active_request, float(at_cycle), -1.0, 0.0], f"shadow controller stopped {when}"
     if mode == "promote":
         if shadow < 0 and controller is None:
@@ -126,5 +141,8 @@ def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: i
     assert controller is not None
     wanted = float(port.controllers.index(controller))
     if mode == "shadow":
+        if wanted == active_request:  # the task ignores it; the answer said it ran
+            raise PortValueError(f"{controller} is the active controller of task {port.task!r} (or the one it was asked "
+                                 "for): a shadow runs another beside it")
         return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {release}"
     return [wanted, float(at_cycle), shadow, 0.0], f"{controller} active {when}"
