@@ -142,7 +142,7 @@ def _request(current: Any, port: SwitchPort, controller: str | None, at_cycle: i
     wanted = float(port.controllers.index(controller))
     if mode == "shadow":
         if wanted == active_request:  # the task ignores it; the answer said it ran
-            raise PortValueError(f"{controller} is the active controller of task {port.task!r} (or the one it was asked "
-                                 "for): a shadow runs another beside it")
+            raise PortValueError(f"{controller} is the active controller of task {port.task!r} (or the one it was "
+                                 "asked for): a shadow runs another beside it")
         return [active_request, float(at_cycle), wanted, 0.0], f"{controller} runs in shadow from {release}"
     return [wanted, float(at_cycle), shadow, 0.0], f"{controller} active {when}"
