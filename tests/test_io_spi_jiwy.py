@@ -192,3 +192,23 @@ def test_the_server_loop_answers_one_transfer_per_read_and_logs_what_the_model_s
     assert [(row["counter"], row["good"], row["enable"], row["answered"]) for row in rows] == [
         ("0", "1", "0.0", "1"), ("1", "1", "1.0", "1"), ("2", "1", "0.0", "1")]
     assert float(rows[1]["pwm_pan"]) == 0.3 and float(rows[2]["pwm_pan"]) == 0.0
+
+
+def test_a_machine_without_spidev_is_told_how_to_get_one_or_to_simulate(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from rtloop.errors import DeviceError
+    from rtloop.io.device import build_device
+
+    listdir = os.listdir
+    monkeypatch.setattr(os, "listdir", lambda path=".": [n for n in listdir(path) if not n.startswith("spidev")]
+                        if str(path) == "/dev" else listdir(path))  # a machine without any (this VM, a laptop)
+    fields = [{"name": "pwm", "start_byte": 1, "type": "i16"}]
+    device = build_device("spi", "fpga", {"device": "/dev/spidev9.9", "length": 8, "send": fields,
+                                          "receive": fields}, "app.toml")
+    with pytest.raises(DeviceError) as refused:
+        device.check()
+    said = str(refused.value)  # (no app file named: the device built here has none)
+    assert said.startswith(": devices.fpga.device: no SPI device /dev/spidev9.9 (this machine has no spidev "
+                           "device: enable its SPI controller (a Raspberry Pi: dtparam=spi=on"), said
+    assert "rtloop simulate runs the device's twin" in said and "\n" not in said, said

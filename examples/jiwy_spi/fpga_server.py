@@ -11,7 +11,7 @@ protocol: README.md). Every exchange the device makes is one step, configure's s
 T0 included, as the twin steps in ``rtloop simulate``: the run equals the simulation bit for bit
 up to its first deadline miss.
 
-    python examples/jiwy_spi/fpga_server.py --log fpga.csv &
+    .venv/bin/python examples/jiwy_spi/fpga_server.py --log fpga.csv &
     rtloop run examples/jiwy_spi/jiwy_spi.toml ... (with device = "/dev/spidev0.1")
 
 ``--log`` writes one row per transfer as the model's side saw it (the commands the wire carried,

@@ -111,7 +111,10 @@ class SpiDevice(Device):
     def _open(self) -> int:
         if not os.path.exists(self.path):
             nodes = sorted(n for n in os.listdir("/dev") if n.startswith("spidev"))
-            found = f"spidev devices here: {', '.join(nodes)}" if nodes else "this machine has no spidev device"
+            found = (f"spidev devices here: {', '.join(nodes)}" if nodes else
+                     "this machine has no spidev device: enable its SPI controller (a Raspberry Pi: dtparam=spi=on "
+                     "in /boot/firmware/config.txt, then reboot: docs/bench.md); without the hardware, rtloop "
+                     "simulate runs the device's twin")
             raise DeviceError(self.name, "", "device", f"no SPI device {self.path} ({found})")
         try:
             return os.open(self.path, os.O_RDWR | os.O_CLOEXEC)
