@@ -299,3 +299,28 @@ def test_under_stress_ng_at_sched_other_no_short_step_is_blamed(tmp_path: Path) 
             assert "step overran" not in miss["cause"]
     if misses["total"]:
         assert any(line.startswith("quick: ") for line in misses["lines"])
+
+
+def test_why_refuses_a_cycle_the_run_does_not_have_and_names_what_it_has(tmp_path: Path) -> None:
+    import argparse
+
+    from rtloop.cli import why
+    from rtloop.errors import AppError
+
+    run = tmp_path / "run"
+    run.mkdir()
+    tasks = {name: {"period_ns": MS, "cpu": 1, "priority": 80, "rt": True, "policy": "fifo"} for name in ("a", "b")}
+    (run / "summary.json").write_text(json.dumps({"mode": "run", "tasks": tasks, "misses": {"total": 0}}))
+    rows = [f"{task},{k},{k * MS},{k * MS + 50_000},{k * MS + 80_000}" for task, last in (("a", 9), ("b", 5))
+            for k in range(last + 1)]
+    (run / "timing.csv").write_text("task,cycle,release_ns,start_ns,end_ns\n" + "\n".join(rows) + "\n")
+
+    def asked(cycle: int) -> list[str]:
+        return why.explain_cycle(run, why._summary(run), cycle, None)
+
+    with pytest.raises(AppError, match=r"cycle 99999 is not in this run's timing.csv \(a: cycles 0 to 9 recorded; "
+                                       r"b: cycles 0 to 5 recorded\): give one of its cycles"):
+        asked(99999)  # was "not in timing.csv" for each task, exit 0
+    assert asked(7) == ["a cycle 7: on time (woke 50 µs after its release, step took 30 µs, period 1.0 ms)",
+                        "b cycle 7: not in timing.csv (cycles 0 to 5 recorded)"]
+    assert why.run(argparse.Namespace(run_dir=run, cycle=3, task=None)) == 0

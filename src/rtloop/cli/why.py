@@ -78,7 +78,7 @@ def explain_cycle(run_dir: Path, summary: dict[str, Any], cycle: int, task: str 
     done = {m["task"] for m in kept}
     names = [task] if task is not None else [name for name in summary["tasks"] if name not in done]
     if names:
-        lines += _from_timing_csv(run_dir, summary, cycle, [n for n in names if n not in done])
+        lines += _from_timing_csv(run_dir, summary, cycle, [n for n in names if n not in done], refuse=not kept)
     return lines
 
 
@@ -124,8 +124,10 @@ def _evidence_lines(miss: dict[str, Any], summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: list[str]) -> list[str]:
-    """Cycles not kept in full: their own timing and the other tasks' records, from timing.csv."""
+def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: list[str], *,
+                     refuse: bool = False) -> list[str]:
+    """Cycles not kept in full: their own timing and the other tasks' records, from timing.csv. ``refuse``: a
+    cycle outside every named task's recorded cycles is bad input (a typo, another run's cycle)."""
     import numpy as np
 
     from rtloop.runtime.evidence import MissWatch, TaskFacts
@@ -146,6 +148,11 @@ def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: 
     facts = {name: TaskFacts(t["period_ns"], t.get("cpu"), t.get("priority", 0), bool(t.get("rt")))
              for name, t in summary["tasks"].items()}
     watch = MissWatch(facts=facts)
+    outside = [f"{name}: {_recorded(rows[name])}" for name in names
+               if not _span(rows[name])[0] <= cycle <= _span(rows[name])[1]]
+    if refuse and len(outside) == len(names):
+        raise AppError(f"{run_dir}: cycle {cycle} is not in this run's timing.csv ({'; '.join(outside)}): "
+                       "give one of its cycles")
     lines: list[str] = []
     for name in names:
         records = sorted(rows[name])
@@ -153,7 +160,7 @@ def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: 
         if index is None:
             before = [r for r in records if r[0] < cycle]
             where = (f"a release skipped after cycle {before[-1][0]} overran" if before and any(
-                r[0] > cycle for r in records) else "not in timing.csv")
+                r[0] > cycle for r in records) else f"not in timing.csv ({_recorded(records)})")
             lines.append(f"{name} cycle {cycle}: {where}")
             continue
         c, release, start, end = records[index]
@@ -177,3 +184,14 @@ def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: 
                         "alone, without the machine's samples and the thread's counters)")
         lines += block
     return [line for line in lines if line]
+
+
+def _span(records: list[tuple[int, int, int, int]]) -> tuple[int, int]:
+    """(first, last) cycle recorded; (0, -1) when none is."""
+    cycles = [r[0] for r in records]
+    return (min(cycles), max(cycles)) if cycles else (0, -1)
+
+
+def _recorded(records: list[tuple[int, int, int, int]]) -> str:
+    first, last = _span(records)
+    return f"cycles {first} to {last} recorded" if last >= first else "no cycle recorded"
