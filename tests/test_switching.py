@@ -421,6 +421,27 @@ def test_one_file_reloaded_into_two_controllers_in_turn_loads_into_each(tmp_path
     assert (np.asarray(signals["ctl.active_code"])[-50:] == code_id).all()
 
 
+def test_a_module_to_reload_that_is_no_regular_file_or_too_large_is_refused_before_reading_it(tmp_path: Path) -> None:
+    import os
+
+    from rtloop.cli.reload import _read_source
+    from rtloop.errors import PortValueError
+
+    os.mkfifo(tmp_path / "fifo.py")  # opened for reading, it waited for a writer forever
+    (tmp_path / "zero.py").symlink_to("/dev/zero")  # read whole, it grew until memory ran out
+    (tmp_path / "folder.py").mkdir()
+    for name in ("fifo.py", "zero.py", "folder.py"):
+        with pytest.raises(PortValueError, match=rf"{name}: not a regular file, so not a module to load; the old code "
+                                                 "keeps running"):
+            _read_source(tmp_path / name)
+    with (tmp_path / "huge.py").open("wb") as huge:
+        huge.truncate(2 << 30)  # sparse
+    with pytest.raises(PortValueError, match=r"huge.py: more than 16 MiB, not a controller's module"):
+        _read_source(tmp_path / "huge.py")
+    (tmp_path / "fine.py").write_text("x = 1\n")
+    assert _read_source(tmp_path / "fine.py") == b"x = 1\n"
+
+
 def test_reloading_the_code_the_task_was_just_asked_for_says_so_at_once(tmp_path: Path, monkeypatch) -> None:
     # the task passes a code on once: the same request again got no answer, and the command waited 10 s to
     # say "is the task running?"

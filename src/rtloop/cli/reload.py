@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import stat
 import time
 from pathlib import Path
 
@@ -104,11 +105,26 @@ def _registered_source(info: dict[str, object], name: str) -> Path:
     return Path(found)
 
 
+SOURCE_MAX_BYTES = 16 << 20
+"""A module larger than this is refused: it is read and compiled whole here, and kept in the run's folder."""
+
+
 def _read_source(path: Path) -> bytes:
+    """The module's bytes; a FIFO (which blocks forever), a device (/dev/zero behind a link: read until
+    memory runs out), a folder or a file over :data:`SOURCE_MAX_BYTES` refused before reading."""
     try:
-        return path.read_bytes()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # non-blocking: opening a FIFO waits for a writer
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise PortValueError(f"{path}: not a regular file, so not a module to load; the old code keeps running")
+        with os.fdopen(fd, "rb") as file:
+            source = file.read(SOURCE_MAX_BYTES + 1)  # a file growing meanwhile stops here
     except OSError as error:
         raise PortValueError(f"{path}: {error.strerror}") from None
+    if len(source) > SOURCE_MAX_BYTES:
+        raise PortValueError(f"{path}: more than {SOURCE_MAX_BYTES >> 20} MiB, not a controller's module; the old "
+                             "code keeps running")
+    return source
 
 
 def _run_dir(registry: dict[str, object]) -> Path:
