@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import shutil
+import signal
 import subprocess
 import sys
 import zipfile
@@ -273,7 +274,9 @@ def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path,
     app_file = tmp_path / f"{name}.toml"
     app_file.write_text(REPLAY_APP.format(name=name, cpu=other_cpu(), period_ns=scaled_ns(1_000_000)))
     run_dir = tmp_path / "run"
-    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", str(scaled_s(3)), "--out", str(run_dir),
+    # The run lasts until both writes are taken, then Ctrl-C ends it: each `rtloop port write` is a
+    # Python start-up of its own, which a loaded machine stretched past a fixed 3 s run's end.
+    process = subprocess.Popen([*cli, "run", str(app_file), "--duration", str(scaled_s(120)), "--out", str(run_dir),
                                 "-q"], env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         # each write once the task runs, and taken at a cycle of its own (however slow the start-up)
@@ -286,8 +289,10 @@ def test_replay_reproduces_a_real_time_run_with_live_port_writes(tmp_path: Path,
             assert write.returncode == 0, write.stderr
             done = wait_for_cycles(app, "controller", done + 100, process, timeout_s=scaled_s(30))
     finally:
-        process.communicate(timeout=scaled_s(60))
-    assert process.returncode == 0
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=scaled_s(60))
+    assert process.returncode == 0, stderr
     logged = read_rows(run_dir / "inputs.csv")
     assert logged[0] == ["task", "cycle", "port", "values"] and len(logged) == 3
     assert [row[3] for row in logged[1:]] == ["0.5 0.3", "-0.2 0.1"]
