@@ -324,3 +324,33 @@ def test_why_refuses_a_cycle_the_run_does_not_have_and_names_what_it_has(tmp_pat
     assert asked(7) == ["a cycle 7: on time (woke 50 µs after its release, step took 30 µs, period 1.0 ms)",
                         "b cycle 7: not in timing.csv (cycles 0 to 5 recorded)"]
     assert why.run(argparse.Namespace(run_dir=run, cycle=3, task=None)) == 0
+
+
+def test_a_task_refused_real_time_has_its_misses_explained_as_the_sched_other_task_it_was() -> None:
+    # a run without privileges: both tasks declared FIFO 80/81 ran at SCHED_OTHER; the causes said "a thread of the
+    # same real-time priority held the CPU" and "held by a higher-priority task: plant's step (priority 81)"
+    from types import SimpleNamespace
+
+    from rtloop.runtime.task_messages import TaskReports
+
+    facts = {"controller": TaskFacts(MS, 1, 80, True), "plant": TaskFacts(MS, 1, 81, True)}
+    watch = MissWatch(facts=facts)
+    reports = TaskReports(watch, [])
+    refused = SimpleNamespace(rt=False, policy="other", priority=0)  # what the task process read back
+    for name in facts:
+        reports._keep(SimpleNamespace(name=name, settings=None), {"kind": "settings", "settings": refused})
+    assert not watch.facts["controller"].realtime and watch.facts["controller"].priority == 80
+    base = T0 + 40 * MS
+    watch.add_timing("plant", np.array([[40, base, base + 10_000, base + 2_510_000]], dtype=np.int64))
+    watch.add_timing("controller", np.array([[39, base - MS, base - MS + 8_000, base - MS + 30_000],
+                                             [40, base, base + 2_520_000, base + 2_540_000],
+                                             [43, base + 3 * MS, base + 3 * MS + 9_000, base + 3 * MS + 30_000]],
+                                            dtype=np.int64))
+    watch.finish()
+    late = next(m for m in watch.ledger.to_json()["first"] if m["task"] == "controller")
+    assert late["cause"].startswith("held by another task (this one ran at SCHED_OTHER, not real time): plant's step "
+                                    "(cycle 40, 2.5 ms) ran on CPU 1 meanwhile"), late["cause"]
+    assert "priority" not in late["cause"]
+    thread = {"label": "python (pid 9, tid 9, FIFO 80)", "priority": 80, "relation": "higher", "ran_ns": 3 * MS}
+    cause = explain(_miss(2_900_000, 20_000), Evidence(cpu=1, realtime=False, priority=80, threads=[thread]))
+    assert cause.text.startswith("preempted by a higher-priority thread: python (pid 9")  # FIFO 80 > SCHED_OTHER

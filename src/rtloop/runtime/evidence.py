@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import collections
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -106,6 +106,13 @@ class MissWatch:
         for index, count in zip(*np.unique(records[:, 1], return_counts=True), strict=True):
             writer = writers[int(index)] if 0 <= index < len(writers) else f"writer {index}"
             self.ledger.add_stale(task, writer, int(count))
+
+    def ran_realtime(self, task: str, realtime: bool) -> None:
+        """What the task process got (its ``settings``): a task declared at SCHED_FIFO that was refused it
+        runs at SCHED_OTHER, where any real-time thread preempts it and its run-queue wait is the evidence."""
+        facts = self.facts.get(task)
+        if facts is not None and facts.realtime != realtime:
+            self.facts[task] = replace(facts, realtime=realtime)
 
     def from_task(self, task: str, message: dict[str, Any]) -> None:
         """A task's pipe message: ``late`` (its counters after a late cycle) or ``stopped``."""

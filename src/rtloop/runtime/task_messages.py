@@ -49,6 +49,7 @@ class TaskReports:
         name, kind = task_run.name, message.get("kind")
         if kind == "settings":
             task_run.settings = message["settings"]
+            self.misses.ran_realtime(name, bool(getattr(message["settings"], "rt", False)))
         elif kind == "locked":
             task_run.locked_bytes = message["bytes"]
         elif kind == "finished":

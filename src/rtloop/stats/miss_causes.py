@@ -181,9 +181,13 @@ def _interference(miss: Miss, ev: Evidence, lost_ns: int, counters: dict[str, in
                      f"{what}: {top['who']} had {cpu} for {ms(top['ran_ns'])} of the cycle (traced)")
     for other in sorted(ev.tasks, key=lambda t: -t["overlap_ns"]):
         if other["overlap_ns"] >= need_ns:
-            who = ("a higher-priority task" if other["relation"] == "higher" else "a task of the same priority")
-            held = (f"held by {who}: {other['task']}'s step (cycle {other['cycle']}, {ms(other['exec_ns'])}, "
-                    f"priority {other['priority']}) ran on {cpu} meanwhile")
+            if ev.realtime:
+                who = ("a higher-priority task" if other["relation"] == "higher" else "a task of the same priority")
+                held = (f"held by {who}: {other['task']}'s step (cycle {other['cycle']}, {ms(other['exec_ns'])}, "
+                        f"priority {other['priority']}) ran on {cpu} meanwhile")
+            else:  # at SCHED_OTHER its declared priority was never applied: the kernel shared the CPU
+                held = (f"held by another task (this one ran at SCHED_OTHER, not real time): {other['task']}'s step "
+                        f"(cycle {other['cycle']}, {ms(other['exec_ns'])}) ran on {cpu} meanwhile")
             if other.get("cause_class") not in (None, STEP, UNEXPLAINED):  # that step was itself held up: by whom
                 return Cause(other["cause_class"], f"{other['cause'].split('; ')[0]} (it held {other['task']}'s "
                                                    f"step, which held this one: {held})")
