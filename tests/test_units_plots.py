@@ -174,3 +174,14 @@ def test_fmu_units_are_the_model_descriptions(tmp_path: Path) -> None:
     from rtloop.models.base import ModelRunnable
 
     assert ModelRunnable(model).output_units == ("rad", "rad")
+
+
+@pytest.mark.parametrize("example", ["jiwy_dynamixel/jiwy_dynamixel.toml", "so100_feetech/so100_feetech.toml"])
+def test_the_servo_examples_give_their_live_parameters_units(example: str) -> None:
+    # the report drew aim.speed_rad_s and aim.accel_rad_s2 on an axis "value (no unit declared)"
+    from rtloop.record.sidecar import sidecar_content
+
+    units = {name: column["unit"] for name, column in sidecar_content(load_app(EXAMPLES / example))["columns"].items()}
+    named = {name: unit for name, unit in units.items() if name.endswith(("_rad", "_rad_s", "_rad_s2", "_s"))}
+    assert named and all(named.values()), named
+    assert units.get("aim.speed_rad_s", "rad/s") == "rad/s" and units.get("aim.accel_rad_s2", "rad/s²") == "rad/s²"

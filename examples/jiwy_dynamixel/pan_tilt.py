@@ -20,7 +20,7 @@ class AimPanTilt(Runnable):
     n_inputs, n_outputs = 4, 2
     input_names = ("pan_rad", "tilt_rad", "pan_setpoint_rad", "tilt_setpoint_rad")
     output_names = ("pan_goal_rad", "tilt_goal_rad")
-    input_units = ("rad", "rad", "rad", "rad")
+    input_units = ("rad", "rad", "rad", "rad", "rad/s", "rad/s²")  # and of the parameters' inputs (the report's axes)
     output_units = ("rad", "rad")
     parameters: ClassVar[dict[str, float]] = {"speed_rad_s": 2.0, "accel_rad_s2": 20.0}
 

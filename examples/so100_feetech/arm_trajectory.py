@@ -27,7 +27,7 @@ class PoseThenTrajectory(Runnable):
     n_inputs, n_outputs = 6, 7
     input_names = tuple(f"{joint}_rad" for joint in JOINTS)
     output_names = (*(f"{joint}_goal_rad" for joint in JOINTS), "largest_error_rad")
-    input_units = ("rad",) * 6
+    input_units = ("rad",) * 6 + ("s", "")  # and of the parameters' inputs: hold_s, scale (a factor)
     output_units = ("rad",) * 7
     parameters: ClassVar[dict[str, float]] = {"hold_s": 0.5, "scale": 1.0}
 
