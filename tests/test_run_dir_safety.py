@@ -69,6 +69,22 @@ def test_force_replaces_the_run_and_leaves_no_stale_report(tmp_path: Path) -> No
     assert (out / "notes.txt").read_text() == "mine"
 
 
+def test_force_removes_the_earlier_runs_kept_code_and_snapshots_too(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    rtloop.simulate(counter_app("safety_k"), 0.05, out)
+    for folder, name in (("code", "pid-0123456789ab.py"), ("snapshots", "ctl-0.snap")):  # a reload's, a --keep run's
+        (out / folder).mkdir()
+        (out / folder / name).write_text("the earlier run's")
+    rtloop.simulate(counter_app("safety_k"), 0.02, out, force=True)
+    assert not (out / "code").exists() and not (out / "snapshots").exists()
+    (out / "code").mkdir()  # a folder holding only a run's kept code holds a run: refused without --force
+    for name in ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
+                 "replay.json"):
+        (out / name).unlink(missing_ok=True)
+    with pytest.raises(RunDirectoryError, match="already holds a run"):
+        rtloop.simulate(counter_app("safety_k"), 0.02, out)
+
+
 def test_force_removes_a_planted_link_never_what_it_points_to(tmp_path: Path) -> None:
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")

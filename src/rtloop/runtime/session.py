@@ -55,8 +55,11 @@ RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.m
 """Files a run (and ``rtloop report``) writes into its folder."""
 LEFTOVERS = (".summary-reserve", ".summary.json.tmp", ".signals.json.tmp")
 """Files of a run that are not its data (a reserve, a half-written temporary): removed, never a reason to refuse."""
-RUN_FOLDERS = ("report-figures",)
-"""Folders of a finished run, removed with it by ``force``."""
+RUN_FOLDERS = ("report-figures", "code", "snapshots")
+"""Folders of a finished run, removed with it by ``force``: its report's figures, the controllers' code it kept
+(``switching.keep_start_code``, ``rtloop reload``) and a ``--keep`` run's task snapshots (``runtime/snapshot.py``).
+An earlier run's ``code/`` left behind kept its owner: a run as root into a user's earlier run folder refused
+every ``rtloop reload`` (``code is not a folder of yours``)."""
 UNFINISHED_FOLDER = "segments"
 """The flight recorder's folder: present after a run only when the run did not finish."""
 
