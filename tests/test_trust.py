@@ -495,6 +495,26 @@ def test_top_as_a_user_says_an_app_runs_as_root_not_that_none_runs(second_user, 
         registry.unlink(missing_ok=True)
 
 
+def test_switch_and_reload_as_a_user_name_themselves_when_the_app_runs_as_root(second_user, rtloop_env) -> None:
+    # they said "run rtloop port as root too (… rtloop port ...)": the user ran rtloop switch
+    name = f"swroot{os.getpid()}"
+    sleeper = subprocess.Popen(["sleep", "60"])  # a live root process: the supervisor the registry names
+    registry = _live_registry(name, sleeper.pid)
+    try:
+        for command, args in (("switch", ["switch", name, "controller", "soft"]),
+                              ("reload", ["reload", name, "controller", "pid"])):
+            code = f"import sys; from rtloop.cli.main import main; sys.exit(main({args!r}))"
+            done = _as(second_user, code, rtloop_env)
+            assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+            assert f"app {name!r} runs as root: run rtloop {command} as root too" in done.stderr, done.stderr
+            assert re.search(rf"\((/\S+/tools/as-root|sudo) /\S+ (-m rtloop )?{command} \.\.\.\)", done.stderr), \
+                done.stderr
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+        registry.unlink(missing_ok=True)
+
+
 def test_a_root_registry_left_by_a_dead_supervisor_is_not_an_app_that_runs(second_user, rtloop_env) -> None:
     name = f"topgone{os.getpid()}"
     gone = subprocess.Popen(["true"])

@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.ipc.ports import connect_app
     from rtloop.ipc.switch_requests import release_at, switch_port_of
 
-    app = connect_app(args.app, owner_uid=args.user)
+    app = connect_app(args.app, owner_uid=args.user, command="reload")
     port = switch_port_of(app, args.task, args.controller, "reload")
     current = app.peek(port.port)
     name = args.controller if args.controller is not None else port.controllers[int(current[0])]

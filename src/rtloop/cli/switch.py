@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from rtloop.ipc.ports import connect_app
     from rtloop.ipc.switch_requests import Mode, switch
 
-    app = connect_app(args.app, owner_uid=args.user)
+    app = connect_app(args.app, owner_uid=args.user, command="switch")
     promote = args.promote or args.stop_shadow
     mode: Mode = "promote" if args.promote else "stop_shadow" if args.stop_shadow else \
         "shadow" if args.shadow else "active"

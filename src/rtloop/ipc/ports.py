@@ -377,11 +377,14 @@ def as_root_command(command: str) -> str:
     return f"{spelled(as_root) if as_root.is_file() else 'sudo'} {runs_rtloop} {command}"
 
 
-def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = None) -> RunningApp:
+def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = None,
+                command: str = "port") -> RunningApp:
     """The running app called ``name`` (an app file's path works too); waits up to ``timeout_s``.
 
     Only apps run by ``owner_uid`` are considered (default: the caller's own uid). Root
     may name another uid on purpose; any other caller asking for another uid is refused.
+    ``command``: the rtloop command asking (``switch``, ``reload``), named in the error of an app
+    that runs as another user.
     """
     if name.endswith(".toml") and os.path.isfile(name):
         import tomllib
@@ -413,7 +416,7 @@ def connect_app(name: str, timeout_s: float = 0.0, *, owner_uid: int | None = No
     if others:
         hint = " (as root: rtloop port --user UID)" if me == 0 else " (run as that user, or as root with --user)"
         raise AppNotReachable(f"app {name!r} runs as uid {others[0].uid}, not as uid {wanted_uid}{hint}")
-    unreachable = unreachable_app(name, refused, "port")
+    unreachable = unreachable_app(name, refused, command)
     if unreachable is not None:
         raise unreachable
     running = sorted({app.name for app in apps if app.uid == wanted_uid})
