@@ -67,12 +67,12 @@ def running_app(tmp_path: Path):
     log = tmp_path / "run.log"
     with log.open("w") as output:
         process = subprocess.Popen(
-            [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "5",
+            [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "60",
              "--out", str(tmp_path / "out"), "--quiet"],
             stdout=output, stderr=subprocess.STDOUT,
         )
     try:
-        deadline = time.monotonic() + 15
+        deadline = time.monotonic() + 60  # a bound: 11 s went by under load (a Python start-up, then the tasks')
         monitor = Monitor(name)
         while True:
             views = [v for v in monitor.snapshot() if v.pid == process.pid]
