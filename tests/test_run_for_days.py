@@ -127,8 +127,15 @@ def test_kill_9_of_the_supervisor_leaves_a_parseable_summary(tmp_path: Path, rtl
                "--out", str(out)]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        wait_for_live_summary(out / "summary.json")
-        time.sleep(2.5)  # at least one more rewrite, so the kill may land in the middle of one
+        first = wait_for_live_summary(out / "summary.json")
+        # a rewrite after that one, 1 s of counting in it (every 2 s: however late a loaded machine runs
+        # the supervisor), then the kill half an interval on, where it may land in the middle of the next
+        deadline = time.monotonic() + 60
+        while ((summary := json.loads((out / "summary.json").read_text()))["elapsed_s"] <= max(1.0, first["elapsed_s"])
+               or summary["tasks"]["counter"]["cycles"] <= 1000):
+            assert time.monotonic() < deadline, f"summary.json was not rewritten within 60 s: {summary}"
+            time.sleep(0.1)
+        time.sleep(1.0)
     finally:
         process.kill()
         process.wait(timeout=30)
