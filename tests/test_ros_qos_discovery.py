@@ -77,8 +77,13 @@ PUBLISHER = textwrap.dedent(
 
 
 def received_count(qos: str, reader_reliability: str, *, publisher_env: dict[str, str] | None = None,
-                   reader_env: dict[str, str] | None = None, wait_s: float = 8.0) -> int:
-    """How many messages a peer reader got from an rtloop publisher (both in their own processes)."""
+                   reader_env: dict[str, str] | None = None, wait_s: float = 60.0) -> int:
+    """How many messages a peer reader got from an rtloop publisher (both in their own processes).
+
+    The reader stops at 20 messages, so ``wait_s`` bounds a publisher that reaches it: it starts once
+    the reader is ready and imports DDS first: seconds on a loaded machine, where a case that passed
+    took 9 s at a load average of ~7, close to the 8 s the reader waited before. The silent cases pass
+    a short ``wait_s``: they wait all of it."""
     domain, topic = random_domain(), "rt/qos_test/angles"
     base = {**os.environ, "PYTHONPATH": str(SRC)}
     for name in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "CYCLONEDDS_URI"):
