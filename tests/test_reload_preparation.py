@@ -309,3 +309,52 @@ def test_the_replaced_controllers_postrun_runs_in_the_loops_slack_too(module_by_
         controllers.postrun()
     [(profile, interval)] = seen
     assert profile is not None and interval == pytest.approx(RELOAD_SWITCH_INTERVAL_S)
+
+
+SPINS_AT_IMPORT = MODULE.format(gain=1.0) + "\nwhile True:\n    pass\n"
+SPINS_IN_STEP = MODULE.format(gain=1.0).replace("        error = u[1] - u[0]", "        while True:\n            pass")
+
+
+@pytest.mark.parametrize("source", [SPINS_AT_IMPORT, SPINS_IN_STEP], ids=["at_import", "in_dry_step"])
+def test_a_preparation_that_spins_is_stopped_at_its_deadline_refused_and_the_reloader_serves_on(
+        module_by_file, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, source: str) -> None:  # type: ignore[no-untyped-def]
+    """A module that spins at import, or whose dry step never returns, held the reload thread (SCHED_FIFO
+    in a real-time task) for good: the kernel's RLIMIT_RTTIME then ended the whole run as 'the step is
+    stuck in an endless loop' (a traceback), and no reload was answered again."""
+    import json
+    import time
+
+    import rtloop.code_reload as code_reload
+    from rtloop.code_reload import result_file_name
+
+    monkeypatch.setattr(code_reload, "PREPARE_DEADLINE_S", 0.3, raising=False)
+    _name, _path, module = module_by_file
+    controllers = Controllers({"pi": module.Pi()}, "pi")
+    controllers.bind_inputs(np.zeros(controllers.n_inputs))
+    controllers.tick = TickInfo(cycle=3, period_ns=P)
+    controllers.code_dir = tmp_path / "code"
+    controllers.code_dir.mkdir()
+    controllers.wait_for_code = False  # as in a real run: the answer is written for `rtloop reload`
+    controllers.prerun()
+    reloader = controllers._reloader
+    assert isinstance(reloader, CodeReloader)
+
+    def answer_to(text: str) -> dict[str, object]:
+        code = text.encode()
+        code_id = code_id_of(code)
+        (controllers.code_dir / code_file_name("pi", code_id)).write_bytes(code)
+        reloader.ask(0, code_id)
+        answer = controllers.code_dir / result_file_name("pi", code_id)
+        deadline = time.monotonic() + 20
+        while not answer.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert answer.exists(), "the reloader gave no answer"
+        return json.loads(answer.read_text())
+
+    try:
+        refused = answer_to(source)
+        assert refused["accepted"] is False
+        assert "took more than 0.3 s: stopped there" in str(refused["reason"]), refused
+        assert answer_to(MODULE.format(gain=4.0))["accepted"] is True  # the thread serves the next request
+    finally:
+        controllers.postrun()

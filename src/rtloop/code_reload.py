@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import ctypes
 import hashlib
 import importlib.util
 import json
@@ -69,6 +70,13 @@ by what it lasts beyond it (with 300 µs, one ran 0.5 ms past it: a wake-up 235 
 leaves the thread less of each period (it then takes longer to prepare, not the loop)."""
 SLACK_POLL_S = 20e-6
 """While waiting for the loop's step after a release, how often the reload thread looks (it sleeps between)."""
+PREPARE_DEADLINE_S = 5.0
+"""How long a reload's preparation (executing the module, building, prerun, the dry step) may take
+before it is stopped and refused (:class:`PreparationDeadline`). A module that spins at import or a
+dry step that never returns held the reload thread at SCHED_FIFO for good: after 10 s the kernel's
+RLIMIT_RTTIME (the task's spin watchdog, at least 10 s) ended the whole run as 'the step is stuck',
+and a SCHED_OTHER task's reloader never answered again. Below that watchdog, above what a module's
+import takes in the loop's slack (jiwy_models.py: 10 ms)."""
 PHASES = ("asked", "read", "executed", "built", "dry_step", "prerun", "ready")
 """The reload's timeline, stamped (CLOCK_MONOTONIC ns) as each phase ends and kept in its result file:
 ``asked`` when the thread took the request, ``read`` the kept code, ``executed`` the module, ``built`` the
@@ -127,6 +135,7 @@ class CodeReloader:
         try:
             self.thread = threading.Thread(target=self._serve, name="rtloop-reload", daemon=True)
             self.thread.start()
+            self.deadline = PreparationDeadline(self.thread, PREPARE_DEADLINE_S)
         finally:
             threading.stack_size(previous)
 
@@ -164,6 +173,7 @@ class CodeReloader:
         """After the loop: the retired controllers' postrun, then the thread ends."""
         os.write(self._wake_w, b"q")
         self.thread.join(timeout=10)
+        self.deadline.close()
         for fd in (self._wake_r, self._wake_w):
             os.close(fd)
 
@@ -184,7 +194,7 @@ class CodeReloader:
                     continue
                 index, code_id = self.request_index, self.request_code
                 self.timeline_ns = [0] * len(PHASES)
-                result = self._prepare(index, code_id)
+                result = self._prepare_in_time(index, code_id)
                 result["timeline_ns"] = dict(zip(PHASES, self.timeline_ns, strict=True))
                 if self.gate is not None:
                     result["slack_waits"], result["slack_waited_ns"] = self.gate.waits, self.gate.waited_ns
@@ -215,6 +225,17 @@ class CodeReloader:
             except Exception:
                 pass  # the code that replaced it runs on; a failing cleanup of old code stops nothing
 
+    def _prepare_in_time(self, index: int, code_id: int) -> dict[str, Any]:
+        """:meth:`_prepare` under the :class:`PreparationDeadline`: past it, refused."""
+        self.deadline.arm()
+        try:
+            return self._prepare(index, code_id)
+        except PreparationOverran as overran:  # delivered after the preparation's own handlers: still refused
+            self.failed_code = code_id
+            return {"accepted": False, "reason": str(overran)}
+        finally:
+            self.deadline.disarm()
+
     def _prepare(self, index: int, code_id: int) -> dict[str, Any]:
         owner = self.owner
         name = owner.names[index]
@@ -234,6 +255,7 @@ class CodeReloader:
             built.bind_inputs(owner.own_inputs(index))
             built.prerun()
             stamp("prerun")
+            self.deadline.disarm()  # from here on nothing can stop it half-way: it is ready
         except ReloadRefused as refusal:
             self.failed_code = code_id
             return {"accepted": False, "reason": str(refusal)}
@@ -414,6 +436,84 @@ class SlackGate:
         self.work_until_ns = release_ns + period_ns - margin_ns
 
 
+class PreparationDeadline:
+    """Stops a reload preparation that runs past ``limit_s``: a thread of its own, parked until a
+    preparation is armed, that then raises :class:`PreparationOverran` in the reload thread
+    (``PyThreadState_SetAsyncExc``: delivered at the thread's next bytecode, so a module spinning in
+    Python is stopped; a C call that never returns, such as a sleep, is not, but it does not spin
+    either), and again every ``limit_s`` while it stays armed (a cleanup that spins too). It runs one
+    priority above the reload thread where that is SCHED_FIFO, so the spinning thread cannot starve
+    it. The state both threads share is under a C lock (an exception raised asynchronously can land
+    in Python code, never inside a C call: a ``threading.Condition`` held across one stayed held);
+    a raise still pending when the reload thread disarms is let land in :meth:`disarm`, so none
+    lands after it."""
+
+    def __init__(self, target: threading.Thread, limit_s: float) -> None:
+        self.target, self.limit_s = target, limit_s
+        self.fired = 0
+        self._lock = threading.Lock()  # a C lock: entered and left without a bytecode in between
+        self._wake = threading.Event()  # waited on by the deadline's thread only
+        self._until = 0.0  # CLOCK_MONOTONIC seconds; 0: nothing armed
+        self._pending = False
+        self._closing = False
+        self.thread = threading.Thread(target=self._watch, name="rtloop-reload-deadline", daemon=True)
+        self.thread.start()
+
+    def arm(self) -> None:
+        with self._lock:
+            self._until = time.monotonic() + self.limit_s
+        self._wake.set()
+
+    def disarm(self) -> None:
+        while True:
+            try:
+                with self._lock:
+                    self._until = 0.0
+                    pending, self._pending = self._pending, False
+                if pending:  # raised, and perhaps not delivered yet: it lands here, at a backward jump
+                    for _ in range(10_000):
+                        pass
+                return
+            except PreparationOverran:  # delivered just now, after the preparation: it is over anyway
+                continue
+
+    def close(self) -> None:
+        self._closing = True
+        self._wake.set()
+        self.thread.join(timeout=1)
+
+    def _watch(self) -> None:
+        try:
+            if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RELOAD_PRIORITY + 1))
+        except (OSError, AttributeError):
+            pass
+        while not self._closing:
+            with self._lock:
+                until = self._until
+            self._wake.wait(None if not until else max(0.0, until - time.monotonic()))
+            self._wake.clear()
+            with self._lock:
+                if self._closing or not self._until or time.monotonic() < self._until:
+                    continue
+                self._until = time.monotonic() + self.limit_s
+                self._pending = True
+                self.fired += 1
+                _raise_in(self.target, PreparationOverran)
+
+
+_set_async_exc = ctypes.pythonapi.PyThreadState_SetAsyncExc
+_set_async_exc.argtypes = (ctypes.c_ulong, ctypes.py_object)
+_set_async_exc.restype = ctypes.c_int
+
+
+def _raise_in(thread: threading.Thread, exception: type[BaseException]) -> None:
+    """``exception`` raised in ``thread`` at its next check of the interpreter's pending work. (Never
+    withdrawn with NULL: CPython 3.11 then leaves that check on for every bytecode of every thread, and
+    the reload thread crawled.)"""
+    _set_async_exc(thread.ident or 0, exception)
+
+
 def reload_thread_policy(inherited: int) -> tuple[int, os.sched_param]:
     """The reload thread's policy and priority: SCHED_FIFO at :data:`RELOAD_PRIORITY` in a real-time
     task (``inherited``: the loop's policy), else SCHED_OTHER, as the loop has."""
@@ -424,6 +524,15 @@ def reload_thread_policy(inherited: int) -> tuple[int, os.sched_param]:
 
 class ReloadRefused(RtloopError):
     """The reason a reloaded module is not used (the old code keeps running)."""
+
+
+class PreparationOverran(ReloadRefused):
+    """Raised inside the reload thread (asynchronously, so without arguments) when its preparation
+    passed :data:`PREPARE_DEADLINE_S`."""
+
+    def __str__(self) -> str:
+        return (f"its preparation (the module run, the controller built, prerun, the dry step) took more than "
+                f"{PREPARE_DEADLINE_S:g} s: stopped there")
 
 
 def _user_frame(error: BaseException, code_dir: str) -> str:
