@@ -362,3 +362,13 @@ def test_the_servo_cycle_benchmark_runs_and_allocates_nothing_that_stays(tmp_pat
     if results["checks_in_c"]:  # the Python references' batches ran too
         assert "| host share: C part vs Python references |" in result.stdout
         assert "reference_us" in results["results"]["rtloop vs os calls"]
+
+
+def test_a_port_relative_to_the_app_file_is_named_without_dot_dots() -> None:
+    # a fault said "did not answer the sync read on /…/examples/so100_feetech/../../runs/so100.tty"
+    app = load_app(SO100)
+    assert app.devices["arm"].device.config["port"] == str(EXAMPLES.parent / "runs" / "so100.tty")
+    from rtloop.app.appfile import _from_folder
+
+    assert _from_folder(Path("/a/b"), "../../c/tty") == "/c/tty" and _from_folder(Path("/a/b"), "tty") == "/a/b/tty"
+    assert _from_folder(Path("/a/b"), "link/../tty") == "/a/b/link/../tty"  # past a name: that name may be a link

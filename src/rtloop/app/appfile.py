@@ -335,8 +335,20 @@ def _paths_from(base_dir: Path, driver: Any, settings: dict[str, Any]) -> dict[s
     """A device's relative paths (a serial port's link, say) taken from the app file's folder, as
     its feeds and modules are: the app runs the same from whichever folder it is started."""
     paths = {key for key, setting in getattr(driver, "settings", {}).items() if getattr(setting, "is_path", False)}
-    return {key: str(base_dir / value) if key in paths and isinstance(value, str) and value and
+    return {key: _from_folder(base_dir, value) if key in paths and isinstance(value, str) and value and
             not value.startswith("/") and "://" not in value else value for key, value in settings.items()}
+
+
+def _from_folder(base_dir: Path, relative: str) -> str:
+    """``relative`` taken from ``base_dir`` (resolved: no link in it), its leading ``..`` climbed there, so
+    the messages name ``…/runs/so100.tty``, not ``…/examples/so100_feetech/../../runs/so100.tty``. A ``..``
+    after a name stays (that name may be a link)."""
+    parts = Path(relative).parts
+    ups = next((i for i, part in enumerate(parts) if part != ".."), len(parts))
+    folder = base_dir
+    for _ in range(ups):
+        folder = folder.parent
+    return str(folder.joinpath(*parts[ups:]))
 
 
 def _load_ros(shown: str, ros: dict[str, Any], app: App) -> None:
