@@ -159,9 +159,22 @@ def test_subscriber_take_is_non_blocking_and_returns_in_order(qos):
             sub.wait(0.5)
             received += sub.take()
         assert [m.data for m in received] == [[k, 2.0 * k] for k in range(4)]
-        started = time.perf_counter()
-        assert sub.take() == []
-        assert time.perf_counter() - started < 0.05
+        # Nothing is pending: take() returns at once, empty. A take that blocked would return the message
+        # published 2 s from now (a logical check: a loaded machine may run this thread late by tens of ms).
+        cancel, late = threading.Event(), threading.Event()
+
+        def publish_later() -> None:
+            if not cancel.wait(2.0):
+                late.set()
+                pub.publish(float64_multi_array([9.0]))
+
+        publisher = threading.Thread(target=publish_later)
+        publisher.start()
+        try:
+            assert sub.take() == [] and not late.is_set()
+        finally:
+            cancel.set()
+            publisher.join()
 
 
 def test_other_domain_does_not_receive():
