@@ -444,11 +444,32 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
 # --- 4. two apps, as on two devices, exchange a signal over ROS 2 -----------------------------------------
 
 
+def _accepted(summary_file: Path, bridge: str) -> int:
+    """How many messages ``bridge`` has taken, as the live summary.json (rewritten every 2 s) says."""
+    try:
+        return int(json.loads(summary_file.read_text())["bridges"][bridge]["accepted"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0  # not written yet, or the bridge has not reported yet
+
+
 @pytest.mark.rt
 def test_two_apps_exchange_a_signal_over_ros2(tmp_path: Path) -> None:
     domain = random_domain()
-    controller = start_app(TWO_APPS / "controller.toml", tmp_path / "controller", domain, duration_s=5)
-    sensor = start_app(TWO_APPS / "sensor.toml", tmp_path / "sensor", domain, duration_s=4)
+    # Both run until the controller's bridge has taken 200 of the sensor's messages (2 s of them, a
+    # whole period of its sine), then Ctrl-C ends the sensor, then the controller. Runs of 4 and 5 s
+    # left the two bridges only what their start-up left of them, seconds on a loaded machine.
+    controller = start_app(TWO_APPS / "controller.toml", tmp_path / "controller", domain, duration_s=120)
+    sensor = start_app(TWO_APPS / "sensor.toml", tmp_path / "sensor", domain, duration_s=120)
+    try:
+        deadline = time.monotonic() + 2 * START_TIMEOUT_S
+        while _accepted(tmp_path / "controller" / "summary.json", "subscribe /two_apps/sensor") < 200:
+            assert sensor.poll() is None and controller.poll() is None, "a run ended by itself"
+            assert time.monotonic() < deadline, "the controller took fewer than 200 messages"
+            time.sleep(0.2)
+    finally:
+        for run in (sensor, controller):
+            if run.poll() is None:
+                run.send_signal(signal.SIGINT)
     code_sensor, err_sensor = finish(sensor)
     code_controller, err_controller = finish(controller)
     assert code_sensor == 0, err_sensor
