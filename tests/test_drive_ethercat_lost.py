@@ -423,3 +423,13 @@ def test_the_python_receive_waits_on_a_socket_numbered_past_1023() -> None:
         ours.close()
         peer.close()
         resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def test_the_first_lost_frame_without_lost_frames_max_says_what_would_let_it_pass() -> None:
+    from rtloop.io.drives.ethercat_lost import lost_frames_fault
+
+    said = lost_frames_fault("exchange 6 on ecm0", 1, 800, 0)  # the emulated JIWY on a busy machine, by default
+    assert said == ("exchange 6 on ecm0: the LRW frame did not come back within 800 µs (timeout_us): a slave lost, a "
+                    "cable pulled, or the frame lost (a dropped frame, a stalled or busy host: lost_frames_max lets a "
+                    "few in a row pass, docs/drives.md)")
+

@@ -86,7 +86,8 @@ def lost_frames_fault(where: str, in_a_row: int, timeout_us: float, lost_frames_
     in a row took, counting this one)."""
     if lost_frames_max <= 0:
         return (f"{where}: the LRW frame did not come back within {timeout_us:.0f} µs (timeout_us): a slave lost, "
-                "a cable pulled, or the frame lost")
+                "a cable pulled, or the frame lost (a dropped frame, a stalled or busy host: lost_frames_max lets "
+                "a few in a row pass, docs/drives.md)")
     over = f" over {spans} periods (releases skipped between them)" if spans > in_a_row else ""
     return (f"{where}: the LRW frame did not come back within {timeout_us:.0f} µs (timeout_us), {in_a_row} cycles in "
             f"a row{over} (lost_frames_max = {lost_frames_max}): a slave lost, a cable pulled, or the host stalled")
