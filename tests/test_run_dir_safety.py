@@ -77,12 +77,11 @@ def test_force_removes_the_earlier_runs_kept_code_and_snapshots_too(tmp_path: Pa
         (out / folder / name).write_text("the earlier run's")
     rtloop.simulate(counter_app("safety_k"), 0.02, out, force=True)
     assert not (out / "code").exists() and not (out / "snapshots").exists()
-    (out / "code").mkdir()  # a folder holding only a run's kept code holds a run: refused without --force
-    for name in ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.mcap", "metadata.yaml",
-                 "replay.json"):
-        (out / name).unlink(missing_ok=True)
-    with pytest.raises(RunDirectoryError, match="already holds a run"):
-        rtloop.simulate(counter_app("safety_k"), 0.02, out)
+    fresh = tmp_path / "fresh"  # code put in for a simulation's reload profile: no run, kept (with --force too)
+    (fresh / "code").mkdir(parents=True)
+    (fresh / "code" / "pid-0123456789ab.py").write_text("the code to load")
+    rtloop.simulate(counter_app("safety_k"), 0.02, fresh, force=True)
+    assert (fresh / "code" / "pid-0123456789ab.py").read_text() == "the code to load"
 
 
 def test_force_removes_a_planted_link_never_what_it_points_to(tmp_path: Path) -> None:

@@ -55,11 +55,14 @@ RUN_FILES = ("summary.json", "timing.csv", "signals.csv", "signals.json", "run.m
 """Files a run (and ``rtloop report``) writes into its folder."""
 LEFTOVERS = (".summary-reserve", ".summary.json.tmp", ".signals.json.tmp")
 """Files of a run that are not its data (a reserve, a half-written temporary): removed, never a reason to refuse."""
-RUN_FOLDERS = ("report-figures", "code", "snapshots")
-"""Folders of a finished run, removed with it by ``force``: its report's figures, the controllers' code it kept
-(``switching.keep_start_code``, ``rtloop reload``) and a ``--keep`` run's task snapshots (``runtime/snapshot.py``).
-An earlier run's ``code/`` left behind kept its owner: a run as root into a user's earlier run folder refused
-every ``rtloop reload`` (``code is not a folder of yours``)."""
+RUN_FOLDERS = ("report-figures", "snapshots")
+"""Folders of a finished run, removed with it by ``force``: its report's figures and a ``--keep`` run's task
+snapshots (``runtime/snapshot.py``)."""
+CODE_FOLDER = "code"
+"""The controllers' code a run kept (``switching.keep_start_code``, ``rtloop reload``): removed with the run it
+belongs to by ``force`` (left behind, it kept its owner: a run as root into a user's earlier run folder refused
+every ``rtloop reload``, ``code is not a folder of yours``), but alone it is no run: a simulation's reload
+profile finds the code it loads there, put in before the simulation."""
 UNFINISHED_FOLDER = "segments"
 """The flight recorder's folder: present after a run only when the run did not finish."""
 
@@ -116,8 +119,9 @@ def _prepare_out_dir(out: Path, *, force: bool, protect: Iterable[Path]) -> Path
     if not force:
         raise RunDirectoryError(f"{out} already holds a run ({', '.join(found[:3])}); nothing was written: "
                                 "choose another --out, or add --force to replace it (force=True in Python)")
-    for name in found:
-        _remove(out / name)
+    for name in (*found, CODE_FOLDER):
+        if os.path.lexists(out / name):
+            _remove(out / name)
     return out
 
 
