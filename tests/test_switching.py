@@ -419,6 +419,11 @@ def test_one_file_reloaded_into_two_controllers_in_turn_loads_into_each(tmp_path
     signals = rtloop.load(out).signals
     assert np.asarray(signals["ctl.switch_refusals"])[-1] == 0
     assert (np.asarray(signals["ctl.active_code"])[-50:] == code_id).all()
+    from rtloop.report.signals import groups_of  # the report: the code id (~1e14) on an axis of its own
+
+    groups = groups_of(signals)
+    assert [g.names for g in groups if "ctl.active_code" in g.names] == [("ctl.active_code",)]
+    assert any("ctl.command" in g.names for g in groups)
 
 
 def test_a_module_to_reload_that_is_no_regular_file_or_too_large_is_refused_before_reading_it(tmp_path: Path) -> None:

@@ -37,6 +37,9 @@ SETPOINT_STYLE = {"color": "black", "linestyle": "--", "linewidth": 1.1}
 INPUT_STYLE: dict[str, Any] = {"color": "tab:gray", "linestyle": ":", "linewidth": 1.0}
 SWITCH_STYLE: dict[str, Any] = {"color": "tab:purple", "linestyle": "-", "linewidth": 1.0, "alpha": 0.7}
 TIME_LABEL = "t [s] (each value holds from t on)"
+CODE_ID_OUTPUT = "active_code"
+"""A task with controllers records which reloaded code runs (``switching.STATUS_OUTPUTS``): an id, not a
+quantity, drawn on an axis of its own."""
 PAD_IN = 3 / 72
 """Space between the figure's edge and what is drawn, and between two axes' labels."""
 
@@ -78,16 +81,21 @@ def groups_of(signals: Signals) -> list[Group]:
         placed.update(names)
     by_unit: dict[str, list[str]] = {}
     by_task: dict[str, list[str]] = {}
+    code_ids: list[str] = []
     for name in signals:
         if name in placed:
             continue
         unit = signals.unit(name)
         if unit:
             by_unit.setdefault(unit, []).append(name)
+        elif name.rsplit(".", 1)[-1] == CODE_ID_OUTPUT:
+            code_ids.append(name)  # a 48-bit id: on the task's axis it flattened every other trace to 0
         else:
             by_task.setdefault(name.split(".", 1)[0], []).append(name)
     out += [Group(f"signals in {unit}", tuple(names), None, (unit,)) for unit, names in by_unit.items()]
     out += [Group(f"task {task}", tuple(names), None, ("",)) for task, names in by_task.items()]
+    out += [Group(f"{name}: the id of the reloaded code the active controller runs (0: the code it started with; "
+                  "in hex on the switch lines)", (name,), None, ("",)) for name in code_ids]
     return out
 
 
