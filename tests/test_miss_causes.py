@@ -326,6 +326,58 @@ def test_why_refuses_a_cycle_the_run_does_not_have_and_names_what_it_has(tmp_pat
     assert why.run(argparse.Namespace(run_dir=run, cycle=3, task=None)) == 0
 
 
+def test_why_on_a_planted_or_garbled_run_dir_is_one_line_and_reads_nothing_unbounded(tmp_path: Path) -> None:
+    """A FIFO or /dev/zero in place of summary.json or timing.csv waited forever (or read until memory ran
+    out), 2 GB of NUL bytes were read as one line, and a summary of another shape was an internal error."""
+    import argparse
+
+    from rtloop.cli import why
+    from rtloop.errors import AppError
+
+    tasks = {name: {"period_ns": MS, "cpu": 1, "priority": 80, "rt": True, "policy": "fifo"} for name in ("a", "b")}
+    good = {"mode": "run", "app": "x", "tasks": tasks, "misses": {"total": 0}}
+    rows = "task,cycle,release_ns,start_ns,end_ns\n" + "".join(
+        f"{task},{k},{k * MS},{k * MS + 50_000},{k * MS + 80_000}\n" for task in ("a", "b") for k in range(10))
+
+    def run_dir(name: str, summary: object = good, timing: str | None = rows) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        if summary is not None:
+            (folder / "summary.json").write_text(json.dumps(summary))
+        if timing is not None:
+            (folder / "timing.csv").write_text(timing)
+        return folder
+
+    def refused(folder: Path, words: str, cycle: int | None = 3) -> None:
+        with pytest.raises(AppError, match=words) as caught:
+            why.run(argparse.Namespace(run_dir=folder, cycle=cycle, task=None))
+        assert "\n" not in str(caught.value)
+
+    fifo = run_dir("fifo_summary", summary=None)
+    os.mkfifo(fifo / "summary.json")
+    refused(fifo, r"summary.json: not a regular file, so not one rtloop wrote")
+    zero = run_dir("zero_timing", timing=None)
+    (zero / "timing.csv").symlink_to("/dev/zero")
+    refused(zero, r"timing.csv: not a regular file, so not one rtloop wrote$")
+    fifo = run_dir("fifo_timing", timing=None)
+    os.mkfifo(fifo / "timing.csv")
+    refused(fifo, r"timing.csv: not a regular file")
+    huge = run_dir("huge_summary")
+    with (huge / "summary.json").open("r+b") as file:
+        file.truncate(2 << 30)  # sparse: the summary's JSON, then 2 GB of NUL bytes
+    refused(huge, r"summary.json: more than 1024 KiB, not a summary rtloop wrote")
+    nul = run_dir("nul_timing")
+    with (nul / "timing.csv").open("r+b") as file:
+        file.truncate(2 << 30)
+    refused(nul, r"timing.csv: a line longer than 4096 characters: not a timing.csv rtloop wrote$")
+    refused(run_dir("bad_task", {**good, "tasks": {"a": 5}}), r"summary.json: tasks.a: not an rtloop summary's task")
+    refused(run_dir("zero_period", {**good, "tasks": {**tasks, "b": {**tasks["b"], "period_ns": 0}}}),
+            r"tasks.b: not an rtloop summary's task \(no period_ns > 0\)")
+    refused(run_dir("bad_misses", {**good, "misses": "x"}), r"summary.json: misses: not an rtloop summary's", None)
+    refused(run_dir("bad_first", {**good, "misses": {"total": 1, "first": [{"task": "a"}]}}),
+            r"summary.json: not an rtloop summary rtloop why reads \(KeyError: 'cycle'\)")
+
+
 def test_a_task_refused_real_time_has_its_misses_explained_as_the_sched_other_task_it_was() -> None:
     # a run without privileges: both tasks declared FIFO 80/81 ran at SCHED_OTHER; the causes said "a thread of the
     # same real-time priority held the CPU" and "held by a higher-priority task: plant's step (priority 81)"

@@ -12,10 +12,13 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
+import stat
 from pathlib import Path
 from typing import Any
 
 from rtloop.errors import AppError
+from rtloop.record.summary import SUMMARY_BOUND_BYTES
 
 HELP = "why a run's cycles were late: each miss's cause and the evidence for one cycle"
 NEAR_NS = 1_000_000_000
@@ -28,30 +31,73 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", metavar="T", help="the task (default: every task that has cycle N)")
 
 
+SUMMARY_READ_MAX_BYTES = 16 * SUMMARY_BOUND_BYTES
+"""A summary.json larger than this is not one rtloop wrote (it keeps it within SUMMARY_BOUND_BYTES)."""
+TIMING_LINE_MAX_CHARS = 4096
+"""A timing.csv line longer than this is not one rtloop wrote (five integers): a garbled or planted file
+(2 GB of NUL bytes are one line) is refused at that line rather than read into memory whole."""
+
+
 def run(args: argparse.Namespace) -> int:
     summary = _summary(args.run_dir)
     if args.task is not None and args.task not in summary.get("tasks", {}):
         raise AppError(f"{args.run_dir}: no task {args.task!r} in this run (tasks: {', '.join(summary['tasks'])})")
-    if args.cycle is None:
-        print("\n".join(account(summary)))
-        return 0
-    print("\n".join(explain_cycle(args.run_dir, summary, args.cycle, args.task)))
+    try:
+        if args.cycle is None:
+            print("\n".join(account(summary)))
+            return 0
+        print("\n".join(explain_cycle(args.run_dir, summary, args.cycle, args.task)))
+    except (KeyError, TypeError, AttributeError, IndexError) as error:  # a value of another shape than rtloop's
+        raise AppError(f"{args.run_dir / 'summary.json'}: not an rtloop summary rtloop why reads "
+                       f"({type(error).__name__}: {error})") from error
     return 0
+
+
+def _open_regular(path: Path, missing: str, mode: str = "rb") -> Any:
+    """``path`` opened if it is a regular file: a FIFO waits for a writer and /dev/zero behind a link
+    never ends, each an endless wait where a line naming the file was due."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # non-blocking: opening a FIFO waits for a writer
+    except FileNotFoundError:
+        raise AppError(missing) from None
+    except OSError as error:
+        raise AppError(f"{path}: cannot be read ({error.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise AppError(f"{path}: not a regular file, so not one rtloop wrote")
+    return os.fdopen(fd, mode, **({} if "b" in mode else {"newline": "", "encoding": "utf-8"}))
 
 
 def _summary(run_dir: Path) -> dict[str, Any]:
     path = run_dir / "summary.json"
+    with _open_regular(path, f"{run_dir}: not a run directory (no summary.json)") as file:
+        data = file.read(SUMMARY_READ_MAX_BYTES + 1)
+    if len(data) > SUMMARY_READ_MAX_BYTES:
+        raise AppError(f"{path}: more than {SUMMARY_READ_MAX_BYTES >> 10} KiB, not a summary rtloop wrote")
     try:
-        summary = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise AppError(f"{run_dir}: not a run directory (no summary.json)") from None
-    except (OSError, ValueError) as error:
+        summary = json.loads(data.decode("utf-8"))
+    except ValueError as error:
         raise AppError(f"{path}: cannot be read ({error})") from None
     if not isinstance(summary, dict) or not isinstance(summary.get("tasks"), dict):
         raise AppError(f"{path}: not an rtloop summary (no tasks)")
     if summary.get("mode") != "run":
         raise AppError(f"{run_dir}: a {summary.get('mode')} run: only real-time runs have misses to explain")
+    for name, task in summary["tasks"].items():
+        period_ns = task.get("period_ns") if isinstance(task, dict) else None
+        if isinstance(period_ns, bool) or not isinstance(period_ns, int) or period_ns <= 0:
+            raise AppError(f"{path}: tasks.{name}: not an rtloop summary's task (no period_ns > 0)")
+    if not isinstance(summary.get("misses") or {}, dict):
+        raise AppError(f"{path}: misses: not an rtloop summary's (a table expected)")
     return summary
+
+
+def _bounded_lines(file: Any, path: Path) -> Any:
+    """``file``'s lines, each refused past :data:`TIMING_LINE_MAX_CHARS` (before it is read whole)."""
+    while line := file.readline(TIMING_LINE_MAX_CHARS + 1):
+        if len(line) > TIMING_LINE_MAX_CHARS:
+            raise AppError(f"{path}: a line longer than {TIMING_LINE_MAX_CHARS} characters: not a timing.csv "
+                           "rtloop wrote")
+        yield line
 
 
 def account(summary: dict[str, Any]) -> list[str]:
@@ -136,14 +182,14 @@ def _from_timing_csv(run_dir: Path, summary: dict[str, Any], cycle: int, names: 
     path = run_dir / "timing.csv"
     rows: dict[str, list[tuple[int, int, int, int]]] = {name: [] for name in summary["tasks"]}
     try:
-        with open(path, newline="", encoding="utf-8") as file:
-            for row in csv.DictReader(file):
+        with _open_regular(path, f"{run_dir}: no timing.csv", "r") as file:
+            for row in csv.DictReader(_bounded_lines(file, path)):
                 if row.get("task") in rows:
                     rows[row["task"]].append((int(row["cycle"]), int(row["release_ns"]), int(row["start_ns"]),
                                               int(row["end_ns"])))
-    except FileNotFoundError:
-        raise AppError(f"{run_dir}: no timing.csv") from None
-    except (OSError, ValueError, KeyError) as error:
+    except AppError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError, csv.Error) as error:  # NUL bytes, a field too long: csv.Error
         raise AppError(f"{path}: cannot be read ({error})") from None
     facts = {name: TaskFacts(t["period_ns"], t.get("cpu"), t.get("priority", 0), bool(t.get("rt")))
              for name, t in summary["tasks"].items()}
