@@ -65,7 +65,9 @@ def _open_regular(path: Path, missing: str, mode: str = "rb") -> Any:
     if not stat.S_ISREG(os.fstat(fd).st_mode):
         os.close(fd)
         raise AppError(f"{path}: not a regular file, so not one rtloop wrote")
-    return os.fdopen(fd, mode, **({} if "b" in mode else {"newline": "", "encoding": "utf-8"}))
+    if mode == "rb":
+        return os.fdopen(fd, "rb")
+    return os.fdopen(fd, "r", newline="", encoding="utf-8")
 
 
 def _summary(run_dir: Path) -> dict[str, Any]:
