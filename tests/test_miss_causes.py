@@ -366,6 +366,7 @@ def test_why_on_a_planted_or_garbled_run_dir_is_one_line_and_reads_nothing_unbou
     with (huge / "summary.json").open("r+b") as file:
         file.truncate(2 << 30)  # sparse: the summary's JSON, then 2 GB of NUL bytes
     refused(huge, r"summary.json: more than 1024 KiB, not a summary rtloop wrote")
+    assert why.SUMMARY_READ_MAX_BYTES >= 4 * SUMMARY_BOUND_BYTES  # room above what rtloop writes
     nul = run_dir("nul_timing")
     with (nul / "timing.csv").open("r+b") as file:
         file.truncate(2 << 30)

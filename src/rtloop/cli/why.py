@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 from rtloop.errors import AppError
-from rtloop.record.summary import SUMMARY_BOUND_BYTES
 
 HELP = "why a run's cycles were late: each miss's cause and the evidence for one cycle"
 NEAR_NS = 1_000_000_000
@@ -31,8 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", metavar="T", help="the task (default: every task that has cycle N)")
 
 
-SUMMARY_READ_MAX_BYTES = 16 * SUMMARY_BOUND_BYTES
-"""A summary.json larger than this is not one rtloop wrote (it keeps it within SUMMARY_BOUND_BYTES)."""
+SUMMARY_READ_MAX_BYTES = 1 << 20
+"""A summary.json larger than this is not one rtloop wrote: it keeps it within SUMMARY_BOUND_BYTES
+(record/summary.py, 64 KiB; not imported here: it loads numpy, which rtloop --help must not)."""
 TIMING_LINE_MAX_CHARS = 4096
 """A timing.csv line longer than this is not one rtloop wrote (five integers): a garbled or planted file
 (2 GB of NUL bytes are one line) is refused at that line rather than read into memory whole."""
