@@ -84,7 +84,7 @@ def running_app(tmp_path: Path):
         yield name, process
     finally:
         process.terminate()
-        process.wait(timeout=20)
+        process.wait(timeout=60)
 
 
 @pytest.mark.slow
@@ -119,7 +119,7 @@ def test_top_once_shows_every_task_counting(running_app, capsys: pytest.CaptureF
 def test_top_forgets_an_app_that_ended(running_app, capsys: pytest.CaptureFixture[str]) -> None:
     name, process = running_app
     process.terminate()
-    process.wait(timeout=20)
+    process.wait(timeout=60)
     assert cli_main(["top", name, "--once", "--interval", "0.1"]) == 2
     assert f"no running app named '{name}'" in capsys.readouterr().err
 
