@@ -78,9 +78,8 @@ def parse_servos(device: str, family: Family, command: str, servos: list[Any]) -
             raise DeviceError(device, "", f"{where}.range_rad",
                               f"expected [low, high] in rad, low < high, got {bounds!r}")
         spec = ServoSpec(name, servo_id, model, zero, direction, (float(bounds[0]), float(bounds[1])))
-        # in float first: a range of ±1e308 rad is ±inf ticks, which no int holds
-        float_ends = sorted(spec.ticks(angle) for angle in spec.range_rad)
-        if not (float_ends[0] + 1e-9 >= 0.0 and float_ends[1] - 1e-9 < TICKS_PER_TURN):
+        # a range of ±1e308 rad is ±inf ticks, which no int holds; a finite one is said in ticks below
+        if not all(math.isfinite(spec.ticks(angle)) for angle in spec.range_rad):
             raise DeviceError(device, "", f"{where}.range_rad", f"[{bounds[0]:g}, {bounds[1]:g}] rad reaches past "
                               f"one turn around zero_ticks {zero}: outside the servo's 0..4095")
         low, high = spec.range_ticks()
