@@ -150,6 +150,8 @@ def test_controllers_must_share_sizes_and_name_the_active_one() -> None:
         Controllers({"a": Pi(1, 1), "b": Wide(1, 1)}, "a")
     with pytest.raises(AppError, match=re.escape("active = 'c'")):
         Controllers({"a": Pi(1, 1)}, "c")
+    with pytest.raises(AppError, match=r"controllers: a{24}…: a name of 5000 characters; at most 64"):
+        Controllers({"a" * 5000: Pi(1, 1)}, "a" * 5000)
 
 
 def _app(name: str, feed: Path | None) -> App:

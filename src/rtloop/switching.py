@@ -48,6 +48,10 @@ from rtloop.code_reload import CodeReloader, code_file_name, code_id_of
 from rtloop.errors import AppError
 from rtloop.runnable import FloatVector, Runnable, TickInfo
 
+CONTROLLER_NAME_MAX_CHARS = 64
+"""A controller's name names its kept code in the run's folder (``code/<name>-<id>.py``): a name of
+5000 letters passed the app file's check, then the run stopped with 'File name too long' after its
+folder was begun."""
 SWITCH_INPUTS = ("controller", "switch_at_cycle", "shadow", "code")
 """The task's switch inputs, in order, after the controllers' common inputs."""
 STATUS_OUTPUTS = ("active_controller", "shadow_controller", "switch_refusals", "active_code")
@@ -71,6 +75,9 @@ class Controllers(Runnable):
         for name, controller in controllers.items():
             if not isinstance(name, str) or not name.isidentifier():
                 raise AppError(f"controllers: {name!r} is not a name (letters, digits, underscores)")
+            if len(name) > CONTROLLER_NAME_MAX_CHARS:  # it names the kept code's files: the run failed midway
+                raise AppError(f"controllers: {name[:24]}…: a name of {len(name)} characters; at most "
+                               f"{CONTROLLER_NAME_MAX_CHARS}")
             if not isinstance(controller, Runnable) or isinstance(controller, Controllers):
                 raise AppError(f"controllers.{name}: {controller!r} is not an rtloop.Runnable")
         if active not in controllers:
