@@ -433,3 +433,24 @@ def test_the_first_lost_frame_without_lost_frames_max_says_what_would_let_it_pas
                     "cable pulled, or the frame lost (a dropped frame, a stalled or busy host: lost_frames_max lets a "
                     "few in a row pass, docs/drives.md)")
 
+
+
+def test_a_raw_socket_refused_says_run_as_root_not_setcap_on_python(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without CAP_NET_RAW (a user's run, `rtloop io list --ethercat`): the advice is to run rtloop as
+    root; it once was `setcap cap_net_raw+ep` on the system's python3, which arms every Python program."""
+    from rtloop.io.drives import ethercat, scan
+
+    def refused(*_args: object, **_kwargs: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    for module in (scan, ethercat):
+        monkeypatch.setattr(module, "interface_problem", lambda _name: "")
+        monkeypatch.setattr(module, "open_raw", refused)
+    [listed] = scan.ethercat_slaves("ecm7")
+    assert listed.detail == "no permission for a raw socket" and not listed.usable
+    assert "run rtloop as root" in listed.fix
+    device, _y = _device_losing(3)
+    with pytest.raises(DeviceError, match=r"ecm6: no permission for a raw socket: run rtloop as root") as error:
+        device._master()
+    for advice in (listed.fix, str(error.value)):
+        assert "setcap cap_net_raw+ep" not in advice

@@ -55,7 +55,14 @@ from rtloop.io.drives.joints import (
     joint_limits,
     joint_tables_check,
 )
-from rtloop.io.drives.rawsocket import MAX_DATAGRAM_DATA, interface_problem, new_frame, open_raw, put_datagram
+from rtloop.io.drives.rawsocket import (
+    MAX_DATAGRAM_DATA,
+    RAW_SOCKET_PERMISSION,
+    interface_problem,
+    new_frame,
+    open_raw,
+    put_datagram,
+)
 from rtloop.io.drives.safe_transition import safe_transition
 from rtloop.io.drives.sii import parse_sii
 
@@ -182,9 +189,8 @@ class EthercatDevice(Device):
         try:
             open_raw(self.interface).close()
         except PermissionError:
-            raise DeviceError(self.name, "", "interface", f"{self.interface}: no permission for a raw socket (run as "
-                              "root, or give this python CAP_NET_RAW: sudo setcap cap_net_raw+ep $(realpath "
-                              "$(which python3)))") from None
+            raise DeviceError(self.name, "", "interface", f"{self.interface}: no permission for a raw socket: "
+                              f"{RAW_SOCKET_PERMISSION}") from None
         except OSError as error:
             raise DeviceError(self.name, "", "interface", f"{self.interface}: cannot open it raw: "
                               f"{error.strerror}") from None

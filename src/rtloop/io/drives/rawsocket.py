@@ -10,7 +10,7 @@ import os
 import socket
 import struct
 
-__all__ = ["ETHERTYPE_ECAT", "FRAME_BYTES", "interface_problem", "open_raw", "put_datagram"]
+__all__ = ["ETHERTYPE_ECAT", "FRAME_BYTES", "RAW_SOCKET_PERMISSION", "interface_problem", "open_raw", "put_datagram"]
 
 ETHERTYPE_ECAT = 0x88A4
 FRAME_BYTES = 1514
@@ -21,6 +21,10 @@ _PACKET_IGNORE_OUTGOING = 23  # <linux/if_packet.h>; Linux 4.20+
 _SOL_PACKET = 263  # <linux/socket.h>
 MASTER_MAC = b"\x02\x00\x00\x00\x00\x01"  # locally administered
 BROADCAST_MAC = b"\xff" * 6
+RAW_SOCKET_PERMISSION = ("run rtloop as root (a sudo user: sudo \"$(command -v rtloop)\" ..., or tools/as-root in a "
+                         "clone); not setcap cap_net_raw on python3, which would give raw sockets to every Python "
+                         "program on the machine")
+"""What to do when a raw socket is refused (a user's process lacks CAP_NET_RAW)."""
 
 
 def interface_problem(name: str) -> str | None:

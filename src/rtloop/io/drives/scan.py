@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rtloop.io.drives.rawsocket import interface_problem, open_raw
+from rtloop.io.drives.rawsocket import RAW_SOCKET_PERMISSION, interface_problem, open_raw
 from rtloop.io.drives.sii import parse_sii
 from rtloop.io.inventory import Interface
 
@@ -28,7 +28,7 @@ def ethercat_slaves(interface: str) -> list[Interface]:
         open_raw(interface).close()
     except PermissionError:
         return [Interface("ethercat", interface, "no permission for a raw socket", False,
-                          "run as root, or: sudo setcap cap_net_raw+ep $(realpath $(which python3))")]
+                          RAW_SOCKET_PERMISSION)]
     except OSError as error:
         return [Interface("ethercat", interface, f"cannot open it raw: {error.strerror}", False, "")]
     try:
