@@ -304,6 +304,19 @@ def test_bad_joints_are_one_line_before_anything_starts(change: dict[str, object
         build_device("canopen402", "axis", {"interface": "vcan0", "joints": [{**JOINT, **change}]}, "app.toml")
 
 
+@pytest.mark.parametrize(("index", "words"), [
+    (0x1016, "the heartbeat consumer and producer"),  # 0 there: the drive no longer stops when the task dies
+    (0x1800, "a PDO's communication or mapping parameters"),
+    (0x1A01, "a PDO's communication or mapping parameters"),
+    (0x6040, "controlword, a process data object rtloop drives"),
+])
+def test_an_sdo_write_to_an_object_rtloop_configures_is_bad_input(index: int, words: str) -> None:
+    with pytest.raises(DeviceError, match=rf"joints\[0\]\.sdo\[0\]\.index: 0x{index:04X} \({words}\) is rtloop's to "
+                                          "configure"):
+        build_device("canopen402", "axis", {"interface": "vcan0", "joints": [
+            {**JOINT, "sdo": [{"index": index, "sub": 1, "value": 0}]}]}, "app.toml")
+
+
 def test_two_joints_on_one_node_are_bad_input() -> None:
     with pytest.raises(DeviceError, match=r"devices\.axis\.joints: two joints share a node: \[3, 3\]"):
         build_device("canopen402", "axis", {"interface": "vcan0", "joints": [JOINT, {**JOINT, "name": "b"}]}, "t")
@@ -461,13 +474,14 @@ def test_the_apps_sdo_values_are_written_segmented_and_read_back_and_a_refused_o
     log: list[str] = []
     paired = PairedNode(CanopenNode(3, log=log.append))
     device = _device_on(paired, joints=[{**JOINT, "sdo": [{"index": 0x2100, "text": "left wheel of the base"},
-                                                            {"index": 0x1017, "value": 250, "size": 2}]}])
+                                                            {"index": 0x1006, "value": 10_000}]}])
     try:
         device.configure()
     finally:
         device.close()
         paired.close()
     assert paired.node.od_bytes[(0x2100, 0)] == b"left wheel of the base"
+    assert paired.node.od[(0x1006, 0)] == 10_000
     assert "node 3: SDO 0x2100:0 written, 22 bytes (segmented)" in log
     paired = PairedNode(CanopenNode(3))
     device = _device_on(paired, joints=[{**JOINT, "sdo": [{"index": 0x2001, "text": "no such object here"}]}])

@@ -118,6 +118,10 @@ def sdo_writes_from(value: Any, where: str) -> tuple[tuple[int, int, bytes], ...
                              "expected exactly one of text, hex or value (with size)")
         if isinstance(index, bool) or not isinstance(index, int) or not 0x1000 <= index <= 0xFFFF:
             raise JointError(f"{at}.index", f"expected an object index 0x1000..0xFFFF, got {index!r}")
+        managed = _managed_by_rtloop(index)
+        if managed:
+            raise JointError(f"{at}.index", f"0x{index:04X} ({managed}) is rtloop's to configure, from the app file's "
+                             "other settings: written after them, it would undo them")
         if isinstance(sub, bool) or not isinstance(sub, int) or not 0 <= sub <= 0xFF:
             raise JointError(f"{at}.sub", f"expected a subindex 0..255, got {sub!r}")
         data, kind = b"", kinds[0]
@@ -140,6 +144,19 @@ def sdo_writes_from(value: Any, where: str) -> tuple[tuple[int, int, bytes], ...
             raise JointError(f"{at}.{kind}", f"expected a string, got {item[kind]!r}")
         writes.append((index, sub, data))
     return tuple(writes)
+
+
+def _managed_by_rtloop(index: int) -> str | None:
+    """What an object rtloop configures itself is (the sdo list may not write it), or None. 0x1016 was
+    writable: sdo = [{ index = 0x1016, sub = 1, value = 0 }] switched off the drive's watch of rtloop's
+    heartbeat, the drive's way to stop when the task dies; the PDO objects undid the mapping."""
+    if index in (0x1016, 0x1017):
+        return "the heartbeat consumer and producer"
+    if 0x1400 <= index <= 0x1BFF:
+        return "a PDO's communication or mapping parameters"
+    if index in OBJECTS:
+        return f"{OBJECTS[index].name}, a process data object rtloop drives"
+    return None
 
 
 class _Node:
