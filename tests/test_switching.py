@@ -718,6 +718,26 @@ def test_an_at_cycle_past_what_the_switch_port_holds_names_the_option() -> None:
     assert app.written == []
 
 
+def test_a_reload_at_a_cycle_past_what_the_switch_port_holds_names_the_option(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """rtloop reload --at-cycle 1e29 said 'port left_switch (...): value 1e+29 at index 1 is outside its range'."""
+    import argparse
+
+    import rtloop.ipc.ports as ports
+    from rtloop.cli import reload
+    from rtloop.errors import PortValueError
+
+    app = _FakeApp()
+    app.registry = {"summary": str(tmp_path / "summary.json")}  # type: ignore[attr-defined]
+    monkeypatch.setattr(ports, "connect_app", lambda *_, **__: app)
+    module = tmp_path / "ctl.py"
+    module.write_text("X = 1\n")
+    with pytest.raises(PortValueError, match=r"at cycle 100000000000000000000000000000: task 'left' would reach it"):
+        reload.run(argparse.Namespace(app="fake", task="left", controller="lqr", file=module, at_cycle=10**29,
+                                      user=None))
+    assert app.written == []
+
+
 def test_several_tasks_switch_at_one_instant_or_none_does() -> None:
     from rtloop.errors import PortValueError
     from rtloop.ipc.switch_requests import switch

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import stat
 import time
@@ -41,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from rtloop.code_reload import code_file_name, code_id_of, compiled_code, compiled_file_name, result_file_name
     from rtloop.ipc.ports import connect_app
-    from rtloop.ipc.switch_requests import release_at, switch_port_of
+    from rtloop.ipc.switch_requests import release_at, release_cycle, switch_port_of
 
     app = connect_app(args.app, owner_uid=args.user, command="reload")
     port = switch_port_of(app, args.task, args.controller, "reload")
@@ -67,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     _keep(code_dir, compiled_file_name(name, code_id),
           compiled_code(source, code_dir / code_file_name(name, code_id), code_id))
     t0_ns, at_ns = release_at(app, port, args.at_cycle, LEAD_S, "reload")
-    at_cycle = math.ceil((at_ns - t0_ns) / port.period_ns)
+    at_cycle = release_cycle(at_ns - t0_ns, port, args.at_cycle)  # past 2**53: named, not the port's range
     at_ns = t0_ns + at_cycle * port.period_ns  # the release itself
     result_path = code_dir / result_file_name(name, code_id)
     result_path.unlink(missing_ok=True)  # the answer to this request, not to an earlier one

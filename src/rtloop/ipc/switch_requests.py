@@ -97,7 +97,7 @@ def switch(app: RunningApp, changes: Mapping[str, str | None], *, at_cycle: int 
         chosen.append((port, controller))
     t0_ns, at_ns = release_at(app, chosen[0][0], at_cycle, lead_s, "switch")
     requests = [(port, *_request(app.peek(port.port), port, controller,
-                                 _cycle_of(at_ns - t0_ns, port, at_cycle), mode))
+                                 release_cycle(at_ns - t0_ns, port, at_cycle), mode))
                 for port, controller in chosen]  # all built (and refused) before the first write
     answers = []
     for port, values, said in requests:
@@ -112,7 +112,7 @@ MAX_SWITCH_CYCLE = 1 << 53
 """The last cycle a switch can name: the switch port holds it as a double, exact up to 2**53."""
 
 
-def _cycle_of(since_t0_ns: int, port: SwitchPort, asked: int | None) -> int:
+def release_cycle(since_t0_ns: int, port: SwitchPort, asked: int | None) -> int:
     """The first release of ``port``'s task at or after ``since_t0_ns``; past the port's range (an
     ``--at-cycle`` of 1e29) refused naming the option, not the port's internal range."""
     cycle = -(-since_t0_ns // port.period_ns)  # integers: a float division loses cycles past 2**53
