@@ -297,8 +297,8 @@ def test_a_range_outside_one_turn_is_one_line_exit_2_at_load(tmp_path: Path) -> 
     app_file = app_copy(tmp_path, JIWY, "jiwy_dxl_range", **{"range_rad = [-1.6, 1.6]": "range_rad = [-3.5, 3.5]"})
     result = _cli(app_file)
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
-    assert "devices.gimbal.servos[0].range_rad: [-3.5, 3.5] rad reaches past one turn around zero_ticks 2048" \
-        in result.stderr
+    assert "devices.gimbal.servos[0].range_rad: [-3.5, 3.5] rad is ticks -233..4329 around zero_ticks 2048: " \
+           "outside the servo's 0..4095" in result.stderr
 
 
 def test_a_bus_where_nothing_answers_is_not_ready_exit_3(tmp_path: Path) -> None:
