@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -70,18 +71,23 @@ def test_a_copy_of_an_instance_loads_no_file_even_after_its_module_was_edited(mo
     assert copied.gains == controller.gains and copied.gains is not controller.gains
 
 
+def _prepared(module: Any, code_dir: Path, tick: TickInfo, *, wait_for_code: bool) -> Controllers:
+    """The controllers ``{"pi": module.Pi()}`` with inputs bound, the run's code folder made and prerun
+    done: ``wait_for_code``, a replay's (it waits for the kept code); without, a live run's reloader."""
+    controllers = Controllers({"pi": module.Pi()}, "pi")
+    controllers.bind_inputs(np.zeros(controllers.n_inputs))
+    controllers.tick = tick
+    code_dir.mkdir()
+    controllers.code_dir = code_dir
+    controllers.wait_for_code = wait_for_code
+    controllers.prerun()
+    return controllers
+
 def test_a_reload_builds_the_new_code_from_the_kept_file_only_and_records_its_timeline(
         module_by_file, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
     name, path, module = module_by_file
-    controllers = Controllers({"pi": module.Pi()}, "pi")
-    u = np.zeros(controllers.n_inputs)
-    controllers.bind_inputs(u)
-    controllers.tick = TickInfo(cycle=3, period_ns=P)
     code_dir = tmp_path / "code"
-    code_dir.mkdir()
-    controllers.code_dir = code_dir
-    controllers.wait_for_code = True
-    controllers.prerun()
+    controllers = _prepared(module, code_dir, TickInfo(cycle=3, period_ns=P), wait_for_code=True)
     new = MODULE.format(gain=3.0).encode()
     path.write_bytes(new)  # the module's own file edited, as `rtloop reload` finds it
     code_id = code_id_of(new)
@@ -118,13 +124,7 @@ def test_simulate_and_replay_write_no_answer_over_the_runs_own(module_by_file, t
     from rtloop.code_reload import result_file_name
 
     _name, _path, module = module_by_file
-    controllers = Controllers({"pi": module.Pi()}, "pi")
-    controllers.bind_inputs(np.zeros(controllers.n_inputs))
-    controllers.tick = TickInfo(cycle=3, period_ns=P)
-    controllers.code_dir = tmp_path / "code"
-    controllers.code_dir.mkdir()
-    controllers.wait_for_code = True
-    controllers.prerun()
+    controllers = _prepared(module, tmp_path / "code", TickInfo(cycle=3, period_ns=P), wait_for_code=True)
     new = MODULE.format(gain=3.0).encode()
     code_id = code_id_of(new)
     (controllers.code_dir / code_file_name("pi", code_id)).write_bytes(new)
@@ -224,13 +224,8 @@ def test_a_real_preparation_under_the_gate_yields_at_every_release_and_builds_th
     from rtloop.code_reload import SlackGate
 
     _name, _path, module = module_by_file
-    controllers = Controllers({"pi": module.Pi()}, "pi")
-    controllers.bind_inputs(np.zeros(controllers.n_inputs))
     loop = LogicalLoop(t0_ns=time.monotonic_ns(), period_ns=P)
-    controllers.tick = loop.tick
-    controllers.code_dir = tmp_path / "code"
-    controllers.code_dir.mkdir()
-    controllers.prerun()  # wait_for_code False: a real run's reloader, which installs the gate
+    controllers = _prepared(module, tmp_path / "code", loop.tick, wait_for_code=False)  # installs the gate
     new = MODULE.format(gain=3.0).encode()
     code_id = code_id_of(new)
     kept = controllers.code_dir / code_file_name("pi", code_id)
@@ -294,12 +289,8 @@ def test_the_replaced_controllers_postrun_runs_in_the_loops_slack_too(module_by_
             seen.append((sys.getprofile(), sys.getswitchinterval()))
             done.set()
 
-    controllers = Controllers({"pi": module.Pi()}, "pi")
-    controllers.bind_inputs(np.zeros(controllers.n_inputs))
-    controllers.tick = TickInfo(cycle=3, release_ns=1, period_ns=P)
-    controllers.code_dir = tmp_path / "code"
-    controllers.code_dir.mkdir()
-    controllers.prerun()  # a real run's reloader (no wait)
+    controllers = _prepared(module, tmp_path / "code", TickInfo(cycle=3, release_ns=1, period_ns=P),
+                            wait_for_code=False)
     reloader = controllers._reloader
     assert isinstance(reloader, CodeReloader)
     try:
@@ -329,13 +320,8 @@ def test_a_preparation_that_spins_is_stopped_at_its_deadline_refused_and_the_rel
 
     monkeypatch.setattr(code_reload, "PREPARE_DEADLINE_S", 0.3, raising=False)
     _name, _path, module = module_by_file
-    controllers = Controllers({"pi": module.Pi()}, "pi")
-    controllers.bind_inputs(np.zeros(controllers.n_inputs))
-    controllers.tick = TickInfo(cycle=3, period_ns=P)
-    controllers.code_dir = tmp_path / "code"
-    controllers.code_dir.mkdir()
-    controllers.wait_for_code = False  # as in a real run: the answer is written for `rtloop reload`
-    controllers.prerun()
+    # as in a real run (no wait for kept code): the answer is written for `rtloop reload`
+    controllers = _prepared(module, tmp_path / "code", TickInfo(cycle=3, period_ns=P), wait_for_code=False)
     reloader = controllers._reloader
     assert isinstance(reloader, CodeReloader)
 
