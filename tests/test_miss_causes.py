@@ -98,6 +98,13 @@ def test_another_tasks_step_on_the_same_cpu_is_named() -> None:
     assert cause.cls == TASK and "controller's step (cycle 41, 1.9 ms, priority 81)" in cause.text
 
 
+def _woken_late_at_40(base: int) -> np.ndarray:
+    """A 1 ms task's timing records around ``base`` (cycle 40's release): cycle 39 on time, cycle 40
+    woken 2.52 ms late (held while another task stepped), then cycles 41-42 skipped, 43 on time."""
+    return np.array([[39, base - MS, base - MS + 8_000, base - MS + 30_000],
+                     [40, base, base + 2_520_000, base + 2_540_000],
+                     [43, base + 3 * MS, base + 3 * MS + 9_000, base + 3 * MS + 30_000]], dtype=np.int64)
+
 def test_the_watch_finds_a_higher_priority_task_on_the_same_cpu_from_the_records() -> None:
     facts = {"plant": TaskFacts(MS, 1, 80, True), "controller": TaskFacts(MS, 1, 81, True),
              "far": TaskFacts(MS, 0, 90, True)}
@@ -106,10 +113,7 @@ def test_the_watch_finds_a_higher_priority_task_on_the_same_cpu_from_the_records
     # the controller's cycle 40 runs 2.5 ms from its release; plant's cycle 40 waits for it
     watch.add_timing("controller", np.array([[40, base, base + 10_000, base + 2_510_000]], dtype=np.int64))
     watch.add_timing("far", np.array([[40, base, base + 5_000, base + 20_000]], dtype=np.int64))
-    watch.add_timing("plant", np.array([[39, base - MS, base - MS + 8_000, base - MS + 30_000],
-                                        [40, base, base + 2_520_000, base + 2_540_000],
-                                        [43, base + 3 * MS, base + 3 * MS + 9_000, base + 3 * MS + 30_000]],
-                                       dtype=np.int64))
+    watch.add_timing("plant", _woken_late_at_40(base))
     watch.finish()
     ledger = watch.ledger.to_json()
     assert ledger["total"] == 2  # the controller's own long step is a miss too: the step's
@@ -395,10 +399,7 @@ def test_a_task_refused_real_time_has_its_misses_explained_as_the_sched_other_ta
     assert not watch.facts["controller"].realtime and watch.facts["controller"].priority == 80
     base = T0 + 40 * MS
     watch.add_timing("plant", np.array([[40, base, base + 10_000, base + 2_510_000]], dtype=np.int64))
-    watch.add_timing("controller", np.array([[39, base - MS, base - MS + 8_000, base - MS + 30_000],
-                                             [40, base, base + 2_520_000, base + 2_540_000],
-                                             [43, base + 3 * MS, base + 3 * MS + 9_000, base + 3 * MS + 30_000]],
-                                            dtype=np.int64))
+    watch.add_timing("controller", _woken_late_at_40(base))
     watch.finish()
     late = next(m for m in watch.ledger.to_json()["first"] if m["task"] == "controller")
     assert late["cause"].startswith("held by another task (this one ran at SCHED_OTHER, not real time): plant's step "
