@@ -20,7 +20,9 @@ from conftest import cli_env
 from rtloop.ipc.ports import connect_app
 
 SHM = Path("/dev/shm")
-AT_CYCLE = 5
+AT_CYCLE = 100
+"""The step fault's cycle, 200 ms after T0: the fault stops the other task at once, which must have run a cycle
+by then (its summary says so); at cycle 5 (10 ms) a loaded machine that woke it late left it none."""
 
 
 def _app_file(tmp_path: Path, name: str, phase: str, kind: str) -> Path:
