@@ -221,7 +221,10 @@ def test_a_drive_that_answers_every_command_is_read_in_the_cycle_of_the_command(
             assert y[0] == pytest.approx(0.25 * (cycle + 1)), cycle  # this cycle's answer, not the one before
         assert struct.unpack_from("<h", seen[0][1])[0] == 25  # the first frame out was cycle 0's
         device.write_safe(np.array([-0.5, 0.0]))
-        time.sleep(0.05)
+        deadline = time.monotonic() + 30  # the responder's thread takes both frames (a loaded machine: late)
+        while not (len(seen) >= 2 and seen[-1][0] == 0x700 and seen[-2][0] == 0x200
+                   and struct.unpack_from("<h", seen[-2][1])[0] == -50) and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert seen[-2][0] == 0x200 and struct.unpack_from("<h", seen[-2][1])[0] == -50  # the safe torque
         assert seen[-1][0] == 0x700  # and the heartbeat
     finally:
