@@ -45,19 +45,21 @@ def drive_on_a_pair(twin: str, timeout_ms: float):
 def test_a_receive_timeout_below_a_millisecond_is_honoured(twin: str) -> None:
     """``timeout_ms = 0.2`` waited poll(1), a whole millisecond (a whole period at 1 kHz), exactly when
     ``on_missing = "stale"`` should keep the loop going. poll() never returns before its timeout, so
-    the shortest of several waits shows the resolution: under a millisecond now, at least one before."""
+    the shortest of several waits shows the resolution: under a millisecond now, at least one before.
+    Up to 500 waits, not 20: on a loaded machine a waking thread is often run a millisecond late (each wait
+    ending late says nothing; one wait under a millisecond can only come from a timeout under one)."""
     device, peer = drive_on_a_pair(twin, timeout_ms=0.2)
     y = np.zeros(1)
-    waits_ns = []
+    waits_ns: list[int] = []
     try:
-        for _ in range(20):
+        while len(waits_ns) < 20 or (min(waits_ns) >= 900_000 and len(waits_ns) < 500):
             start_ns = time.monotonic_ns()
             device.read(y)  # the answer never comes: a stale read after the timeout
             waits_ns.append(time.monotonic_ns() - start_ns)
     finally:
         device.socket.close()
         peer.close()
-    assert device.stale_reads == 20
+    assert device.stale_reads == len(waits_ns)
     assert min(waits_ns) >= 200_000  # it did wait its timeout
     assert min(waits_ns) < 900_000, f"shortest wait {min(waits_ns) / 1e6:.3f} ms for a 0.2 ms timeout"
 
