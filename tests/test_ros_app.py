@@ -280,10 +280,13 @@ def test_independent_ros2_subscriber_receives_jiwy_angles(angles_seen_from_outsi
     # every = 10 at 1 kHz: stamps are release times of every 10th tick, 10 ms apart
     assert all((b - a) % 10_000_000 == 0 for a, b in itertools.pairwise(stamps))
     # Stamps are wall-clock release times, so always in the past. The bridge starts just after
-    # the app's epoch and first sends what the port queued meanwhile; after that it keeps up.
+    # the app's epoch and first sends what the port queued meanwhile (its start, a Python that
+    # imports DDS, is bounded like the others': 5.2 s old were the first under stress-ng --cpu 2);
+    # after that it keeps up: the last are not seconds old as the start left the first. (Not a
+    # latency: a loaded machine ran the bridge and this peer late by 300 ms, median of the last 20.)
     ages_ms = [(s["rx_ns"] - s["stamp_ns"]) / 1e6 for s in samples]
-    assert all(0 < age < 5000 for age in ages_ms), ages_ms
-    assert np.median(ages_ms[-20:]) < 100, ages_ms[-20:]
+    assert all(0 < age < START_TIMEOUT_S * 1000 for age in ages_ms), ages_ms
+    assert np.median(ages_ms[-20:]) < 1000, ages_ms[-20:]
     assert summary_of(angles_seen_from_outside["out"])["bridges"]["publish /jiwy/angles"]["state"] == "ok"
 
 
@@ -386,12 +389,14 @@ def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: fl
 def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
     domain = random_domain()
     out = tmp_path / "out"
-    duration_s = 15  # the bridge may take seconds to be found by the peer on a loaded machine (below)
-    peer = Peer("listen", "rt/jiwy/angles", "100000", "120", domain=domain)
+    peer = Peer("listen", "rt/jiwy/angles", "100000", "300", domain=domain)
     stop_on_failure: subprocess.Popen | None = None
     try:
         peer.expect("READY")
-        run = start_app(JIWY, out, domain, duration_s=duration_s)
+        # Ended with Ctrl-C once the killed bridge has been watched: a run of a fixed 15 s left the angles
+        # bridge 12 s from when it was found to its first message, and a machine at a load average of 15
+        # (stress-ng --cpu 2 beside the suite) took longer. The duration is only a bound.
+        run = start_app(JIWY, out, domain, duration_s=240)
         stop_on_failure = run  # killed in `finally` if an assertion fails before the run ends
         app = wait_for_app(run.pid)
         tasks = set(wait_for_task_pids(app, run, START_TIMEOUT_S).values())  # never a 0
@@ -399,20 +404,22 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
         angles_bridge, setpoint_bridge = bridge_pids(run.pid, tasks, count=2)
         # until the angles bridge publishes: it imports DDS and is found by the peer, while the tasks (forked
         # from the task server, runtime/task_start.py) may have been in their loops for a while; at a load
-        # average of ~9 more than 4 s went by before its first message. 3 s of the run are left after it.
-        deadline = time.monotonic() + duration_s - 3
+        # average of ~9 more than 4 s went by before its first message, more than 12 s at ~15.
+        deadline = time.monotonic() + 2 * START_TIMEOUT_S
         before = 0
         while not before and time.monotonic() < deadline:
             before = len(peer.samples(timeout_s=0.25))
         assert before > 0, "the angles bridge published nothing before it was killed"
         os.kill(angles_bridge, signal.SIGKILL)
-        killed_ns = time.time_ns()
+        killed_ns, killed_monotonic_ns = time.time_ns(), time.monotonic_ns()
         # Nothing released after the kill may arrive: a message's stamp is its tick's release (wall clock),
         # so one stamped 50 ms past the kill was published after it. (Not when it arrives: what was on the
         # wire before the kill may be taken late by a peer the loaded machine runs late.)
         late = [s for s in peer.samples(timeout_s=1.5) if s["stamp_ns"] > killed_ns + 50_000_000]
         assert os.path.exists(f"/proc/{setpoint_bridge}")
         assert all(os.path.exists(f"/proc/{pid}") for pid in tasks), "a task died with the bridge"
+        assert run.poll() is None, "the run ended before its Ctrl-C"
+        run.send_signal(signal.SIGINT)
         code, stderr = finish(run)
         stop_on_failure = None
     finally:
@@ -423,22 +430,26 @@ def test_killing_a_bridge_leaves_the_rt_tasks_running(tmp_path: Path) -> None:
     assert code == 0, stderr
     assert not late, f"{len(late)} messages still arrived after the angles bridge was killed"
     summary = summary_of(out)
-    assert summary["failure"] is None and summary["stopped_by"] == "duration"
+    assert summary["failure"] is None and summary["stopped_by"] == "signal"
     killed = summary["bridges"]["publish /jiwy/angles"]
     assert killed["state"] == "failed" and str(-signal.SIGKILL) in killed["reason"], killed
     assert summary["bridges"]["subscribe /jiwy/setpoint"]["state"] == "ok"
-    expected_cycles = duration_s * 1000
-    for name, task in summary["tasks"].items():
-        # The tasks ran on to the end: skipped releases (overruns) are the only cycles a task may lack.
-        # How many it skipped or missed is this machine's business (a hypervisor stalling a core for
-        # milliseconds made 45 of 4,000 late in a CI run), not the bridge's.
-        assert task["cycles"] + task["overruns"] >= expected_cycles - 2, (name, task["cycles"], task["overruns"])
-        assert task["cycles"] > expected_cycles // 2, (name, task["cycles"], task["overruns"])
-    last = {}
+    last_cycle, last_release_ns = {}, {}
     for line in (out / "timing.csv").read_text().splitlines()[1:]:
-        task, cycle = line.split(",")[:2]
-        last[task] = max(last.get(task, 0), int(cycle))
-    assert all(cycle >= expected_cycles - 3 for cycle in last.values()), last
+        task, cycle, release_ns = line.split(",")[:3]
+        last_cycle[task] = max(last_cycle.get(task, 0), int(cycle))
+        last_release_ns[task] = max(last_release_ns.get(task, 0), int(release_ns))
+    assert last_cycle.keys() == summary["tasks"].keys(), last_cycle
+    # The tasks ran on past the kill, to the Ctrl-C that came 1.5 s after it (releases on CLOCK_MONOTONIC) ...
+    assert all(release_ns > killed_monotonic_ns + 1_000_000_000 for release_ns in last_release_ns.values()), \
+        (killed_monotonic_ns, last_release_ns)
+    assert max(last_cycle.values()) - min(last_cycle.values()) <= 3, last_cycle  # ... all of them, to the end
+    for name, task in summary["tasks"].items():
+        # ... and skipped releases (overruns) are the only cycles a task may lack. How many it skipped or
+        # missed is this machine's business (a hypervisor stalling a core for milliseconds made 45 of
+        # 4,000 late in a CI run), not the bridge's.
+        assert task["cycles"] + task["overruns"] >= last_cycle[name] - 1, (name, task["cycles"], task["overruns"])
+        assert task["cycles"] > last_cycle[name] // 2, (name, task["cycles"], task["overruns"])
 
 
 # --- 4. two apps, as on two devices, exchange a signal over ROS 2 -----------------------------------------
