@@ -104,10 +104,16 @@ def hung_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathF
                 runs[(phase, kind)] = (tmp_path, name, process)
         yield runs
     finally:
-        for _tmp_path, _name, process in runs.values():  # only when a test failed before its own ended
-            if process.poll() is None:
+        # Left running when a test failed before its own ended, or when its test ran in another xdist worker
+        # (each worker that runs a test of this module starts every selected hang). Each run ends by itself
+        # within its limit; killing the supervisor first would leave its hung task holding the pipes, and
+        # communicate() waited for them until the suite's timeout.
+        for _tmp_path, _name, process in runs.values():
+            try:
+                process.communicate(timeout=120)
+            except subprocess.TimeoutExpired:
                 process.kill()
-            process.communicate()
+                process.wait()
 
 
 @pytest.mark.parametrize(("phase", "kind"), [*CASES, *(pytest.param(*case, marks=pytest.mark.slow) for case in HANGS)])
