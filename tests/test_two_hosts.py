@@ -96,9 +96,11 @@ def app_copy(source: Path, folder: Path, name: str) -> Path:
 
 
 def run_in(host: str, app_file: Path, out: Path, env: dict[str, str]) -> subprocess.Popen:
-    """``rtloop run`` in namespace ``host``, until stopped (at most a minute)."""
+    """``rtloop run`` in namespace ``host``, until stopped. Its duration is only a bound, past the test's
+    120 s wait for samples to cross: a run of 60 s could end inside it (four runs and their bridges start
+    at once, each a Python that imports DDS: seconds on a loaded machine), failing as "a run ended"."""
     return subprocess.Popen(["ip", "netns", "exec", host, sys.executable, "-m", "rtloop.cli", "run", str(app_file),
-                             "--duration", "60", "--out", str(out), "--quiet"],
+                             "--duration", "200", "--out", str(out), "--quiet"],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
