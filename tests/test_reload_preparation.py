@@ -341,6 +341,10 @@ def test_a_preparation_that_spins_is_stopped_at_its_deadline_refused_and_the_rel
         refused = answer_to(source)
         assert refused["accepted"] is False
         assert "took more than 0.3 s: stopped there" in str(refused["reason"]), refused
-        assert answer_to(MODULE.format(gain=4.0))["accepted"] is True  # the thread serves the next request
+        # The thread serves the next request: a good module, given the time a loaded machine may take to
+        # prepare it (the deadline is read as each preparation is armed; a reload thread descheduled for
+        # 0.3 s would have had this one refused too, and that is not what this test is about).
+        reloader.deadline.limit_s = 30.0
+        assert answer_to(MODULE.format(gain=4.0))["accepted"] is True
     finally:
         controllers.postrun()
