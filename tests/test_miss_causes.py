@@ -237,7 +237,9 @@ def test_jiwy_with_a_fifo_hog_on_its_core_blames_the_hog(tmp_path: Path, traced:
     name = unique_name("misses_hog")
     app_file = tmp_path / f"{name}.toml"
     app_file.write_text(JIWY_ON_ONE_CPU.format(name=name, cpu=cpu))
-    hog = subprocess.Popen([sys.executable, "-c", HOG, str(cpu), "30"], stdout=subprocess.PIPE, text=True)
+    # The hog holds on for longer than the run can take to start (it is killed when the run ends): a
+    # run of 1 s whose start took 30 s on a loaded machine would have run beside no hog, missing nothing.
+    hog = subprocess.Popen([sys.executable, "-c", HOG, str(cpu), "240"], stdout=subprocess.PIPE, text=True)
     try:
         assert hog.stdout is not None and hog.stdout.readline().strip() == "holding"
         done = subprocess.run([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "1", "--out",

@@ -168,9 +168,10 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
     run_dir = tmp_path / "run"
     # Two CPU hogs on the tasks' core, real-time above them but busy only part of the time: the
     # tasks are held off in bursts, so they miss deadlines and read samples their writer had
-    # not yet published. Only this process group is stopped afterwards.
+    # not yet published. Only this process group is stopped afterwards, when the run has ended (its
+    # timeout is a bound past the run's, whose start takes seconds on a loaded machine).
     with stress_ng("--cpu", "2", "--cpu-load", str(HOG_LOAD_PERCENT), "--taskset", str(cpu),
-                   "--sched", "fifo", "--sched-prio", "90", "--timeout", "60s"):
+                   "--sched", "fifo", "--sched-prio", "90", "--timeout", "200s"):
         process = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "6",
                                     "--out", str(run_dir), "-q"], env=rtloop_env,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
