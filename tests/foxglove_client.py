@@ -42,7 +42,8 @@ def run_with_live_view(app_file: Path, out: Path, duration_s: float,
                        env: dict[str, str]) -> Iterator[tuple[subprocess.Popen[str], str]]:
     """``rtloop run APP --duration D --out OUT --quiet`` and its live view's URL. Leaving the block
     ends a run still going the way Ctrl-C does (killed if it takes over 60 s) and reaps it; the
-    caller then asserts its return code."""
+    caller then asserts its return code. So D is a bound, not the test's time: a run's start (a
+    Python that imports the live view's server) takes seconds of it on a loaded machine."""
     run = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", str(duration_s),
                             "--out", str(out), "--quiet"], env=env, stderr=subprocess.PIPE, text=True)
     assert run.stderr is not None
@@ -51,7 +52,7 @@ def run_with_live_view(app_file: Path, out: Path, duration_s: float,
     pump = threading.Thread(target=lambda: [lines.put(line) for line in stderr], daemon=True)
     pump.start()
     try:
-        yield run, url_from(lines, 30)
+        yield run, url_from(lines, 60)
     finally:
         if run.poll() is None:  # the test has seen what it came for
             run.send_signal(signal.SIGINT)

@@ -77,7 +77,7 @@ def test_foxglove_client_receives_signals_and_timing_and_writes_a_port(tmp_path:
     app_file = tmp_path / "fox.toml"
     app_file.write_text(APP.format(suffix=unique_name("live")))
     out = tmp_path / "out"
-    with run_with_live_view(app_file, out, 12, rtloop_env) as (run, url):
+    with run_with_live_view(app_file, out, 60, rtloop_env) as (run, url):  # ended once seen
         assert url.startswith("ws://localhost:")
         with connect(url, subprotocol) as client:
             assert client.subprotocol == subprotocol  # the name the client offered, answered as offered

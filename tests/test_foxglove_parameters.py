@@ -69,7 +69,7 @@ def test_a_foxglove_client_tunes_a_live_parameter_and_the_replay_repeats_it(tmp_
     app_file = tmp_path / "tune.toml"
     app_file.write_text(APP.format(name=unique_name("fox_tune")))
     out = tmp_path / "out"
-    with run_with_live_view(app_file, out, 20, rtloop_env) as (run, url), connect(url) as client:
+    with run_with_live_view(app_file, out, 60, rtloop_env) as (run, url), connect(url) as client:  # ended once seen
         info = wait_for_rows(client)  # the run is past T0: the tuning lands in the middle of it
         assert "parameters" in info["capabilities"], info
         client.send(json.dumps({"op": "getParameters", "parameterNames": [], "id": "all"}))
