@@ -99,7 +99,7 @@ def test_a_real_time_run_takes_an_offset_written_while_it_runs(tmp_path: Path, r
                "--out", str(tmp_path / "out"), "-q"]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        app = connect_app(name, timeout_s=30)
+        app = connect_app(name, timeout_s=60)
         with app.reader("echoed") as echoed:  # the loop runs and reads the profile alone
             deadline = time.monotonic() + 30
             while not len(echoed.read()[0]) and time.monotonic() < deadline:

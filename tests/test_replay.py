@@ -176,7 +176,7 @@ def test_a_loaded_jiwy_run_with_live_setpoints_replays_bit_for_bit_misses_and_st
                                     "--out", str(run_dir), "-q"], env=rtloop_env,
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            app = connect_app(name, timeout_s=30)
+            app = connect_app(name, timeout_s=60)
             wait_for_cycles(app, "controller", 1, process)  # the run is under way (start-up may take long)
             for step in range(8):  # a new setpoint every 0.6 s, the first at about 1 s, the last at 5.2 s of 6
                 time.sleep(0.6 if step else 1.0)

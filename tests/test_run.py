@@ -161,7 +161,7 @@ def test_ctrl_c_and_sigterm_stop_cleanly_with_complete_artifacts(tmp_path: Path,
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
     _wait_running(name, process)
     process.send_signal(signum)
-    _, stderr = process.communicate(timeout=scaled_s(20))
+    _, stderr = process.communicate(timeout=scaled_s(60))
     assert process.returncode == 0, stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["stopped_by"] == "signal" and summary["failure"] is None
@@ -179,7 +179,7 @@ def test_killed_task_process_is_reported_and_the_rest_is_kept(tmp_path: Path, rt
     process = _start_cli(_app_file(tmp_path, name), tmp_path / "out", rtloop_env)
     pids = _wait_running(name, process)
     os.kill(pids["idle"], signal.SIGKILL)
-    _, stderr = process.communicate(timeout=scaled_s(20))
+    _, stderr = process.communicate(timeout=scaled_s(60))
     assert process.returncode == 1
     assert "task 'idle' failed" in stderr and "SIGKILL" in stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())

@@ -40,7 +40,7 @@ def _app_file(tmp_path: Path, name: str, cpus: list[int]) -> Path:
     return path
 
 
-def _wait_running(name: str, timeout_s: float = 30) -> None:
+def _wait_running(name: str, timeout_s: float = 60) -> None:
     app = connect_app(name, timeout_s=timeout_s)
     deadline = time.monotonic() + timeout_s
     while not all(app.task_pids().values()):

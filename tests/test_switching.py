@@ -233,7 +233,7 @@ def test_a_live_switch_and_back_in_a_real_run_is_bumpless_listed_and_replays_bit
                                 f"setpoint={EXAMPLES / 'setpoints' / 'step.csv'}"],
                                env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        app = connect_app(name, timeout_s=30)
+        app = connect_app(name, timeout_s=60)
         wait_for_cycles(app, "controller", 600, process)  # during the step's transient
         unknown = _cli("switch", name, "controller", "lqr", env=rtloop_env)
         assert unknown.returncode == 2 and "its controllers are ['pid', 'soft']" in unknown.stderr
@@ -494,7 +494,7 @@ def test_live_reload_acts_from_the_named_release_refuses_bad_code_and_replays(tm
                                 "--out", str(run_dir), "-q"],
                                env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        app = connect_app(name, timeout_s=30)
+        app = connect_app(name, timeout_s=60)
         wait_for_cycles(app, "ctl", 500, process)
         module.write_text(RELOAD_MODULE.format(gain=1.0).replace("def step(self, u, y):", "def step(self, u, y)"))
         broken = _cli("reload", name, "ctl", env=rtloop_env)
