@@ -229,7 +229,10 @@ def test_the_guard_allocates_nothing_per_cycle() -> None:
         guard.apply(u, "ctl", cycle)
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
-    grown = sum(stat.size_diff for stat in after.compare_to(before, "filename") if stat.size_diff > 0)
+    # not another thread's: in an xdist worker, execnet's taking a message from the controller (~1.3 KB)
+    mine = [tracemalloc.Filter(False, "*/execnet/*")]
+    grown = sum(stat.size_diff for stat in after.filter_traces(mine).compare_to(before.filter_traces(mine), "filename")
+                if stat.size_diff > 0)
     assert grown < 4096, grown
 
 

@@ -142,5 +142,8 @@ def test_the_state_machine_and_the_model_allocate_nothing_per_exchange() -> None
     cycles(10_000)
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
-    grown = sum(stat.size_diff for stat in after.compare_to(before, "filename") if stat.size_diff > 0)
+    # not another thread's: in an xdist worker, execnet's taking a message from the controller (~1.3 KB)
+    mine = [tracemalloc.Filter(False, "*/execnet/*")]
+    grown = sum(stat.size_diff for stat in after.filter_traces(mine).compare_to(before.filter_traces(mine), "filename")
+                if stat.size_diff > 0)
     assert grown < 2048, grown
