@@ -35,7 +35,8 @@ def _rtloop(args: list[str], env: dict[str, str], **kwargs) -> subprocess.Popen:
 def test_a_second_run_of_a_live_name_is_refused(tmp_path: Path, rtloop_env: dict[str, str]) -> None:
     name = unique_name("twice")
     app_file = _app_file(tmp_path, name)
-    first = _rtloop(["run", str(app_file), "--duration", "60", "--out", str(tmp_path / "first"), "-q"], rtloop_env)
+    # (a bound, ended by the test: the first must outlast its own start and the second's, seconds each under load)
+    first = _rtloop(["run", str(app_file), "--duration", "200", "--out", str(tmp_path / "first"), "-q"], rtloop_env)
     try:
         wait_for_app(name, first)
         second = _rtloop(["run", str(app_file), "--duration", "60", "--out", str(tmp_path / "second"), "-q"],

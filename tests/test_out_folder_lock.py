@@ -33,7 +33,8 @@ def _app_file(tmp_path: Path, name: str) -> Path:
 def test_force_into_the_folder_of_a_live_run_is_refused(tmp_path: Path) -> None:
     app_file = _app_file(tmp_path, f"lockfirst_{os.getpid()}")
     out = tmp_path / "out"
-    first = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "30",
+    # (a bound, ended by the Ctrl-C below: the run must outlast its start and the simulate's, seconds under load)
+    first = subprocess.Popen([sys.executable, "-m", "rtloop", "run", str(app_file), "--duration", "200",
                               "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60

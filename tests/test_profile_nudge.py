@@ -95,7 +95,7 @@ def test_a_real_time_run_takes_an_offset_written_while_it_runs(tmp_path: Path, r
         'period_ns = 1_000_000\npriority = 10\n[ports.setpoint]\nto = "echo.u[0]"\nfeed = "profile.csv"\n'
         'nudge = "offset"\nrange = [-1.0, 1.0]\n[ports.echoed]\nsource = "echo.y"\n[record]\nsignals = ["echo.u"]\n')
     # Until Ctrl-C, once the loop has echoed the nudged value (the duration is only a bound)
-    command = [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "60",
+    command = [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "200",
                "--out", str(tmp_path / "out"), "-q"]
     process = subprocess.Popen(command, env=rtloop_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

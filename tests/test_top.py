@@ -67,7 +67,7 @@ def running_app(tmp_path: Path):
     log = tmp_path / "run.log"
     with log.open("w") as output:
         process = subprocess.Popen(
-            [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "60",
+            [sys.executable, "-m", "rtloop.cli", "run", str(tmp_path / "app.toml"), "--duration", "200",
              "--out", str(tmp_path / "out"), "--quiet"],
             stdout=output, stderr=subprocess.STDOUT,
         )

@@ -316,11 +316,11 @@ def test_second_user_plants_a_registry_and_a_segment_root_refuses(second_user, t
 def test_second_user_cannot_reach_roots_app_and_is_told_why(second_user, tmp_path: Path, rtloop_env) -> None:
     name = f"rootapp{os.getpid()}"
     app_file = _app_toml(tmp_path, name, "rt_test_runnables:Noop")
-    runner = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "60",
+    runner = subprocess.Popen([sys.executable, "-m", "rtloop.cli", "run", str(app_file), "--duration", "200",
                                "--out", str(tmp_path / "out"), "-q"], env=rtloop_env,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        connect_app(name, timeout_s=30)
+        connect_app(name, timeout_s=60)
         code = ("import sys; from rtloop.cli.main import main; "
                 f"sys.exit(main(['port', 'read', {name!r}, 'x', '--count', '1']))")
         done = _as(second_user, code, rtloop_env)
