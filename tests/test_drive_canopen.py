@@ -384,8 +384,9 @@ def test_an_eds_parsers_warnings_do_not_reach_stderr(tmp_path: Path, caplog: pyt
 def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
     paired = PairedNode(CanopenNode(3, sync_timeout_s=5.0))
     # a short heartbeat only where it is the point (the node's watch of ours would race the TPDO's); both
-    # watches longer than a loaded machine's stall of the node's thread (125 ms under stress-ng --cpu 4)
-    device = _device_on(paired, heartbeat_ms=100 if lost == "heartbeat" else 1000, tpdo_timeout_ms=200)
+    # watches longer than a loaded machine's stall of the node's thread (125 ms under stress-ng --cpu 4): the
+    # heartbeat's 3 periods less the one a heartbeat may already be old when the thread stalls
+    device = _device_on(paired, heartbeat_ms=200 if lost == "heartbeat" else 1000, tpdo_timeout_ms=200)
     try:
         device.configure()
         device.activate()
@@ -397,7 +398,7 @@ def test_a_lost_heartbeat_or_tpdo_is_a_named_fault(lost: str) -> None:
                 paired.node.tick = lambda now_s: []  # type: ignore[method-assign]  # the node's heartbeat stops
             else:
                 paired.answering = False  # the node answers nothing more
-        message = (r"joint 'wheel' \(node 3\): heartbeat lost: none for \d+ ms \(heartbeat_ms 100\)"
+        message = (r"joint 'wheel' \(node 3\): heartbeat lost: none for \d+ ms \(heartbeat_ms 200\)"
                    if lost == "heartbeat" else
                    r"joint 'wheel' \(node 3\): TPDO1 \(0x183\) did not come within 200 ms of SYNC")
         with pytest.raises(DeviceFault, match=message):
@@ -430,13 +431,15 @@ def test_io_list_canopen_finds_the_node_with_its_identity_and_state() -> None:
 def test_the_drive_quick_stops_when_rtloops_heartbeat_stops_for_its_consumer_time() -> None:
     log: list[str] = []
     paired = PairedNode(CanopenNode(3, log=log.append, sync_timeout_s=60.0))  # its SYNC watch out of the way
-    device = _device_on(paired, heartbeat_ms=100, master_node=5)  # 300 ms: a loaded machine's stalls are shorter
+    # the consumer's 600 ms less the period our last heartbeat may be old: past a loaded machine's stall of the
+    # node's thread (it takes the queued heartbeat after its watch looked) or of ours
+    device = _device_on(paired, heartbeat_ms=200, master_node=5)
     try:
         device.configure()
-        assert paired.node.od[(0x1016, 1)] == 5 << 16 | 300  # written by configure: node 5 watched, 3 periods
+        assert paired.node.od[(0x1016, 1)] == 5 << 16 | 600  # written by configure: node 5 watched, 3 periods
         device.activate()
         u, y = np.zeros(device.n_inputs), np.zeros(device.n_outputs)
-        for _ in range(30):  # enabled, our heartbeat sent every 100 ms
+        for _ in range(30):  # enabled, our heartbeat sent every 200 ms
             device.write(u)
             device.read(y)
             time.sleep(0.002)
@@ -450,7 +453,7 @@ def test_the_drive_quick_stops_when_rtloops_heartbeat_stops_for_its_consumer_tim
         device.close()
         paired.close()
     said = "\n".join(log)
-    assert re.search(r"node 3: heartbeat consumer: none from node 5 for \d+ ms \(0x1016: 300 ms\): EMCY 0x8130, "
+    assert re.search(r"node 3: heartbeat consumer: none from node 5 for \d+ ms \(0x1016: 600 ms\): EMCY 0x8130, "
                      r"quick stop, then pre-operational", said), said
     assert said.index("heartbeat consumer") < said.index("drive quick stop") \
         < said.index("drive switch on disabled") < said.index("NMT pre-operational (heartbeat lost)")
