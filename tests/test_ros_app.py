@@ -30,6 +30,7 @@ from ros2_peer_types import ROS2_TYPES
 pytest.importorskip("cyclonedds")
 
 from rtloop.ipc.ports import running_apps
+from rtloop.ipc.segments import SegmentRefused
 
 pytestmark = skip_in_rtkernel_guest(
     "ROS 2 over DDS is host networking, not the RT kernel or a driver; these tests run JIWY at 1 kHz, "
@@ -316,8 +317,13 @@ def test_setpoints_from_ros2_move_the_gimbal_bad_ones_are_rejected_counted_and_n
     peer = Peer("publish", "rt/jiwy/setpoint", json.dumps(messages), domain=domain)  # Python json writes NaN/Infinity
     try:
         peer.expect("MATCHED")
-        peer.expect("DONE")  # a second after the last message: each was taken or rejected by then
-        time.sleep(0.5)  # and the gimbal has followed the last one
+        peer.expect("DONE")  # a second after the last message was written
+        # ... taken by the bridge when the machine runs it: until the port holds the last setpoint
+        app, deadline = wait_for_app(run.pid), time.monotonic() + START_TIMEOUT_S
+        while not _holds(app, "setpoint", [0.4, -0.2]):
+            assert time.monotonic() < deadline, "the last setpoint never reached the port"
+            time.sleep(0.05)
+        time.sleep(0.5)  # and the gimbal has followed it (it settles in ~0.2 s; the tasks run at SCHED_FIFO)
         run.send_signal(signal.SIGINT)
         code, stderr = finish(run)
     finally:
@@ -344,6 +350,14 @@ def test_setpoints_from_ros2_move_the_gimbal_bad_ones_are_rejected_counted_and_n
     assert np.allclose(final[:, header.index("controller.SetPointTilt")], -0.2)
     assert np.abs(final[:, header.index("plant.AnglePan")] - 0.4).max() < 0.02, final[-1]
     assert np.abs(final[:, header.index("plant.AngleTilt")] + 0.2).max() < 0.02, final[-1]
+
+
+def _holds(app, port: str, values: list[float]) -> bool:
+    """Whether input ``port`` of the running ``app`` holds ``values`` now (False while a writer holds it)."""
+    try:
+        return app.peek(port).tolist() == values
+    except SegmentRefused:
+        return False
 
 
 def _cyclonedds_subscribe(domain: int, topic: str, *, samples: int, within_s: float) -> str:
