@@ -13,6 +13,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from conftest import unique_name
 from device_test_drivers import read_log
 
@@ -111,3 +113,92 @@ def test_a_run_says_its_code_took_over_sigterm(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     notes = json.loads((tmp_path / "out" / "summary.json").read_text())["notes"]
     assert any("task ctl: its code replaced rtloop's handler of SIGTERM" in note for note in notes), notes
+
+
+HANGS = '''
+import os
+import signal
+import time
+
+from rtloop import Runnable
+
+
+class KillsItsSupervisorThenHangs(Runnable):
+    """At cycle 20 (or the first after it), SIGKILLs the supervisor, then its step never returns: it
+    sleeps (only a stop signal's exception ends it), or, ``deaf``, with the watchdog's signal blocked
+    as a step stuck in C code may be."""
+
+    n_inputs = n_outputs = 1
+
+    def __init__(self, supervisor_pid_file, deaf):
+        self.supervisor_pid_file, self.deaf = supervisor_pid_file, deaf
+
+    def step(self, u, y):
+        y[0] = u[0] + 1.0
+        if self.tick.cycle >= 20:
+            if self.deaf:
+                signal.pthread_sigmask(signal.SIG_BLOCK, [signal.SIGRTMIN + 6])
+            with open(self.supervisor_pid_file) as pid_file:
+                os.kill(int(pid_file.read()), signal.SIGKILL)
+            while True:
+                time.sleep(0.05)
+'''
+RUNNER = '''
+import os
+import sys
+from pathlib import Path
+
+import rtloop
+from hangs import KillsItsSupervisorThenHangs
+from rtloop import App
+from rtloop.runtime.session import Limits
+
+here = Path(__file__).parent
+(here / "supervisor.pid").write_text(str(os.getpid()))
+app = App(sys.argv[1])
+ctl = app.add_task("ctl", KillsItsSupervisorThenHangs(str(here / "supervisor.pid"), sys.argv[2] == "deaf"),
+                   period_ns=2_000_000, policy="other", watchdog_periods=1)
+dev = app.add_device("dev", "device_test_drivers:LogDevice", task="ctl", log=str(here / "dev.log"),
+                     limits={"c0": {"min": -1e6, "max": 1e6, "safe": -7.0}})
+app.connect(ctl.y[0], dev.u[0])
+app.connect(dev.y[0], ctl.u[0])
+rtloop.run(app, None, here / "out", limits=Limits(watchdog_min_s=2.0, watchdog_grace_s=float(sys.argv[3])))
+'''
+
+
+@pytest.mark.parametrize("deaf", [False, True], ids=["step-broken", "process-ended"])
+def test_a_step_stuck_after_its_supervisor_died_is_broken_by_the_tasks_own_watchdog(tmp_path: Path,
+                                                                                 deaf: bool) -> None:
+    """The supervisor SIGKILLed while the step does not return: its watchdog is gone with it, so the
+    task's own (kernel timers set at the parent-death signal) breaks the step after the watchdog's
+    limit, 2 s here, and the device gets its safe value; a step that cannot be broken (the signal
+    blocked) is ended with its process when the supervisor would have killed it. Before, the task
+    stayed stuck for good, its device holding the last command."""
+    (tmp_path / "hangs.py").write_text(HANGS)
+    (tmp_path / "runner.py").write_text(RUNNER)
+    grace_s = "1.0" if deaf else "120.0"  # when the process is ended: 2 s + the grace, or well after the test
+    env = {**_env(), "PYTHONPATH": os.pathsep.join([str(tmp_path), _env()["PYTHONPATH"]])}
+    with open(tmp_path / "stderr.txt", "w") as stderr:  # a file: the task, which may outlive it, holds it too
+        supervisor = subprocess.Popen([sys.executable, str(tmp_path / "runner.py"), unique_name("orphan_stuck"),
+                                       "deaf" if deaf else "hears", grace_s], stdout=subprocess.DEVNULL,
+                                      stderr=stderr, start_new_session=True, env=env)
+    task_pid = 0
+    try:
+        supervisor.wait(timeout=120)  # until the step kills it
+        assert supervisor.returncode == -signal.SIGKILL, (tmp_path / "stderr.txt").read_text()
+        task_pid = int((tmp_path / "dev.log.pid").read_text())
+        end = time.monotonic() + 60
+        while time.monotonic() < end and _alive(task_pid):
+            time.sleep(0.1)
+        assert not _alive(task_pid), "the task stayed stuck with no supervisor"
+        log = read_log(tmp_path / "dev.log")
+        if deaf:  # SIGKILL: nothing more reached the device (its own watch, or the bus's, has to stop it)
+            assert log[-1].startswith("write ") and "safe -7.0" not in log[log.index("activate"):], log[-5:]
+        else:
+            assert log[-3:] == ["safe -7.0", "deactivate", "close"], log[-5:]
+    finally:
+        if supervisor.poll() is None:
+            supervisor.kill()
+            supervisor.wait()
+        if task_pid and _alive(task_pid):
+            os.kill(task_pid, signal.SIGKILL)

@@ -280,6 +280,29 @@ def limit_realtime_cpu(soft_s: float, hard_s: float) -> None:
                         "a hard limit above the current one needs root (CAP_SYS_RESOURCE)") from None
 
 
+class _SignalEvent(ctypes.Structure):
+    """struct sigevent for SIGEV_SIGNAL (Linux: 64 bytes)."""
+
+    _fields_ = (("value", ctypes.c_void_p), ("signo", ctypes.c_int), ("notify", ctypes.c_int),
+                ("rest", ctypes.c_int * 12))
+
+
+class _TimerSpec(ctypes.Structure):
+    _fields_ = (("interval", Timespec), ("value", Timespec))
+
+
+def signal_self_after(signum: int, after_s: float) -> None:
+    """Have the kernel send this process ``signum`` once, ``after_s`` from now (a POSIX timer on
+    CLOCK_MONOTONIC): a deadline that needs no thread of this process to be running, and SIGKILL
+    ends the process whatever it is stuck in."""
+    event = _SignalEvent(None, signum, 0)  # SIGEV_SIGNAL
+    timer = ctypes.c_void_p()
+    _check("timer_create", _libc.timer_create(CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)))
+    whole_s = int(after_s)
+    when = _TimerSpec(Timespec(0, 0), Timespec(whole_s, max(1, round((after_s - whole_s) * 1e9))))
+    _check("timer_settime", _libc.timer_settime(timer, 0, ctypes.byref(when), None))
+
+
 def lock_memory() -> bool:
     """mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT): no page faults from swapping in the loop.
 

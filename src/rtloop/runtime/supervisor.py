@@ -209,7 +209,8 @@ class Supervisor:
                     process = context.Process(
                         target=task_process_main,
                         args=(spec.config, runnables[name], handles.plan, handles.segments, writer, devices[name],
-                              self.watchdog.spin_limit_s(spec.config), child_start(server)),
+                              self.watchdog.spin_limit_s(spec.config), child_start(server),
+                              self.watchdog.orphan_limits_s(spec.config)),
                         name=f"rtloop-{self.app.name}-{name}",
                     )
                     process.start()

@@ -19,7 +19,7 @@ from typing import Any
 
 from rtloop.app.byvalue import loads_runnable
 from rtloop.app.specs import TaskConfig
-from rtloop.errors import DeadlineMissesExceeded, DeviceError, DeviceMismatch, StopRequested, WatchdogExpired
+from rtloop.errors import DeadlineMissesExceeded, DeviceError, DeviceMismatch, LibcError, StopRequested, WatchdogExpired
 from rtloop.io.host import DeviceWiring, TaskDevices
 from rtloop.ipc.hotpath import CYCLE_LATE, SNAPSHOT_DUE
 from rtloop.ipc.ring import Int64Ring
@@ -56,10 +56,16 @@ class StopRequests:
     supervisor or another task may have set: a process-group SIGTERM racing the supervisor's is a
     first request, not a second). The first stops the app in order; a second one, or the watchdog's,
     breaks a step with devices that does not return, so the devices still get their safe values. The
-    supervisor's death is one request however often the kernel says it (once per exiting thread)."""
+    supervisor's death is one request however often the kernel says it (once per exiting thread).
 
-    def __init__(self, control: WordBlock) -> None:
+    With the supervisor gone, its watchdog and its kill of a task that does not stop are gone too:
+    the task sets kernel timers for both (``orphan_limits_s``: the watchdog's limit, None when it is
+    off, and when to end the process), so a step stuck then is still broken (its devices made safe)
+    and the process still ends."""
+
+    def __init__(self, control: WordBlock, orphan_limits_s: tuple[float | None, float] | None = None) -> None:
         self.control = control
+        self.orphan_limits_s = orphan_limits_s
         self.count = 0
         self.supervisor_gone = False
         self.task: RealtimeTask | None = None
@@ -70,13 +76,30 @@ class StopRequests:
             if self.supervisor_gone:
                 return
             self.supervisor_gone = True
+            self._watch_without_supervisor()
         if signum != STEP_STUCK:
             self.count += 1
         self.control[ControlWord.STOP] = 1
         task = self.task
-        if (signum == STEP_STUCK or self.count > 1) and task is not None and task.devices and task.in_loop:
+        if task is None or not task.in_loop:
+            return
+        if signum == STEP_STUCK and self.supervisor_gone:  # (no watchdog breaks a device-less task's step then)
+            raise TimeoutError("stopped by its own watchdog after its supervisor died, while its step did not "
+                               "return" + (" (the devices were made safe)" if task.devices else ""))
+        if (signum == STEP_STUCK or self.count > 1) and task.devices:
             who = "the watchdog" if signum == STEP_STUCK else "a second stop request"
             raise TimeoutError(f"stopped by {who} while its step did not return (the devices were made safe)")
+
+    def _watch_without_supervisor(self) -> None:
+        if self.orphan_limits_s is None:
+            return
+        stuck_after_s, end_after_s = self.orphan_limits_s
+        try:
+            if stuck_after_s is not None:
+                rt.signal_self_after(STEP_STUCK, stuck_after_s)
+            rt.signal_self_after(signal.SIGKILL, end_after_s)
+        except LibcError:
+            pass  # (no timer left in this process's limit) the stop goes on in order all the same
 
 
 
@@ -169,10 +192,13 @@ def task_process_main(
     devices: tuple[DeviceWiring, ...] | bytes = (),
     spin_limit_s: tuple[float, float] | None = None,
     start: ChildStart | None = None,
+    orphan_limits_s: tuple[float | None, float] | None = None,
 ) -> None:
     """Entry point of a task process (started by the supervisor, forked from its task server or
     spawned: runtime/task_start.py). ``spin_limit_s``: how long the loop may run at a real-time
-    priority without sleeping before it fails, then is killed. ``start``: what it puts back first."""
+    priority without sleeping before it fails, then is killed. ``start``: what it puts back first.
+    ``orphan_limits_s``: once the supervisor died, when a step that has not returned is broken (None:
+    the watchdog is off) and when the process ends (:class:`StopRequests`)."""
     if start is not None:  # forked: the supervisor's environment and CPUs, not the server's
         start.adopt()
     # Ctrl-C reaches the whole process group; the supervisor decides when tasks stop.
@@ -183,7 +209,7 @@ def task_process_main(
     control = WordBlock(control_segment, 0, CONTROL_WORDS)
     # SIGTERM (from a user, or from the kernel when the supervisor dies) stops the whole
     # app the orderly way: the loop sees the stop flag and postrun still runs.
-    stop_in_order = StopRequests(control)
+    stop_in_order = StopRequests(control, orphan_limits_s)
     for signum in STOP_SIGNALS:
         signal.signal(signum, stop_in_order)
     rt.die_with_parent(SUPERVISOR_GONE)  # the parent: the task server when forked, which ends with the supervisor

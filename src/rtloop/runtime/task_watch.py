@@ -54,6 +54,17 @@ class Watchdog:
         limit_s = self.limit_ns(config) / 1e9
         return limit_s, limit_s + self.limits.watchdog_grace_s
 
+    def orphan_limits_s(self, config: Any) -> tuple[float | None, float]:
+        """What a task does on its own once this supervisor died (runtime/task.py, StopRequests): after
+        the watchdog's limit it breaks a step that has not returned (None: the watchdog is off), and it
+        ends its process when this supervisor would have killed it, the watchdog's grace or the stop's
+        grace later."""
+        stop_by_s = self.limits.stop_grace_s + config.period_ns / 1e9
+        if not config.watchdog_periods:
+            return None, stop_by_s
+        stuck_after_s = self.limit_ns(config) / 1e9
+        return stuck_after_s, max(stop_by_s, stuck_after_s + self.limits.watchdog_grace_s)
+
     def find_stuck(self, runs: dict[str, TaskProcess], layout: AppLayout, recorder: Any,
                    t0_ns: int) -> tuple[TaskProcess, TaskFailed] | None:
         """The first stuck task and its failure (it is marked stuck), or None."""
