@@ -61,9 +61,18 @@ def test_run_writes_summary_and_timing_as_specified(tmp_path: Path) -> None:
     assert first_b["release_ns"] == next(r for r in a_rows if r["cycle"] == "0")["release_ns"]
     signals = read_csv(tmp_path / "signals.csv")
     assert list(signals[0]) == ["t_s", "a.y[0]", "a.y[1]"]
-    # the row at t holds what is valid from t on: the job released at 2P publishes at 3P
+    # the row at t holds what is valid from t on: the job released at kP publishes at (k+1)P, never
+    # sooner; a release a loaded machine skipped has no row (seen once: a stall right after T0 left
+    # the first rows at 0 and 36 ms), so the rows that are there are checked, each at its time
     assert signals[0]["t_s"] == "0.0" and float(signals[0]["a.y[0]"]) == 0.0  # initial outputs
-    assert signals[3]["t_s"] == repr(3 * P / 1e9) and float(signals[3]["a.y[1]"]) == 2 * P * 1e-9
+    times_s = [float(row["t_s"]) for row in signals]
+    assert all(row["t_s"] == repr(round(t_s * 1e9 / P) * P / 1e9) for row, t_s in zip(signals, times_s, strict=True))
+    published = [(t_s, float(row["a.y[1]"])) for row, t_s in zip(signals[1:], times_s[1:], strict=True)]
+    assert all(t_s >= job_s + P / 1e9 - 1e-12 for t_s, job_s in published), "an output valid before release + P"
+    on_time = [t_s for t_s, job_s in published if abs(t_s - job_s - P / 1e9) < 1e-12]
+    assert len(on_time) >= len(published) // 2, published[:10]
+    if signals[3]["t_s"] == repr(3 * P / 1e9):
+        assert float(signals[3]["a.y[1]"]) == 2 * P * 1e-9
 
 
 @pytest.mark.rt
