@@ -278,6 +278,8 @@ class _Drive:
                 frame = bytearray(self.end.recv(2048))
             except OSError:
                 return
+            if not frame:
+                return  # shut down by close()
             if frame[16] != 12:  # not the LRW (the state request)
                 continue
             word = frame[control_at] | frame[control_at + 1] << 8
@@ -286,7 +288,23 @@ class _Drive:
                 status = 0x0407 if word == cia402.CW_QUICK_STOP else 0x0040  # at rest in quick stop; disabled
                 frame[status_at:status_at + 2] = status.to_bytes(2, "little")
                 frame[self.device._wkc_at:self.device._wkc_at + 2] = (3).to_bytes(2, "little")
-                self.end.send(bytes(frame))
+                try:
+                    self.end.send(bytes(frame))
+                except OSError:
+                    return  # the device's end is closed: the test is over
+
+    def close(self) -> None:
+        """The device's end, then this thread and its end: none is left for another test's garbage
+        collection (a ResourceWarning there, or this thread's late send failing in another test, was
+        that test's failure)."""
+        import contextlib
+        import socket
+
+        self.device.socket.close()
+        with contextlib.suppress(OSError):
+            self.end.shutdown(socket.SHUT_RDWR)
+        self.thread.join(5)
+        self.end.close()
 
 
 def _device_stopping(lost_frames_max: int, answer: bool, quick_stop_timeout_s: float = 0.1) -> tuple[Any, _Drive]:
@@ -326,7 +344,7 @@ def test_a_safe_transition_whose_frames_are_lost_is_a_fault_that_says_so(lost_fr
                                               r"SAFE-OP asked for"):
             device.write_safe(np.zeros(device.n_inputs))
     finally:
-        device.socket.close()
+        drive.close()
     assert drive.controlwords and set(drive.controlwords) == {0x0002}  # quick stop went out, frame after frame
 
 
@@ -339,7 +357,7 @@ def test_a_safe_transition_the_drive_follows_ends_quietly() -> None:
     try:
         device.write_safe(np.zeros(device.n_inputs))
     finally:
-        device.socket.close()
+        drive.close()
     assert 0x0000 in drive.controlwords, drive.controlwords  # disable voltage went out
     first_disable = drive.controlwords.index(0x0000)
     assert first_disable >= 1 and set(drive.controlwords[:first_disable]) == {0x0002}, drive.controlwords
