@@ -40,13 +40,23 @@ class SimLine:
 KEPT_BYTES_ALLOWED = 256
 
 
+NOT_XDIST = tracemalloc.Filter(False, "*/execnet/*", all_frames=True)
+"""Leaves out another thread of the test process: xdist's, taking a message from its controller while the
+cycles run (worksteal asks busy workers for tests), once added 1,266 bytes."""
+
+
 def _traced_by_the_cycle() -> int:
-    """Bytes traced, but neither those of another thread of the test process (xdist's, taking a message from
-    its controller, once added 1,266 bytes) nor those of this count itself (its snapshot, fnmatch's and re's
-    caches)."""
-    others = [tracemalloc.Filter(False, "*/execnet/*", all_frames=True),
-              tracemalloc.Filter(False, tracemalloc.__file__, all_frames=True)]
+    """Bytes traced, but neither those of xdist's thread nor those of this count itself (its snapshot,
+    fnmatch's and re's caches)."""
+    others = [NOT_XDIST, tracemalloc.Filter(False, tracemalloc.__file__, all_frames=True)]
     return sum(stat.size for stat in tracemalloc.take_snapshot().filter_traces(others).statistics("filename"))
+
+
+def bytes_grown(before: tracemalloc.Snapshot, after: tracemalloc.Snapshot) -> int:
+    """What the files whose allocations grew between two snapshots grew by, xdist's thread left out."""
+    mine = [NOT_XDIST]
+    return sum(stat.size_diff for stat in after.filter_traces(mine).compare_to(before.filter_traces(mine), "filename")
+               if stat.size_diff > 0)
 
 
 def bytes_kept_by(cycle, cycles):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from device_test_drivers import LogDevice, MirrorTwin
+from io_guest_devices import bytes_grown
 from rtloop import App, Runnable
 from rtloop.app.appfile import load_app
 from rtloop.errors import AppError, AppFileError, DeviceError, DeviceFault
@@ -229,10 +230,7 @@ def test_the_guard_allocates_nothing_per_cycle() -> None:
         guard.apply(u, "ctl", cycle)
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
-    # not another thread's: in an xdist worker, execnet's taking a message from the controller (~1.3 KB)
-    mine = [tracemalloc.Filter(False, "*/execnet/*")]
-    grown = sum(stat.size_diff for stat in after.filter_traces(mine).compare_to(before.filter_traces(mine), "filename")
-                if stat.size_diff > 0)
+    grown = bytes_grown(before, after)
     assert grown < 4096, grown
 
 

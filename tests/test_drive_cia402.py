@@ -8,6 +8,7 @@ import tracemalloc
 
 import pytest
 
+from io_guest_devices import bytes_grown
 from rtloop.io.drives import cia402
 from rtloop.io.drives.cia402 import Cia402State, JointScale, JointStateMachine, StatusBits, state_of, to_raw
 from rtloop.io.drives.drive_model import FOLLOWING_ERROR_CODE, INJECTED_FAULT_CODE, DriveModel, DriveParameters
@@ -142,8 +143,5 @@ def test_the_state_machine_and_the_model_allocate_nothing_per_exchange() -> None
     cycles(10_000)
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
-    # not another thread's: in an xdist worker, execnet's taking a message from the controller (~1.3 KB)
-    mine = [tracemalloc.Filter(False, "*/execnet/*")]
-    grown = sum(stat.size_diff for stat in after.filter_traces(mine).compare_to(before.filter_traces(mine), "filename")
-                if stat.size_diff > 0)
+    grown = bytes_grown(before, after)
     assert grown < 2048, grown
