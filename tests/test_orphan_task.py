@@ -78,6 +78,22 @@ def _alive(pid: int) -> bool:
         return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
 
 
+def _gone_within(bound_s: float, pid: int) -> bool:
+    end = time.monotonic() + bound_s
+    while time.monotonic() < end and _alive(pid):
+        time.sleep(0.1)
+    return not _alive(pid)
+
+
+def _end(supervisor: subprocess.Popen[bytes], task_pid: int) -> None:
+    """What a test started and left running (after a failure): the supervisor, then the task (0: unknown)."""
+    if supervisor.poll() is None:
+        supervisor.kill()
+        supervisor.wait()
+    if task_pid and _alive(task_pid):
+        os.kill(task_pid, signal.SIGKILL)
+
+
 def test_a_task_that_ignores_sigterm_stops_in_order_when_its_supervisor_is_killed(tmp_path: Path) -> None:
     app = _app(tmp_path, "orphan")
     out = tmp_path / "out"
@@ -92,18 +108,11 @@ def test_a_task_that_ignores_sigterm_stops_in_order_when_its_supervisor_is_kille
         task_pid = int((tmp_path / "dev.log.pid").read_text())
         supervisor.kill()  # SIGKILL: no orderly stop from the supervisor
         supervisor.wait()
-        end = time.monotonic() + 30
-        while time.monotonic() < end and _alive(task_pid):
-            time.sleep(0.1)
-        assert not _alive(task_pid), "the task went on running its loop with no supervisor"
+        assert _gone_within(30, task_pid), "the task went on running its loop with no supervisor"
         log = read_log(tmp_path / "dev.log")
         assert log[-3:] == ["safe -7.0", "deactivate", "close"], log[-5:]
     finally:
-        if supervisor.poll() is None:
-            supervisor.kill()
-            supervisor.wait()
-        if task_pid and _alive(task_pid):
-            os.kill(task_pid, signal.SIGKILL)
+        _end(supervisor, task_pid)
 
 
 def test_a_run_says_its_code_took_over_sigterm(tmp_path: Path) -> None:
@@ -187,18 +196,11 @@ def test_a_step_stuck_after_its_supervisor_died_is_broken_by_the_tasks_own_watch
         supervisor.wait(timeout=120)  # until the step kills it
         assert supervisor.returncode == -signal.SIGKILL, (tmp_path / "stderr.txt").read_text()
         task_pid = int((tmp_path / "dev.log.pid").read_text())
-        end = time.monotonic() + 60
-        while time.monotonic() < end and _alive(task_pid):
-            time.sleep(0.1)
-        assert not _alive(task_pid), "the task stayed stuck with no supervisor"
+        assert _gone_within(60, task_pid), "the task stayed stuck with no supervisor"
         log = read_log(tmp_path / "dev.log")
         if deaf:  # SIGKILL: nothing more reached the device (its own watch, or the bus's, has to stop it)
             assert log[-1].startswith("write ") and "safe -7.0" not in log[log.index("activate"):], log[-5:]
         else:
             assert log[-3:] == ["safe -7.0", "deactivate", "close"], log[-5:]
     finally:
-        if supervisor.poll() is None:
-            supervisor.kill()
-            supervisor.wait()
-        if task_pid and _alive(task_pid):
-            os.kill(task_pid, signal.SIGKILL)
+        _end(supervisor, task_pid)
